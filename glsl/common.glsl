@@ -1,0 +1,93 @@
+// The one source of truth for constants and structs shared by the GLSL kernels and Rust.
+// build.rs turns every `#define NAME <int>` into a Rust `u32` constant and every struct into a
+// `#[repr(C)]` Rust struct (module `instgs_vk::shared`). Descriptor bindings live in the kernels
+// and Rust finds them by variable name through SPIR-V reflection.
+#ifndef INSTGS_COMMON_GLSL
+#define INSTGS_COMMON_GLSL
+
+// Threads per workgroup for one-thread-per-item kernels.
+#define WG_SIZE 256
+// Screen tiles are TILE_SIZE x TILE_SIZE pixels; blend runs one workgroup per tile.
+#define TILE_SIZE 16
+// Generic exclusive scan: each thread owns SCAN_ITEMS consecutive items.
+#define SCAN_ITEMS 8
+#define SCAN_BLOCK 2048
+// Radix sort: RADIX_BITS per pass; each thread owns SORT_ITEMS consecutive keys.
+#define RADIX_BITS 4
+#define RADIX_BINS 16
+#define SORT_ITEMS 16
+#define SORT_BLOCK 4096
+// Indirect dispatches are clamped to this many workgroups; kernels loop grid-stride.
+#define MAX_GROUPS 65535
+
+// Slots of the `counts` buffer (GPU-written sizes that later passes read).
+#define COUNT_GAUSSIANS 0
+#define COUNT_VISIBLE 1
+#define COUNT_ISECT 2
+#define COUNT_ISECT_NEEDED 3
+#define COUNT_SORT 4
+#define COUNT_SLOTS 8
+
+// Each count slot owns ARGS_PER_SLOT VkDispatchIndirectCommand entries (3 uints each):
+#define ARGS_ITEMS 0
+#define ARGS_SORT_BLOCKS 1
+#define ARGS_SCAN_BLOCKS 2
+#define ARGS_PER_SLOT 3
+
+// Input modes of the generic scan.
+#define SCAN_MODE_VALUE 0
+#define SCAN_MODE_NONZERO 1
+#define SCAN_MODE_GATHER 2
+
+#define NO_SLOT 0xFFFFFFFF
+
+/// Per-frame camera and image parameters (uniform buffer of the forward passes).
+/// Camera is OpenCV: +X right, +Y down, +Z forward; viewmat maps world to camera.
+struct FrameParams {
+    mat4 viewmat; // world -> camera, column-major
+    vec4 intrinsics; // fx, fy, cx, cy in pixels; pixel (0,0) centre at (0.5, 0.5)
+    vec4 campos; // camera centre in world space (w unused)
+    vec4 background; // rgb background colour (a unused)
+    uint width; // image width in pixels
+    uint height; // image height in pixels
+    uint tiles_x; // ceil(width / TILE_SIZE)
+    uint tiles_y; // ceil(height / TILE_SIZE)
+    uint num_gaussians; // N
+    uint sh_degree; // SH degree evaluated (0..3)
+    uint sh_coeffs; // SH coefficients stored per Gaussian and channel ((degree+1)^2 of the scene)
+    uint isect_capacity; // length of the intersection buffers
+    float near_plane; // Gaussians with camera z <= near_plane are culled
+    float far_plane; // and with z > far_plane
+    uint _pad0;
+    uint _pad1;
+};
+
+/// Push constants of the generic scan kernels.
+struct ScanArgs {
+    uint count_slot; // counts[count_slot] = number of items
+    uint mode; // SCAN_MODE_*
+    uint out_slot; // counts[out_slot] <- total, or NO_SLOT
+    uint clamp_slot; // counts[clamp_slot] <- min(total, capacity), or NO_SLOT
+    uint capacity; // capacity for clamp_slot
+    uint divisor; // scan_blocks: length = ceil(count / divisor) * multiplier
+    uint multiplier;
+    uint _pad0;
+};
+
+/// Push constants of the radix sort kernels.
+struct SortArgs {
+    uint count_slot; // counts[count_slot] = number of keys
+    uint shift; // first key bit of this pass
+    uint _pad0;
+    uint _pad1;
+};
+
+/// Push constants of the indirect-argument writer.
+struct DispatchArgs {
+    uint count_slot; // reads counts[count_slot], writes args[count_slot * ARGS_PER_SLOT + k]
+    uint _pad0;
+    uint _pad1;
+    uint _pad2;
+};
+
+#endif

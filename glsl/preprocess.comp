@@ -1,0 +1,117 @@
+#version 450
+// Forward pass 1, one invocation per Gaussian: cull, 3D covariance, EWA projection, conic,
+// screen radius, tile rectangle, SH colour and depth. Maths as Inria 3DGS / gsplat:
+// Sigma = R S S^T R^T; Sigma2D = J W Sigma W^T J^T + 0.3 I with the Jacobian's x/z, y/z clamped
+// to 1.3x the field of view; radius = ceil(3 sqrt(lambda_max)); colour = SH(dir) + 0.5, clamped
+// at 0, dir from the camera centre to the world mean. A culled Gaussian gets tiles_touched = 0.
+#include "common.glsl"
+#include "sh.glsl"
+layout(local_size_x = WG_SIZE) in;
+layout(std140, binding = 0) uniform FrameBuf { FrameParams p; } frame;
+layout(std430, binding = 1) readonly buffer MeansBuf { float v[]; } means;
+layout(std430, binding = 2) readonly buffer ScalesBuf { float v[]; } scales;
+layout(std430, binding = 3) readonly buffer QuatsBuf { vec4 v[]; } quats;
+layout(std430, binding = 4) readonly buffer OpacitiesBuf { float v[]; } opacities;
+layout(std430, binding = 5) readonly buffer ShBuf { float v[]; } sh;
+layout(std430, binding = 6) writeonly buffer XysBuf { vec2 v[]; } xys;
+layout(std430, binding = 7) writeonly buffer ConicsBuf { vec4 v[]; } conics;
+layout(std430, binding = 8) writeonly buffer ColorsBuf { vec4 v[]; } colors;
+layout(std430, binding = 9) writeonly buffer DepthsBuf { float v[]; } depths;
+layout(std430, binding = 10) writeonly buffer RadiiBuf { uint v[]; } radii;
+layout(std430, binding = 11) writeonly buffer TilesTouchedBuf { uint v[]; } tiles_touched;
+
+void cull(uint i) {
+    radii.v[i] = 0;
+    tiles_touched.v[i] = 0;
+    xys.v[i] = vec2(0.0);
+    conics.v[i] = vec4(0.0);
+    colors.v[i] = vec4(0.0);
+    depths.v[i] = 0.0;
+}
+
+void preprocess(uint i) {
+    vec3 p = vec3(means.v[3 * i], means.v[3 * i + 1], means.v[3 * i + 2]);
+    vec3 t = (frame.p.viewmat * vec4(p, 1.0)).xyz;
+    if (t.z <= frame.p.near_plane || t.z > frame.p.far_plane) {
+        cull(i);
+        return;
+    }
+    vec4 q = quats.v[i];
+    q /= length(q);
+    float w = q.x, x = q.y, y = q.z, z = q.w;
+    mat3 R = mat3(1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y + w * z), 2.0 * (x * z - w * y),
+                  2.0 * (x * y - w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z + w * x),
+                  2.0 * (x * z + w * y), 2.0 * (y * z - w * x), 1.0 - 2.0 * (x * x + y * y));
+    vec3 s = exp(vec3(scales.v[3 * i], scales.v[3 * i + 1], scales.v[3 * i + 2]));
+    mat3 M = R * mat3(s.x, 0, 0, 0, s.y, 0, 0, 0, s.z);
+    mat3 W = mat3(frame.p.viewmat);
+    mat3 V = W * (M * transpose(M)) * transpose(W);
+
+    float fx = frame.p.intrinsics.x, fy = frame.p.intrinsics.y;
+    float cx = frame.p.intrinsics.z, cy = frame.p.intrinsics.w;
+    float tan_fovx = 0.5 * float(frame.p.width) / fx;
+    float tan_fovy = 0.5 * float(frame.p.height) / fy;
+    float lim_xp = (float(frame.p.width) - cx) / fx + 0.3 * tan_fovx;
+    float lim_xn = cx / fx + 0.3 * tan_fovx;
+    float lim_yp = (float(frame.p.height) - cy) / fy + 0.3 * tan_fovy;
+    float lim_yn = cy / fy + 0.3 * tan_fovy;
+    float rz = 1.0 / t.z;
+    float tx = t.z * min(lim_xp, max(-lim_xn, t.x * rz));
+    float ty = t.z * min(lim_yp, max(-lim_yn, t.y * rz));
+    // J rows: (fx/z, 0, -fx tx/z^2), (0, fy/z, -fy ty/z^2)
+    vec3 j0 = vec3(fx * rz, 0.0, -fx * tx * rz * rz);
+    vec3 j1 = vec3(0.0, fy * rz, -fy * ty * rz * rz);
+    vec3 Vj0 = V * j0;
+    vec3 Vj1 = V * j1;
+    float a = dot(j0, Vj0) + 0.3;
+    float b = dot(j0, Vj1);
+    float c = dot(j1, Vj1) + 0.3;
+    float det = a * c - b * b;
+    if (det <= 0.0) {
+        cull(i);
+        return;
+    }
+    float inv_det = 1.0 / det;
+    vec3 conic = vec3(c * inv_det, -b * inv_det, a * inv_det);
+    float mid = 0.5 * (a + c);
+    float lambda = mid + sqrt(max(0.1, mid * mid - det));
+    uint radius = uint(ceil(3.0 * sqrt(lambda)));
+    vec2 xy = vec2(fx * t.x * rz + cx, fy * t.y * rz + cy);
+
+    // Tile rectangle as Inria's getRect, on Inria's pixel coordinates (xy - 0.5).
+    vec2 pc = xy - 0.5;
+    float r = float(radius);
+    ivec2 grid = ivec2(frame.p.tiles_x, frame.p.tiles_y);
+    ivec2 rmin = min(grid, max(ivec2(0), ivec2((pc - r) / float(TILE_SIZE))));
+    ivec2 rmax = min(grid, max(ivec2(0), ivec2((pc + r + float(TILE_SIZE - 1)) / float(TILE_SIZE))));
+    uint touched = uint((rmax.x - rmin.x) * (rmax.y - rmin.y));
+    if (touched == 0) {
+        cull(i);
+        return;
+    }
+
+    vec3 dir = normalize(p - frame.p.campos.xyz);
+    float basis[16];
+    sh_basis(dir, frame.p.sh_degree, basis);
+    uint nb = (frame.p.sh_degree + 1) * (frame.p.sh_degree + 1);
+    vec3 rgb = vec3(0.0);
+    uint off = i * frame.p.sh_coeffs * 3;
+    for (uint k = 0; k < nb; k++) {
+        rgb += basis[k] * vec3(sh.v[off + 3 * k], sh.v[off + 3 * k + 1], sh.v[off + 3 * k + 2]);
+    }
+    rgb = max(rgb + 0.5, vec3(0.0));
+
+    float opacity = 1.0 / (1.0 + exp(-opacities.v[i]));
+    xys.v[i] = xy;
+    conics.v[i] = vec4(conic, opacity);
+    colors.v[i] = vec4(rgb, 0.0);
+    depths.v[i] = t.z;
+    radii.v[i] = radius;
+    tiles_touched.v[i] = touched;
+}
+
+void main() {
+    for (uint i = gl_GlobalInvocationID.x; i < frame.p.num_gaussians; i += gl_NumWorkGroups.x * WG_SIZE) {
+        preprocess(i);
+    }
+}

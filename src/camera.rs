@@ -1,0 +1,258 @@
+//! Pinhole cameras.
+//!
+//! Internal convention: OpenCV camera (+X right, +Y down, +Z forward), `viewmat` maps world to
+//! camera, intrinsics in pixels with pixel (0, 0)'s centre at (0.5, 0.5). NeRF-synthetic
+//! `transforms_*.json` store OpenGL/Blender camera-to-world matrices (camera looks down −Z, +Y
+//! up); they are converted on load by flipping the camera's Y and Z axes.
+use std::path::Path;
+
+use anyhow::{anyhow, bail, Context, Result};
+use glam::{Mat4, Vec3, Vec4};
+
+#[derive(Clone, Debug, PartialEq)]
+pub struct Camera {
+    /// Name for output files (the frame's `file_path` basename, or `view_000`…).
+    pub name: String,
+    pub width: u32,
+    pub height: u32,
+    pub fx: f32,
+    pub fy: f32,
+    pub cx: f32,
+    pub cy: f32,
+    /// World → camera (OpenCV).
+    pub viewmat: Mat4,
+}
+
+impl Camera {
+    /// Camera centre in world space.
+    pub fn position(&self) -> Vec3 {
+        self.viewmat.inverse().w_axis.truncate()
+    }
+
+    /// From an OpenGL camera-to-world matrix.
+    pub fn from_c2w_opengl(
+        name: &str,
+        c2w: Mat4,
+        width: u32,
+        height: u32,
+        intr: [f32; 4],
+    ) -> Camera {
+        let flip = Mat4::from_diagonal(Vec4::new(1.0, -1.0, -1.0, 1.0));
+        Camera {
+            name: name.to_string(),
+            width,
+            height,
+            fx: intr[0],
+            fy: intr[1],
+            cx: intr[2],
+            cy: intr[3],
+            viewmat: (c2w * flip).inverse(),
+        }
+    }
+
+    /// The same view at another resolution (intrinsics scaled per axis).
+    pub fn resized(&self, width: u32, height: u32) -> Camera {
+        let sx = width as f32 / self.width as f32;
+        let sy = height as f32 / self.height as f32;
+        Camera {
+            width,
+            height,
+            fx: self.fx * sx,
+            fy: self.fy * sy,
+            cx: self.cx * sx,
+            cy: self.cy * sy,
+            ..self.clone()
+        }
+    }
+
+    /// Checks the values the rasterizer relies on.
+    pub fn validate(&self) -> Result<()> {
+        if self.width == 0 || self.height == 0 {
+            bail!(
+                "camera '{}': image size {}x{} is empty",
+                self.name,
+                self.width,
+                self.height
+            );
+        }
+        if !(self.fx > 0.0 && self.fy > 0.0 && self.fx.is_finite() && self.fy.is_finite()) {
+            bail!(
+                "camera '{}': focal lengths must be positive and finite",
+                self.name
+            );
+        }
+        if !(self.cx.is_finite() && self.cy.is_finite() && self.viewmat.is_finite()) {
+            bail!("camera '{}': non-finite intrinsics or pose", self.name);
+        }
+        Ok(())
+    }
+}
+
+#[derive(serde::Deserialize)]
+struct TransformsFile {
+    camera_angle_x: Option<f32>,
+    fl_x: Option<f32>,
+    fl_y: Option<f32>,
+    cx: Option<f32>,
+    cy: Option<f32>,
+    w: Option<f32>,
+    h: Option<f32>,
+    #[serde(default)]
+    frames: Vec<Frame>,
+}
+
+#[derive(serde::Deserialize)]
+struct Frame {
+    file_path: String,
+    transform_matrix: [[f32; 4]; 4],
+}
+
+/// Loads the cameras of a NeRF-synthetic `transforms_*.json`. The image size comes from `w`/`h`
+/// or, when absent, from the first frame's image file next to the JSON.
+pub fn load_transforms(path: &Path) -> Result<Vec<Camera>> {
+    let what = path.display();
+    let text = std::fs::read_to_string(path).with_context(|| format!("{what}: cannot read"))?;
+    let tf: TransformsFile =
+        serde_json::from_str(&text).map_err(|e| anyhow!("{what}: not a transforms JSON: {e}"))?;
+    if tf.frames.is_empty() {
+        bail!("{what}: no frames");
+    }
+    let (w, h) = match (tf.w, tf.h) {
+        (Some(w), Some(h)) => (w, h),
+        _ => {
+            let dir = path.parent().unwrap_or(Path::new("."));
+            let img = image_path(dir, &tf.frames[0].file_path);
+            let (w, h) = image::image_dimensions(&img).with_context(|| {
+                format!(
+                    "{what}: no w/h given and cannot read image {}",
+                    img.display()
+                )
+            })?;
+            (w as f32, h as f32)
+        }
+    };
+    if !(w >= 1.0 && h >= 1.0) {
+        bail!("{what}: image size {w}x{h} is empty");
+    }
+    let fx = match (tf.fl_x, tf.camera_angle_x) {
+        (Some(f), _) => f,
+        (None, Some(a)) => 0.5 * w / (0.5 * a).tan(),
+        (None, None) => bail!("{what}: neither fl_x nor camera_angle_x is given"),
+    };
+    let fy = tf.fl_y.unwrap_or(fx);
+    let intr = [fx, fy, tf.cx.unwrap_or(0.5 * w), tf.cy.unwrap_or(0.5 * h)];
+    let mut cams = Vec::new();
+    for (k, f) in tf.frames.iter().enumerate() {
+        // transform_matrix is row-major.
+        let c2w = Mat4::from_cols_array_2d(&f.transform_matrix).transpose();
+        let name = Path::new(&f.file_path)
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_else(|| format!("frame_{k:03}"));
+        let name = name.strip_suffix(".png").unwrap_or(&name).to_string();
+        let cam = Camera::from_c2w_opengl(&name, c2w, w.round() as u32, h.round() as u32, intr);
+        cam.validate()
+            .with_context(|| format!("{what}: frame {k}"))?;
+        cams.push(cam);
+    }
+    Ok(cams)
+}
+
+/// The image file of a frame: `file_path` as given, or with `.png` appended.
+pub fn image_path(dir: &Path, file_path: &str) -> std::path::PathBuf {
+    let p = dir.join(file_path);
+    if p.extension().is_some() && p.exists() {
+        p
+    } else {
+        dir.join(format!("{file_path}.png"))
+    }
+}
+
+/// Which world axis points up, for orbits.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum UpAxis {
+    /// −Y up: COLMAP / Inria captures (the shared splats).
+    #[value(name = "-y")]
+    NegY,
+    /// +Y up.
+    #[value(name = "+y")]
+    PosY,
+    /// +Z up: Blender / NeRF-synthetic scenes.
+    #[value(name = "+z")]
+    PosZ,
+}
+
+impl UpAxis {
+    pub fn vector(self) -> Vec3 {
+        match self {
+            UpAxis::NegY => -Vec3::Y,
+            UpAxis::PosY => Vec3::Y,
+            UpAxis::PosZ => Vec3::Z,
+        }
+    }
+}
+
+/// `n` cameras evenly spaced in azimuth on a circle `elevation_deg` above the horizontal
+/// plane, all looking at `center` from `distance`, horizontal field of view `fov_x_deg`.
+pub fn orbit(
+    n: usize,
+    center: Vec3,
+    distance: f32,
+    up: UpAxis,
+    elevation_deg: f32,
+    fov_x_deg: f32,
+    width: u32,
+    height: u32,
+) -> Vec<Camera> {
+    let upv = up.vector();
+    // Any two axes orthogonal to up span the horizontal plane.
+    let a = if upv.x.abs() < 0.9 { Vec3::X } else { Vec3::Y };
+    let e1 = (a - upv * a.dot(upv)).normalize();
+    let e2 = upv.cross(e1);
+    let fx = 0.5 * width as f32 / (0.5 * fov_x_deg.to_radians()).tan();
+    let el = elevation_deg.to_radians();
+    (0..n)
+        .map(|k| {
+            let az = std::f32::consts::TAU * k as f32 / n.max(1) as f32;
+            let dir = (e1 * az.cos() + e2 * az.sin()) * el.cos() + upv * el.sin();
+            let eye = center + dir * distance;
+            // OpenCV camera axes: z forward, x right, y down.
+            let z = (center - eye).normalize();
+            let x = z.cross(upv).normalize();
+            let y = z.cross(x);
+            let c2w = Mat4::from_cols(x.extend(0.0), y.extend(0.0), z.extend(0.0), eye.extend(1.0));
+            Camera {
+                name: format!("view_{k:03}"),
+                width,
+                height,
+                fx,
+                fy: fx,
+                cx: 0.5 * width as f32,
+                cy: 0.5 * height as f32,
+                viewmat: c2w.inverse(),
+            }
+        })
+        .collect()
+}
+
+/// An orbit framing the scene's robust bounds (2nd–98th percentile of the means).
+pub fn orbit_around(
+    scene: &crate::scene::Scene,
+    n: usize,
+    up: UpAxis,
+    width: u32,
+    height: u32,
+) -> Vec<Camera> {
+    let (lo, hi) = scene.robust_bounds(0.02);
+    let center = 0.5 * (lo + hi);
+    let radius = (0.5 * (hi - lo).length()).max(1e-3);
+    let fov_x = 50.0f32;
+    // Fit the bounding sphere into the narrower field of view.
+    let fov_min = if height <= width {
+        2.0 * ((0.5 * fov_x.to_radians()).tan() * height as f32 / width as f32).atan()
+    } else {
+        fov_x.to_radians()
+    };
+    let distance = radius / (0.5 * fov_min).sin() * 1.05;
+    orbit(n, center, distance, up, 25.0, fov_x, width, height)
+}

@@ -1,0 +1,301 @@
+//! The CPU twin of the forward rasterizer: one function per GPU pass, the same rules in the
+//! same order (f32), used by the tests to check every kernel and the whole image.
+use glam::{Mat3, Vec2, Vec3, Vec4};
+
+use crate::scene::Scene;
+use crate::shared::{FrameParams, TILE_SIZE};
+
+/// Per-Gaussian output of the preprocess pass (GPU buffers of the same names).
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Projected {
+    pub xys: Vec<[f32; 2]>,
+    /// Conic (a, b, c of the inverse 2D covariance) and opacity.
+    pub conics: Vec<[f32; 4]>,
+    /// RGB (a unused).
+    pub colors: Vec<[f32; 4]>,
+    pub depths: Vec<f32>,
+    pub radii: Vec<u32>,
+    pub tiles_touched: Vec<u32>,
+}
+
+const SH_C1: f32 = 0.488_602_52;
+const SH_C2: [f32; 5] = [
+    1.092_548_4,
+    -1.092_548_4,
+    0.315_391_57,
+    -1.092_548_4,
+    0.546_274_2,
+];
+const SH_C3: [f32; 7] = [
+    -0.590_043_6,
+    2.890_611_4,
+    -0.457_045_8,
+    0.373_176_33,
+    -0.457_045_8,
+    1.445_305_7,
+    -0.590_043_6,
+];
+
+/// SH basis values for unit direction `d` up to degree `deg` (Inria's constants and signs).
+pub fn sh_basis(d: Vec3, deg: u32) -> [f32; 16] {
+    let mut b = [0.0f32; 16];
+    b[0] = crate::scene::SH_C0;
+    if deg < 1 {
+        return b;
+    }
+    let (x, y, z) = (d.x, d.y, d.z);
+    b[1] = -SH_C1 * y;
+    b[2] = SH_C1 * z;
+    b[3] = -SH_C1 * x;
+    if deg < 2 {
+        return b;
+    }
+    let (xx, yy, zz, xy, yz, xz) = (x * x, y * y, z * z, x * y, y * z, x * z);
+    b[4] = SH_C2[0] * xy;
+    b[5] = SH_C2[1] * yz;
+    b[6] = SH_C2[2] * (2.0 * zz - xx - yy);
+    b[7] = SH_C2[3] * xz;
+    b[8] = SH_C2[4] * (xx - yy);
+    if deg < 3 {
+        return b;
+    }
+    b[9] = SH_C3[0] * y * (3.0 * xx - yy);
+    b[10] = SH_C3[1] * xy * z;
+    b[11] = SH_C3[2] * y * (4.0 * zz - xx - yy);
+    b[12] = SH_C3[3] * z * (2.0 * zz - 3.0 * xx - 3.0 * yy);
+    b[13] = SH_C3[4] * x * (4.0 * zz - xx - yy);
+    b[14] = SH_C3[5] * z * (xx - yy);
+    b[15] = SH_C3[6] * x * (xx - 3.0 * yy);
+    b
+}
+
+/// Rotation matrix of a (w, x, y, z) quaternion, normalised first.
+pub fn quat_to_mat(q: [f32; 4]) -> Mat3 {
+    let q = Vec4::from(q);
+    let q = q / q.length();
+    let (w, x, y, z) = (q.x, q.y, q.z, q.w);
+    Mat3::from_cols(
+        Vec3::new(
+            1.0 - 2.0 * (y * y + z * z),
+            2.0 * (x * y + w * z),
+            2.0 * (x * z - w * y),
+        ),
+        Vec3::new(
+            2.0 * (x * y - w * z),
+            1.0 - 2.0 * (x * x + z * z),
+            2.0 * (y * z + w * x),
+        ),
+        Vec3::new(
+            2.0 * (x * z + w * y),
+            2.0 * (y * z - w * x),
+            1.0 - 2.0 * (x * x + y * y),
+        ),
+    )
+}
+
+/// The tile rectangle [min, max) of a splat, as Inria's getRect on (xy − 0.5).
+pub fn tile_rect(fp: &FrameParams, xy: [f32; 2], radius: u32) -> ([i32; 2], [i32; 2]) {
+    let pc = Vec2::from(xy) - 0.5;
+    let r = radius as f32;
+    let t = TILE_SIZE as f32;
+    let grid = [fp.tiles_x as i32, fp.tiles_y as i32];
+    let mut lo = [0; 2];
+    let mut hi = [0; 2];
+    for a in 0..2 {
+        lo[a] = grid[a].min(0.max(((pc[a] - r) / t) as i32));
+        hi[a] = grid[a].min(0.max(((pc[a] + r + (t - 1.0)) / t) as i32));
+    }
+    (lo, hi)
+}
+
+/// Pass `preprocess`: cull, project, conic, radius, tiles touched, SH colour, depth.
+pub fn preprocess(scene: &Scene, fp: &FrameParams) -> Projected {
+    let n = scene.len();
+    let mut p = Projected {
+        xys: vec![[0.0; 2]; n],
+        conics: vec![[0.0; 4]; n],
+        colors: vec![[0.0; 4]; n],
+        depths: vec![0.0; n],
+        radii: vec![0; n],
+        tiles_touched: vec![0; n],
+    };
+    let view = glam::Mat4::from_cols_array_2d(&fp.viewmat);
+    let w_rot = Mat3::from_mat4(view);
+    let [fx, fy, cx, cy] = fp.intrinsics;
+    let (width, height) = (fp.width as f32, fp.height as f32);
+    let tan_fovx = 0.5 * width / fx;
+    let tan_fovy = 0.5 * height / fy;
+    let lim_xp = (width - cx) / fx + 0.3 * tan_fovx;
+    let lim_xn = cx / fx + 0.3 * tan_fovx;
+    let lim_yp = (height - cy) / fy + 0.3 * tan_fovy;
+    let lim_yn = cy / fy + 0.3 * tan_fovy;
+    let campos = Vec3::new(fp.campos[0], fp.campos[1], fp.campos[2]);
+    let coeffs = fp.sh_coeffs as usize;
+    for i in 0..n {
+        let mean = Vec3::from(scene.means[i]);
+        let t = (view * mean.extend(1.0)).truncate();
+        if t.z <= fp.near_plane || t.z > fp.far_plane {
+            continue;
+        }
+        let r = quat_to_mat(scene.quats[i]);
+        let s = Vec3::from(scene.scales[i]).exp();
+        let m = r * Mat3::from_diagonal(s);
+        let v = w_rot * (m * m.transpose()) * w_rot.transpose();
+        let rz = 1.0 / t.z;
+        let tx = t.z * lim_xp.min((-lim_xn).max(t.x * rz));
+        let ty = t.z * lim_yp.min((-lim_yn).max(t.y * rz));
+        let j0 = Vec3::new(fx * rz, 0.0, -fx * tx * rz * rz);
+        let j1 = Vec3::new(0.0, fy * rz, -fy * ty * rz * rz);
+        let a = j0.dot(v * j0) + 0.3;
+        let b = j0.dot(v * j1);
+        let c = j1.dot(v * j1) + 0.3;
+        let det = a * c - b * b;
+        if det <= 0.0 {
+            continue;
+        }
+        let inv_det = 1.0 / det;
+        let mid = 0.5 * (a + c);
+        let lambda = mid + (mid * mid - det).max(0.1).sqrt();
+        let radius = (3.0 * lambda.sqrt()).ceil() as u32;
+        let xy = [fx * t.x * rz + cx, fy * t.y * rz + cy];
+        let (lo, hi) = tile_rect(fp, xy, radius);
+        let touched = ((hi[0] - lo[0]) * (hi[1] - lo[1])) as u32;
+        if touched == 0 {
+            continue;
+        }
+        let dir = (mean - campos).normalize();
+        let basis = sh_basis(dir, fp.sh_degree);
+        let nb = ((fp.sh_degree + 1) * (fp.sh_degree + 1)) as usize;
+        let sh = &scene.sh[i * coeffs * 3..];
+        let mut rgb = Vec3::ZERO;
+        for (k, bk) in basis.iter().enumerate().take(nb) {
+            rgb += *bk * Vec3::new(sh[3 * k], sh[3 * k + 1], sh[3 * k + 2]);
+        }
+        let rgb = (rgb + 0.5).max(Vec3::ZERO);
+        let opacity = 1.0 / (1.0 + (-scene.opacities[i]).exp());
+        p.xys[i] = xy;
+        p.conics[i] = [c * inv_det, -b * inv_det, a * inv_det, opacity];
+        p.colors[i] = [rgb.x, rgb.y, rgb.z, 0.0];
+        p.depths[i] = t.z;
+        p.radii[i] = radius;
+        p.tiles_touched[i] = touched;
+    }
+    p
+}
+
+/// Exclusive prefix sum and total.
+pub fn exclusive_scan(vals: &[u32]) -> (Vec<u32>, u32) {
+    let mut acc = 0u32;
+    let out = vals
+        .iter()
+        .map(|v| {
+            let r = acc;
+            acc += v;
+            r
+        })
+        .collect();
+    (out, acc)
+}
+
+/// Stable sort of (key, value) pairs by key: what the GPU radix sort must produce.
+pub fn stable_sort(keys: &[u32], vals: &[u32]) -> (Vec<u32>, Vec<u32>) {
+    let mut pairs: Vec<(u32, u32)> = keys.iter().copied().zip(vals.iter().copied()).collect();
+    pairs.sort_by_key(|p| p.0);
+    pairs.into_iter().unzip()
+}
+
+/// Passes `scan visible`, `compact` and `depth sort`: the visible Gaussians (tiles_touched > 0)
+/// in index order, stably sorted by the bits of their depth. Returns (depth keys, ids).
+pub fn depth_order(p: &Projected) -> (Vec<u32>, Vec<u32>) {
+    let ids: Vec<u32> = (0..p.depths.len() as u32)
+        .filter(|&i| p.tiles_touched[i as usize] > 0)
+        .collect();
+    let keys: Vec<u32> = ids
+        .iter()
+        .map(|&i| p.depths[i as usize].to_bits())
+        .collect();
+    stable_sort(&keys, &ids)
+}
+
+/// Pass `emit`: (tile, Gaussian) pairs of every visible Gaussian in depth order.
+pub fn emit(fp: &FrameParams, p: &Projected, depth_ids: &[u32]) -> (Vec<u32>, Vec<u32>) {
+    let mut keys = Vec::new();
+    let mut ids = Vec::new();
+    for &i in depth_ids {
+        let (lo, hi) = tile_rect(fp, p.xys[i as usize], p.radii[i as usize]);
+        for y in lo[1]..hi[1] {
+            for x in lo[0]..hi[0] {
+                keys.push(y as u32 * fp.tiles_x + x as u32);
+                ids.push(i);
+            }
+        }
+    }
+    (keys, ids)
+}
+
+/// Pass `ranges`: [start, end) of every tile in the tile-sorted intersection keys.
+pub fn tile_ranges(keys: &[u32], num_tiles: usize) -> Vec<[u32; 2]> {
+    let mut r = vec![[0u32; 2]; num_tiles];
+    for (k, &t) in keys.iter().enumerate() {
+        if k == 0 || keys[k - 1] != t {
+            r[t as usize][0] = k as u32;
+        }
+        if k + 1 == keys.len() || keys[k + 1] != t {
+            r[t as usize][1] = k as u32 + 1;
+        }
+    }
+    r
+}
+
+/// Pass `blend`: front-to-back compositing per pixel; rgb = C + T·background, a = T.
+pub fn blend(
+    fp: &FrameParams,
+    ranges: &[[u32; 2]],
+    isect_ids: &[u32],
+    p: &Projected,
+) -> Vec<[f32; 4]> {
+    let (w, h) = (fp.width as usize, fp.height as usize);
+    let bg = Vec3::new(fp.background[0], fp.background[1], fp.background[2]);
+    let mut out = vec![[0.0f32; 4]; w * h];
+    for py in 0..h {
+        for px in 0..w {
+            let tile = (py / TILE_SIZE as usize) * fp.tiles_x as usize + px / TILE_SIZE as usize;
+            let [start, end] = ranges[tile];
+            let pixf = Vec2::new(px as f32 + 0.5, py as f32 + 0.5);
+            let mut t = 1.0f32;
+            let mut c = Vec3::ZERO;
+            for &g in &isect_ids[start as usize..end as usize] {
+                let g = g as usize;
+                let d = Vec2::from(p.xys[g]) - pixf;
+                let co = p.conics[g];
+                let power = -0.5 * (co[0] * d.x * d.x + co[2] * d.y * d.y) - co[1] * d.x * d.y;
+                if power > 0.0 {
+                    continue;
+                }
+                let alpha = (co[3] * power.exp()).min(0.99);
+                if alpha < 1.0 / 255.0 {
+                    continue;
+                }
+                let test_t = t * (1.0 - alpha);
+                if test_t < 0.0001 {
+                    break;
+                }
+                c += Vec3::new(p.colors[g][0], p.colors[g][1], p.colors[g][2]) * alpha * t;
+                t = test_t;
+            }
+            let rgb = c + t * bg;
+            out[py * w + px] = [rgb.x, rgb.y, rgb.z, t];
+        }
+    }
+    out
+}
+
+/// The whole forward pass on the CPU.
+pub fn render(scene: &Scene, fp: &FrameParams) -> Vec<[f32; 4]> {
+    let p = preprocess(scene, fp);
+    let (_, depth_ids) = depth_order(&p);
+    let (keys, ids) = emit(fp, &p, &depth_ids);
+    let (keys, ids) = stable_sort(&keys, &ids);
+    let ranges = tile_ranges(&keys, (fp.tiles_x * fp.tiles_y) as usize);
+    blend(fp, &ranges, &ids, &p)
+}

@@ -1,0 +1,212 @@
+//! All compute kernels, built once per device, and the recording of the multi-dispatch
+//! building blocks: indirect arguments, the reduce-then-scan prefix sum and the radix sort.
+use std::sync::Arc;
+
+use anyhow::Result;
+
+use crate::gpu::{Buffer, Gpu, Kernel, Recorder};
+use crate::shared::*;
+
+pub struct Kernels {
+    pub preprocess: Kernel,
+    pub compact: Kernel,
+    pub emit: Kernel,
+    pub ranges: Kernel,
+    pub blend: Kernel,
+    pub dispatch_args: Kernel,
+    pub scan_reduce: Kernel,
+    pub scan_blocks: Kernel,
+    pub scan_down: Kernel,
+    pub sort_count: Kernel,
+    pub sort_scatter: Kernel,
+}
+
+impl Kernels {
+    pub fn new(gpu: &Arc<Gpu>) -> Result<Arc<Kernels>> {
+        let k = |name: &str, spv: &[u8]| Kernel::new(gpu, name, spv);
+        Ok(Arc::new(Kernels {
+            preprocess: k("preprocess", spirv::PREPROCESS)?,
+            compact: k("compact", spirv::COMPACT)?,
+            emit: k("emit", spirv::EMIT)?,
+            ranges: k("ranges", spirv::RANGES)?,
+            blend: k("blend", spirv::BLEND)?,
+            dispatch_args: k("dispatch_args", spirv::DISPATCH_ARGS)?,
+            scan_reduce: k("scan_reduce", spirv::SCAN_REDUCE)?,
+            scan_blocks: k("scan_blocks", spirv::SCAN_BLOCKS)?,
+            scan_down: k("scan_down", spirv::SCAN_DOWN)?,
+            sort_count: k("sort_count", spirv::SORT_COUNT)?,
+            sort_scatter: k("sort_scatter", spirv::SORT_SCATTER)?,
+        }))
+    }
+}
+
+/// The `counts` buffer and the indirect-argument buffer derived from it.
+pub struct Counts {
+    pub counts: Buffer,
+    pub indirect: Buffer,
+}
+
+impl Counts {
+    pub fn new(gpu: &Arc<Gpu>) -> Result<Counts> {
+        Ok(Counts {
+            counts: gpu.storage("counts", COUNT_SLOTS as u64 * 4)?,
+            indirect: gpu.storage("indirect", (COUNT_SLOTS * ARGS_PER_SLOT * 3) as u64 * 4)?,
+        })
+    }
+
+    /// Byte offset of the indirect command `kind` (ARGS_*) of count `slot`.
+    pub fn args_offset(slot: u32, kind: u32) -> u64 {
+        ((slot * ARGS_PER_SLOT + kind) * 3 * 4) as u64
+    }
+
+    /// Writes the indirect commands of `slot` from the GPU-side count.
+    pub fn record_args(&self, rec: &mut Recorder, k: &Kernels, slot: u32) -> Result<()> {
+        let push = DispatchArgs {
+            count_slot: slot,
+            ..Default::default()
+        };
+        rec.dispatch(
+            &k.dispatch_args,
+            &[("counts", &self.counts), ("indirect", &self.indirect)],
+            &push,
+            [1, 1, 1],
+        )
+    }
+}
+
+/// Number of block sums a scan of `n` items needs.
+pub fn scan_blocks_for(n: u64) -> u64 {
+    n.div_ceil(SCAN_BLOCK as u64).max(1)
+}
+
+/// Length of the radix-sort histogram table for `n` keys.
+pub fn sort_hist_for(n: u64) -> u64 {
+    n.div_ceil(SORT_BLOCK as u64).max(1) * RADIX_BINS as u64
+}
+
+/// One scan: input, optional gather list, output and where its total goes.
+pub struct Scan<'a> {
+    pub count_slot: u32,
+    pub mode: u32,
+    pub input: &'a Buffer,
+    pub gather: Option<&'a Buffer>,
+    pub block_sums: &'a Buffer,
+    pub output: &'a Buffer,
+    pub out_slot: u32,
+    pub clamp_slot: u32,
+    pub capacity: u32,
+}
+
+/// Records an exclusive scan of counts[count_slot] items (reduce, scan of block sums, down
+/// sweep). The indirect arguments of `count_slot` must be written already.
+pub fn record_scan(rec: &mut Recorder, k: &Kernels, c: &Counts, s: &Scan) -> Result<()> {
+    let args = ScanArgs {
+        count_slot: s.count_slot,
+        mode: s.mode,
+        out_slot: s.out_slot,
+        clamp_slot: s.clamp_slot,
+        capacity: s.capacity,
+        divisor: SCAN_BLOCK,
+        multiplier: 1,
+        _pad0: 0,
+    };
+    let gather = s.gather.unwrap_or(s.input);
+    let off = Counts::args_offset(s.count_slot, ARGS_SCAN_BLOCKS);
+    rec.dispatch_indirect(
+        &k.scan_reduce,
+        &[
+            ("counts", &c.counts),
+            ("scan_in", s.input),
+            ("gather", gather),
+            ("block_sums", s.block_sums),
+        ],
+        &args,
+        &c.indirect,
+        off,
+    )?;
+    rec.dispatch(
+        &k.scan_blocks,
+        &[("counts", &c.counts), ("data", s.block_sums)],
+        &args,
+        [1, 1, 1],
+    )?;
+    rec.dispatch_indirect(
+        &k.scan_down,
+        &[
+            ("counts", &c.counts),
+            ("scan_in", s.input),
+            ("gather", gather),
+            ("block_sums", s.block_sums),
+            ("scan_out", s.output),
+        ],
+        &args,
+        &c.indirect,
+        off,
+    )
+}
+
+/// Records a stable LSD radix sort of counts[slot] (key, value) pairs on the low `bits` key
+/// bits, ping-ponging between `keys[0]/vals[0]` (input) and `keys[1]/vals[1]`. Returns the
+/// index of the pair holding the result. The indirect arguments of `slot` must be written.
+pub fn record_sort(
+    rec: &mut Recorder,
+    k: &Kernels,
+    c: &Counts,
+    slot: u32,
+    bits: u32,
+    keys: [&Buffer; 2],
+    vals: [&Buffer; 2],
+    hist: &Buffer,
+) -> Result<usize> {
+    let passes = bits.div_ceil(RADIX_BITS);
+    let off = Counts::args_offset(slot, ARGS_SORT_BLOCKS);
+    for p in 0..passes {
+        let (i, o) = ((p % 2) as usize, ((p + 1) % 2) as usize);
+        let push = SortArgs {
+            count_slot: slot,
+            shift: p * RADIX_BITS,
+            ..Default::default()
+        };
+        rec.dispatch_indirect(
+            &k.sort_count,
+            &[("counts", &c.counts), ("keys_in", keys[i]), ("hist", hist)],
+            &push,
+            &c.indirect,
+            off,
+        )?;
+        let scan = ScanArgs {
+            count_slot: slot,
+            out_slot: NO_SLOT,
+            clamp_slot: NO_SLOT,
+            divisor: SORT_BLOCK,
+            multiplier: RADIX_BINS,
+            ..Default::default()
+        };
+        rec.dispatch(
+            &k.scan_blocks,
+            &[("counts", &c.counts), ("data", hist)],
+            &scan,
+            [1, 1, 1],
+        )?;
+        rec.dispatch_indirect(
+            &k.sort_scatter,
+            &[
+                ("counts", &c.counts),
+                ("keys_in", keys[i]),
+                ("vals_in", vals[i]),
+                ("hist", hist),
+                ("keys_out", keys[o]),
+                ("vals_out", vals[o]),
+            ],
+            &push,
+            &c.indirect,
+            off,
+        )?;
+    }
+    Ok((passes % 2) as usize)
+}
+
+/// Bits needed to hold values 0..n-1 (at least 1).
+pub fn bits_for(n: u32) -> u32 {
+    (32 - n.saturating_sub(1).leading_zeros()).max(1)
+}

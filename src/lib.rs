@@ -1,0 +1,18 @@
+//! instgs-vk: instanced 3D Gaussian Splatting (InstGS) on Vulkan compute.
+//!
+//! Conventions: world space as stored in the scene; cameras are OpenCV (+X right, +Y down,
+//! +Z forward) with `viewmat` world → camera; pixel (0, 0)'s centre is at (0.5, 0.5).
+
+/// Constants and GPU structs generated from `glsl/common.glsl`, plus the SPIR-V of every kernel.
+pub mod shared {
+    include!(concat!(env!("OUT_DIR"), "/gpu_shared.rs"));
+}
+
+pub mod camera;
+pub mod cpu;
+pub mod gpu;
+pub mod kernels;
+pub mod raster;
+pub mod scene;
+pub mod sort;
+pub mod util;

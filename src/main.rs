@@ -1,0 +1,387 @@
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+use std::sync::Arc;
+
+use anyhow::{anyhow, bail, Context, Result};
+use clap::{Args, Parser, Subcommand};
+use instgs_vk::camera::{self, Camera, UpAxis};
+use instgs_vk::gpu::{Gpu, GpuOptions};
+use instgs_vk::kernels::Kernels;
+use instgs_vk::raster::{GpuScene, Rasterizer};
+use instgs_vk::scene::{read_ply, Scene};
+use instgs_vk::util::save_png;
+
+/// Instanced 3D Gaussian Splatting on Vulkan compute.
+#[derive(Parser)]
+#[command(version, about)]
+struct Cli {
+    /// Vulkan device: index or case-insensitive name substring (default: a real GPU over a CPU
+    /// device). Also INSTGS_DEVICE. INSTGS_VALIDATION=1 turns on the validation layers.
+    #[arg(long, global = true)]
+    device: Option<String>,
+    #[command(subcommand)]
+    cmd: Cmd,
+}
+
+#[derive(Subcommand)]
+enum Cmd {
+    /// Print a scene's Gaussian count, SH degree, bounds and file size.
+    Info {
+        /// Scene file (.ply: Inria 3DGS or SuperSplat compressed).
+        scene: PathBuf,
+        /// Print JSON instead of text.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Render a scene from a camera file or an orbit to PNG files and print per-pass GPU times.
+    Render {
+        #[command(flatten)]
+        view: ViewArgs,
+        /// Output folder: <basename of file_path>.png per camera, view_000.png… for orbits.
+        #[arg(long)]
+        out: PathBuf,
+    },
+    /// Render frames offscreen and report per-pass GPU times (medians), splats and memory.
+    Bench {
+        #[command(flatten)]
+        view: ViewArgs,
+        /// Timed frames per camera.
+        #[arg(long, default_value_t = 5)]
+        frames: usize,
+        /// Untimed frames first.
+        #[arg(long, default_value_t = 1)]
+        warmup: usize,
+        /// Also write the results as JSON to this file.
+        #[arg(long)]
+        json: Option<PathBuf>,
+    },
+    /// Time the GPU radix sort against Rust's sort_unstable on the same random keys.
+    BenchSort {
+        /// Number of keys.
+        #[arg(long, default_value_t = 1_000_000)]
+        keys: usize,
+        /// Key bits to sort (keys are random in 0..2^bits).
+        #[arg(long, default_value_t = 32)]
+        bits: u32,
+        /// Timed GPU repeats (median reported).
+        #[arg(long, default_value_t = 5)]
+        repeats: usize,
+    },
+}
+
+#[derive(Args)]
+struct ViewArgs {
+    /// Scene file (.ply: Inria 3DGS or SuperSplat compressed).
+    #[arg(long)]
+    scene: PathBuf,
+    /// NeRF-synthetic transforms_*.json with the cameras.
+    #[arg(long, conflicts_with = "orbit", required_unless_present = "orbit")]
+    cameras: Option<PathBuf>,
+    /// N cameras on an orbit around the scene's bounds.
+    #[arg(long)]
+    orbit: Option<usize>,
+    /// Which world axis is up, for orbits.
+    #[arg(long, value_enum, default_value = "-y", allow_hyphen_values = true)]
+    up: UpAxis,
+    /// Image width (default: the camera file's, 640 for orbits); intrinsics are scaled.
+    #[arg(long)]
+    width: Option<u32>,
+    /// Image height (default: the camera file's, 480 for orbits).
+    #[arg(long)]
+    height: Option<u32>,
+    /// Background colour r,g,b in [0, 1].
+    #[arg(long, default_value = "0,0,0", value_parser = parse_rgb)]
+    background: [f32; 3],
+}
+
+fn parse_rgb(s: &str) -> std::result::Result<[f32; 3], String> {
+    let v: Vec<f32> = s
+        .split(',')
+        .map(|p| {
+            p.trim()
+                .parse::<f32>()
+                .map_err(|_| format!("'{p}' is not a number"))
+        })
+        .collect::<std::result::Result<_, _>>()?;
+    match v[..] {
+        [r, g, b] if v.iter().all(|c| (0.0..=1.0).contains(c)) => Ok([r, g, b]),
+        [_, _, _] => Err("components must be in [0, 1]".into()),
+        _ => Err("expected r,g,b".into()),
+    }
+}
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    match run(cli) {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("error: {e:#}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+fn run(cli: Cli) -> Result<()> {
+    match cli.cmd {
+        Cmd::Info { scene, json } => info(&scene, json),
+        Cmd::Render { view, out } => render(cli.device, &view, &out),
+        Cmd::Bench {
+            view,
+            frames,
+            warmup,
+            json,
+        } => bench(cli.device, &view, frames, warmup, json.as_deref()),
+        Cmd::BenchSort {
+            keys,
+            bits,
+            repeats,
+        } => bench_sort(cli.device, keys, bits, repeats),
+    }
+}
+
+fn info(path: &Path, json: bool) -> Result<()> {
+    let scene = read_ply(path)?;
+    let file_bytes = std::fs::metadata(path)?.len();
+    let (lo, hi) = scene.bounds();
+    let (rlo, rhi) = scene.robust_bounds(0.02);
+    if json {
+        let v = serde_json::json!({
+            "file": path.display().to_string(),
+            "kind": "plain",
+            "gaussians": scene.len(),
+            "sh_degree": scene.sh_degree,
+            "bounds_min": lo.to_array(),
+            "bounds_max": hi.to_array(),
+            "bounds_min_p2": rlo.to_array(),
+            "bounds_max_p98": rhi.to_array(),
+            "file_bytes": file_bytes,
+        });
+        println!("{}", serde_json::to_string_pretty(&v)?);
+    } else {
+        println!("file        {}", path.display());
+        println!("gaussians   {}", scene.len());
+        println!("sh degree   {}", scene.sh_degree);
+        println!(
+            "bounds      [{:.4}, {:.4}, {:.4}] .. [{:.4}, {:.4}, {:.4}]",
+            lo.x, lo.y, lo.z, hi.x, hi.y, hi.z
+        );
+        println!(
+            "p2..p98     [{:.4}, {:.4}, {:.4}] .. [{:.4}, {:.4}, {:.4}]",
+            rlo.x, rlo.y, rlo.z, rhi.x, rhi.y, rhi.z
+        );
+        println!("file size   {file_bytes} bytes");
+    }
+    Ok(())
+}
+
+fn cameras(view: &ViewArgs, scene: &Scene) -> Result<Vec<Camera>> {
+    if view.width == Some(0) || view.height == Some(0) {
+        bail!("--width and --height must be at least 1");
+    }
+    let cams = match (&view.cameras, view.orbit) {
+        (Some(path), _) => {
+            let cams = camera::load_transforms(path)?;
+            match (view.width, view.height) {
+                (None, None) => cams,
+                (w, h) => cams
+                    .into_iter()
+                    .map(|c| {
+                        let (w, h) = (w.unwrap_or(c.width), h.unwrap_or(c.height));
+                        c.resized(w, h)
+                    })
+                    .collect(),
+            }
+        }
+        (None, Some(0)) => bail!("--orbit needs at least 1 camera"),
+        (None, Some(n)) => camera::orbit_around(
+            scene,
+            n,
+            view.up,
+            view.width.unwrap_or(640),
+            view.height.unwrap_or(480),
+        ),
+        (None, None) => bail!("give --cameras FILE or --orbit N"),
+    };
+    Ok(cams)
+}
+
+fn setup(device: Option<String>, scene_path: &Path) -> Result<(Arc<Gpu>, Arc<Kernels>, Scene)> {
+    let scene = read_ply(scene_path)?;
+    let gpu = Gpu::new(&GpuOptions::from_env(device))?;
+    eprintln!("device: {}", gpu.describe());
+    let k = Kernels::new(&gpu)?;
+    Ok((gpu, k, scene))
+}
+
+fn render(device: Option<String>, view: &ViewArgs, out: &Path) -> Result<()> {
+    let (gpu, k, scene) = setup(device, &view.scene)?;
+    let cams = cameras(view, &scene)?;
+    std::fs::create_dir_all(out)
+        .with_context(|| format!("{}: cannot create folder", out.display()))?;
+    let gs = GpuScene::new(&gpu, &scene).with_context(|| view.scene.display().to_string())?;
+    let mut r = Rasterizer::new(&gpu, &k)?;
+    let mut per_pass: Vec<(String, Vec<f64>)> = Vec::new();
+    for cam in &cams {
+        let f = r.render(&gs, cam, view.background)?;
+        let path = out.join(format!("{}.png", cam.name));
+        save_png(&path, f.width, f.height, &f.image)?;
+        let total: f64 = f.passes.iter().map(|p| p.1).sum();
+        println!(
+            "{}  {}x{}  visible {}  intersections {}  gpu {:.2} ms",
+            path.display(),
+            f.width,
+            f.height,
+            f.visible,
+            f.intersections,
+            total
+        );
+        collect(&mut per_pass, &f.passes);
+    }
+    print_passes(&per_pass);
+    Ok(())
+}
+
+fn collect(acc: &mut Vec<(String, Vec<f64>)>, passes: &[(String, f64)]) {
+    for (name, ms) in passes {
+        match acc.iter_mut().find(|(n, _)| n == name) {
+            Some(e) => e.1.push(*ms),
+            None => acc.push((name.clone(), vec![*ms])),
+        }
+    }
+}
+
+fn median(v: &[f64]) -> f64 {
+    let mut v = v.to_vec();
+    v.sort_by(f64::total_cmp);
+    if v.is_empty() {
+        return f64::NAN;
+    }
+    v[v.len() / 2]
+}
+
+fn print_passes(per_pass: &[(String, Vec<f64>)]) {
+    if per_pass.is_empty() {
+        println!("(the device has no timestamps on its compute queue)");
+        return;
+    }
+    println!("per-pass GPU time, median over frames (ms):");
+    for (name, v) in per_pass {
+        println!("  {name:<12} {:>9.3}", median(v));
+    }
+}
+
+fn bench(
+    device: Option<String>,
+    view: &ViewArgs,
+    frames: usize,
+    warmup: usize,
+    json: Option<&Path>,
+) -> Result<()> {
+    if frames == 0 {
+        bail!("--frames must be at least 1");
+    }
+    let (gpu, k, scene) = setup(device, &view.scene)?;
+    let cams = cameras(view, &scene)?;
+    let gs = GpuScene::new(&gpu, &scene)?;
+    let mut r = Rasterizer::new(&gpu, &k)?;
+    let mut per_pass = Vec::new();
+    let mut frame_ms = Vec::new();
+    let mut isects = Vec::new();
+    let mut visible = Vec::new();
+    for cam in &cams {
+        for _ in 0..warmup {
+            r.render(&gs, cam, view.background)?;
+        }
+        for _ in 0..frames {
+            let f = r.render(&gs, cam, view.background)?;
+            frame_ms.push(f.passes.iter().map(|p| p.1).sum::<f64>());
+            collect(&mut per_pass, &f.passes);
+            isects.push(f.intersections as f64);
+            visible.push(f.visible as f64);
+        }
+    }
+    let fm = median(&frame_ms);
+    let file_bytes = std::fs::metadata(&view.scene)?.len();
+    println!("scene            {}", view.scene.display());
+    println!("gaussians        {}", scene.len());
+    println!("visible (median) {}", median(&visible));
+    println!("intersections    {}", median(&isects));
+    println!("frame (median)   {fm:.3} ms  ({:.1} FPS)", 1000.0 / fm);
+    println!("scene GPU bytes  {}", gs.gpu_bytes());
+    println!("frame GPU bytes  {}", r.frame_gpu_bytes());
+    println!("file bytes       {file_bytes}");
+    print_passes(&per_pass);
+    if let Some(path) = json {
+        let passes: serde_json::Map<String, serde_json::Value> = per_pass
+            .iter()
+            .map(|(n, v)| (n.clone(), serde_json::json!(median(v))))
+            .collect();
+        let v = serde_json::json!({
+            "device": gpu.info.name,
+            "scene": view.scene.display().to_string(),
+            "width": cams[0].width,
+            "height": cams[0].height,
+            "views": cams.len(),
+            "frames": frames,
+            "splats": scene.len(),
+            "visible": median(&visible),
+            "intersections": median(&isects),
+            "frame_ms_median": fm,
+            "fps_median": 1000.0 / fm,
+            "scene_gpu_bytes": gs.gpu_bytes(),
+            "frame_gpu_bytes": r.frame_gpu_bytes(),
+            "file_bytes": file_bytes,
+            "passes": passes,
+        });
+        instgs_vk::util::write_atomic(path, |f| {
+            use std::io::Write;
+            f.write_all(
+                serde_json::to_string_pretty(&v)
+                    .map_err(std::io::Error::other)?
+                    .as_bytes(),
+            )
+        })?;
+    }
+    Ok(())
+}
+
+fn bench_sort(device: Option<String>, n: usize, bits: u32, repeats: usize) -> Result<()> {
+    if n == 0 || !(1..=32).contains(&bits) {
+        bail!("--keys must be at least 1 and --bits in 1..32");
+    }
+    let gpu = Gpu::new(&GpuOptions::from_env(device))?;
+    eprintln!("device: {}", gpu.describe());
+    let k = Kernels::new(&gpu)?;
+    // A fixed xorshift stream: the same keys every run.
+    let mut s = 0x9e37_79b9_7f4a_7c15u64;
+    let mask = if bits == 32 {
+        u32::MAX
+    } else {
+        (1u32 << bits) - 1
+    };
+    let keys: Vec<u32> = (0..n)
+        .map(|_| {
+            s ^= s << 13;
+            s ^= s >> 7;
+            s ^= s << 17;
+            (s >> 32) as u32 & mask
+        })
+        .collect();
+    let vals: Vec<u32> = (0..n as u32).collect();
+    let mut sorter = instgs_vk::sort::GpuSort::new(&gpu, &k, n)?;
+    let sorted = sorter.sort(&keys, &vals, bits, repeats)?;
+    let gpu_ms = sorted
+        .gpu_ms
+        .ok_or_else(|| anyhow!("the device has no timestamps"))?;
+    let mut cpu_times = Vec::new();
+    for _ in 0..repeats.max(1) {
+        let mut pairs: Vec<(u32, u32)> = keys.iter().copied().zip(vals.iter().copied()).collect();
+        let t = std::time::Instant::now();
+        pairs.sort_unstable_by_key(|p| p.0);
+        cpu_times.push(t.elapsed().as_secs_f64() * 1e3);
+        std::hint::black_box(&pairs);
+    }
+    let cpu_ms = median(&cpu_times);
+    println!("keys {n}, bits {bits}: GPU radix sort {gpu_ms:.2} ms, sort_unstable (key,value) {cpu_ms:.2} ms, GPU/CPU {:.2}x", gpu_ms / cpu_ms);
+    Ok(())
+}

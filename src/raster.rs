@@ -1,0 +1,607 @@
+//! The GPU forward rasterizer: a scene on the device and the per-frame passes
+//! preprocess → scan visible → compact → depth sort → scan tiles → emit → tile sort → ranges →
+//! blend, all sized on the GPU (indirect dispatch from GPU-written counts). The command buffer is
+//! recorded once per scene, image size and intersection capacity and replayed for every frame;
+//! the only read-back is the frame's result (image and counts), used to grow the intersection
+//! buffers when a frame needs more than they hold.
+use std::sync::Arc;
+
+use anyhow::{bail, Result};
+use gpu_allocator::MemoryLocation;
+
+use crate::camera::Camera;
+use crate::gpu::{Buffer, CommandBuffer, Gpu, Timer};
+use crate::kernels::{
+    bits_for, record_scan, record_sort, scan_blocks_for, sort_hist_for, Counts, Kernels, Scan,
+};
+use crate::scene::Scene;
+use crate::shared::*;
+
+/// Near and far planes (camera z) used for culling, as gsplat's defaults.
+pub const NEAR_PLANE: f32 = 0.01;
+pub const FAR_PLANE: f32 = 1e10;
+
+/// The per-frame uniform block for a camera.
+pub fn frame_params(
+    num_gaussians: usize,
+    sh_degree: u32,
+    cam: &Camera,
+    background: [f32; 3],
+    isect_capacity: u32,
+) -> FrameParams {
+    let pos = cam.position();
+    FrameParams {
+        viewmat: cam.viewmat.to_cols_array_2d(),
+        intrinsics: [cam.fx, cam.fy, cam.cx, cam.cy],
+        campos: [pos.x, pos.y, pos.z, 1.0],
+        background: [background[0], background[1], background[2], 1.0],
+        width: cam.width,
+        height: cam.height,
+        tiles_x: cam.width.div_ceil(TILE_SIZE),
+        tiles_y: cam.height.div_ceil(TILE_SIZE),
+        num_gaussians: num_gaussians as u32,
+        sh_degree,
+        sh_coeffs: (sh_degree + 1) * (sh_degree + 1),
+        isect_capacity,
+        near_plane: NEAR_PLANE,
+        far_plane: FAR_PLANE,
+        _pad0: 0,
+        _pad1: 0,
+    }
+}
+
+/// A plain 3DGS scene in device memory.
+pub struct GpuScene {
+    pub means: Buffer,
+    pub scales: Buffer,
+    pub quats: Buffer,
+    pub opacities: Buffer,
+    pub sh: Buffer,
+    pub len: usize,
+    pub sh_degree: u32,
+}
+
+impl GpuScene {
+    pub fn new(gpu: &Arc<Gpu>, scene: &Scene) -> Result<GpuScene> {
+        let n = scene.len();
+        if n == 0 {
+            bail!("the scene has no Gaussians");
+        }
+        let limit = gpu.info.max_storage_buffer_range;
+        let sh_bytes = (scene.sh.len() * 4) as u64;
+        if sh_bytes > limit || (n as u64) * 16 > limit {
+            bail!(
+                "scene too large for this device: {n} Gaussians at SH degree {} need a {sh_bytes}-byte SH buffer, over maxStorageBufferRange ({limit} bytes); splitting a scene is not supported",
+                scene.sh_degree
+            );
+        }
+        Ok(GpuScene {
+            means: gpu.upload("means", &scene.means)?,
+            scales: gpu.upload("scales", &scene.scales)?,
+            quats: gpu.upload("quats", &scene.quats)?,
+            opacities: gpu.upload("opacities", &scene.opacities)?,
+            sh: gpu.upload("sh", &scene.sh)?,
+            len: n,
+            sh_degree: scene.sh_degree,
+        })
+    }
+
+    /// Bytes of the scene's device buffers.
+    pub fn gpu_bytes(&self) -> u64 {
+        [
+            &self.means,
+            &self.scales,
+            &self.quats,
+            &self.opacities,
+            &self.sh,
+        ]
+        .iter()
+        .map(|b| b.size)
+        .sum()
+    }
+}
+
+/// Per-Gaussian frame buffers (capacity `n`).
+struct GaussBufs {
+    n: usize,
+    xys: Buffer,
+    conics: Buffer,
+    colors: Buffer,
+    depths: Buffer,
+    radii: Buffer,
+    tiles_touched: Buffer,
+    vis_offsets: Buffer,
+    depth_keys: [Buffer; 2],
+    depth_ids: [Buffer; 2],
+    isect_offsets: Buffer,
+}
+
+/// Intersection buffers (capacity `cap`), the scan and sort scratch and the image.
+struct IsectBufs {
+    cap: usize,
+    keys: [Buffer; 2],
+    ids: [Buffer; 2],
+    hist: Buffer,
+    block_sums: Buffer,
+}
+
+struct ImageBufs {
+    width: u32,
+    height: u32,
+    ranges: Buffer,
+    out_image: Buffer,
+    readback_image: Buffer,
+}
+
+/// The result of one frame.
+pub struct Frame {
+    pub width: u32,
+    pub height: u32,
+    /// Row-major RGBA: rgb = C + T·background, a = final transmittance T.
+    pub image: Vec<[f32; 4]>,
+    pub visible: u32,
+    pub intersections: u32,
+    /// GPU milliseconds per pass, in execution order (empty without timestamps).
+    pub passes: Vec<(String, f64)>,
+}
+
+/// Everything a test needs to check each pass against its CPU twin.
+pub struct FrameState {
+    pub xys: Vec<[f32; 2]>,
+    pub conics: Vec<[f32; 4]>,
+    pub colors: Vec<[f32; 4]>,
+    pub depths: Vec<f32>,
+    pub radii: Vec<u32>,
+    pub tiles_touched: Vec<u32>,
+    pub depth_keys: Vec<u32>,
+    pub depth_ids: Vec<u32>,
+    pub isect_offsets: Vec<u32>,
+    pub isect_keys: Vec<u32>,
+    pub isect_ids: Vec<u32>,
+    pub ranges: Vec<[u32; 2]>,
+    pub counts: Vec<u32>,
+}
+
+pub struct Rasterizer {
+    gpu: Arc<Gpu>,
+    k: Arc<Kernels>,
+    frame_ub: Buffer,
+    counts: Counts,
+    readback_counts: Buffer,
+    gauss: Option<GaussBufs>,
+    isect: Option<IsectBufs>,
+    image: Option<ImageBufs>,
+    cmd: CommandBuffer,
+    timer: Option<Timer>,
+    /// (scene buffer handle, N, width, height, capacity) the command buffer was recorded for.
+    recorded: Option<(u64, usize, u32, u32, usize)>,
+    /// Buffer indices holding the sorted depth and tile lists.
+    depth_result: usize,
+    isect_result: usize,
+    /// Tests: fill every output buffer with [`POISON`] before the kernels run, so elements a
+    /// kernel fails to write show up.
+    pub poison: bool,
+}
+
+/// A quiet-NaN bit pattern that no kernel writes.
+pub const POISON: u32 = 0x7fc0_0bad;
+
+impl Rasterizer {
+    pub fn new(gpu: &Arc<Gpu>, k: &Arc<Kernels>) -> Result<Rasterizer> {
+        Ok(Rasterizer {
+            gpu: gpu.clone(),
+            k: k.clone(),
+            frame_ub: gpu.buffer(
+                "frame",
+                std::mem::size_of::<FrameParams>() as u64,
+                ash::vk::BufferUsageFlags::UNIFORM_BUFFER,
+                MemoryLocation::CpuToGpu,
+            )?,
+            counts: Counts::new(gpu)?,
+            readback_counts: gpu.buffer(
+                "readback-counts",
+                COUNT_SLOTS as u64 * 4,
+                Default::default(),
+                MemoryLocation::GpuToCpu,
+            )?,
+            gauss: None,
+            isect: None,
+            image: None,
+            cmd: CommandBuffer::new(gpu)?,
+            timer: Timer::new(gpu, 32)?,
+            recorded: None,
+            depth_result: 0,
+            isect_result: 0,
+            poison: false,
+        })
+    }
+
+    /// Bytes of the per-frame device buffers.
+    pub fn frame_gpu_bytes(&self) -> u64 {
+        let mut b = self.frame_ub.size
+            + self.counts.counts.size
+            + self.counts.indirect.size
+            + self.readback_counts.size;
+        if let Some(g) = &self.gauss {
+            b += [
+                &g.xys,
+                &g.conics,
+                &g.colors,
+                &g.depths,
+                &g.radii,
+                &g.tiles_touched,
+                &g.vis_offsets,
+                &g.isect_offsets,
+            ]
+            .iter()
+            .map(|x| x.size)
+            .sum::<u64>();
+            b += g
+                .depth_keys
+                .iter()
+                .chain(&g.depth_ids)
+                .map(|x| x.size)
+                .sum::<u64>();
+        }
+        if let Some(i) = &self.isect {
+            b += i.keys.iter().chain(&i.ids).map(|x| x.size).sum::<u64>()
+                + i.hist.size
+                + i.block_sums.size;
+        }
+        if let Some(im) = &self.image {
+            b += im.ranges.size + im.out_image.size + im.readback_image.size;
+        }
+        b
+    }
+
+    fn ensure_buffers(&mut self, n: usize, width: u32, height: u32, cap: usize) -> Result<()> {
+        let gpu = self.gpu.clone();
+        let limit = gpu.info.max_storage_buffer_range;
+        if (cap as u64) * 4 > limit {
+            bail!(
+                "the frame needs {cap} tile intersections, more than one storage buffer can hold on this device (maxStorageBufferRange {limit} bytes); lower the resolution"
+            );
+        }
+        let pixels = width as u64 * height as u64;
+        if pixels * 16 > limit {
+            bail!("image {width}x{height} is too large for one storage buffer on this device (maxStorageBufferRange {limit} bytes)");
+        }
+        if self.gauss.as_ref().is_none_or(|g| g.n < n) {
+            let b = n as u64 * 4;
+            self.gauss = Some(GaussBufs {
+                n,
+                xys: gpu.storage("xys", b * 2)?,
+                conics: gpu.storage("conics", b * 4)?,
+                colors: gpu.storage("colors", b * 4)?,
+                depths: gpu.storage("depths", b)?,
+                radii: gpu.storage("radii", b)?,
+                tiles_touched: gpu.storage("tiles_touched", b)?,
+                vis_offsets: gpu.storage("vis_offsets", b)?,
+                depth_keys: [
+                    gpu.storage("depth_keys_a", b)?,
+                    gpu.storage("depth_keys_b", b)?,
+                ],
+                depth_ids: [
+                    gpu.storage("depth_ids_a", b)?,
+                    gpu.storage("depth_ids_b", b)?,
+                ],
+                isect_offsets: gpu.storage("isect_offsets", b)?,
+            });
+            self.isect = None;
+        }
+        if self.isect.as_ref().is_none_or(|i| i.cap < cap) {
+            let b = cap as u64 * 4;
+            let most = (cap.max(n)) as u64;
+            self.isect = Some(IsectBufs {
+                cap,
+                keys: [
+                    gpu.storage("isect_keys_a", b)?,
+                    gpu.storage("isect_keys_b", b)?,
+                ],
+                ids: [
+                    gpu.storage("isect_ids_a", b)?,
+                    gpu.storage("isect_ids_b", b)?,
+                ],
+                hist: gpu.storage("sort_hist", sort_hist_for(most) * 4)?,
+                block_sums: gpu.storage("scan_block_sums", scan_blocks_for(n as u64) * 4)?,
+            });
+        }
+        if self
+            .image
+            .as_ref()
+            .is_none_or(|im| im.width != width || im.height != height)
+        {
+            let tiles = (width.div_ceil(TILE_SIZE) * height.div_ceil(TILE_SIZE)) as u64;
+            self.image = Some(ImageBufs {
+                width,
+                height,
+                ranges: gpu.storage("ranges", tiles * 8)?,
+                out_image: gpu.storage("out_image", pixels * 16)?,
+                readback_image: gpu.buffer(
+                    "readback-image",
+                    pixels * 16,
+                    Default::default(),
+                    MemoryLocation::GpuToCpu,
+                )?,
+            });
+        }
+        Ok(())
+    }
+
+    fn record(&mut self, scene: &GpuScene, fp: &FrameParams) -> Result<()> {
+        let k = self.k.clone();
+        let g = self.gauss.as_ref().unwrap();
+        let is = self.isect.as_ref().unwrap();
+        let im = self.image.as_ref().unwrap();
+        let c = &self.counts;
+        let n = scene.len as u32;
+        let groups = n.div_ceil(WG_SIZE).min(MAX_GROUPS);
+        let tile_bits = bits_for(fp.tiles_x * fp.tiles_y);
+        let cap = is.cap as u32;
+        let frame = &self.frame_ub;
+        let mut depth_result = 0;
+        let mut isect_result = 0;
+        let readback_counts = &self.readback_counts;
+        let poison = self.poison;
+        self.cmd.record_timed(self.timer.as_mut(), |rec| {
+            if poison {
+                for b in [
+                    &g.xys,
+                    &g.conics,
+                    &g.colors,
+                    &g.depths,
+                    &g.radii,
+                    &g.tiles_touched,
+                    &g.vis_offsets,
+                    &g.isect_offsets,
+                ]
+                .into_iter()
+                .chain(&g.depth_keys)
+                .chain(&g.depth_ids)
+                .chain(&is.keys)
+                .chain(&is.ids)
+                .chain([&im.out_image])
+                {
+                    rec.fill(b, POISON);
+                }
+            }
+            let mut init = [0u32; COUNT_SLOTS as usize];
+            init[COUNT_GAUSSIANS as usize] = n;
+            rec.update(&c.counts, &init);
+            rec.fill(&im.ranges, 0);
+            c.record_args(rec, &k, COUNT_GAUSSIANS)?;
+            rec.end_pass("setup")?;
+            rec.dispatch(
+                &k.preprocess,
+                &[
+                    ("frame", frame),
+                    ("means", &scene.means),
+                    ("scales", &scene.scales),
+                    ("quats", &scene.quats),
+                    ("opacities", &scene.opacities),
+                    ("sh", &scene.sh),
+                    ("xys", &g.xys),
+                    ("conics", &g.conics),
+                    ("colors", &g.colors),
+                    ("depths", &g.depths),
+                    ("radii", &g.radii),
+                    ("tiles_touched", &g.tiles_touched),
+                ],
+                &(),
+                [groups, 1, 1],
+            )?;
+            rec.end_pass("preprocess")?;
+            record_scan(
+                rec,
+                &k,
+                c,
+                &Scan {
+                    count_slot: COUNT_GAUSSIANS,
+                    mode: SCAN_MODE_NONZERO,
+                    input: &g.tiles_touched,
+                    gather: None,
+                    block_sums: &is.block_sums,
+                    output: &g.vis_offsets,
+                    out_slot: COUNT_VISIBLE,
+                    clamp_slot: NO_SLOT,
+                    capacity: 0,
+                },
+            )?;
+            rec.dispatch(
+                &k.compact,
+                &[
+                    ("counts", &c.counts),
+                    ("tiles_touched", &g.tiles_touched),
+                    ("vis_offsets", &g.vis_offsets),
+                    ("depths", &g.depths),
+                    ("depth_keys", &g.depth_keys[0]),
+                    ("depth_ids", &g.depth_ids[0]),
+                ],
+                &(),
+                [groups, 1, 1],
+            )?;
+            c.record_args(rec, &k, COUNT_VISIBLE)?;
+            rec.end_pass("scan")?;
+            // Depths are positive floats: the sign bit is 0, so 31 bits order them.
+            depth_result = record_sort(
+                rec,
+                &k,
+                c,
+                COUNT_VISIBLE,
+                31,
+                [&g.depth_keys[0], &g.depth_keys[1]],
+                [&g.depth_ids[0], &g.depth_ids[1]],
+                &is.hist,
+            )?;
+            rec.end_pass("depth_sort")?;
+            let depth_ids = &g.depth_ids[depth_result];
+            record_scan(
+                rec,
+                &k,
+                c,
+                &Scan {
+                    count_slot: COUNT_VISIBLE,
+                    mode: SCAN_MODE_GATHER,
+                    input: &g.tiles_touched,
+                    gather: Some(depth_ids),
+                    block_sums: &is.block_sums,
+                    output: &g.isect_offsets,
+                    out_slot: COUNT_ISECT_NEEDED,
+                    clamp_slot: COUNT_ISECT,
+                    capacity: cap,
+                },
+            )?;
+            rec.end_pass("scan")?;
+            rec.dispatch_indirect(
+                &k.emit,
+                &[
+                    ("frame", frame),
+                    ("counts", &c.counts),
+                    ("depth_ids", depth_ids),
+                    ("isect_offsets", &g.isect_offsets),
+                    ("xys", &g.xys),
+                    ("radii", &g.radii),
+                    ("isect_keys", &is.keys[0]),
+                    ("isect_ids", &is.ids[0]),
+                ],
+                &(),
+                &c.indirect,
+                Counts::args_offset(COUNT_VISIBLE, ARGS_ITEMS),
+            )?;
+            c.record_args(rec, &k, COUNT_ISECT)?;
+            rec.end_pass("emit")?;
+            isect_result = record_sort(
+                rec,
+                &k,
+                c,
+                COUNT_ISECT,
+                tile_bits,
+                [&is.keys[0], &is.keys[1]],
+                [&is.ids[0], &is.ids[1]],
+                &is.hist,
+            )?;
+            rec.end_pass("tile_sort")?;
+            rec.dispatch_indirect(
+                &k.ranges,
+                &[
+                    ("counts", &c.counts),
+                    ("isect_keys", &is.keys[isect_result]),
+                    ("ranges", &im.ranges),
+                ],
+                &(),
+                &c.indirect,
+                Counts::args_offset(COUNT_ISECT, ARGS_ITEMS),
+            )?;
+            rec.end_pass("ranges")?;
+            rec.dispatch(
+                &k.blend,
+                &[
+                    ("frame", frame),
+                    ("ranges", &im.ranges),
+                    ("isect_ids", &is.ids[isect_result]),
+                    ("xys", &g.xys),
+                    ("conics", &g.conics),
+                    ("colors", &g.colors),
+                    ("out_image", &im.out_image),
+                ],
+                &(),
+                [fp.tiles_x, fp.tiles_y, 1],
+            )?;
+            rec.end_pass("blend")?;
+            rec.copy(&im.out_image, &im.readback_image, im.out_image.size);
+            rec.copy(&c.counts, readback_counts, c.counts.size);
+            rec.end_pass("readback")
+        })?;
+        self.depth_result = depth_result;
+        self.isect_result = isect_result;
+        Ok(())
+    }
+
+    /// Renders one frame of `scene` seen by `cam` over `background` (linear RGB in [0, 1]).
+    pub fn render(
+        &mut self,
+        scene: &GpuScene,
+        cam: &Camera,
+        background: [f32; 3],
+    ) -> Result<Frame> {
+        cam.validate()?;
+        let n = scene.len;
+        let mut cap = self.isect.as_ref().map_or(n.max(1 << 16), |i| i.cap);
+        loop {
+            self.ensure_buffers(n, cam.width, cam.height, cap)?;
+            cap = self.isect.as_ref().unwrap().cap;
+            let fp = frame_params(n, scene.sh_degree, cam, background, cap as u32);
+            self.frame_ub.write_mapped(&[fp])?;
+            let key = (
+                ash::vk::Handle::as_raw(scene.means.raw),
+                n,
+                cam.width,
+                cam.height,
+                cap,
+            );
+            if self.recorded != Some(key) || self.poison {
+                self.record(scene, &fp)?;
+                self.recorded = Some(key);
+            }
+            self.cmd.submit_and_wait()?;
+            let counts: Vec<u32> = self.readback_counts.read_mapped(COUNT_SLOTS as usize)?;
+            let needed = counts[COUNT_ISECT_NEEDED as usize] as usize;
+            if needed > cap {
+                // Grow with headroom and render the frame again.
+                cap = needed + needed / 4;
+                continue;
+            }
+            let im = self.image.as_ref().unwrap();
+            let image = im
+                .readback_image
+                .read_mapped((cam.width * cam.height) as usize)?;
+            let passes = match &self.timer {
+                Some(t) => t
+                    .results()?
+                    .into_iter()
+                    .filter(|(n, _)| n != "setup" && n != "readback")
+                    .collect(),
+                None => Vec::new(),
+            };
+            return Ok(Frame {
+                width: cam.width,
+                height: cam.height,
+                image,
+                visible: counts[COUNT_VISIBLE as usize],
+                intersections: counts[COUNT_ISECT as usize],
+                passes,
+            });
+        }
+    }
+
+    /// Reads every intermediate buffer of the last frame (for tests).
+    pub fn read_state(&self) -> Result<FrameState> {
+        let gpu = &self.gpu;
+        let g = self
+            .gauss
+            .as_ref()
+            .ok_or_else(|| anyhow::anyhow!("no frame rendered"))?;
+        let is = self.isect.as_ref().unwrap();
+        let im = self.image.as_ref().unwrap();
+        let counts: Vec<u32> = gpu.read(&self.counts.counts, COUNT_SLOTS as usize)?;
+        let n = self.recorded.unwrap().1;
+        let vis = counts[COUNT_VISIBLE as usize] as usize;
+        let m = counts[COUNT_ISECT as usize] as usize;
+        let tiles = (im.width.div_ceil(TILE_SIZE) * im.height.div_ceil(TILE_SIZE)) as usize;
+        Ok(FrameState {
+            xys: gpu.read(&g.xys, n)?,
+            conics: gpu.read(&g.conics, n)?,
+            colors: gpu.read(&g.colors, n)?,
+            depths: gpu.read(&g.depths, n)?,
+            radii: gpu.read(&g.radii, n)?,
+            tiles_touched: gpu.read(&g.tiles_touched, n)?,
+            depth_keys: gpu.read(&g.depth_keys[self.depth_result], vis)?,
+            depth_ids: gpu.read(&g.depth_ids[self.depth_result], vis)?,
+            isect_offsets: gpu.read(&g.isect_offsets, vis)?,
+            isect_keys: gpu.read(&is.keys[self.isect_result], m)?,
+            isect_ids: gpu.read(&is.ids[self.isect_result], m)?,
+            ranges: gpu.read(&im.ranges, tiles)?,
+            counts,
+        })
+    }
+}

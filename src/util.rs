@@ -1,0 +1,63 @@
+//! Small helpers: atomic file writes and image output.
+use std::io::Write;
+use std::path::Path;
+
+use anyhow::{Context, Result};
+
+/// Writes a file through a temporary sibling that is renamed into place, so readers never see
+/// a partial file.
+pub fn write_atomic(
+    path: &Path,
+    f: impl FnOnce(&mut std::fs::File) -> std::io::Result<()>,
+) -> Result<()> {
+    let name = path
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    let tmp = path.with_file_name(format!(".{name}.{}.tmp", std::process::id()));
+    let result = (|| {
+        let mut file = std::fs::File::create(&tmp)?;
+        f(&mut file)?;
+        file.flush()?;
+        file.sync_all()?;
+        std::fs::rename(&tmp, path)
+    })();
+    if result.is_err() {
+        let _ = std::fs::remove_file(&tmp);
+    }
+    result.with_context(|| format!("{}: cannot write", path.display()))
+}
+
+/// Saves RGBA float pixels (row-major, rgb used, clamped to [0, 1]) as an 8-bit RGB PNG.
+pub fn save_png(path: &Path, width: u32, height: u32, rgba: &[[f32; 4]]) -> Result<()> {
+    let mut bytes = Vec::with_capacity(rgba.len() * 3);
+    for p in rgba {
+        for c in &p[..3] {
+            bytes.push((c.clamp(0.0, 1.0) * 255.0).round() as u8);
+        }
+    }
+    let mut png = Vec::new();
+    image::codecs::png::PngEncoder::new(&mut png)
+        .write_image(&bytes, width, height, image::ExtendedColorType::Rgb8)
+        .with_context(|| format!("{}: PNG encoding failed", path.display()))?;
+    write_atomic(path, |f| f.write_all(&png))
+}
+
+use image::ImageEncoder as _;
+
+/// PSNR in dB between two RGB images given as RGBA floats (alpha ignored), values in [0, 1].
+pub fn psnr(a: &[[f32; 4]], b: &[[f32; 4]]) -> f64 {
+    let mut se = 0.0f64;
+    for (p, q) in a.iter().zip(b) {
+        for c in 0..3 {
+            let d = (p[c].clamp(0.0, 1.0) - q[c].clamp(0.0, 1.0)) as f64;
+            se += d * d;
+        }
+    }
+    let mse = se / (a.len().max(1) * 3) as f64;
+    if mse == 0.0 {
+        f64::INFINITY
+    } else {
+        -10.0 * mse.log10()
+    }
+}
