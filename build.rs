@@ -29,21 +29,13 @@ fn main() {
     entries.sort();
 
     let compiler = shaderc::Compiler::new().expect("shaderc compiler");
-    gen.push_str(
-        "\n/// SPIR-V of every compute kernel in `glsl/`, by file stem.\npub mod spirv {\n",
-    );
+    gen.push_str("\n/// SPIR-V of every compute kernel in `glsl/`, by file stem.\npub mod spirv {\n");
     for path in &entries {
         let stem = path.file_stem().unwrap().to_str().unwrap().to_string();
         let words = compile(&compiler, &glsl_dir, path);
         let spv = out_dir.join(format!("{stem}.spv"));
         std::fs::write(&spv, bytemuck_words(&words)).unwrap();
-        writeln!(
-            gen,
-            "    pub const {}: &[u8] = include_bytes!(\"{}\");",
-            stem.to_uppercase(),
-            spv.display()
-        )
-        .unwrap();
+        writeln!(gen, "    pub const {}: &[u8] = include_bytes!(\"{}\");", stem.to_uppercase(), spv.display()).unwrap();
     }
     gen.push_str("}\n");
     std::fs::write(out_dir.join("gpu_shared.rs"), gen).unwrap();
@@ -61,10 +53,7 @@ fn bytemuck_words(words: &[u32]) -> Vec<u8> {
 fn compile(compiler: &shaderc::Compiler, dir: &Path, path: &Path) -> Vec<u32> {
     let src = std::fs::read_to_string(path).unwrap();
     let mut opts = shaderc::CompileOptions::new().unwrap();
-    opts.set_target_env(
-        shaderc::TargetEnv::Vulkan,
-        shaderc::EnvVersion::Vulkan1_1 as u32,
-    );
+    opts.set_target_env(shaderc::TargetEnv::Vulkan, shaderc::EnvVersion::Vulkan1_1 as u32);
     opts.set_target_spirv(shaderc::SpirvVersion::V1_3);
     opts.set_optimization_level(shaderc::OptimizationLevel::Performance);
     opts.set_generate_debug_info();
@@ -72,20 +61,11 @@ fn compile(compiler: &shaderc::Compiler, dir: &Path, path: &Path) -> Vec<u32> {
     opts.set_include_callback(move |name, _ty, _from, _depth| {
         let p = dir.join(name);
         std::fs::read_to_string(&p)
-            .map(|content| shaderc::ResolvedInclude {
-                resolved_name: format!("glsl/{name}"),
-                content,
-            })
+            .map(|content| shaderc::ResolvedInclude { resolved_name: format!("glsl/{name}"), content })
             .map_err(|e| format!("cannot include {name}: {e}"))
     });
     let name = format!("glsl/{}", path.file_name().unwrap().to_str().unwrap());
-    match compiler.compile_into_spirv(
-        &src,
-        shaderc::ShaderKind::Compute,
-        &name,
-        "main",
-        Some(&opts),
-    ) {
+    match compiler.compile_into_spirv(&src, shaderc::ShaderKind::Compute, &name, "main", Some(&opts)) {
         Ok(r) => r.as_binary().to_vec(),
         Err(e) => fail(&format!("shader compile failed:\n{e}")),
     }
@@ -157,9 +137,7 @@ fn gen_structs(src: &str, out: &mut String) {
                 "uvec4" => ("[u32; 4]", 16, 16),
                 "ivec4" => ("[i32; 4]", 16, 16),
                 "mat4" => ("[[f32; 4]; 4]", 64, 16),
-                other => fail(&format!(
-                    "glsl/common.glsl: struct {name}: type {other} is not supported"
-                )),
+                other => fail(&format!("glsl/common.glsl: struct {name}: type {other} is not supported")),
             };
             if offset % align != 0 {
                 fail(&format!(
@@ -173,9 +151,7 @@ fn gen_structs(src: &str, out: &mut String) {
             offset += size;
         }
         if offset % 16 != 0 {
-            fail(&format!(
-                "glsl/common.glsl: struct {name} is {offset} bytes, not a multiple of 16; pad it"
-            ));
+            fail(&format!("glsl/common.glsl: struct {name} is {offset} bytes, not a multiple of 16; pad it"));
         }
         writeln!(out, "}}\n").unwrap();
     }

@@ -30,13 +30,7 @@ impl Camera {
     }
 
     /// From an OpenGL camera-to-world matrix.
-    pub fn from_c2w_opengl(
-        name: &str,
-        c2w: Mat4,
-        width: u32,
-        height: u32,
-        intr: [f32; 4],
-    ) -> Camera {
+    pub fn from_c2w_opengl(name: &str, c2w: Mat4, width: u32, height: u32, intr: [f32; 4]) -> Camera {
         let flip = Mat4::from_diagonal(Vec4::new(1.0, -1.0, -1.0, 1.0));
         Camera {
             name: name.to_string(),
@@ -54,32 +48,16 @@ impl Camera {
     pub fn resized(&self, width: u32, height: u32) -> Camera {
         let sx = width as f32 / self.width as f32;
         let sy = height as f32 / self.height as f32;
-        Camera {
-            width,
-            height,
-            fx: self.fx * sx,
-            fy: self.fy * sy,
-            cx: self.cx * sx,
-            cy: self.cy * sy,
-            ..self.clone()
-        }
+        Camera { width, height, fx: self.fx * sx, fy: self.fy * sy, cx: self.cx * sx, cy: self.cy * sy, ..self.clone() }
     }
 
     /// Checks the values the rasterizer relies on.
     pub fn validate(&self) -> Result<()> {
         if self.width == 0 || self.height == 0 {
-            bail!(
-                "camera '{}': image size {}x{} is empty",
-                self.name,
-                self.width,
-                self.height
-            );
+            bail!("camera '{}': image size {}x{} is empty", self.name, self.width, self.height);
         }
         if !(self.fx > 0.0 && self.fy > 0.0 && self.fx.is_finite() && self.fy.is_finite()) {
-            bail!(
-                "camera '{}': focal lengths must be positive and finite",
-                self.name
-            );
+            bail!("camera '{}': focal lengths must be positive and finite", self.name);
         }
         if !(self.cx.is_finite() && self.cy.is_finite() && self.viewmat.is_finite()) {
             bail!("camera '{}': non-finite intrinsics or pose", self.name);
@@ -112,8 +90,7 @@ struct Frame {
 pub fn load_transforms(path: &Path) -> Result<Vec<Camera>> {
     let what = path.display();
     let text = std::fs::read_to_string(path).with_context(|| format!("{what}: cannot read"))?;
-    let tf: TransformsFile =
-        serde_json::from_str(&text).map_err(|e| anyhow!("{what}: not a transforms JSON: {e}"))?;
+    let tf: TransformsFile = serde_json::from_str(&text).map_err(|e| anyhow!("{what}: not a transforms JSON: {e}"))?;
     if tf.frames.is_empty() {
         bail!("{what}: no frames");
     }
@@ -122,12 +99,8 @@ pub fn load_transforms(path: &Path) -> Result<Vec<Camera>> {
         _ => {
             let dir = path.parent().unwrap_or(Path::new("."));
             let img = image_path(dir, &tf.frames[0].file_path);
-            let (w, h) = image::image_dimensions(&img).with_context(|| {
-                format!(
-                    "{what}: no w/h given and cannot read image {}",
-                    img.display()
-                )
-            })?;
+            let (w, h) = image::image_dimensions(&img)
+                .with_context(|| format!("{what}: no w/h given and cannot read image {}", img.display()))?;
             (w as f32, h as f32)
         }
     };
@@ -151,8 +124,7 @@ pub fn load_transforms(path: &Path) -> Result<Vec<Camera>> {
             .unwrap_or_else(|| format!("frame_{k:03}"));
         let name = name.strip_suffix(".png").unwrap_or(&name).to_string();
         let cam = Camera::from_c2w_opengl(&name, c2w, w.round() as u32, h.round() as u32, intr);
-        cam.validate()
-            .with_context(|| format!("{what}: frame {k}"))?;
+        cam.validate().with_context(|| format!("{what}: frame {k}"))?;
         cams.push(cam);
     }
     Ok(cams)
@@ -236,13 +208,7 @@ pub fn orbit(
 }
 
 /// An orbit framing the scene's robust bounds (2nd–98th percentile of the means).
-pub fn orbit_around(
-    scene: &crate::scene::Scene,
-    n: usize,
-    up: UpAxis,
-    width: u32,
-    height: u32,
-) -> Vec<Camera> {
+pub fn orbit_around(scene: &crate::scene::Scene, n: usize, up: UpAxis, width: u32, height: u32) -> Vec<Camera> {
     let (lo, hi) = scene.robust_bounds(0.02);
     let center = 0.5 * (lo + hi);
     let radius = (0.5 * (hi - lo).length()).max(1e-3);

@@ -19,22 +19,9 @@ pub struct Projected {
 }
 
 const SH_C1: f32 = 0.488_602_52;
-const SH_C2: [f32; 5] = [
-    1.092_548_4,
-    -1.092_548_4,
-    0.315_391_57,
-    -1.092_548_4,
-    0.546_274_2,
-];
-const SH_C3: [f32; 7] = [
-    -0.590_043_6,
-    2.890_611_4,
-    -0.457_045_8,
-    0.373_176_33,
-    -0.457_045_8,
-    1.445_305_7,
-    -0.590_043_6,
-];
+const SH_C2: [f32; 5] = [1.092_548_4, -1.092_548_4, 0.315_391_57, -1.092_548_4, 0.546_274_2];
+const SH_C3: [f32; 7] =
+    [-0.590_043_6, 2.890_611_4, -0.457_045_8, 0.373_176_33, -0.457_045_8, 1.445_305_7, -0.590_043_6];
 
 /// SH basis values for unit direction `d` up to degree `deg` (Inria's constants and signs).
 pub fn sh_basis(d: Vec3, deg: u32) -> [f32; 16] {
@@ -75,21 +62,9 @@ pub fn quat_to_mat(q: [f32; 4]) -> Mat3 {
     let q = q / q.length();
     let (w, x, y, z) = (q.x, q.y, q.z, q.w);
     Mat3::from_cols(
-        Vec3::new(
-            1.0 - 2.0 * (y * y + z * z),
-            2.0 * (x * y + w * z),
-            2.0 * (x * z - w * y),
-        ),
-        Vec3::new(
-            2.0 * (x * y - w * z),
-            1.0 - 2.0 * (x * x + z * z),
-            2.0 * (y * z + w * x),
-        ),
-        Vec3::new(
-            2.0 * (x * z + w * y),
-            2.0 * (y * z - w * x),
-            1.0 - 2.0 * (x * x + y * y),
-        ),
+        Vec3::new(1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y + w * z), 2.0 * (x * z - w * y)),
+        Vec3::new(2.0 * (x * y - w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z + w * x)),
+        Vec3::new(2.0 * (x * z + w * y), 2.0 * (y * z - w * x), 1.0 - 2.0 * (x * x + y * y)),
     )
 }
 
@@ -207,13 +182,8 @@ pub fn stable_sort(keys: &[u32], vals: &[u32]) -> (Vec<u32>, Vec<u32>) {
 /// Passes `scan visible`, `compact` and `depth sort`: the visible Gaussians (tiles_touched > 0)
 /// in index order, stably sorted by the bits of their depth. Returns (depth keys, ids).
 pub fn depth_order(p: &Projected) -> (Vec<u32>, Vec<u32>) {
-    let ids: Vec<u32> = (0..p.depths.len() as u32)
-        .filter(|&i| p.tiles_touched[i as usize] > 0)
-        .collect();
-    let keys: Vec<u32> = ids
-        .iter()
-        .map(|&i| p.depths[i as usize].to_bits())
-        .collect();
+    let ids: Vec<u32> = (0..p.depths.len() as u32).filter(|&i| p.tiles_touched[i as usize] > 0).collect();
+    let keys: Vec<u32> = ids.iter().map(|&i| p.depths[i as usize].to_bits()).collect();
     stable_sort(&keys, &ids)
 }
 
@@ -248,12 +218,7 @@ pub fn tile_ranges(keys: &[u32], num_tiles: usize) -> Vec<[u32; 2]> {
 }
 
 /// Pass `blend`: front-to-back compositing per pixel; rgb = C + T·background, a = T.
-pub fn blend(
-    fp: &FrameParams,
-    ranges: &[[u32; 2]],
-    isect_ids: &[u32],
-    p: &Projected,
-) -> Vec<[f32; 4]> {
+pub fn blend(fp: &FrameParams, ranges: &[[u32; 2]], isect_ids: &[u32], p: &Projected) -> Vec<[f32; 4]> {
     let (w, h) = (fp.width as usize, fp.height as usize);
     let bg = Vec3::new(fp.background[0], fp.background[1], fp.background[2]);
     let mut out = vec![[0.0f32; 4]; w * h];

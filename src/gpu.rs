@@ -13,9 +13,7 @@ use std::sync::{Arc, Mutex};
 
 use anyhow::{anyhow, bail, Context, Result};
 use ash::vk;
-use gpu_allocator::vulkan::{
-    Allocation, AllocationCreateDesc, AllocationScheme, Allocator, AllocatorCreateDesc,
-};
+use gpu_allocator::vulkan::{Allocation, AllocationCreateDesc, AllocationScheme, Allocator, AllocatorCreateDesc};
 use gpu_allocator::MemoryLocation;
 
 /// How to pick and set up the device.
@@ -33,14 +31,9 @@ impl GpuOptions {
     /// Options from the environment: `INSTGS_DEVICE`, `INSTGS_VALIDATION=1`. An explicit
     /// `device` wins over the variable.
     pub fn from_env(device: Option<String>) -> Self {
-        let validation =
-            std::env::var("INSTGS_VALIDATION").is_ok_and(|v| v != "0" && !v.is_empty());
+        let validation = std::env::var("INSTGS_VALIDATION").is_ok_and(|v| v != "0" && !v.is_empty());
         GpuOptions {
-            device: device.or_else(|| {
-                std::env::var("INSTGS_DEVICE")
-                    .ok()
-                    .filter(|s| !s.is_empty())
-            }),
+            device: device.or_else(|| std::env::var("INSTGS_DEVICE").ok().filter(|s| !s.is_empty())),
             validation,
             echo_messages: true,
         }
@@ -70,10 +63,12 @@ pub struct Gpu {
     debug: Option<(ash::ext::debug_utils::Instance, vk::DebugUtilsMessengerEXT)>,
     messages: Box<Messages>,
     pub device: ash::Device,
-    pub queue: vk::Queue,
+    queue: vk::Queue,
     pub push_descriptor: ash::khr::push_descriptor::Device,
     allocator: ManuallyDrop<Mutex<Allocator>>,
-    cmd_pool: vk::CommandPool,
+    /// Submissions to `queue` must be externally synchronised.
+    queue_lock: Mutex<()>,
+    queue_family: u32,
     pub info: DeviceInfo,
 }
 
@@ -87,9 +82,7 @@ unsafe extern "system" fn debug_callback(
     let text = if data.is_null() || (*data).p_message.is_null() {
         "(no message)".to_string()
     } else {
-        CStr::from_ptr((*data).p_message)
-            .to_string_lossy()
-            .into_owned()
+        CStr::from_ptr((*data).p_message).to_string_lossy().into_owned()
     };
     let line = format!("{severity:?}: {text}");
     if msgs.1 {
@@ -113,28 +106,23 @@ fn kind_rank(t: vk::PhysicalDeviceType) -> (u32, &'static str) {
 
 impl Gpu {
     pub fn new(opts: &GpuOptions) -> Result<Arc<Gpu>> {
-        let entry = unsafe { ash::Entry::load() }
-            .context("cannot load the Vulkan loader (libvulkan.so.1); install libvulkan1 and a driver, e.g. mesa-vulkan-drivers")?;
-        let app = vk::ApplicationInfo::default()
-            .application_name(c"instgs-vk")
-            .api_version(vk::API_VERSION_1_1);
+        let entry = unsafe { ash::Entry::load() }.context(
+            "cannot load the Vulkan loader (libvulkan.so.1); install libvulkan1 and a driver, e.g. mesa-vulkan-drivers",
+        )?;
+        let app = vk::ApplicationInfo::default().application_name(c"instgs-vk").api_version(vk::API_VERSION_1_1);
         let validation_layer = c"VK_LAYER_KHRONOS_validation";
         let mut layers = Vec::new();
         let mut extensions = Vec::new();
         if opts.validation {
             let available = unsafe { entry.enumerate_instance_layer_properties()? };
-            if !available
-                .iter()
-                .any(|l| l.layer_name_as_c_str() == Ok(validation_layer))
-            {
+            if !available.iter().any(|l| l.layer_name_as_c_str() == Ok(validation_layer)) {
                 bail!("validation was requested but VK_LAYER_KHRONOS_validation is not installed (Debian: apt-get install vulkan-validationlayers)");
             }
             layers.push(validation_layer.as_ptr());
             extensions.push(ash::ext::debug_utils::NAME.as_ptr());
         }
         let enables = [vk::ValidationFeatureEnableEXT::SYNCHRONIZATION_VALIDATION];
-        let mut features =
-            vk::ValidationFeaturesEXT::default().enabled_validation_features(&enables);
+        let mut features = vk::ValidationFeaturesEXT::default().enabled_validation_features(&enables);
         let mut ci = vk::InstanceCreateInfo::default()
             .application_info(&app)
             .enabled_layer_names(&layers)
@@ -142,15 +130,13 @@ impl Gpu {
         if opts.validation {
             ci = ci.push_next(&mut features);
         }
-        let instance =
-            unsafe { entry.create_instance(&ci, None) }.context("vkCreateInstance failed")?;
+        let instance = unsafe { entry.create_instance(&ci, None) }.context("vkCreateInstance failed")?;
         let messages = Box::new(Messages(Mutex::new(Vec::new()), opts.echo_messages));
         let debug = if opts.validation {
             let du = ash::ext::debug_utils::Instance::new(&entry, &instance);
             let ci = vk::DebugUtilsMessengerCreateInfoEXT::default()
                 .message_severity(
-                    vk::DebugUtilsMessageSeverityFlagsEXT::WARNING
-                        | vk::DebugUtilsMessageSeverityFlagsEXT::ERROR,
+                    vk::DebugUtilsMessageSeverityFlagsEXT::WARNING | vk::DebugUtilsMessageSeverityFlagsEXT::ERROR,
                 )
                 .message_type(
                     vk::DebugUtilsMessageTypeFlagsEXT::GENERAL
@@ -173,35 +159,21 @@ impl Gpu {
             .iter()
             .map(|&p| {
                 let props = unsafe { instance.get_physical_device_properties(p) };
-                let name = props
-                    .device_name_as_c_str()
-                    .map(|s| s.to_string_lossy().into_owned())
-                    .unwrap_or_default();
+                let name = props.device_name_as_c_str().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
                 (p, name, props.device_type)
             })
             .collect();
-        let list = || {
-            described
-                .iter()
-                .enumerate()
-                .map(|(i, d)| format!("{i}: {}", d.1))
-                .collect::<Vec<_>>()
-                .join(", ")
-        };
+        let list = || described.iter().enumerate().map(|(i, d)| format!("{i}: {}", d.1)).collect::<Vec<_>>().join(", ");
         let chosen = match &opts.device {
             Some(sel) => {
                 if let Ok(i) = sel.parse::<usize>() {
-                    described.get(i).ok_or_else(|| {
-                        anyhow!("device index {i} out of range; devices: {}", list())
-                    })?
+                    described.get(i).ok_or_else(|| anyhow!("device index {i} out of range; devices: {}", list()))?
                 } else {
                     let low = sel.to_lowercase();
                     described
                         .iter()
                         .find(|d| d.1.to_lowercase().contains(&low))
-                        .ok_or_else(|| {
-                            anyhow!("no Vulkan device matches '{sel}'; devices: {}", list())
-                        })?
+                        .ok_or_else(|| anyhow!("no Vulkan device matches '{sel}'; devices: {}", list()))?
                 }
             }
             None => described.iter().min_by_key(|d| kind_rank(d.2).0).unwrap(),
@@ -209,24 +181,15 @@ impl Gpu {
         let physical = chosen.0;
 
         let props = unsafe { instance.get_physical_device_properties(physical) };
-        if vk::api_version_major(props.api_version) == 1
-            && vk::api_version_minor(props.api_version) < 1
-        {
-            bail!(
-                "device '{}' supports only Vulkan 1.0; Vulkan 1.1 is needed",
-                chosen.1
-            );
+        if vk::api_version_major(props.api_version) == 1 && vk::api_version_minor(props.api_version) < 1 {
+            bail!("device '{}' supports only Vulkan 1.0; Vulkan 1.1 is needed", chosen.1);
         }
         let mut subgroup = vk::PhysicalDeviceSubgroupProperties::default();
         let mut size_control = vk::PhysicalDeviceSubgroupSizeControlProperties::default();
         let dev_exts = unsafe { instance.enumerate_device_extension_properties(physical)? };
-        let has_ext = |n: &CStr| {
-            dev_exts
-                .iter()
-                .any(|e| e.extension_name_as_c_str() == Ok(n))
-        };
-        let has_size_control = has_ext(ash::ext::subgroup_size_control::NAME)
-            || vk::api_version_minor(props.api_version) >= 3;
+        let has_ext = |n: &CStr| dev_exts.iter().any(|e| e.extension_name_as_c_str() == Ok(n));
+        let has_size_control =
+            has_ext(ash::ext::subgroup_size_control::NAME) || vk::api_version_minor(props.api_version) >= 3;
         let mut props2 = vk::PhysicalDeviceProperties2::default().push_next(&mut subgroup);
         if has_size_control {
             props2 = props2.push_next(&mut size_control);
@@ -234,14 +197,9 @@ impl Gpu {
         unsafe { instance.get_physical_device_properties2(physical, &mut props2) };
         let need = vk::SubgroupFeatureFlags::BASIC | vk::SubgroupFeatureFlags::ARITHMETIC;
         if !subgroup.supported_operations.contains(need)
-            || !subgroup
-                .supported_stages
-                .contains(vk::ShaderStageFlags::COMPUTE)
+            || !subgroup.supported_stages.contains(vk::ShaderStageFlags::COMPUTE)
         {
-            bail!(
-                "device '{}' lacks subgroup basic/arithmetic operations in compute shaders",
-                chosen.1
-            );
+            bail!("device '{}' lacks subgroup basic/arithmetic operations in compute shaders", chosen.1);
         }
         if !has_ext(ash::khr::push_descriptor::NAME) {
             bail!("device '{}' lacks VK_KHR_push_descriptor", chosen.1);
@@ -259,20 +217,14 @@ impl Gpu {
             .find(|(_, f)| f.queue_flags.contains(vk::QueueFlags::COMPUTE))
             .ok_or_else(|| anyhow!("device '{}' has no compute queue", chosen.1))?;
         let qf = qf as u32;
-        let timestamp_period_ns = (qprops.timestamp_valid_bits > 0
-            && props.limits.timestamp_period > 0.0)
+        let timestamp_period_ns = (qprops.timestamp_valid_bits > 0 && props.limits.timestamp_period > 0.0)
             .then_some(props.limits.timestamp_period as f64);
 
         let prio = [1.0f32];
-        let qci = [vk::DeviceQueueCreateInfo::default()
-            .queue_family_index(qf)
-            .queue_priorities(&prio)];
+        let qci = [vk::DeviceQueueCreateInfo::default().queue_family_index(qf).queue_priorities(&prio)];
         let dexts = [ash::khr::push_descriptor::NAME.as_ptr()];
-        let dci = vk::DeviceCreateInfo::default()
-            .queue_create_infos(&qci)
-            .enabled_extension_names(&dexts);
-        let device = unsafe { instance.create_device(physical, &dci, None) }
-            .context("vkCreateDevice failed")?;
+        let dci = vk::DeviceCreateInfo::default().queue_create_infos(&qci).enabled_extension_names(&dexts);
+        let device = unsafe { instance.create_device(physical, &dci, None) }.context("vkCreateDevice failed")?;
         let queue = unsafe { device.get_device_queue(qf, 0) };
         let push_descriptor = ash::khr::push_descriptor::Device::new(&instance, &device);
         let allocator = Allocator::new(&AllocatorCreateDesc {
@@ -283,14 +235,6 @@ impl Gpu {
             buffer_device_address: false,
             allocation_sizes: Default::default(),
         })?;
-        let cmd_pool = unsafe {
-            device.create_command_pool(
-                &vk::CommandPoolCreateInfo::default()
-                    .queue_family_index(qf)
-                    .flags(vk::CommandPoolCreateFlags::RESET_COMMAND_BUFFER),
-                None,
-            )?
-        };
         let info = DeviceInfo {
             name: chosen.1.clone(),
             kind: kind_rank(chosen.2).1,
@@ -308,7 +252,8 @@ impl Gpu {
             queue,
             push_descriptor,
             allocator: ManuallyDrop::new(Mutex::new(allocator)),
-            cmd_pool,
+            queue_lock: Mutex::new(()),
+            queue_family: qf,
             info,
         }))
     }
@@ -326,11 +271,7 @@ impl Gpu {
 
     /// Bytes currently allocated through the allocator.
     pub fn allocated_bytes(&self) -> u64 {
-        self.allocator
-            .lock()
-            .unwrap()
-            .generate_report()
-            .total_allocated_bytes
+        self.allocator.lock().unwrap().generate_report().total_allocated_bytes
     }
 
     /// Creates a buffer. Zero-size requests get a 16-byte buffer (Vulkan forbids size 0).
@@ -343,44 +284,24 @@ impl Gpu {
     ) -> Result<Buffer> {
         let size = size.max(16);
         let usage = usage | vk::BufferUsageFlags::TRANSFER_SRC | vk::BufferUsageFlags::TRANSFER_DST;
-        let raw = unsafe {
-            self.device.create_buffer(
-                &vk::BufferCreateInfo::default().size(size).usage(usage),
-                None,
-            )?
-        };
+        let raw = unsafe { self.device.create_buffer(&vk::BufferCreateInfo::default().size(size).usage(usage), None)? };
         let requirements = unsafe { self.device.get_buffer_memory_requirements(raw) };
-        let alloc = self
-            .allocator
-            .lock()
-            .unwrap()
-            .allocate(&AllocationCreateDesc {
-                name,
-                requirements,
-                location,
-                linear: true,
-                allocation_scheme: AllocationScheme::GpuAllocatorManaged,
-            });
+        let alloc = self.allocator.lock().unwrap().allocate(&AllocationCreateDesc {
+            name,
+            requirements,
+            location,
+            linear: true,
+            allocation_scheme: AllocationScheme::GpuAllocatorManaged,
+        });
         let alloc = match alloc {
             Ok(a) => a,
             Err(e) => {
                 unsafe { self.device.destroy_buffer(raw, None) };
-                return Err(anyhow!(
-                    "cannot allocate {size} bytes for buffer '{name}': {e}"
-                ));
+                return Err(anyhow!("cannot allocate {size} bytes for buffer '{name}': {e}"));
             }
         };
-        unsafe {
-            self.device
-                .bind_buffer_memory(raw, alloc.memory(), alloc.offset())?
-        };
-        Ok(Buffer {
-            gpu: self.clone(),
-            raw,
-            alloc: Some(alloc),
-            size,
-            name: name.to_string(),
-        })
+        unsafe { self.device.bind_buffer_memory(raw, alloc.memory(), alloc.offset())? };
+        Ok(Buffer { gpu: self.clone(), raw, alloc: Some(alloc), size, name: name.to_string() })
     }
 
     /// A device-local storage buffer.
@@ -406,12 +327,8 @@ impl Gpu {
         if bytes.is_empty() {
             return Ok(());
         }
-        let mut staging = self.buffer(
-            "staging-up",
-            bytes.len() as u64,
-            vk::BufferUsageFlags::empty(),
-            MemoryLocation::CpuToGpu,
-        )?;
+        let mut staging =
+            self.buffer("staging-up", bytes.len() as u64, vk::BufferUsageFlags::empty(), MemoryLocation::CpuToGpu)?;
         staging.mapped_mut()?[..bytes.len()].copy_from_slice(bytes);
         self.submit_and_wait(|rec| {
             rec.copy(&staging, dst, bytes.len() as u64);
@@ -423,21 +340,12 @@ impl Gpu {
     pub fn read<T: bytemuck::Pod>(self: &Arc<Self>, src: &Buffer, count: usize) -> Result<Vec<T>> {
         let bytes = (count * std::mem::size_of::<T>()) as u64;
         if bytes > src.size {
-            bail!(
-                "reading {bytes} bytes from buffer '{}' of {} bytes",
-                src.name,
-                src.size
-            );
+            bail!("reading {bytes} bytes from buffer '{}' of {} bytes", src.name, src.size);
         }
         if count == 0 {
             return Ok(Vec::new());
         }
-        let staging = self.buffer(
-            "staging-down",
-            bytes,
-            vk::BufferUsageFlags::empty(),
-            MemoryLocation::GpuToCpu,
-        )?;
+        let staging = self.buffer("staging-down", bytes, vk::BufferUsageFlags::empty(), MemoryLocation::GpuToCpu)?;
         self.submit_and_wait(|rec| {
             rec.copy(src, &staging, bytes);
             Ok(())
@@ -447,10 +355,7 @@ impl Gpu {
     }
 
     /// Records commands with `f`, submits them and waits for completion.
-    pub fn submit_and_wait(
-        self: &Arc<Self>,
-        f: impl FnOnce(&mut Recorder) -> Result<()>,
-    ) -> Result<()> {
+    pub fn submit_and_wait(self: &Arc<Self>, f: impl FnOnce(&mut Recorder) -> Result<()>) -> Result<()> {
         let cmd = CommandBuffer::new(self)?;
         cmd.record(|rec| f(rec))?;
         cmd.submit_and_wait()
@@ -461,7 +366,6 @@ impl Drop for Gpu {
     fn drop(&mut self) {
         unsafe {
             let _ = self.device.device_wait_idle();
-            self.device.destroy_command_pool(self.cmd_pool, None);
             ManuallyDrop::drop(&mut self.allocator);
             self.device.destroy_device(None);
             if let Some((du, m)) = self.debug.take() {
@@ -487,11 +391,7 @@ impl Buffer {
         let bytes: &[u8] = bytemuck::cast_slice(data);
         let m = self.mapped_mut()?;
         if bytes.len() > m.len() {
-            bail!(
-                "writing {} bytes into a {}-byte buffer",
-                bytes.len(),
-                m.len()
-            );
+            bail!("writing {} bytes into a {}-byte buffer", bytes.len(), m.len());
         }
         m[..bytes.len()].copy_from_slice(bytes);
         Ok(())
@@ -550,9 +450,7 @@ impl Kernel {
     pub fn new(gpu: &Arc<Gpu>, name: &str, spirv: &[u8]) -> Result<Kernel> {
         let refl = rspirv_reflect::Reflection::new_from_spirv(spirv)
             .map_err(|e| anyhow!("kernel {name}: SPIR-V reflection failed: {e:?}"))?;
-        let sets = refl
-            .get_descriptor_sets()
-            .map_err(|e| anyhow!("kernel {name}: reflection: {e:?}"))?;
+        let sets = refl.get_descriptor_sets().map_err(|e| anyhow!("kernel {name}: reflection: {e:?}"))?;
         if sets.keys().any(|&s| s != 0) {
             bail!("kernel {name}: only descriptor set 0 is supported");
         }
@@ -560,15 +458,9 @@ impl Kernel {
         let mut layout_bindings = Vec::new();
         for (&binding, info) in sets.get(&0).into_iter().flatten() {
             let ty = match info.ty {
-                rspirv_reflect::DescriptorType::STORAGE_BUFFER => {
-                    vk::DescriptorType::STORAGE_BUFFER
-                }
-                rspirv_reflect::DescriptorType::UNIFORM_BUFFER => {
-                    vk::DescriptorType::UNIFORM_BUFFER
-                }
-                other => bail!(
-                    "kernel {name}: binding {binding} has unsupported descriptor type {other:?}"
-                ),
+                rspirv_reflect::DescriptorType::STORAGE_BUFFER => vk::DescriptorType::STORAGE_BUFFER,
+                rspirv_reflect::DescriptorType::UNIFORM_BUFFER => vk::DescriptorType::UNIFORM_BUFFER,
+                other => bail!("kernel {name}: binding {binding} has unsupported descriptor type {other:?}"),
             };
             if info.name.is_empty() {
                 bail!("kernel {name}: binding {binding} has no instance name; declare `buffer XBuf {{ ... }} name;`");
@@ -590,18 +482,15 @@ impl Kernel {
         let d = &gpu.device;
         let words = ash::util::read_spv(&mut std::io::Cursor::new(spirv))?;
         unsafe {
-            let module =
-                d.create_shader_module(&vk::ShaderModuleCreateInfo::default().code(&words), None)?;
+            let module = d.create_shader_module(&vk::ShaderModuleCreateInfo::default().code(&words), None)?;
             let set_layout = d.create_descriptor_set_layout(
                 &vk::DescriptorSetLayoutCreateInfo::default()
                     .flags(vk::DescriptorSetLayoutCreateFlags::PUSH_DESCRIPTOR_KHR)
                     .bindings(&layout_bindings),
                 None,
             )?;
-            let ranges = [vk::PushConstantRange::default()
-                .stage_flags(vk::ShaderStageFlags::COMPUTE)
-                .offset(0)
-                .size(push_size)];
+            let ranges =
+                [vk::PushConstantRange::default().stage_flags(vk::ShaderStageFlags::COMPUTE).offset(0).size(push_size)];
             let set_layouts = [set_layout];
             let mut lci = vk::PipelineLayoutCreateInfo::default().set_layouts(&set_layouts);
             if push_size > 0 {
@@ -609,35 +498,19 @@ impl Kernel {
             }
             let layout = d.create_pipeline_layout(&lci, None)?;
             let spec_data = gpu.info.min_subgroup_size.to_le_bytes();
-            let spec_entries = [vk::SpecializationMapEntry::default()
-                .constant_id(0)
-                .offset(0)
-                .size(4)];
-            let spec = vk::SpecializationInfo::default()
-                .map_entries(&spec_entries)
-                .data(&spec_data);
+            let spec_entries = [vk::SpecializationMapEntry::default().constant_id(0).offset(0).size(4)];
+            let spec = vk::SpecializationInfo::default().map_entries(&spec_entries).data(&spec_data);
             let entry = CString::new("main").unwrap();
             let stage = vk::PipelineShaderStageCreateInfo::default()
                 .stage(vk::ShaderStageFlags::COMPUTE)
                 .module(module)
                 .name(&entry)
                 .specialization_info(&spec);
-            let pci = [vk::ComputePipelineCreateInfo::default()
-                .stage(stage)
-                .layout(layout)];
+            let pci = [vk::ComputePipelineCreateInfo::default().stage(stage).layout(layout)];
             let pipeline = d.create_compute_pipelines(vk::PipelineCache::null(), &pci, None);
             d.destroy_shader_module(module, None);
-            let pipeline = pipeline
-                .map_err(|(_, e)| anyhow!("kernel {name}: pipeline creation failed: {e}"))?[0];
-            Ok(Kernel {
-                gpu: gpu.clone(),
-                name: name.to_string(),
-                pipeline,
-                layout,
-                set_layout,
-                bindings,
-                push_size,
-            })
+            let pipeline = pipeline.map_err(|(_, e)| anyhow!("kernel {name}: pipeline creation failed: {e}"))?[0];
+            Ok(Kernel { gpu: gpu.clone(), name: name.to_string(), pipeline, layout, set_layout, bindings, push_size })
         }
     }
 }
@@ -668,18 +541,11 @@ impl Timer {
         }
         let pool = unsafe {
             gpu.device.create_query_pool(
-                &vk::QueryPoolCreateInfo::default()
-                    .query_type(vk::QueryType::TIMESTAMP)
-                    .query_count(capacity + 1),
+                &vk::QueryPoolCreateInfo::default().query_type(vk::QueryType::TIMESTAMP).query_count(capacity + 1),
                 None,
             )?
         };
-        Ok(Some(Timer {
-            gpu: gpu.clone(),
-            pool,
-            capacity,
-            names: Vec::new(),
-        }))
+        Ok(Some(Timer { gpu: gpu.clone(), pool, capacity, names: Vec::new() }))
     }
 
     /// Milliseconds of every pass of the last submission, in record order. Passes with the same
@@ -761,12 +627,7 @@ impl Recorder<'_> {
                 bail!("timer capacity {} exceeded", t.capacity);
             }
             unsafe {
-                self.gpu.device.cmd_write_timestamp(
-                    self.cmd,
-                    vk::PipelineStageFlags::BOTTOM_OF_PIPE,
-                    t.pool,
-                    k + 1,
-                )
+                self.gpu.device.cmd_write_timestamp(self.cmd, vk::PipelineStageFlags::BOTTOM_OF_PIPE, t.pool, k + 1)
             };
             t.names.push(name.to_string());
         }
@@ -775,40 +636,23 @@ impl Recorder<'_> {
 
     pub fn copy(&mut self, src: &Buffer, dst: &Buffer, bytes: u64) {
         let region = [vk::BufferCopy::default().size(bytes)];
-        unsafe {
-            self.gpu
-                .device
-                .cmd_copy_buffer(self.cmd, src.raw, dst.raw, &region)
-        };
+        unsafe { self.gpu.device.cmd_copy_buffer(self.cmd, src.raw, dst.raw, &region) };
         self.barrier();
     }
 
     /// Fills the whole buffer with a 32-bit value.
     pub fn fill(&mut self, dst: &Buffer, value: u32) {
-        unsafe {
-            self.gpu
-                .device
-                .cmd_fill_buffer(self.cmd, dst.raw, 0, vk::WHOLE_SIZE, value)
-        };
+        unsafe { self.gpu.device.cmd_fill_buffer(self.cmd, dst.raw, 0, vk::WHOLE_SIZE, value) };
         self.barrier();
     }
 
     /// Writes up to 64 KiB of data at the start of `dst` inside the command buffer.
     pub fn update<T: bytemuck::Pod>(&mut self, dst: &Buffer, data: &[T]) {
-        unsafe {
-            self.gpu
-                .device
-                .cmd_update_buffer(self.cmd, dst.raw, 0, bytemuck::cast_slice(data))
-        };
+        unsafe { self.gpu.device.cmd_update_buffer(self.cmd, dst.raw, 0, bytemuck::cast_slice(data)) };
         self.barrier();
     }
 
-    fn bind<P: bytemuck::Pod>(
-        &mut self,
-        k: &Kernel,
-        binds: &[(&str, &Buffer)],
-        push: &P,
-    ) -> Result<()> {
+    fn bind<P: bytemuck::Pod>(&mut self, k: &Kernel, binds: &[(&str, &Buffer)], push: &P) -> Result<()> {
         if binds.len() != k.bindings.len() {
             let want: Vec<&String> = k.bindings.keys().collect();
             let got: Vec<&str> = binds.iter().map(|b| b.0).collect();
@@ -817,13 +661,9 @@ impl Recorder<'_> {
         let mut infos = Vec::with_capacity(binds.len());
         let mut meta = Vec::with_capacity(binds.len());
         for (name, buf) in binds {
-            let &(binding, ty) = k
-                .bindings
-                .get(*name)
-                .ok_or_else(|| anyhow!("kernel {}: no buffer named '{name}'", k.name))?;
-            if ty == vk::DescriptorType::STORAGE_BUFFER
-                && buf.size > self.gpu.info.max_storage_buffer_range
-            {
+            let &(binding, ty) =
+                k.bindings.get(*name).ok_or_else(|| anyhow!("kernel {}: no buffer named '{name}'", k.name))?;
+            if ty == vk::DescriptorType::STORAGE_BUFFER && buf.size > self.gpu.info.max_storage_buffer_range {
                 bail!(
                     "buffer '{}' ({} bytes) exceeds the device's maxStorageBufferRange ({} bytes)",
                     buf.name,
@@ -831,30 +671,19 @@ impl Recorder<'_> {
                     self.gpu.info.max_storage_buffer_range
                 );
             }
-            infos.push([vk::DescriptorBufferInfo::default()
-                .buffer(buf.raw)
-                .offset(0)
-                .range(vk::WHOLE_SIZE)]);
+            infos.push([vk::DescriptorBufferInfo::default().buffer(buf.raw).offset(0).range(vk::WHOLE_SIZE)]);
             meta.push((binding, ty));
         }
         let writes: Vec<vk::WriteDescriptorSet> = infos
             .iter()
             .zip(&meta)
             .map(|(info, &(binding, ty))| {
-                vk::WriteDescriptorSet::default()
-                    .dst_binding(binding)
-                    .descriptor_type(ty)
-                    .buffer_info(info)
+                vk::WriteDescriptorSet::default().dst_binding(binding).descriptor_type(ty).buffer_info(info)
             })
             .collect();
         let bytes: &[u8] = bytemuck::bytes_of(push);
         if bytes.len() as u32 != k.push_size && !(k.push_size == 0 && bytes.is_empty()) {
-            bail!(
-                "kernel {}: push constants are {} bytes, given {}",
-                k.name,
-                k.push_size,
-                bytes.len()
-            );
+            bail!("kernel {}: push constants are {} bytes, given {}", k.name, k.push_size, bytes.len());
         }
         unsafe {
             let d = &self.gpu.device;
@@ -882,11 +711,7 @@ impl Recorder<'_> {
         groups: [u32; 3],
     ) -> Result<()> {
         self.bind(k, binds, push)?;
-        unsafe {
-            self.gpu
-                .device
-                .cmd_dispatch(self.cmd, groups[0], groups[1], groups[2])
-        };
+        unsafe { self.gpu.device.cmd_dispatch(self.cmd, groups[0], groups[1], groups[2]) };
         self.barrier();
         Ok(())
     }
@@ -901,19 +726,17 @@ impl Recorder<'_> {
         offset: u64,
     ) -> Result<()> {
         self.bind(k, binds, push)?;
-        unsafe {
-            self.gpu
-                .device
-                .cmd_dispatch_indirect(self.cmd, args.raw, offset)
-        };
+        unsafe { self.gpu.device.cmd_dispatch_indirect(self.cmd, args.raw, offset) };
         self.barrier();
         Ok(())
     }
 }
 
-/// A primary command buffer with its fence, recorded once and submitted any number of times.
+/// A primary command buffer with its own pool and fence, recorded once and submitted any
+/// number of times. One pool each keeps recording on different threads independent.
 pub struct CommandBuffer {
     gpu: Arc<Gpu>,
+    pool: vk::CommandPool,
     cmd: vk::CommandBuffer,
     fence: vk::Fence,
     in_flight: std::cell::Cell<bool>,
@@ -921,23 +744,21 @@ pub struct CommandBuffer {
 
 impl CommandBuffer {
     pub fn new(gpu: &Arc<Gpu>) -> Result<CommandBuffer> {
+        let pool = unsafe {
+            gpu.device.create_command_pool(
+                &vk::CommandPoolCreateInfo::default()
+                    .queue_family_index(gpu.queue_family)
+                    .flags(vk::CommandPoolCreateFlags::RESET_COMMAND_BUFFER),
+                None,
+            )?
+        };
         let cmd = unsafe {
             gpu.device.allocate_command_buffers(
-                &vk::CommandBufferAllocateInfo::default()
-                    .command_pool(gpu.cmd_pool)
-                    .command_buffer_count(1),
+                &vk::CommandBufferAllocateInfo::default().command_pool(pool).command_buffer_count(1),
             )?[0]
         };
-        let fence = unsafe {
-            gpu.device
-                .create_fence(&vk::FenceCreateInfo::default(), None)?
-        };
-        Ok(CommandBuffer {
-            gpu: gpu.clone(),
-            cmd,
-            fence,
-            in_flight: std::cell::Cell::new(false),
-        })
+        let fence = unsafe { gpu.device.create_fence(&vk::FenceCreateInfo::default(), None)? };
+        Ok(CommandBuffer { gpu: gpu.clone(), pool, cmd, fence, in_flight: std::cell::Cell::new(false) })
     }
 
     /// Records the command buffer (replacing earlier contents).
@@ -946,11 +767,7 @@ impl CommandBuffer {
     }
 
     /// Records with timestamps into `timer` (reset at the start).
-    pub fn record_timed(
-        &self,
-        timer: Option<&mut Timer>,
-        f: impl FnOnce(&mut Recorder) -> Result<()>,
-    ) -> Result<()> {
+    pub fn record_timed(&self, timer: Option<&mut Timer>, f: impl FnOnce(&mut Recorder) -> Result<()>) -> Result<()> {
         let d = &self.gpu.device;
         unsafe {
             d.reset_command_buffer(self.cmd, vk::CommandBufferResetFlags::empty())?;
@@ -964,11 +781,7 @@ impl CommandBuffer {
                 d.cmd_write_timestamp(self.cmd, vk::PipelineStageFlags::TOP_OF_PIPE, t.pool, 0);
             }
         }
-        let mut rec = Recorder {
-            gpu: &self.gpu,
-            cmd: self.cmd,
-            timer,
-        };
+        let mut rec = Recorder { gpu: &self.gpu, cmd: self.cmd, timer };
         let r = f(&mut rec);
         unsafe { d.end_command_buffer(self.cmd)? };
         r
@@ -980,7 +793,10 @@ impl CommandBuffer {
         let submit = [vk::SubmitInfo::default().command_buffers(&cmds)];
         unsafe {
             d.reset_fences(&[self.fence])?;
-            d.queue_submit(self.gpu.queue, &submit, self.fence)?;
+            {
+                let _q = self.gpu.queue_lock.lock().unwrap();
+                d.queue_submit(self.gpu.queue, &submit, self.fence)?;
+            }
             self.in_flight.set(true);
             d.wait_for_fences(&[self.fence], true, u64::MAX)
                 .map_err(|e| anyhow!("waiting for the GPU failed ({e}); the device may be lost"))?;
@@ -994,15 +810,11 @@ impl Drop for CommandBuffer {
     fn drop(&mut self) {
         unsafe {
             if self.in_flight.get() {
-                let _ = self
-                    .gpu
-                    .device
-                    .wait_for_fences(&[self.fence], true, u64::MAX);
+                let _ = self.gpu.device.wait_for_fences(&[self.fence], true, u64::MAX);
             }
             self.gpu.device.destroy_fence(self.fence, None);
-            self.gpu
-                .device
-                .free_command_buffers(self.gpu.cmd_pool, &[self.cmd]);
+            self.gpu.device.free_command_buffers(self.pool, &[self.cmd]);
+            self.gpu.device.destroy_command_pool(self.pool, None);
         }
     }
 }

@@ -61,16 +61,8 @@ impl Counts {
 
     /// Writes the indirect commands of `slot` from the GPU-side count.
     pub fn record_args(&self, rec: &mut Recorder, k: &Kernels, slot: u32) -> Result<()> {
-        let push = DispatchArgs {
-            count_slot: slot,
-            ..Default::default()
-        };
-        rec.dispatch(
-            &k.dispatch_args,
-            &[("counts", &self.counts), ("indirect", &self.indirect)],
-            &push,
-            [1, 1, 1],
-        )
+        let push = DispatchArgs { count_slot: slot, ..Default::default() };
+        rec.dispatch(&k.dispatch_args, &[("counts", &self.counts), ("indirect", &self.indirect)], &push, [1, 1, 1])
     }
 }
 
@@ -114,22 +106,12 @@ pub fn record_scan(rec: &mut Recorder, k: &Kernels, c: &Counts, s: &Scan) -> Res
     let off = Counts::args_offset(s.count_slot, ARGS_SCAN_BLOCKS);
     rec.dispatch_indirect(
         &k.scan_reduce,
-        &[
-            ("counts", &c.counts),
-            ("scan_in", s.input),
-            ("gather", gather),
-            ("block_sums", s.block_sums),
-        ],
+        &[("counts", &c.counts), ("scan_in", s.input), ("gather", gather), ("block_sums", s.block_sums)],
         &args,
         &c.indirect,
         off,
     )?;
-    rec.dispatch(
-        &k.scan_blocks,
-        &[("counts", &c.counts), ("data", s.block_sums)],
-        &args,
-        [1, 1, 1],
-    )?;
+    rec.dispatch(&k.scan_blocks, &[("counts", &c.counts), ("data", s.block_sums)], &args, [1, 1, 1])?;
     rec.dispatch_indirect(
         &k.scan_down,
         &[
@@ -162,11 +144,7 @@ pub fn record_sort(
     let off = Counts::args_offset(slot, ARGS_SORT_BLOCKS);
     for p in 0..passes {
         let (i, o) = ((p % 2) as usize, ((p + 1) % 2) as usize);
-        let push = SortArgs {
-            count_slot: slot,
-            shift: p * RADIX_BITS,
-            ..Default::default()
-        };
+        let push = SortArgs { count_slot: slot, shift: p * RADIX_BITS, ..Default::default() };
         rec.dispatch_indirect(
             &k.sort_count,
             &[("counts", &c.counts), ("keys_in", keys[i]), ("hist", hist)],
@@ -182,12 +160,7 @@ pub fn record_sort(
             multiplier: RADIX_BINS,
             ..Default::default()
         };
-        rec.dispatch(
-            &k.scan_blocks,
-            &[("counts", &c.counts), ("data", hist)],
-            &scan,
-            [1, 1, 1],
-        )?;
+        rec.dispatch(&k.scan_blocks, &[("counts", &c.counts), ("data", hist)], &scan, [1, 1, 1])?;
         rec.dispatch_indirect(
             &k.sort_scatter,
             &[

@@ -97,11 +97,7 @@ struct ViewArgs {
 fn parse_rgb(s: &str) -> std::result::Result<[f32; 3], String> {
     let v: Vec<f32> = s
         .split(',')
-        .map(|p| {
-            p.trim()
-                .parse::<f32>()
-                .map_err(|_| format!("'{p}' is not a number"))
-        })
+        .map(|p| p.trim().parse::<f32>().map_err(|_| format!("'{p}' is not a number")))
         .collect::<std::result::Result<_, _>>()?;
     match v[..] {
         [r, g, b] if v.iter().all(|c| (0.0..=1.0).contains(c)) => Ok([r, g, b]),
@@ -125,17 +121,8 @@ fn run(cli: Cli) -> Result<()> {
     match cli.cmd {
         Cmd::Info { scene, json } => info(&scene, json),
         Cmd::Render { view, out } => render(cli.device, &view, &out),
-        Cmd::Bench {
-            view,
-            frames,
-            warmup,
-            json,
-        } => bench(cli.device, &view, frames, warmup, json.as_deref()),
-        Cmd::BenchSort {
-            keys,
-            bits,
-            repeats,
-        } => bench_sort(cli.device, keys, bits, repeats),
+        Cmd::Bench { view, frames, warmup, json } => bench(cli.device, &view, frames, warmup, json.as_deref()),
+        Cmd::BenchSort { keys, bits, repeats } => bench_sort(cli.device, keys, bits, repeats),
     }
 }
 
@@ -161,10 +148,7 @@ fn info(path: &Path, json: bool) -> Result<()> {
         println!("file        {}", path.display());
         println!("gaussians   {}", scene.len());
         println!("sh degree   {}", scene.sh_degree);
-        println!(
-            "bounds      [{:.4}, {:.4}, {:.4}] .. [{:.4}, {:.4}, {:.4}]",
-            lo.x, lo.y, lo.z, hi.x, hi.y, hi.z
-        );
+        println!("bounds      [{:.4}, {:.4}, {:.4}] .. [{:.4}, {:.4}, {:.4}]", lo.x, lo.y, lo.z, hi.x, hi.y, hi.z);
         println!(
             "p2..p98     [{:.4}, {:.4}, {:.4}] .. [{:.4}, {:.4}, {:.4}]",
             rlo.x, rlo.y, rlo.z, rhi.x, rhi.y, rhi.z
@@ -193,31 +177,26 @@ fn cameras(view: &ViewArgs, scene: &Scene) -> Result<Vec<Camera>> {
             }
         }
         (None, Some(0)) => bail!("--orbit needs at least 1 camera"),
-        (None, Some(n)) => camera::orbit_around(
-            scene,
-            n,
-            view.up,
-            view.width.unwrap_or(640),
-            view.height.unwrap_or(480),
-        ),
+        (None, Some(n)) => {
+            camera::orbit_around(scene, n, view.up, view.width.unwrap_or(640), view.height.unwrap_or(480))
+        }
         (None, None) => bail!("give --cameras FILE or --orbit N"),
     };
     Ok(cams)
 }
 
-fn setup(device: Option<String>, scene_path: &Path) -> Result<(Arc<Gpu>, Arc<Kernels>, Scene)> {
-    let scene = read_ply(scene_path)?;
+fn setup(device: Option<String>, view: &ViewArgs) -> Result<(Arc<Gpu>, Arc<Kernels>, Scene, Vec<Camera>)> {
+    let scene = read_ply(&view.scene)?;
+    let cams = cameras(view, &scene)?;
     let gpu = Gpu::new(&GpuOptions::from_env(device))?;
     eprintln!("device: {}", gpu.describe());
     let k = Kernels::new(&gpu)?;
-    Ok((gpu, k, scene))
+    Ok((gpu, k, scene, cams))
 }
 
 fn render(device: Option<String>, view: &ViewArgs, out: &Path) -> Result<()> {
-    let (gpu, k, scene) = setup(device, &view.scene)?;
-    let cams = cameras(view, &scene)?;
-    std::fs::create_dir_all(out)
-        .with_context(|| format!("{}: cannot create folder", out.display()))?;
+    let (gpu, k, scene, cams) = setup(device, view)?;
+    std::fs::create_dir_all(out).with_context(|| format!("{}: cannot create folder", out.display()))?;
     let gs = GpuScene::new(&gpu, &scene).with_context(|| view.scene.display().to_string())?;
     let mut r = Rasterizer::new(&gpu, &k)?;
     let mut per_pass: Vec<(String, Vec<f64>)> = Vec::new();
@@ -270,18 +249,11 @@ fn print_passes(per_pass: &[(String, Vec<f64>)]) {
     }
 }
 
-fn bench(
-    device: Option<String>,
-    view: &ViewArgs,
-    frames: usize,
-    warmup: usize,
-    json: Option<&Path>,
-) -> Result<()> {
+fn bench(device: Option<String>, view: &ViewArgs, frames: usize, warmup: usize, json: Option<&Path>) -> Result<()> {
     if frames == 0 {
         bail!("--frames must be at least 1");
     }
-    let (gpu, k, scene) = setup(device, &view.scene)?;
-    let cams = cameras(view, &scene)?;
+    let (gpu, k, scene, cams) = setup(device, view)?;
     let gs = GpuScene::new(&gpu, &scene)?;
     let mut r = Rasterizer::new(&gpu, &k)?;
     let mut per_pass = Vec::new();
@@ -312,10 +284,8 @@ fn bench(
     println!("file bytes       {file_bytes}");
     print_passes(&per_pass);
     if let Some(path) = json {
-        let passes: serde_json::Map<String, serde_json::Value> = per_pass
-            .iter()
-            .map(|(n, v)| (n.clone(), serde_json::json!(median(v))))
-            .collect();
+        let passes: serde_json::Map<String, serde_json::Value> =
+            per_pass.iter().map(|(n, v)| (n.clone(), serde_json::json!(median(v)))).collect();
         let v = serde_json::json!({
             "device": gpu.info.name,
             "scene": view.scene.display().to_string(),
@@ -335,11 +305,7 @@ fn bench(
         });
         instgs_vk::util::write_atomic(path, |f| {
             use std::io::Write;
-            f.write_all(
-                serde_json::to_string_pretty(&v)
-                    .map_err(std::io::Error::other)?
-                    .as_bytes(),
-            )
+            f.write_all(serde_json::to_string_pretty(&v).map_err(std::io::Error::other)?.as_bytes())
         })?;
     }
     Ok(())
@@ -354,11 +320,7 @@ fn bench_sort(device: Option<String>, n: usize, bits: u32, repeats: usize) -> Re
     let k = Kernels::new(&gpu)?;
     // A fixed xorshift stream: the same keys every run.
     let mut s = 0x9e37_79b9_7f4a_7c15u64;
-    let mask = if bits == 32 {
-        u32::MAX
-    } else {
-        (1u32 << bits) - 1
-    };
+    let mask = if bits == 32 { u32::MAX } else { (1u32 << bits) - 1 };
     let keys: Vec<u32> = (0..n)
         .map(|_| {
             s ^= s << 13;
@@ -370,9 +332,7 @@ fn bench_sort(device: Option<String>, n: usize, bits: u32, repeats: usize) -> Re
     let vals: Vec<u32> = (0..n as u32).collect();
     let mut sorter = instgs_vk::sort::GpuSort::new(&gpu, &k, n)?;
     let sorted = sorter.sort(&keys, &vals, bits, repeats)?;
-    let gpu_ms = sorted
-        .gpu_ms
-        .ok_or_else(|| anyhow!("the device has no timestamps"))?;
+    let gpu_ms = sorted.gpu_ms.ok_or_else(|| anyhow!("the device has no timestamps"))?;
     let mut cpu_times = Vec::new();
     for _ in 0..repeats.max(1) {
         let mut pairs: Vec<(u32, u32)> = keys.iter().copied().zip(vals.iter().copied()).collect();

@@ -11,9 +11,7 @@ use gpu_allocator::MemoryLocation;
 
 use crate::camera::Camera;
 use crate::gpu::{Buffer, CommandBuffer, Gpu, Timer};
-use crate::kernels::{
-    bits_for, record_scan, record_sort, scan_blocks_for, sort_hist_for, Counts, Kernels, Scan,
-};
+use crate::kernels::{bits_for, record_scan, record_sort, scan_blocks_for, sort_hist_for, Counts, Kernels, Scan};
 use crate::scene::Scene;
 use crate::shared::*;
 
@@ -88,16 +86,7 @@ impl GpuScene {
 
     /// Bytes of the scene's device buffers.
     pub fn gpu_bytes(&self) -> u64 {
-        [
-            &self.means,
-            &self.scales,
-            &self.quats,
-            &self.opacities,
-            &self.sh,
-        ]
-        .iter()
-        .map(|b| b.size)
-        .sum()
+        [&self.means, &self.scales, &self.quats, &self.opacities, &self.sh].iter().map(|b| b.size).sum()
     }
 }
 
@@ -218,35 +207,18 @@ impl Rasterizer {
 
     /// Bytes of the per-frame device buffers.
     pub fn frame_gpu_bytes(&self) -> u64 {
-        let mut b = self.frame_ub.size
-            + self.counts.counts.size
-            + self.counts.indirect.size
-            + self.readback_counts.size;
+        let mut b =
+            self.frame_ub.size + self.counts.counts.size + self.counts.indirect.size + self.readback_counts.size;
         if let Some(g) = &self.gauss {
-            b += [
-                &g.xys,
-                &g.conics,
-                &g.colors,
-                &g.depths,
-                &g.radii,
-                &g.tiles_touched,
-                &g.vis_offsets,
-                &g.isect_offsets,
-            ]
-            .iter()
-            .map(|x| x.size)
-            .sum::<u64>();
-            b += g
-                .depth_keys
-                .iter()
-                .chain(&g.depth_ids)
-                .map(|x| x.size)
-                .sum::<u64>();
+            b +=
+                [&g.xys, &g.conics, &g.colors, &g.depths, &g.radii, &g.tiles_touched, &g.vis_offsets, &g.isect_offsets]
+                    .iter()
+                    .map(|x| x.size)
+                    .sum::<u64>();
+            b += g.depth_keys.iter().chain(&g.depth_ids).map(|x| x.size).sum::<u64>();
         }
         if let Some(i) = &self.isect {
-            b += i.keys.iter().chain(&i.ids).map(|x| x.size).sum::<u64>()
-                + i.hist.size
-                + i.block_sums.size;
+            b += i.keys.iter().chain(&i.ids).map(|x| x.size).sum::<u64>() + i.hist.size + i.block_sums.size;
         }
         if let Some(im) = &self.image {
             b += im.ranges.size + im.out_image.size + im.readback_image.size;
@@ -277,14 +249,8 @@ impl Rasterizer {
                 radii: gpu.storage("radii", b)?,
                 tiles_touched: gpu.storage("tiles_touched", b)?,
                 vis_offsets: gpu.storage("vis_offsets", b)?,
-                depth_keys: [
-                    gpu.storage("depth_keys_a", b)?,
-                    gpu.storage("depth_keys_b", b)?,
-                ],
-                depth_ids: [
-                    gpu.storage("depth_ids_a", b)?,
-                    gpu.storage("depth_ids_b", b)?,
-                ],
+                depth_keys: [gpu.storage("depth_keys_a", b)?, gpu.storage("depth_keys_b", b)?],
+                depth_ids: [gpu.storage("depth_ids_a", b)?, gpu.storage("depth_ids_b", b)?],
                 isect_offsets: gpu.storage("isect_offsets", b)?,
             });
             self.isect = None;
@@ -294,23 +260,13 @@ impl Rasterizer {
             let most = (cap.max(n)) as u64;
             self.isect = Some(IsectBufs {
                 cap,
-                keys: [
-                    gpu.storage("isect_keys_a", b)?,
-                    gpu.storage("isect_keys_b", b)?,
-                ],
-                ids: [
-                    gpu.storage("isect_ids_a", b)?,
-                    gpu.storage("isect_ids_b", b)?,
-                ],
+                keys: [gpu.storage("isect_keys_a", b)?, gpu.storage("isect_keys_b", b)?],
+                ids: [gpu.storage("isect_ids_a", b)?, gpu.storage("isect_ids_b", b)?],
                 hist: gpu.storage("sort_hist", sort_hist_for(most) * 4)?,
                 block_sums: gpu.storage("scan_block_sums", scan_blocks_for(n as u64) * 4)?,
             });
         }
-        if self
-            .image
-            .as_ref()
-            .is_none_or(|im| im.width != width || im.height != height)
-        {
+        if self.image.as_ref().is_none_or(|im| im.width != width || im.height != height) {
             let tiles = (width.div_ceil(TILE_SIZE) * height.div_ceil(TILE_SIZE)) as u64;
             self.image = Some(ImageBufs {
                 width,
@@ -483,11 +439,7 @@ impl Rasterizer {
             rec.end_pass("tile_sort")?;
             rec.dispatch_indirect(
                 &k.ranges,
-                &[
-                    ("counts", &c.counts),
-                    ("isect_keys", &is.keys[isect_result]),
-                    ("ranges", &im.ranges),
-                ],
+                &[("counts", &c.counts), ("isect_keys", &is.keys[isect_result]), ("ranges", &im.ranges)],
                 &(),
                 &c.indirect,
                 Counts::args_offset(COUNT_ISECT, ARGS_ITEMS),
@@ -518,12 +470,7 @@ impl Rasterizer {
     }
 
     /// Renders one frame of `scene` seen by `cam` over `background` (linear RGB in [0, 1]).
-    pub fn render(
-        &mut self,
-        scene: &GpuScene,
-        cam: &Camera,
-        background: [f32; 3],
-    ) -> Result<Frame> {
+    pub fn render(&mut self, scene: &GpuScene, cam: &Camera, background: [f32; 3]) -> Result<Frame> {
         cam.validate()?;
         let n = scene.len;
         let mut cap = self.isect.as_ref().map_or(n.max(1 << 16), |i| i.cap);
@@ -532,13 +479,7 @@ impl Rasterizer {
             cap = self.isect.as_ref().unwrap().cap;
             let fp = frame_params(n, scene.sh_degree, cam, background, cap as u32);
             self.frame_ub.write_mapped(&[fp])?;
-            let key = (
-                ash::vk::Handle::as_raw(scene.means.raw),
-                n,
-                cam.width,
-                cam.height,
-                cap,
-            );
+            let key = (ash::vk::Handle::as_raw(scene.means.raw), n, cam.width, cam.height, cap);
             if self.recorded != Some(key) || self.poison {
                 self.record(scene, &fp)?;
                 self.recorded = Some(key);
@@ -552,15 +493,9 @@ impl Rasterizer {
                 continue;
             }
             let im = self.image.as_ref().unwrap();
-            let image = im
-                .readback_image
-                .read_mapped((cam.width * cam.height) as usize)?;
+            let image = im.readback_image.read_mapped((cam.width * cam.height) as usize)?;
             let passes = match &self.timer {
-                Some(t) => t
-                    .results()?
-                    .into_iter()
-                    .filter(|(n, _)| n != "setup" && n != "readback")
-                    .collect(),
+                Some(t) => t.results()?.into_iter().filter(|(n, _)| n != "setup" && n != "readback").collect(),
                 None => Vec::new(),
             };
             return Ok(Frame {
@@ -577,10 +512,7 @@ impl Rasterizer {
     /// Reads every intermediate buffer of the last frame (for tests).
     pub fn read_state(&self) -> Result<FrameState> {
         let gpu = &self.gpu;
-        let g = self
-            .gauss
-            .as_ref()
-            .ok_or_else(|| anyhow::anyhow!("no frame rendered"))?;
+        let g = self.gauss.as_ref().ok_or_else(|| anyhow::anyhow!("no frame rendered"))?;
         let is = self.isect.as_ref().unwrap();
         let im = self.image.as_ref().unwrap();
         let counts: Vec<u32> = gpu.read(&self.counts.counts, COUNT_SLOTS as usize)?;

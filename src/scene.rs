@@ -86,10 +86,7 @@ impl Scene {
             bail!("{what}: the scene has no Gaussians");
         }
         if self.sh_degree > 3 {
-            bail!(
-                "{what}: SH degree {} is not supported (0..3)",
-                self.sh_degree
-            );
+            bail!("{what}: SH degree {} is not supported (0..3)", self.sh_degree);
         }
         if self.scales.len() != n
             || self.quats.len() != n
@@ -155,8 +152,8 @@ fn core_slot(name: &str) -> Option<usize> {
 }
 
 const CORE: [&str; 14] = [
-    "x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "scale_1", "scale_2",
-    "rot_0", "rot_1", "rot_2", "rot_3",
+    "x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2",
+    "rot_3",
 ];
 
 impl GaussRow {
@@ -246,12 +243,7 @@ impl PropertyAccess for ChunkRow {
 /// A vertex row of a compressed PLY.
 struct PackedRow([u32; 4]);
 
-const PACKED_PROPS: [&str; 4] = [
-    "packed_position",
-    "packed_rotation",
-    "packed_scale",
-    "packed_color",
-];
+const PACKED_PROPS: [&str; 4] = ["packed_position", "packed_rotation", "packed_scale", "packed_color"];
 
 impl PropertyAccess for PackedRow {
     fn new() -> Self {
@@ -288,13 +280,9 @@ pub fn read_ply(path: &Path) -> Result<Scene> {
     let mut reader = ply_rs_bw::parser::Reader::new(BufReader::new(file));
     let header = Parser::<Ignore>::new()
         .read_header(&mut reader)
-        .map_err(|e| anyhow!("{what}: not a valid PLY header: {e}"))?;
-    let vertex = header
-        .elements
-        .get("vertex")
-        .ok_or_else(|| anyhow!("{what}: the PLY has no 'vertex' element"))?;
-    let compressed =
-        header.elements.contains_key("chunk") && vertex.properties.contains_key("packed_position");
+        .map_err(|e| anyhow!("{what}: not a valid PLY header: {}", first_line(&e.to_string())))?;
+    let vertex = header.elements.get("vertex").ok_or_else(|| anyhow!("{what}: the PLY has no 'vertex' element"))?;
+    let compressed = header.elements.contains_key("chunk") && vertex.properties.contains_key("packed_position");
     let scene = if compressed {
         read_compressed(&what, &mut reader, &header)?
     } else {
@@ -322,21 +310,11 @@ pub fn read_ply(path: &Path) -> Result<Scene> {
             if name == "vertex" {
                 rows = Parser::<GaussRow>::new()
                     .read_payload_for_element(&mut reader, def, &header)
-                    .map_err(|e| {
-                        anyhow!(
-                            "{what}: truncated or corrupt vertex data: {}",
-                            first_line(&e.to_string())
-                        )
-                    })?;
+                    .map_err(|e| anyhow!("{what}: truncated or corrupt vertex data: {}", first_line(&e.to_string())))?;
             } else {
-                Parser::<Ignore>::new()
-                    .read_payload_for_element(&mut reader, def, &header)
-                    .map_err(|e| {
-                        anyhow!(
-                            "{what}: truncated or corrupt '{name}' data: {}",
-                            first_line(&e.to_string())
-                        )
-                    })?;
+                Parser::<Ignore>::new().read_payload_for_element(&mut reader, def, &header).map_err(|e| {
+                    anyhow!("{what}: truncated or corrupt '{name}' data: {}", first_line(&e.to_string()))
+                })?;
             }
         }
         scene_from_rows(&rows, sh_degree)
@@ -361,10 +339,7 @@ fn first_line(s: &str) -> &str {
 fn scene_from_rows(rows: &[GaussRow], sh_degree: u32) -> Scene {
     let coeffs = ((sh_degree + 1) * (sh_degree + 1)) as usize;
     let rest = coeffs - 1;
-    let mut s = Scene {
-        sh_degree,
-        ..Default::default()
-    };
+    let mut s = Scene { sh_degree, ..Default::default() };
     s.means.reserve(rows.len());
     s.sh.reserve(rows.len() * coeffs * 3);
     for r in rows {
@@ -389,16 +364,15 @@ fn read_compressed<R: std::io::BufRead>(
     header: &ply_rs_bw::ply::Header,
 ) -> Result<Scene> {
     if header.elements.contains_key("sh") {
-        bail!("{what}: compressed PLY with SH bands ('sh' element) is not supported yet; decode it to a plain PLY first");
+        bail!(
+            "{what}: compressed PLY with SH bands ('sh' element) is not supported yet; decode it to a plain PLY first"
+        );
     }
     let mut chunks = Vec::new();
     let mut packed = Vec::new();
     for (name, def) in &header.elements {
         let err = |e: ply_rs_bw::parser::ParseError| {
-            anyhow!(
-                "{what}: truncated or corrupt '{name}' data: {}",
-                first_line(&e.to_string())
-            )
+            anyhow!("{what}: truncated or corrupt '{name}' data: {}", first_line(&e.to_string()))
         };
         match name.as_str() {
             "chunk" => {
@@ -407,9 +381,7 @@ fn read_compressed<R: std::io::BufRead>(
                         bail!("{what}: chunk property '{p}' is missing");
                     }
                 }
-                chunks = Parser::<ChunkRow>::new()
-                    .read_payload_for_element(reader, def, header)
-                    .map_err(err)?;
+                chunks = Parser::<ChunkRow>::new().read_payload_for_element(reader, def, header).map_err(err)?;
             }
             "vertex" => {
                 for p in PACKED_PROPS {
@@ -417,23 +389,15 @@ fn read_compressed<R: std::io::BufRead>(
                         bail!("{what}: vertex property '{p}' is missing");
                     }
                 }
-                packed = Parser::<PackedRow>::new()
-                    .read_payload_for_element(reader, def, header)
-                    .map_err(err)?;
+                packed = Parser::<PackedRow>::new().read_payload_for_element(reader, def, header).map_err(err)?;
             }
             _ => {
-                Parser::<Ignore>::new()
-                    .read_payload_for_element(reader, def, header)
-                    .map_err(err)?;
+                Parser::<Ignore>::new().read_payload_for_element(reader, def, header).map_err(err)?;
             }
         }
     }
     if chunks.len() * 256 < packed.len() {
-        bail!(
-            "{what}: {} chunks cannot hold {} splats (256 per chunk)",
-            chunks.len(),
-            packed.len()
-        );
+        bail!("{what}: {} chunks cannot hold {} splats (256 per chunk)", chunks.len(), packed.len());
     }
     Ok(decode_compressed(&chunks, &packed))
 }
@@ -457,24 +421,14 @@ fn decode_compressed(chunks: &[ChunkRow], packed: &[PackedRow]) -> Scene {
         let c = &chunks[i / 256].0;
         let [pos, rot, scl, col] = p.0;
         let t = unpack_111011(pos);
-        s.means.push([
-            lerp(c[0], c[3], t[0]),
-            lerp(c[1], c[4], t[1]),
-            lerp(c[2], c[5], t[2]),
-        ]);
+        s.means.push([lerp(c[0], c[3], t[0]), lerp(c[1], c[4], t[1]), lerp(c[2], c[5], t[2])]);
         let t = unpack_111011(scl);
-        s.scales.push([
-            lerp(c[6], c[9], t[0]),
-            lerp(c[7], c[10], t[1]),
-            lerp(c[8], c[11], t[2]),
-        ]);
+        s.scales.push([lerp(c[6], c[9], t[0]), lerp(c[7], c[10], t[1]), lerp(c[8], c[11], t[2])]);
         // Rotation: top 2 bits index the largest component, dropped; the other three follow
         // in (w, x, y, z) order, 10 bits each, in [-1/sqrt2, 1/sqrt2].
         let norm = std::f32::consts::SQRT_2;
         let abc = [20u32, 10, 0].map(|sh| (unorm(rot >> sh, 10) - 0.5) * norm);
-        let m = (1.0 - abc.iter().map(|v| v * v).sum::<f32>())
-            .max(0.0)
-            .sqrt();
+        let m = (1.0 - abc.iter().map(|v| v * v).sum::<f32>()).max(0.0).sqrt();
         let largest = (rot >> 30) as usize;
         let mut q = [0.0f32; 4];
         let mut k = 0;
@@ -505,21 +459,14 @@ fn decode_compressed(chunks: &[ChunkRow], packed: &[PackedRow]) -> Scene {
 pub fn write_ply(scene: &Scene, path: &Path) -> Result<()> {
     let coeffs = scene.sh_coeffs();
     let rest = coeffs - 1;
-    let mut header = format!(
-        "ply\nformat binary_little_endian 1.0\nelement vertex {}\n",
-        scene.len()
-    );
-    for p in [
-        "x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2",
-    ] {
+    let mut header = format!("ply\nformat binary_little_endian 1.0\nelement vertex {}\n", scene.len());
+    for p in ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"] {
         header += &format!("property float {p}\n");
     }
     for j in 0..3 * rest {
         header += &format!("property float f_rest_{j}\n");
     }
-    for p in [
-        "opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3",
-    ] {
+    for p in ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"] {
         header += &format!("property float {p}\n");
     }
     header += "end_header\n";

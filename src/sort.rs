@@ -33,14 +33,8 @@ impl GpuSort {
             gpu: gpu.clone(),
             k: k.clone(),
             counts: Counts::new(gpu)?,
-            keys: [
-                gpu.storage("sort-keys-a", bytes)?,
-                gpu.storage("sort-keys-b", bytes)?,
-            ],
-            vals: [
-                gpu.storage("sort-vals-a", bytes)?,
-                gpu.storage("sort-vals-b", bytes)?,
-            ],
+            keys: [gpu.storage("sort-keys-a", bytes)?, gpu.storage("sort-keys-b", bytes)?],
+            vals: [gpu.storage("sort-vals-a", bytes)?, gpu.storage("sort-vals-b", bytes)?],
             hist: gpu.storage("sort-hist", sort_hist_for(capacity as u64) * 4)?,
             capacity,
         })
@@ -48,20 +42,10 @@ impl GpuSort {
 
     /// Sorts (keys, vals) stably by the low `bits` bits of the keys. Higher key bits must be 0.
     /// `repeats` > 1 re-runs the same sort (from the same input) and reports the median time.
-    pub fn sort(
-        &mut self,
-        keys: &[u32],
-        vals: &[u32],
-        bits: u32,
-        repeats: usize,
-    ) -> Result<Sorted> {
+    pub fn sort(&mut self, keys: &[u32], vals: &[u32], bits: u32, repeats: usize) -> Result<Sorted> {
         let n = keys.len();
         if n != vals.len() || n > self.capacity {
-            bail!(
-                "sort of {n} keys with {} values, capacity {}",
-                vals.len(),
-                self.capacity
-            );
+            bail!("sort of {n} keys with {} values, capacity {}", vals.len(), self.capacity);
         }
         let gpu = self.gpu.clone();
         let mut timer = Timer::new(&gpu, 4)?;

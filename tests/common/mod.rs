@@ -1,0 +1,102 @@
+//! Test helpers: one validated device per test binary, a seeded generator, random scenes.
+#![allow(dead_code)]
+use std::path::PathBuf;
+use std::sync::{Arc, OnceLock};
+
+use glam::{Mat4, Vec3};
+use instgs_vk::camera::Camera;
+use instgs_vk::gpu::{Gpu, GpuOptions};
+use instgs_vk::kernels::Kernels;
+use instgs_vk::scene::Scene;
+
+/// The device with validation layers (synchronization validation included) on.
+pub fn gpu() -> (Arc<Gpu>, Arc<Kernels>) {
+    static G: OnceLock<(Arc<Gpu>, Arc<Kernels>)> = OnceLock::new();
+    G.get_or_init(|| {
+        let opts = GpuOptions { device: None, validation: true, echo_messages: true };
+        let gpu = Gpu::new(&opts).expect("a Vulkan device with validation layers");
+        let k = Kernels::new(&gpu).expect("kernels");
+        (gpu, k)
+    })
+    .clone()
+}
+
+/// Fails the test on any validation message so far.
+pub fn assert_clean(gpu: &Gpu) {
+    let m = gpu.take_validation_messages();
+    assert!(m.is_empty(), "{} validation message(s):\n{}", m.len(), m.join("\n"));
+}
+
+/// `../shared/data/<rel>` next to the checkout.
+pub fn shared_data(rel: &str) -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/data").join(rel)
+}
+
+/// xorshift64*: deterministic, seedable.
+pub struct Rng(u64);
+
+impl Rng {
+    pub fn new(seed: u64) -> Rng {
+        Rng(seed.wrapping_mul(0x9e37_79b9_7f4a_7c15) | 1)
+    }
+    pub fn u64(&mut self) -> u64 {
+        self.0 ^= self.0 >> 12;
+        self.0 ^= self.0 << 25;
+        self.0 ^= self.0 >> 27;
+        self.0.wrapping_mul(0x2545_f491_4f6c_dd1d)
+    }
+    pub fn u32(&mut self) -> u32 {
+        (self.u64() >> 32) as u32
+    }
+    /// Uniform in [0, 1).
+    pub fn f32(&mut self) -> f32 {
+        (self.u64() >> 40) as f32 / (1u64 << 24) as f32
+    }
+    pub fn range(&mut self, a: f32, b: f32) -> f32 {
+        a + (b - a) * self.f32()
+    }
+    pub fn normal(&mut self) -> f32 {
+        let u = self.f32().max(1e-7);
+        let v = self.f32();
+        (-2.0 * u.ln()).sqrt() * (std::f32::consts::TAU * v).cos()
+    }
+}
+
+/// A camera at `eye` looking at `target` (OpenCV axes), `up` the world up.
+pub fn look_at(eye: Vec3, target: Vec3, up: Vec3, width: u32, height: u32, fx: f32) -> Camera {
+    let z = (target - eye).normalize();
+    let x = z.cross(up).normalize();
+    let y = z.cross(x);
+    let c2w = Mat4::from_cols(x.extend(0.0), y.extend(0.0), z.extend(0.0), eye.extend(1.0));
+    Camera {
+        name: "test".into(),
+        width,
+        height,
+        fx,
+        fy: fx * 1.05,
+        cx: 0.5 * width as f32 + 3.0,
+        cy: 0.5 * height as f32 - 2.0,
+        viewmat: c2w.inverse(),
+    }
+}
+
+/// N random Gaussians around the origin: small and huge ones (straddling many tiles), nearly
+/// transparent and fully opaque ones (the T < 1e-4 cut-off), some behind the camera.
+pub fn random_scene(rng: &mut Rng, n: usize, sh_degree: u32) -> Scene {
+    let coeffs = ((sh_degree + 1) * (sh_degree + 1)) as usize;
+    let mut s = Scene { sh_degree, ..Default::default() };
+    for _ in 0..n {
+        s.means.push([rng.range(-1.5, 1.5), rng.range(-1.2, 1.2), rng.range(-1.5, 1.5)]);
+        let big = rng.f32() < 0.05;
+        let base = if big { rng.range(-1.5, -0.5) } else { rng.range(-5.0, -2.5) };
+        s.scales.push([base + rng.range(-0.5, 0.5), base + rng.range(-0.5, 0.5), base + rng.range(-1.5, 0.5)]);
+        s.quats.push([rng.normal(), rng.normal(), rng.normal(), rng.normal()]);
+        s.opacities.push(if rng.f32() < 0.3 { rng.range(3.0, 8.0) } else { rng.range(-4.0, 3.0) });
+        for k in 0..coeffs {
+            for _ in 0..3 {
+                s.sh.push(if k == 0 { rng.range(-1.6, 1.6) } else { rng.range(-0.4, 0.4) });
+            }
+        }
+    }
+    s
+}

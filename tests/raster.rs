@@ -1,0 +1,168 @@
+//! Every forward pass against its CPU twin, and whole images against the CPU render, on random
+//! scenes and on real trained splats. Validation layers on; output buffers poisoned first.
+mod common;
+use common::*;
+use glam::Vec3;
+use instgs_vk::camera::{orbit_around, Camera, UpAxis};
+use instgs_vk::cpu;
+use instgs_vk::raster::{frame_params, GpuScene, Rasterizer};
+use instgs_vk::scene::{read_ply, Scene};
+use instgs_vk::shared::*;
+use instgs_vk::util::psnr;
+
+fn close(a: f32, b: f32, rel: f32, abs: f32) -> bool {
+    (a - b).abs() <= abs + rel * a.abs().max(b.abs())
+}
+
+/// Renders on the GPU and checks each pass against the CPU twin fed with the GPU's inputs.
+fn check_passes(scene: &Scene, cam: &Camera, bg: [f32; 3]) -> f64 {
+    let (gpu, k) = gpu();
+    let gs = GpuScene::new(&gpu, scene).unwrap();
+    let mut r = Rasterizer::new(&gpu, &k).unwrap();
+    r.poison = true;
+    let frame = r.render(&gs, cam, bg).unwrap();
+    let st = r.read_state().unwrap();
+    let n = scene.len();
+    let cap = st.counts[COUNT_ISECT as usize].max(1);
+    let fp = frame_params(n, scene.sh_degree, cam, bg, cap);
+
+    // preprocess: same culling and radii (a float may land on the other side of a ceil for a
+    // very few Gaussians), values to float precision.
+    let want = cpu::preprocess(scene, &fp);
+    let mut mismatched = 0;
+    for i in 0..n {
+        if want.tiles_touched[i] != st.tiles_touched[i] || want.radii[i] != st.radii[i] {
+            mismatched += 1;
+            assert!(
+                want.radii[i].abs_diff(st.radii[i]) <= 1,
+                "Gaussian {i}: radius {} vs {}",
+                want.radii[i],
+                st.radii[i]
+            );
+            continue;
+        }
+        if want.tiles_touched[i] == 0 {
+            continue;
+        }
+        for a in 0..2 {
+            assert!(close(want.xys[i][a], st.xys[i][a], 1e-5, 1e-3), "xy {i}: {:?} vs {:?}", want.xys[i], st.xys[i]);
+        }
+        for a in 0..4 {
+            assert!(
+                close(want.conics[i][a], st.conics[i][a], 2e-3, 1e-6),
+                "conic {i}: {:?} vs {:?}",
+                want.conics[i],
+                st.conics[i]
+            );
+        }
+        for a in 0..3 {
+            assert!(
+                close(want.colors[i][a], st.colors[i][a], 1e-4, 1e-5),
+                "colour {i}: {:?} vs {:?}",
+                want.colors[i],
+                st.colors[i]
+            );
+        }
+        assert!(close(want.depths[i], st.depths[i], 1e-6, 1e-6), "depth {i}");
+    }
+    assert!(mismatched <= n / 500, "{mismatched} of {n} Gaussians differ in radius or tiles");
+
+    // scan visible + compact + depth sort, from the GPU's preprocess output.
+    let gpu_proj = cpu::Projected {
+        xys: st.xys.clone(),
+        conics: st.conics.clone(),
+        colors: st.colors.clone(),
+        depths: st.depths.clone(),
+        radii: st.radii.clone(),
+        tiles_touched: st.tiles_touched.clone(),
+    };
+    let (dkeys, dids) = cpu::depth_order(&gpu_proj);
+    assert_eq!(st.counts[COUNT_VISIBLE as usize] as usize, dids.len(), "visible count");
+    assert!(st.depth_keys == dkeys && st.depth_ids == dids, "depth order differs");
+
+    // scan of tiles touched in depth order.
+    let touched: Vec<u32> = dids.iter().map(|&i| st.tiles_touched[i as usize]).collect();
+    let (offsets, total) = cpu::exclusive_scan(&touched);
+    assert!(st.isect_offsets == offsets, "intersection offsets differ");
+    assert_eq!(st.counts[COUNT_ISECT_NEEDED as usize], total);
+    assert_eq!(st.counts[COUNT_ISECT as usize], total, "capacity should have grown");
+
+    // emit + tile sort.
+    let (ikeys, iids) = cpu::emit(&fp, &gpu_proj, &dids);
+    let (skeys, sids) = cpu::stable_sort(&ikeys, &iids);
+    assert!(st.isect_keys == skeys && st.isect_ids == sids, "sorted intersections differ");
+
+    // ranges.
+    let ranges = cpu::tile_ranges(&skeys, (fp.tiles_x * fp.tiles_y) as usize);
+    assert!(st.ranges == ranges, "tile ranges differ");
+
+    // blend, from the GPU's own lists.
+    let img = cpu::blend(&fp, &st.ranges, &st.isect_ids, &gpu_proj);
+    let p = psnr(&img, &frame.image);
+    assert!(p >= 60.0, "blend differs from its CPU twin: PSNR {p:.1} dB");
+    let max_t = img.iter().zip(&frame.image).map(|(a, b)| (a[3] - b[3]).abs()).fold(0.0f32, f32::max);
+    assert!(max_t <= 1e-2, "transmittance differs by {max_t}");
+    assert!(frame.image.iter().all(|p| p.iter().all(|v| v.is_finite())), "unwritten (poisoned) pixels");
+
+    // The whole pipeline against the CPU render.
+    let full = cpu::render(scene, &fp);
+    let p = psnr(&full, &frame.image);
+    assert_clean(&gpu);
+    p
+}
+
+#[test]
+fn passes_match_cpu_twin_on_random_scenes() {
+    let mut rng = Rng::new(11);
+    for deg in 0..=3 {
+        let scene = random_scene(&mut rng, 4000, deg);
+        // 203x157: partial tiles on the right and bottom; an off-centre principal point.
+        let cam = look_at(Vec3::new(0.4, -0.6, -4.0), Vec3::new(0.1, 0.0, 0.2), -Vec3::Y, 203, 157, 180.0);
+        let p = check_passes(&scene, &cam, [0.2, 0.5, 0.9]);
+        assert!(p >= 50.0, "degree {deg}: GPU vs CPU image PSNR {p:.1} dB");
+    }
+}
+
+#[test]
+fn camera_inside_the_scene_culls_and_matches() {
+    // Gaussians behind, beside and in front of the camera, some closer than the near plane.
+    let mut rng = Rng::new(12);
+    let scene = random_scene(&mut rng, 3000, 1);
+    let cam = look_at(Vec3::new(0.0, 0.0, -0.2), Vec3::new(0.3, 0.1, 1.0), -Vec3::Y, 160, 120, 90.0);
+    let p = check_passes(&scene, &cam, [0.0, 0.0, 0.0]);
+    assert!(p >= 50.0, "PSNR {p:.1} dB");
+}
+
+#[test]
+fn intersection_buffers_grow_when_a_frame_needs_more() {
+    // 400 huge Gaussians each covering most of a 640x480 image: far more intersections than
+    // the initial capacity (65536).
+    let mut rng = Rng::new(13);
+    let mut scene = random_scene(&mut rng, 400, 0);
+    for s in &mut scene.scales {
+        *s = [0.0, 0.0, -0.5];
+    }
+    let cam = look_at(Vec3::new(0.0, 0.0, -5.0), Vec3::ZERO, -Vec3::Y, 640, 480, 500.0);
+    let p = check_passes(&scene, &cam, [1.0, 1.0, 1.0]);
+    assert!(p >= 50.0, "PSNR {p:.1} dB");
+}
+
+#[test]
+fn images_match_cpu_twin_on_real_splats() {
+    let (gpu, k) = gpu();
+    let mut r = Rasterizer::new(&gpu, &k).unwrap();
+    for name in ["guitar.ply", "biker.ply", "playbot_lod2.ply"] {
+        let scene = read_ply(&shared_data(&format!("splats/{name}"))).unwrap();
+        let gs = GpuScene::new(&gpu, &scene).unwrap();
+        for cam in orbit_around(&scene, 3, UpAxis::NegY, 320, 240).iter().take(2) {
+            let frame = r.render(&gs, cam, [0.0, 0.0, 0.0]).unwrap();
+            let fp = frame_params(scene.len(), scene.sh_degree, cam, [0.0; 3], frame.intersections);
+            let want = cpu::render(&scene, &fp);
+            let p = psnr(&want, &frame.image);
+            assert!(p >= 50.0, "{name} {}: GPU vs CPU PSNR {p:.1} dB", cam.name);
+            let lit = frame.image.iter().filter(|px| px[3] < 0.5).count();
+            assert!(lit > frame.image.len() / 50, "{name} {}: the object is barely in view", cam.name);
+        }
+    }
+    assert_clean(&gpu);
+}

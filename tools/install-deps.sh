@@ -1,0 +1,17 @@
+#!/usr/bin/env bash
+# Installs the Debian packages instgs-vk needs to build and run on a fresh machine:
+# lavapipe (Mesa's CPU Vulkan), the Vulkan loader and validation layers, Debian's static
+# shaderc/glslang/SPIRV-Tools libraries (linked by build.rs through .cargo/config.toml) and Xvfb.
+set -euo pipefail
+pkgs=(mesa-vulkan-drivers libvulkan-dev vulkan-validationlayers libshaderc-dev glslang-dev spirv-tools xvfb)
+missing=()
+for p in "${pkgs[@]}"; do
+  dpkg -s "$p" >/dev/null 2>&1 || missing+=("$p")
+done
+if [ ${#missing[@]} -gt 0 ]; then
+  sudo=""
+  [ "$(id -u)" -ne 0 ] && sudo="sudo"
+  echo "installing: ${missing[*]}" >&2
+  $sudo apt-get update -qq
+  DEBIAN_FRONTEND=noninteractive $sudo apt-get install -y -qq "${missing[@]}" >/dev/null
+fi
