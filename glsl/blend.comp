@@ -1,8 +1,10 @@
 #version 450
 // One workgroup per 16x16 tile, one invocation per pixel: front-to-back alpha blending of the
-// tile's depth-sorted Gaussians, loaded in shared-memory batches of WG_SIZE. As Inria:
-// alpha = min(0.99, o exp(-q/2)), skip alpha < 1/255, stop before T drops below 1e-4, and
-// out = C + T * background. The alpha channel of out_image holds the final transmittance T.
+// tile's depth-sorted Gaussians. As Inria: alpha = min(0.99, o exp(-q/2)), skip alpha < 1/255,
+// stop before T drops below 1e-4, and out = C + T * background. The alpha channel of out_image
+// holds the final transmittance T.
+// Splats reach the pixels in shared-memory batches of 256, and the tile stops early once every
+// pixel is saturated.
 #include "common.glsl"
 layout(local_size_x = TILE_SIZE, local_size_y = TILE_SIZE) in;
 layout(std140, binding = 0) uniform FrameBuf { FrameParams p; } frame;
@@ -17,6 +19,20 @@ shared vec2 s_xy[TILE_SIZE * TILE_SIZE];
 shared vec4 s_conic[TILE_SIZE * TILE_SIZE];
 shared vec3 s_rgb[TILE_SIZE * TILE_SIZE];
 shared uint s_done;
+
+// Blends one splat into (C, T); false once the pixel is saturated (T would drop below 1e-4).
+bool blend_splat(vec2 xy, vec4 co, vec3 rgb, vec2 pixf, inout float T, inout vec3 C) {
+    vec2 d = xy - pixf;
+    float power = -0.5 * (co.x * d.x * d.x + co.z * d.y * d.y) - co.y * d.x * d.y;
+    if (power > 0.0) return true;
+    float alpha = min(0.99, co.w * exp(power));
+    if (alpha < 1.0 / 255.0) return true;
+    float test_T = T * (1.0 - alpha);
+    if (test_T < 0.0001) return false;
+    C += rgb * alpha * T;
+    T = test_T;
+    return true;
+}
 
 void main() {
     const uint BATCH = TILE_SIZE * TILE_SIZE;
@@ -44,19 +60,7 @@ void main() {
         barrier();
         uint count = min(BATCH, range.y - start);
         for (uint j = 0; !done && j < count; j++) {
-            vec2 d = s_xy[j] - pixf;
-            vec4 co = s_conic[j];
-            float power = -0.5 * (co.x * d.x * d.x + co.z * d.y * d.y) - co.y * d.x * d.y;
-            if (power > 0.0) continue;
-            float alpha = min(0.99, co.w * exp(power));
-            if (alpha < 1.0 / 255.0) continue;
-            float test_T = T * (1.0 - alpha);
-            if (test_T < 0.0001) {
-                done = true;
-                break;
-            }
-            C += s_rgb[j] * alpha * T;
-            T = test_T;
+            done = !blend_splat(s_xy[j], s_conic[j], s_rgb[j], pixf, T, C);
         }
         barrier();
     }

@@ -12,11 +12,15 @@
 // Generic exclusive scan: each thread owns SCAN_ITEMS consecutive items.
 #define SCAN_ITEMS 8
 #define SCAN_BLOCK 2048
-// Radix sort: RADIX_BITS per pass; each thread owns SORT_ITEMS consecutive keys.
-#define RADIX_BITS 4
-#define RADIX_BINS 16
-#define SORT_ITEMS 16
-#define SORT_BLOCK 4096
+// Radix sort: up to SORT_MAX_BITS key bits per pass (the bits needed are spread evenly over
+// the passes); blocks of SORT_WG threads, each thread ranking a run of SORT_ITEMS consecutive
+// keys (specialization constant 1 of the sort kernels). CPU devices (lavapipe) pay a large fixed cost per workgroup that has
+// barriers, so they take long runs; GPUs take short runs for many workgroups.
+#define SORT_MAX_BITS 6
+#define SORT_MAX_BINS 64
+#define SORT_WG 64
+#define SORT_ITEMS_GPU 32
+#define SORT_ITEMS_CPU 512
 // Indirect dispatches are clamped to this many workgroups; kernels loop grid-stride.
 #define MAX_GROUPS 65535
 
@@ -78,14 +82,14 @@ struct ScanArgs {
 struct SortArgs {
     uint count_slot; // counts[count_slot] = number of keys
     uint shift; // first key bit of this pass
+    uint bits; // key bits of this pass (1..SORT_MAX_BITS)
     uint _pad0;
-    uint _pad1;
 };
 
 /// Push constants of the indirect-argument writer.
 struct DispatchArgs {
     uint count_slot; // reads counts[count_slot], writes args[count_slot * ARGS_PER_SLOT + k]
-    uint _pad0;
+    uint sort_block; // keys per radix-sort block (SORT_WG * items)
     uint _pad1;
     uint _pad2;
 };

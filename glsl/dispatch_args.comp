@@ -17,6 +17,6 @@ void put(uint kind, uint groups) {
 void main() {
     uint n = counts.v[args.count_slot];
     put(ARGS_ITEMS, (n + WG_SIZE - 1) / WG_SIZE);
-    put(ARGS_SORT_BLOCKS, (n + SORT_BLOCK - 1) / SORT_BLOCK);
+    put(ARGS_SORT_BLOCKS, (n + args.sort_block - 1) / args.sort_block);
     put(ARGS_SCAN_BLOCKS, (n + SCAN_BLOCK - 1) / SCAN_BLOCK);
 }

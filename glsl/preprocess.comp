@@ -2,8 +2,11 @@
 // Forward pass 1, one invocation per Gaussian: cull, 3D covariance, EWA projection, conic,
 // screen radius, tile rectangle, SH colour and depth. Maths as Inria 3DGS / gsplat:
 // Sigma = R S S^T R^T; Sigma2D = J W Sigma W^T J^T + 0.3 I with the Jacobian's x/z, y/z clamped
-// to 1.3x the field of view; radius = ceil(3 sqrt(lambda_max)); colour = SH(dir) + 0.5, clamped
-// at 0, dir from the camera centre to the world mean. A culled Gaussian gets tiles_touched = 0.
+// to 1.3x the field of view; colour = SH(dir) + 0.5, clamped at 0, dir from the camera centre
+// to the world mean. A culled Gaussian gets tiles_touched = 0.
+// Radius: Inria's ceil(3 sqrt(lambda_max)), tightened for faint splats to where alpha can still
+// reach 1/255 (q <= 2 ln(255 o), as brush does): ceil(min(3, sqrt(2 ln(255 o))) sqrt(lambda_max)).
+// Blend skips alpha < 1/255, so the image is Inria's; splats with o < 1/255 are culled.
 #include "common.glsl"
 #include "sh.glsl"
 layout(local_size_x = WG_SIZE) in;
@@ -73,9 +76,15 @@ void preprocess(uint i) {
     }
     float inv_det = 1.0 / det;
     vec3 conic = vec3(c * inv_det, -b * inv_det, a * inv_det);
+    float opacity = 1.0 / (1.0 + exp(-opacities.v[i]));
+    if (opacity < 1.0 / 255.0) {
+        cull(i);
+        return;
+    }
+    float extent = min(3.0, sqrt(2.0 * log(255.0 * opacity)));
     float mid = 0.5 * (a + c);
     float lambda = mid + sqrt(max(0.1, mid * mid - det));
-    uint radius = uint(ceil(3.0 * sqrt(lambda)));
+    uint radius = uint(ceil(extent * sqrt(lambda)));
     vec2 xy = vec2(fx * t.x * rz + cx, fy * t.y * rz + cy);
 
     // Tile rectangle as Inria's getRect, on Inria's pixel coordinates (xy - 0.5).
@@ -101,7 +110,6 @@ void preprocess(uint i) {
     }
     rgb = max(rgb + 0.5, vec3(0.0));
 
-    float opacity = 1.0 / (1.0 + exp(-opacities.v[i]));
     xys.v[i] = xy;
     conics.v[i] = vec4(conic, opacity);
     colors.v[i] = vec4(rgb, 0.0);

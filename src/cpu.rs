@@ -83,7 +83,8 @@ pub fn tile_rect(fp: &FrameParams, xy: [f32; 2], radius: u32) -> ([i32; 2], [i32
     (lo, hi)
 }
 
-/// Pass `preprocess`: cull, project, conic, radius, tiles touched, SH colour, depth.
+/// Pass `preprocess`: cull, project, conic, radius, tiles touched, SH colour, depth. The radius
+/// is Inria's 3σ, tightened to where alpha can still reach 1/255 for faint splats.
 pub fn preprocess(scene: &Scene, fp: &FrameParams) -> Projected {
     let n = scene.len();
     let mut p = Projected {
@@ -129,9 +130,14 @@ pub fn preprocess(scene: &Scene, fp: &FrameParams) -> Projected {
             continue;
         }
         let inv_det = 1.0 / det;
+        let opacity = 1.0 / (1.0 + (-scene.opacities[i]).exp());
+        if opacity < 1.0 / 255.0 {
+            continue;
+        }
+        let extent = (2.0 * (255.0 * opacity).ln()).sqrt().min(3.0);
         let mid = 0.5 * (a + c);
         let lambda = mid + (mid * mid - det).max(0.1).sqrt();
-        let radius = (3.0 * lambda.sqrt()).ceil() as u32;
+        let radius = (extent * lambda.sqrt()).ceil() as u32;
         let xy = [fx * t.x * rz + cx, fy * t.y * rz + cy];
         let (lo, hi) = tile_rect(fp, xy, radius);
         let touched = ((hi[0] - lo[0]) * (hi[1] - lo[1])) as u32;
@@ -147,7 +153,6 @@ pub fn preprocess(scene: &Scene, fp: &FrameParams) -> Projected {
             rgb += *bk * Vec3::new(sh[3 * k], sh[3 * k + 1], sh[3 * k + 2]);
         }
         let rgb = (rgb + 0.5).max(Vec3::ZERO);
-        let opacity = 1.0 / (1.0 + (-scene.opacities[i]).exp());
         p.xys[i] = xy;
         p.conics[i] = [c * inv_det, -b * inv_det, a * inv_det, opacity];
         p.colors[i] = [rgb.x, rgb.y, rgb.z, 0.0];

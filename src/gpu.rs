@@ -448,6 +448,11 @@ pub struct Kernel {
 impl Kernel {
     /// Builds the pipeline; specialization constant 0 is the device's minimum subgroup size.
     pub fn new(gpu: &Arc<Gpu>, name: &str, spirv: &[u8]) -> Result<Kernel> {
+        Kernel::with_spec(gpu, name, spirv, &[])
+    }
+
+    /// As [`Kernel::new`], with `extra[i]` as the u32 specialization constant `i + 1`.
+    pub fn with_spec(gpu: &Arc<Gpu>, name: &str, spirv: &[u8], extra: &[u32]) -> Result<Kernel> {
         let refl = rspirv_reflect::Reflection::new_from_spirv(spirv)
             .map_err(|e| anyhow!("kernel {name}: SPIR-V reflection failed: {e:?}"))?;
         let sets = refl.get_descriptor_sets().map_err(|e| anyhow!("kernel {name}: reflection: {e:?}"))?;
@@ -497,9 +502,13 @@ impl Kernel {
                 lci = lci.push_constant_ranges(&ranges);
             }
             let layout = d.create_pipeline_layout(&lci, None)?;
-            let spec_data = gpu.info.min_subgroup_size.to_le_bytes();
-            let spec_entries = [vk::SpecializationMapEntry::default().constant_id(0).offset(0).size(4)];
-            let spec = vk::SpecializationInfo::default().map_entries(&spec_entries).data(&spec_data);
+            let spec_values: Vec<u32> =
+                std::iter::once(gpu.info.min_subgroup_size).chain(extra.iter().copied()).collect();
+            let spec_data: &[u8] = bytemuck::cast_slice(&spec_values);
+            let spec_entries: Vec<vk::SpecializationMapEntry> = (0..spec_values.len() as u32)
+                .map(|i| vk::SpecializationMapEntry::default().constant_id(i).offset(4 * i).size(4))
+                .collect();
+            let spec = vk::SpecializationInfo::default().map_entries(&spec_entries).data(spec_data);
             let entry = CString::new("main").unwrap();
             let stage = vk::PipelineShaderStageCreateInfo::default()
                 .stage(vk::ShaderStageFlags::COMPUTE)

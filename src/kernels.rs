@@ -19,11 +19,42 @@ pub struct Kernels {
     pub scan_down: Kernel,
     pub sort_count: Kernel,
     pub sort_scatter: Kernel,
+    pub policy: KernelPolicy,
+}
+
+/// Device-dependent kernel choices (specialization constants).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct KernelPolicy {
+    /// Keys per thread in a radix-sort block (SORT_ITEMS_CPU or SORT_ITEMS_GPU).
+    pub sort_items: u32,
+}
+
+impl KernelPolicy {
+    /// For GPUs: short runs, many workgroups.
+    pub const GPU: KernelPolicy = KernelPolicy { sort_items: SORT_ITEMS_GPU };
+    /// For CPU devices (lavapipe), where every workgroup with barriers has a large fixed cost
+    /// (llvmpipe runs such workgroups as coroutines): long runs, few workgroups.
+    pub const CPU: KernelPolicy = KernelPolicy { sort_items: SORT_ITEMS_CPU };
+
+    pub fn for_device(gpu: &Gpu) -> KernelPolicy {
+        if gpu.info.kind == "CPU" {
+            KernelPolicy::CPU
+        } else {
+            KernelPolicy::GPU
+        }
+    }
 }
 
 impl Kernels {
+    /// All kernels, specialised for the device.
     pub fn new(gpu: &Arc<Gpu>) -> Result<Arc<Kernels>> {
+        Kernels::with_policy(gpu, KernelPolicy::for_device(gpu))
+    }
+
+    /// All kernels with an explicit policy (tests run both on any device).
+    pub fn with_policy(gpu: &Arc<Gpu>, policy: KernelPolicy) -> Result<Arc<Kernels>> {
         let k = |name: &str, spv: &[u8]| Kernel::new(gpu, name, spv);
+        let sort_items = policy.sort_items;
         Ok(Arc::new(Kernels {
             preprocess: k("preprocess", spirv::PREPROCESS)?,
             compact: k("compact", spirv::COMPACT)?,
@@ -34,9 +65,15 @@ impl Kernels {
             scan_reduce: k("scan_reduce", spirv::SCAN_REDUCE)?,
             scan_blocks: k("scan_blocks", spirv::SCAN_BLOCKS)?,
             scan_down: k("scan_down", spirv::SCAN_DOWN)?,
-            sort_count: k("sort_count", spirv::SORT_COUNT)?,
-            sort_scatter: k("sort_scatter", spirv::SORT_SCATTER)?,
+            sort_count: Kernel::with_spec(gpu, "sort_count", spirv::SORT_COUNT, &[sort_items])?,
+            sort_scatter: Kernel::with_spec(gpu, "sort_scatter", spirv::SORT_SCATTER, &[sort_items])?,
+            policy,
         }))
+    }
+
+    /// Keys per radix-sort block.
+    pub fn sort_block(&self) -> u32 {
+        SORT_WG * self.policy.sort_items
     }
 }
 
@@ -61,7 +98,7 @@ impl Counts {
 
     /// Writes the indirect commands of `slot` from the GPU-side count.
     pub fn record_args(&self, rec: &mut Recorder, k: &Kernels, slot: u32) -> Result<()> {
-        let push = DispatchArgs { count_slot: slot, ..Default::default() };
+        let push = DispatchArgs { count_slot: slot, sort_block: k.sort_block(), ..Default::default() };
         rec.dispatch(&k.dispatch_args, &[("counts", &self.counts), ("indirect", &self.indirect)], &push, [1, 1, 1])
     }
 }
@@ -72,8 +109,8 @@ pub fn scan_blocks_for(n: u64) -> u64 {
 }
 
 /// Length of the radix-sort histogram table for `n` keys.
-pub fn sort_hist_for(n: u64) -> u64 {
-    n.div_ceil(SORT_BLOCK as u64).max(1) * RADIX_BINS as u64
+pub fn sort_hist_for(k: &Kernels, n: u64) -> u64 {
+    n.div_ceil(k.sort_block() as u64).max(1) * SORT_MAX_BINS as u64
 }
 
 /// One scan: input, optional gather list, output and where its total goes.
@@ -140,11 +177,15 @@ pub fn record_sort(
     vals: [&Buffer; 2],
     hist: &Buffer,
 ) -> Result<usize> {
-    let passes = bits.div_ceil(RADIX_BITS);
+    // The fewest passes of at most SORT_MAX_BITS, with the bits spread evenly over them.
+    let passes = bits.div_ceil(SORT_MAX_BITS);
     let off = Counts::args_offset(slot, ARGS_SORT_BLOCKS);
+    let mut shift = 0;
     for p in 0..passes {
         let (i, o) = ((p % 2) as usize, ((p + 1) % 2) as usize);
-        let push = SortArgs { count_slot: slot, shift: p * RADIX_BITS, ..Default::default() };
+        let pass_bits = (bits - shift).div_ceil(passes - p);
+        let push = SortArgs { count_slot: slot, shift, bits: pass_bits, _pad0: 0 };
+        shift += pass_bits;
         rec.dispatch_indirect(
             &k.sort_count,
             &[("counts", &c.counts), ("keys_in", keys[i]), ("hist", hist)],
@@ -156,8 +197,8 @@ pub fn record_sort(
             count_slot: slot,
             out_slot: NO_SLOT,
             clamp_slot: NO_SLOT,
-            divisor: SORT_BLOCK,
-            multiplier: RADIX_BINS,
+            divisor: k.sort_block(),
+            multiplier: 1 << pass_bits,
             ..Default::default()
         };
         rec.dispatch(&k.scan_blocks, &[("counts", &c.counts), ("data", hist)], &scan, [1, 1, 1])?;

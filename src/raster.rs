@@ -262,7 +262,7 @@ impl Rasterizer {
                 cap,
                 keys: [gpu.storage("isect_keys_a", b)?, gpu.storage("isect_keys_b", b)?],
                 ids: [gpu.storage("isect_ids_a", b)?, gpu.storage("isect_ids_b", b)?],
-                hist: gpu.storage("sort_hist", sort_hist_for(most) * 4)?,
+                hist: gpu.storage("sort_hist", sort_hist_for(&self.k, most) * 4)?,
                 block_sums: gpu.storage("scan_block_sums", scan_blocks_for(n as u64) * 4)?,
             });
         }

@@ -35,7 +35,7 @@ impl GpuSort {
             counts: Counts::new(gpu)?,
             keys: [gpu.storage("sort-keys-a", bytes)?, gpu.storage("sort-keys-b", bytes)?],
             vals: [gpu.storage("sort-vals-a", bytes)?, gpu.storage("sort-vals-b", bytes)?],
-            hist: gpu.storage("sort-hist", sort_hist_for(capacity as u64) * 4)?,
+            hist: gpu.storage("sort-hist", sort_hist_for(k, capacity as u64) * 4)?,
             capacity,
         })
     }
@@ -76,9 +76,7 @@ impl GpuSort {
         for _ in 0..repeats.max(1) {
             cmd.submit_and_wait()?;
             if let Some(t) = &timer {
-                if let Some((_, ms)) = t.results()?.into_iter().find(|(n, _)| n == "sort") {
-                    times.push(ms);
-                }
+                times.extend(t.results()?.into_iter().filter(|(n, _)| n == "sort").map(|p| p.1));
             }
         }
         times.sort_by(f64::total_cmp);

@@ -2,12 +2,21 @@
 mod common;
 use common::*;
 use instgs_vk::cpu::stable_sort;
+use instgs_vk::kernels::{KernelPolicy, Kernels};
 use instgs_vk::sort::GpuSort;
 
 #[test]
 fn gpu_sort_equals_cpu_stable_sort() {
-    let (gpu, k) = gpu();
-    let mut sorter = GpuSort::new(&gpu, &k, 1_000_003).unwrap();
+    let (gpu, _) = gpu();
+    // Both block-size policies, whatever the device: GPU-sized and CPU-sized runs per thread.
+    for policy in [KernelPolicy::GPU, KernelPolicy::CPU] {
+        let k = Kernels::with_policy(&gpu, policy).unwrap();
+        check_sort(GpuSort::new(&gpu, &k, 1_000_003).unwrap());
+    }
+    assert_clean(&gpu);
+}
+
+fn check_sort(mut sorter: GpuSort) {
     let mut rng = Rng::new(7);
     // (count, key bits, distinct keys): few distinct keys force long runs of duplicates, so a
     // stable sort must keep the value (input index) order inside each run.
@@ -37,5 +46,4 @@ fn gpu_sort_equals_cpu_stable_sort() {
         assert!(got.keys == want_k, "keys differ: n={n} bits={bits}");
         assert!(got.vals == want_v, "values differ (not stable?): n={n} bits={bits}");
     }
-    assert_clean(&gpu);
 }

@@ -6,7 +6,7 @@ use std::sync::{Arc, OnceLock};
 use glam::{Mat4, Vec3};
 use instgs_vk::camera::Camera;
 use instgs_vk::gpu::{Gpu, GpuOptions};
-use instgs_vk::kernels::Kernels;
+use instgs_vk::kernels::{KernelPolicy, Kernels};
 use instgs_vk::scene::Scene;
 
 /// The device with validation layers (synchronization validation included) on.
@@ -17,6 +17,16 @@ pub fn gpu() -> (Arc<Gpu>, Arc<Kernels>) {
         let gpu = Gpu::new(&opts).expect("a Vulkan device with validation layers");
         let k = Kernels::new(&gpu).expect("kernels");
         (gpu, k)
+    })
+    .clone()
+}
+
+/// Kernels built with both device policies (GPU and CPU), so each path is tested on any device.
+pub fn both_policies() -> [Arc<Kernels>; 2] {
+    static K: OnceLock<[Arc<Kernels>; 2]> = OnceLock::new();
+    K.get_or_init(|| {
+        let (gpu, _) = gpu();
+        [KernelPolicy::GPU, KernelPolicy::CPU].map(|p| Kernels::with_policy(&gpu, p).expect("kernels"))
     })
     .clone()
 }
