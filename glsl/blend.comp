@@ -1,12 +1,16 @@
 #version 450
-// One workgroup per 16x16 tile, one invocation per pixel: front-to-back alpha blending of the
-// tile's depth-sorted Gaussians. As Inria: alpha = min(0.99, o exp(-q/2)), skip alpha < 1/255,
-// stop before T drops below 1e-4, and out = C + T * background. The alpha channel of out_image
-// holds the final transmittance T.
-// Splats reach the pixels in shared-memory batches of 256, and the tile stops early once every
+// One workgroup per 16x16 tile: front-to-back alpha blending of the tile's depth-sorted
+// Gaussians. As Inria: alpha = min(0.99, o exp(-q/2)), skip alpha < 1/255, stop before T drops
+// below 1e-4, and out = C + T * background. The alpha channel of out_image holds the final T.
+// Splats reach the pixels in shared-memory batches of 256; the tile stops early once every
 // pixel is saturated.
+// Each invocation blends PIXELS_PER_THREAD pixels of one tile column (specialization constant
+// 1; the workgroup is TILE_SIZE x TILE_SIZE / PIXELS_PER_THREAD, constant 2). GPUs use 1. On CPU
+// devices every load costs far more than arithmetic (lavapipe loads per lane), so one load of a
+// splat serves many pixels there.
 #include "common.glsl"
-layout(local_size_x = TILE_SIZE, local_size_y = TILE_SIZE) in;
+layout(constant_id = 1) const uint PIXELS_PER_THREAD = 1;
+layout(local_size_x = TILE_SIZE, local_size_y_id = 2) in;
 layout(std140, binding = 0) uniform FrameBuf { FrameParams p; } frame;
 layout(std430, binding = 1) readonly buffer RangesBuf { uvec2 v[]; } ranges;
 layout(std430, binding = 2) readonly buffer IsectIdsBuf { uint v[]; } isect_ids;
@@ -15,54 +19,73 @@ layout(std430, binding = 4) readonly buffer ConicsBuf { vec4 v[]; } conics;
 layout(std430, binding = 5) readonly buffer ColorsBuf { vec4 v[]; } colors;
 layout(std430, binding = 6) writeonly buffer OutImageBuf { vec4 v[]; } out_image;
 
-shared vec2 s_xy[TILE_SIZE * TILE_SIZE];
-shared vec4 s_conic[TILE_SIZE * TILE_SIZE];
-shared vec3 s_rgb[TILE_SIZE * TILE_SIZE];
+const uint BATCH = TILE_SIZE * TILE_SIZE;
+shared vec2 s_xy[BATCH];
+shared vec4 s_conic[BATCH];
+shared vec3 s_rgb[BATCH];
 shared uint s_done;
 
-// Blends one splat into (C, T); false once the pixel is saturated (T would drop below 1e-4).
+// Blends one splat into (C, T), without branches; false once the pixel is saturated (T would
+// drop below 1e-4), in which case (C, T) stay as they were.
 bool blend_splat(vec2 xy, vec4 co, vec3 rgb, vec2 pixf, inout float T, inout vec3 C) {
     vec2 d = xy - pixf;
     float power = -0.5 * (co.x * d.x * d.x + co.z * d.y * d.y) - co.y * d.x * d.y;
-    if (power > 0.0) return true;
     float alpha = min(0.99, co.w * exp(power));
-    if (alpha < 1.0 / 255.0) return true;
     float test_T = T * (1.0 - alpha);
-    if (test_T < 0.0001) return false;
-    C += rgb * alpha * T;
-    T = test_T;
-    return true;
+    bool used = power <= 0.0 && alpha >= 1.0 / 255.0;
+    bool saturated = used && test_T < 0.0001;
+    bool add = used && !saturated;
+    C += rgb * (add ? alpha * T : 0.0);
+    T = add ? test_T : T;
+    return !saturated;
 }
 
 void main() {
-    const uint BATCH = TILE_SIZE * TILE_SIZE;
+    uint threads = gl_WorkGroupSize.x * gl_WorkGroupSize.y;
     uint tile = gl_WorkGroupID.y * frame.p.tiles_x + gl_WorkGroupID.x;
-    uvec2 pix = gl_WorkGroupID.xy * TILE_SIZE + gl_LocalInvocationID.xy;
-    bool inside = pix.x < frame.p.width && pix.y < frame.p.height;
-    vec2 pixf = vec2(pix) + 0.5;
+    uint px = gl_WorkGroupID.x * TILE_SIZE + gl_LocalInvocationID.x;
+    uint py0 = gl_WorkGroupID.y * TILE_SIZE + gl_LocalInvocationID.y * PIXELS_PER_THREAD;
+    float T[PIXELS_PER_THREAD];
+    vec3 C[PIXELS_PER_THREAD];
+    bool done[PIXELS_PER_THREAD];
+    bool thread_done = true;
+    for (uint r = 0; r < PIXELS_PER_THREAD; r++) {
+        T[r] = 1.0;
+        C[r] = vec3(0.0);
+        done[r] = px >= frame.p.width || py0 + r >= frame.p.height;
+        thread_done = thread_done && done[r];
+    }
     uvec2 range = ranges.v[tile];
-    bool done = !inside;
-    float T = 1.0;
-    vec3 C = vec3(0.0);
     uint t = gl_LocalInvocationIndex;
     for (uint start = range.x; start < range.y; start += BATCH) {
         if (t == 0) s_done = 0;
         barrier();
-        if (done) atomicAdd(s_done, 1);
+        if (thread_done) atomicAdd(s_done, 1);
         barrier();
-        if (s_done == BATCH) break;
-        if (start + t < range.y) {
-            uint g = isect_ids.v[start + t];
-            s_xy[t] = xys.v[g];
-            s_conic[t] = conics.v[g];
-            s_rgb[t] = colors.v[g].rgb;
+        if (s_done == threads) break;
+        for (uint k = t; k < BATCH && start + k < range.y; k += threads) {
+            uint g = isect_ids.v[start + k];
+            s_xy[k] = xys.v[g];
+            s_conic[k] = conics.v[g];
+            s_rgb[k] = colors.v[g].rgb;
         }
         barrier();
         uint count = min(BATCH, range.y - start);
-        for (uint j = 0; !done && j < count; j++) {
-            done = !blend_splat(s_xy[j], s_conic[j], s_rgb[j], pixf, T, C);
+        for (uint j = 0; !thread_done && j < count; j++) {
+            vec2 xy = s_xy[j];
+            vec4 co = s_conic[j];
+            vec3 rgb = s_rgb[j];
+            thread_done = true;
+            for (uint r = 0; r < PIXELS_PER_THREAD; r++) {
+                if (!done[r]) done[r] = !blend_splat(xy, co, rgb, vec2(px, py0 + r) + 0.5, T[r], C[r]);
+                thread_done = thread_done && done[r];
+            }
         }
         barrier();
     }
-    if (inside) out_image.v[pix.y * frame.p.width + pix.x] = vec4(C + T * frame.p.background.rgb, T);
+    for (uint r = 0; r < PIXELS_PER_THREAD; r++) {
+        if (px < frame.p.width && py0 + r < frame.p.height) {
+            out_image.v[(py0 + r) * frame.p.width + px] = vec4(C[r] + T[r] * frame.p.background.rgb, T[r]);
+        }
+    }
 }

@@ -27,14 +27,17 @@ pub struct Kernels {
 pub struct KernelPolicy {
     /// Keys per thread in a radix-sort block (SORT_ITEMS_CPU or SORT_ITEMS_GPU).
     pub sort_items: u32,
+    /// Pixels of a tile column each blend invocation owns (divides TILE_SIZE).
+    pub blend_pixels_per_thread: u32,
 }
 
 impl KernelPolicy {
-    /// For GPUs: short runs, many workgroups.
-    pub const GPU: KernelPolicy = KernelPolicy { sort_items: SORT_ITEMS_GPU };
-    /// For CPU devices (lavapipe), where every workgroup with barriers has a large fixed cost
-    /// (llvmpipe runs such workgroups as coroutines): long runs, few workgroups.
-    pub const CPU: KernelPolicy = KernelPolicy { sort_items: SORT_ITEMS_CPU };
+    /// For GPUs: short sort runs for many workgroups; one pixel per blend invocation.
+    pub const GPU: KernelPolicy = KernelPolicy { sort_items: SORT_ITEMS_GPU, blend_pixels_per_thread: 1 };
+    /// For CPU devices (lavapipe): every workgroup with barriers has a large fixed cost
+    /// (llvmpipe runs such workgroups as coroutines) and every load costs far more than
+    /// arithmetic, so long sort runs and a whole tile column per blend invocation.
+    pub const CPU: KernelPolicy = KernelPolicy { sort_items: SORT_ITEMS_CPU, blend_pixels_per_thread: TILE_SIZE };
 
     pub fn for_device(gpu: &Gpu) -> KernelPolicy {
         if gpu.info.kind == "CPU" {
@@ -60,7 +63,12 @@ impl Kernels {
             compact: k("compact", spirv::COMPACT)?,
             emit: k("emit", spirv::EMIT)?,
             ranges: k("ranges", spirv::RANGES)?,
-            blend: k("blend", spirv::BLEND)?,
+            blend: Kernel::with_spec(
+                gpu,
+                "blend",
+                spirv::BLEND,
+                &[policy.blend_pixels_per_thread, TILE_SIZE / policy.blend_pixels_per_thread],
+            )?,
             dispatch_args: k("dispatch_args", spirv::DISPATCH_ARGS)?,
             scan_reduce: k("scan_reduce", spirv::SCAN_REDUCE)?,
             scan_blocks: k("scan_blocks", spirv::SCAN_BLOCKS)?,
