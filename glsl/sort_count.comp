@@ -2,7 +2,8 @@
 // Radix sort pass 1: per block of SORT_WG * SORT_ITEMS keys, the count of each digit (args.bits bits at
 // args.shift), written digit-major (hist[digit * nblocks + block]) so that one exclusive scan
 // of the table gives every (digit, block) its global output offset. Each thread counts its own
-// run of keys into its own shared-memory column: no atomics, no per-lane array indexing.
+// run of keys in a private array (cheaper than shared memory on lavapipe, and no atomics), then
+// publishes it as its column of the block's [digit][thread] table.
 #include "common.glsl"
 layout(local_size_x = SORT_WG) in;
 layout(push_constant) uniform Push { SortArgs args; };
@@ -20,13 +21,15 @@ void main() {
     uint bins = 1u << args.bits;
     uint t = gl_LocalInvocationIndex;
     for (uint b = gl_WorkGroupID.x; b < nblocks; b += gl_NumWorkGroups.x) {
-        for (uint d = 0; d < bins; d++) s_cnt[d * SORT_WG + t] = 0;
+        uint h[SORT_MAX_BINS];
+        for (uint d = 0; d < SORT_MAX_BINS; d++) h[d] = 0;
         uint base = b * block + t * SORT_ITEMS;
         uint end = min(base + SORT_ITEMS, n);
         for (uint idx = base; idx < end; idx++) {
             uint d = bitfieldExtract(keys_in.v[idx], int(args.shift), int(args.bits));
-            s_cnt[d * SORT_WG + t]++;
+            h[d]++;
         }
+        for (uint d = 0; d < bins; d++) s_cnt[d * SORT_WG + t] = h[d];
         barrier();
         if (t < bins) {
             uint sum = 0;

@@ -13,7 +13,7 @@ layout(std430, binding = 3) readonly buffer HistBuf { uint v[]; } hist;
 layout(std430, binding = 4) writeonly buffer KeysOutBuf { uint v[]; } keys_out;
 layout(std430, binding = 5) writeonly buffer ValsOutBuf { uint v[]; } vals_out;
 
-shared uint s_cnt[SORT_MAX_BINS * SORT_WG]; // [digit][thread]: counts, then next output slots
+shared uint s_cnt[SORT_MAX_BINS * SORT_WG]; // [digit][thread]: counts, then first output slots
 
 void main() {
     uint n = counts.v[args.count_slot];
@@ -22,13 +22,15 @@ void main() {
     uint bins = 1u << args.bits;
     uint t = gl_LocalInvocationIndex;
     for (uint b = gl_WorkGroupID.x; b < nblocks; b += gl_NumWorkGroups.x) {
-        for (uint d = 0; d < bins; d++) s_cnt[d * SORT_WG + t] = 0;
+        // Private per-thread counters (cheaper than shared memory on lavapipe).
+        uint h[SORT_MAX_BINS];
+        for (uint d = 0; d < SORT_MAX_BINS; d++) h[d] = 0;
         uint base = b * block + t * SORT_ITEMS;
         uint end = min(base + SORT_ITEMS, n);
         for (uint idx = base; idx < end; idx++) {
-            uint d = bitfieldExtract(keys_in.v[idx], int(args.shift), int(args.bits));
-            s_cnt[d * SORT_WG + t]++;
+            h[bitfieldExtract(keys_in.v[idx], int(args.shift), int(args.bits))]++;
         }
+        for (uint d = 0; d < bins; d++) s_cnt[d * SORT_WG + t] = h[d];
         barrier();
         // Thread d turns row d (its digit's counts per thread) into output slots.
         if (t < bins) {
@@ -40,11 +42,11 @@ void main() {
             }
         }
         barrier();
+        for (uint d = 0; d < bins; d++) h[d] = s_cnt[d * SORT_WG + t];
         for (uint idx = base; idx < end; idx++) {
             uint key = keys_in.v[idx];
             uint d = bitfieldExtract(key, int(args.shift), int(args.bits));
-            uint p = s_cnt[d * SORT_WG + t];
-            s_cnt[d * SORT_WG + t] = p + 1;
+            uint p = h[d]++;
             keys_out.v[p] = key;
             vals_out.v[p] = vals_in.v[idx];
         }

@@ -274,6 +274,7 @@ fn bench(device: Option<String>, view: &ViewArgs, frames: usize, warmup: usize, 
     }
     let fm = median(&frame_ms);
     let file_bytes = std::fs::metadata(&view.scene)?.len();
+    let sorts = sort_comparison(&r, &scene, cams.last().unwrap(), view.background, &per_pass)?;
     println!("scene            {}", view.scene.display());
     println!("gaussians        {}", scene.len());
     println!("visible (median) {}", median(&visible));
@@ -283,6 +284,17 @@ fn bench(device: Option<String>, view: &ViewArgs, frames: usize, warmup: usize, 
     println!("frame GPU bytes  {}", r.frame_gpu_bytes());
     println!("file bytes       {file_bytes}");
     print_passes(&per_pass);
+    println!("GPU sort vs sort_unstable on the last frame's own keys (ms):");
+    for c in &sorts {
+        println!(
+            "  {:<11} {:>8} keys  GPU {:>8.2}  sort_unstable {:>7.2}  ratio {:.2}x",
+            c.name,
+            c.keys,
+            c.gpu_ms,
+            c.cpu_ms,
+            c.gpu_ms / c.cpu_ms
+        );
+    }
     if let Some(path) = json {
         let passes: serde_json::Map<String, serde_json::Value> =
             per_pass.iter().map(|(n, v)| (n.clone(), serde_json::json!(median(v)))).collect();
@@ -302,6 +314,10 @@ fn bench(device: Option<String>, view: &ViewArgs, frames: usize, warmup: usize, 
             "frame_gpu_bytes": r.frame_gpu_bytes(),
             "file_bytes": file_bytes,
             "passes": passes,
+            "sorts": sorts.iter().map(|c| serde_json::json!({
+                "name": c.name, "keys": c.keys, "gpu_ms": c.gpu_ms, "sort_unstable_ms": c.cpu_ms,
+                "ratio": c.gpu_ms / c.cpu_ms,
+            })).collect::<Vec<_>>(),
         });
         instgs_vk::util::write_atomic(path, |f| {
             use std::io::Write;
@@ -309,6 +325,64 @@ fn bench(device: Option<String>, view: &ViewArgs, frames: usize, warmup: usize, 
         })?;
     }
     Ok(())
+}
+
+struct SortComparison {
+    name: &'static str,
+    keys: usize,
+    gpu_ms: f64,
+    cpu_ms: f64,
+}
+
+/// The GPU's depth and tile sorts (median pass times) against Rust's sort_unstable of the same
+/// (key, value) pairs, rebuilt from the last frame's GPU state in the order the GPU sorted them.
+fn sort_comparison(
+    r: &Rasterizer,
+    scene: &Scene,
+    cam: &Camera,
+    background: [f32; 3],
+    per_pass: &[(String, Vec<f64>)],
+) -> Result<Vec<SortComparison>> {
+    use instgs_vk::cpu;
+    let st = r.read_state()?;
+    let proj = cpu::Projected {
+        xys: st.xys,
+        conics: st.conics,
+        colors: st.colors,
+        depths: st.depths,
+        radii: st.radii,
+        tiles_touched: st.tiles_touched,
+    };
+    let depth_ids: Vec<u32> = (0..proj.depths.len() as u32).filter(|&i| proj.tiles_touched[i as usize] > 0).collect();
+    let depth_keys: Vec<u32> = depth_ids.iter().map(|&i| proj.depths[i as usize].to_bits()).collect();
+    let fp = instgs_vk::raster::frame_params(scene.len(), scene.sh_degree, cam, background, 0);
+    let (tile_keys, tile_ids) = cpu::emit(&fp, &proj, &st.depth_ids);
+    let time_cpu = |keys: &[u32], vals: &[u32]| {
+        let mut times = Vec::new();
+        for _ in 0..5 {
+            let mut pairs: Vec<(u32, u32)> = keys.iter().copied().zip(vals.iter().copied()).collect();
+            let t = std::time::Instant::now();
+            pairs.sort_unstable_by_key(|p| p.0);
+            times.push(t.elapsed().as_secs_f64() * 1e3);
+            std::hint::black_box(&pairs);
+        }
+        median(&times)
+    };
+    let gpu = |name: &str| per_pass.iter().find(|(n, _)| n == name).map_or(f64::NAN, |(_, v)| median(v));
+    Ok(vec![
+        SortComparison {
+            name: "depth_sort",
+            keys: depth_keys.len(),
+            gpu_ms: gpu("depth_sort"),
+            cpu_ms: time_cpu(&depth_keys, &depth_ids),
+        },
+        SortComparison {
+            name: "tile_sort",
+            keys: tile_keys.len(),
+            gpu_ms: gpu("tile_sort"),
+            cpu_ms: time_cpu(&tile_keys, &tile_ids),
+        },
+    ])
 }
 
 fn bench_sort(device: Option<String>, n: usize, bits: u32, repeats: usize) -> Result<()> {
