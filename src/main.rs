@@ -345,14 +345,7 @@ fn sort_comparison(
 ) -> Result<Vec<SortComparison>> {
     use instgs_vk::cpu;
     let st = r.read_state()?;
-    let proj = cpu::Projected {
-        xys: st.xys,
-        conics: st.conics,
-        colors: st.colors,
-        depths: st.depths,
-        radii: st.radii,
-        tiles_touched: st.tiles_touched,
-    };
+    let proj = st.projected;
     let depth_ids: Vec<u32> = (0..proj.depths.len() as u32).filter(|&i| proj.tiles_touched[i as usize] > 0).collect();
     let depth_keys: Vec<u32> = depth_ids.iter().map(|&i| proj.depths[i as usize].to_bits()).collect();
     let fp = instgs_vk::raster::frame_params(scene.len(), scene.sh_degree, cam, background, 0);

@@ -136,12 +136,8 @@ pub struct Frame {
 
 /// Everything a test needs to check each pass against its CPU twin.
 pub struct FrameState {
-    pub xys: Vec<[f32; 2]>,
-    pub conics: Vec<[f32; 4]>,
-    pub colors: Vec<[f32; 4]>,
-    pub depths: Vec<f32>,
-    pub radii: Vec<u32>,
-    pub tiles_touched: Vec<u32>,
+    /// The preprocess pass's per-Gaussian output.
+    pub projected: crate::cpu::Projected,
     pub depth_keys: Vec<u32>,
     pub depth_ids: Vec<u32>,
     pub isect_offsets: Vec<u32>,
@@ -521,12 +517,14 @@ impl Rasterizer {
         let m = counts[COUNT_ISECT as usize] as usize;
         let tiles = (im.width.div_ceil(TILE_SIZE) * im.height.div_ceil(TILE_SIZE)) as usize;
         Ok(FrameState {
-            xys: gpu.read(&g.xys, n)?,
-            conics: gpu.read(&g.conics, n)?,
-            colors: gpu.read(&g.colors, n)?,
-            depths: gpu.read(&g.depths, n)?,
-            radii: gpu.read(&g.radii, n)?,
-            tiles_touched: gpu.read(&g.tiles_touched, n)?,
+            projected: crate::cpu::Projected {
+                xys: gpu.read(&g.xys, n)?,
+                conics: gpu.read(&g.conics, n)?,
+                colors: gpu.read(&g.colors, n)?,
+                depths: gpu.read(&g.depths, n)?,
+                radii: gpu.read(&g.radii, n)?,
+                tiles_touched: gpu.read(&g.tiles_touched, n)?,
+            },
             depth_keys: gpu.read(&g.depth_keys[self.depth_result], vis)?,
             depth_ids: gpu.read(&g.depth_ids[self.depth_result], vis)?,
             isect_offsets: gpu.read(&g.isect_offsets, vis)?,

@@ -39,66 +39,50 @@ fn check_passes_with(
     // preprocess: same culling and radii (a float may land on the other side of a ceil for a
     // very few Gaussians), values to float precision.
     let want = cpu::preprocess(scene, &fp);
+    let got = &st.projected;
     let mut mismatched = 0;
     for i in 0..n {
-        if want.tiles_touched[i] != st.tiles_touched[i] || want.radii[i] != st.radii[i] {
+        if want.tiles_touched[i] != got.tiles_touched[i] || want.radii[i] != got.radii[i] {
             mismatched += 1;
             assert!(
-                want.radii[i].abs_diff(st.radii[i]) <= 1,
+                want.radii[i].abs_diff(got.radii[i]) <= 1,
                 "Gaussian {i}: radius {} vs {}",
                 want.radii[i],
-                st.radii[i]
+                got.radii[i]
             );
             continue;
         }
         if want.tiles_touched[i] == 0 {
             continue;
         }
-        for a in 0..2 {
-            assert!(close(want.xys[i][a], st.xys[i][a], 1e-5, 1e-3), "xy {i}: {:?} vs {:?}", want.xys[i], st.xys[i]);
+        // (name, expected, got, relative, absolute tolerance)
+        let fields: [(&str, &[f32], &[f32], f32, f32); 4] = [
+            ("xy", &want.xys[i], &got.xys[i], 1e-5, 1e-3),
+            ("conic", &want.conics[i], &got.conics[i], 2e-3, 1e-6),
+            ("colour", &want.colors[i][..3], &got.colors[i][..3], 1e-4, 1e-5),
+            ("depth", std::slice::from_ref(&want.depths[i]), std::slice::from_ref(&got.depths[i]), 1e-6, 1e-6),
+        ];
+        for (name, w, g, rel, abs) in fields {
+            assert!(w.iter().zip(g).all(|(a, b)| close(*a, *b, rel, abs)), "{name} of Gaussian {i}: {w:?} vs {g:?}");
         }
-        for a in 0..4 {
-            assert!(
-                close(want.conics[i][a], st.conics[i][a], 2e-3, 1e-6),
-                "conic {i}: {:?} vs {:?}",
-                want.conics[i],
-                st.conics[i]
-            );
-        }
-        for a in 0..3 {
-            assert!(
-                close(want.colors[i][a], st.colors[i][a], 1e-4, 1e-5),
-                "colour {i}: {:?} vs {:?}",
-                want.colors[i],
-                st.colors[i]
-            );
-        }
-        assert!(close(want.depths[i], st.depths[i], 1e-6, 1e-6), "depth {i}");
     }
     assert!(mismatched <= n / 500, "{mismatched} of {n} Gaussians differ in radius or tiles");
 
     // scan visible + compact + depth sort, from the GPU's preprocess output.
-    let gpu_proj = cpu::Projected {
-        xys: st.xys.clone(),
-        conics: st.conics.clone(),
-        colors: st.colors.clone(),
-        depths: st.depths.clone(),
-        radii: st.radii.clone(),
-        tiles_touched: st.tiles_touched.clone(),
-    };
-    let (dkeys, dids) = cpu::depth_order(&gpu_proj);
+    let gpu_proj = &st.projected;
+    let (dkeys, dids) = cpu::depth_order(gpu_proj);
     assert_eq!(st.counts[COUNT_VISIBLE as usize] as usize, dids.len(), "visible count");
     assert!(st.depth_keys == dkeys && st.depth_ids == dids, "depth order differs");
 
     // scan of tiles touched in depth order.
-    let touched: Vec<u32> = dids.iter().map(|&i| st.tiles_touched[i as usize]).collect();
+    let touched: Vec<u32> = dids.iter().map(|&i| gpu_proj.tiles_touched[i as usize]).collect();
     let (offsets, total) = cpu::exclusive_scan(&touched);
     assert!(st.isect_offsets == offsets, "intersection offsets differ");
     assert_eq!(st.counts[COUNT_ISECT_NEEDED as usize], total);
     assert_eq!(st.counts[COUNT_ISECT as usize], total, "capacity should have grown");
 
     // emit + tile sort.
-    let (ikeys, iids) = cpu::emit(&fp, &gpu_proj, &dids);
+    let (ikeys, iids) = cpu::emit(&fp, gpu_proj, &dids);
     let (skeys, sids) = cpu::stable_sort(&ikeys, &iids);
     assert!(st.isect_keys == skeys && st.isect_ids == sids, "sorted intersections differ");
 
@@ -107,7 +91,7 @@ fn check_passes_with(
     assert!(st.ranges == ranges, "tile ranges differ");
 
     // blend, from the GPU's own lists.
-    let img = cpu::blend(&fp, &st.ranges, &st.isect_ids, &gpu_proj);
+    let img = cpu::blend(&fp, &st.ranges, &st.isect_ids, gpu_proj);
     let p = psnr(&img, &frame.image);
     assert!(p >= 60.0, "blend differs from its CPU twin: PSNR {p:.1} dB");
     let max_t = img.iter().zip(&frame.image).map(|(a, b)| (a[3] - b[3]).abs()).fold(0.0f32, f32::max);
