@@ -59,20 +59,25 @@ pub struct GpuScene {
     pub sh_degree: u32,
 }
 
+/// Refuses a scene whose largest buffer (SH coefficients, or 16 bytes per Gaussian for the
+/// per-frame conics) would pass the device's `maxStorageBufferRange`.
+pub fn check_scene_fits(n: usize, sh_degree: u32, limit: u64) -> Result<()> {
+    let sh_bytes = n as u64 * ((sh_degree + 1) * (sh_degree + 1) * 3 * 4) as u64;
+    if sh_bytes.max(n as u64 * 16) > limit {
+        bail!(
+            "scene too large for this device: {n} Gaussians at SH degree {sh_degree} need a {sh_bytes}-byte SH buffer, over maxStorageBufferRange ({limit} bytes); splitting a scene is not supported"
+        );
+    }
+    Ok(())
+}
+
 impl GpuScene {
     pub fn new(gpu: &Arc<Gpu>, scene: &Scene) -> Result<GpuScene> {
         let n = scene.len();
         if n == 0 {
             bail!("the scene has no Gaussians");
         }
-        let limit = gpu.info.max_storage_buffer_range;
-        let sh_bytes = (scene.sh.len() * 4) as u64;
-        if sh_bytes > limit || (n as u64) * 16 > limit {
-            bail!(
-                "scene too large for this device: {n} Gaussians at SH degree {} need a {sh_bytes}-byte SH buffer, over maxStorageBufferRange ({limit} bytes); splitting a scene is not supported",
-                scene.sh_degree
-            );
-        }
+        check_scene_fits(n, scene.sh_degree, gpu.info.max_storage_buffer_range)?;
         Ok(GpuScene {
             means: gpu.upload("means", &scene.means)?,
             scales: gpu.upload("scales", &scene.scales)?,

@@ -160,3 +160,28 @@ fn images_match_cpu_twin_on_real_splats() {
     }
     assert_clean(&gpu);
 }
+
+#[test]
+fn buffers_past_max_storage_buffer_range_are_refused() {
+    use instgs_vk::raster::check_scene_fits;
+    let mib128 = 128 << 20;
+    // 1M Gaussians at SH degree 3: a 192 MB SH buffer.
+    let e = check_scene_fits(1_000_000, 3, mib128).unwrap_err().to_string();
+    assert!(e.contains("scene too large") && e.contains("maxStorageBufferRange"), "{e}");
+    check_scene_fits(600_000, 3, mib128).unwrap();
+    check_scene_fits(1_000_000, 0, mib128).unwrap();
+
+    // An image whose output buffer would pass the device's own limit is refused before
+    // anything is allocated.
+    let (gpu, k) = gpu();
+    let mut rng = Rng::new(5);
+    let scene = random_scene(&mut rng, 10, 0);
+    let gs = GpuScene::new(&gpu, &scene).unwrap();
+    let mut r = Rasterizer::new(&gpu, &k).unwrap();
+    let width = 16384u32;
+    let height = (gpu.info.max_storage_buffer_range / 16 / width as u64 + 1).min(u32::MAX as u64) as u32;
+    let cam = look_at(Vec3::new(0.0, 0.0, -5.0), Vec3::ZERO, -Vec3::Y, width, height, 1000.0);
+    let e = r.render(&gs, &cam, [0.0; 3]).err().expect("refused").to_string();
+    assert!(e.contains("too large for one storage buffer"), "{e}");
+    assert_clean(&gpu);
+}
