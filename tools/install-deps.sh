@@ -6,7 +6,7 @@ set -euo pipefail
 pkgs=(mesa-vulkan-drivers libvulkan-dev vulkan-validationlayers libshaderc-dev glslang-dev spirv-tools xvfb)
 missing=()
 for p in "${pkgs[@]}"; do
-  dpkg -s "$p" >/dev/null 2>&1 || missing+=("$p")
+  dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")
 done
 if [ ${#missing[@]} -gt 0 ]; then
   sudo=""
