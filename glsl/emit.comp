@@ -3,13 +3,14 @@
 // tile of its rectangle at its scanned offset. Writes past isect_capacity are dropped; the host
 // sees COUNT_ISECT_NEEDED > capacity, grows the buffers and renders again.
 #include "common.glsl"
+#include "tiles.glsl"
 layout(local_size_x = WG_SIZE) in;
 layout(std140, binding = 0) uniform FrameBuf { FrameParams p; } frame;
 layout(std430, binding = 1) readonly buffer CountsBuf { uint v[]; } counts;
 layout(std430, binding = 2) readonly buffer DepthIdsBuf { uint v[]; } depth_ids;
 layout(std430, binding = 3) readonly buffer IsectOffsetsBuf { uint v[]; } isect_offsets;
 layout(std430, binding = 4) readonly buffer XysBuf { vec2 v[]; } xys;
-layout(std430, binding = 5) readonly buffer RadiiBuf { uint v[]; } radii;
+layout(std430, binding = 5) readonly buffer RadiiBuf { uvec2 v[]; } radii;
 layout(std430, binding = 6) writeonly buffer IsectKeysBuf { uint v[]; } isect_keys;
 layout(std430, binding = 7) writeonly buffer IsectIdsBuf { uint v[]; } isect_ids;
 
@@ -17,11 +18,8 @@ void main() {
     uint n = counts.v[COUNT_VISIBLE];
     for (uint j = gl_GlobalInvocationID.x; j < n; j += gl_NumWorkGroups.x * WG_SIZE) {
         uint i = depth_ids.v[j];
-        vec2 pc = xys.v[i] - 0.5;
-        float r = float(radii.v[i]);
-        ivec2 grid = ivec2(frame.p.tiles_x, frame.p.tiles_y);
-        ivec2 rmin = min(grid, max(ivec2(0), ivec2((pc - r) / float(TILE_SIZE))));
-        ivec2 rmax = min(grid, max(ivec2(0), ivec2((pc + r + float(TILE_SIZE - 1)) / float(TILE_SIZE))));
+        ivec2 rmin, rmax;
+        tile_rect(xys.v[i], radii.v[i], uvec2(frame.p.tiles_x, frame.p.tiles_y), rmin, rmax);
         uint o = isect_offsets.v[j];
         for (int y = rmin.y; y < rmax.y; y++) {
             for (int x = rmin.x; x < rmax.x; x++) {

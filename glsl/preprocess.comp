@@ -4,11 +4,14 @@
 // Sigma = R S S^T R^T; Sigma2D = J W Sigma W^T J^T + 0.3 I with the Jacobian's x/z, y/z clamped
 // to 1.3x the field of view; colour = SH(dir) + 0.5, clamped at 0, dir from the camera centre
 // to the world mean. A culled Gaussian gets tiles_touched = 0.
-// Radius: Inria's ceil(3 sqrt(lambda_max)), tightened for faint splats to where alpha can still
-// reach 1/255 (q <= 2 ln(255 o), as brush does): ceil(min(3, sqrt(2 ln(255 o))) sqrt(lambda_max)).
-// Blend skips alpha < 1/255, so the image is Inria's; splats with o < 1/255 are culled.
+// Screen extent: Inria covers the square of half-width R = 3 sqrt(lambda_max). Alpha reaches
+// 1/255 only where q <= e^2, e = sqrt(2 ln(255 o)), i.e. within e sqrt(Sigma_xx) in x and
+// e sqrt(Sigma_yy) in y (the ellipse's bounding box, as brush does). The radii are per axis,
+// ceil(min(R, e sqrt(Sigma_xx))) and ceil(min(R, e sqrt(Sigma_yy))): blend skips alpha < 1/255,
+// so the image is Inria's with fewer empty intersections. Splats with o < 1/255 are culled.
 #include "common.glsl"
 #include "sh.glsl"
+#include "tiles.glsl"
 layout(local_size_x = WG_SIZE) in;
 layout(std140, binding = 0) uniform FrameBuf { FrameParams p; } frame;
 layout(std430, binding = 1) readonly buffer MeansBuf { float v[]; } means;
@@ -20,11 +23,11 @@ layout(std430, binding = 6) writeonly buffer XysBuf { vec2 v[]; } xys;
 layout(std430, binding = 7) writeonly buffer ConicsBuf { vec4 v[]; } conics;
 layout(std430, binding = 8) writeonly buffer ColorsBuf { vec4 v[]; } colors;
 layout(std430, binding = 9) writeonly buffer DepthsBuf { float v[]; } depths;
-layout(std430, binding = 10) writeonly buffer RadiiBuf { uint v[]; } radii;
+layout(std430, binding = 10) writeonly buffer RadiiBuf { uvec2 v[]; } radii;
 layout(std430, binding = 11) writeonly buffer TilesTouchedBuf { uint v[]; } tiles_touched;
 
 void cull(uint i) {
-    radii.v[i] = 0;
+    radii.v[i] = uvec2(0);
     tiles_touched.v[i] = 0;
     xys.v[i] = vec2(0.0);
     conics.v[i] = vec4(0.0);
@@ -81,18 +84,14 @@ void preprocess(uint i) {
         cull(i);
         return;
     }
-    float extent = min(3.0, sqrt(2.0 * log(255.0 * opacity)));
+    float extent = sqrt(2.0 * log(255.0 * opacity));
     float mid = 0.5 * (a + c);
     float lambda = mid + sqrt(max(0.1, mid * mid - det));
-    uint radius = uint(ceil(extent * sqrt(lambda)));
+    uvec2 radius = uvec2(ceil(min(vec2(3.0 * sqrt(lambda)), extent * sqrt(vec2(a, c)))));
     vec2 xy = vec2(fx * t.x * rz + cx, fy * t.y * rz + cy);
 
-    // Tile rectangle as Inria's getRect, on Inria's pixel coordinates (xy - 0.5).
-    vec2 pc = xy - 0.5;
-    float r = float(radius);
-    ivec2 grid = ivec2(frame.p.tiles_x, frame.p.tiles_y);
-    ivec2 rmin = min(grid, max(ivec2(0), ivec2((pc - r) / float(TILE_SIZE))));
-    ivec2 rmax = min(grid, max(ivec2(0), ivec2((pc + r + float(TILE_SIZE - 1)) / float(TILE_SIZE))));
+    ivec2 rmin, rmax;
+    tile_rect(xy, radius, uvec2(frame.p.tiles_x, frame.p.tiles_y), rmin, rmax);
     uint touched = uint((rmax.x - rmin.x) * (rmax.y - rmin.y));
     if (touched == 0) {
         cull(i);

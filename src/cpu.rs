@@ -14,7 +14,8 @@ pub struct Projected {
     /// RGB (a unused).
     pub colors: Vec<[f32; 4]>,
     pub depths: Vec<f32>,
-    pub radii: Vec<u32>,
+    /// Half-extents in pixels along x and y.
+    pub radii: Vec<[u32; 2]>,
     pub tiles_touched: Vec<u32>,
 }
 
@@ -68,23 +69,24 @@ pub fn quat_to_mat(q: [f32; 4]) -> Mat3 {
     )
 }
 
-/// The tile rectangle [min, max) of a splat, as Inria's getRect on (xy − 0.5).
-pub fn tile_rect(fp: &FrameParams, xy: [f32; 2], radius: u32) -> ([i32; 2], [i32; 2]) {
-    let pc = Vec2::from(xy) - 0.5;
-    let r = radius as f32;
+/// The tiles [lo, hi) holding a pixel centre within `radius` (per axis) of `xy`: conservative,
+/// as gsplat (Inria's getRect can miss the last partly covered tile).
+pub fn tile_rect(fp: &FrameParams, xy: [f32; 2], radius: [u32; 2]) -> ([i32; 2], [i32; 2]) {
     let t = TILE_SIZE as f32;
-    let grid = [fp.tiles_x as i32, fp.tiles_y as i32];
+    let grid = [fp.tiles_x as f32, fp.tiles_y as f32];
     let mut lo = [0; 2];
     let mut hi = [0; 2];
     for a in 0..2 {
-        lo[a] = grid[a].min(0.max(((pc[a] - r) / t) as i32));
-        hi[a] = grid[a].min(0.max(((pc[a] + r + (t - 1.0)) / t) as i32));
+        let r = radius[a] as f32;
+        lo[a] = ((xy[a] - r - 0.5) / t).floor().clamp(0.0, grid[a]) as i32;
+        hi[a] = (((xy[a] + r - 0.5) / t).floor() + 1.0).clamp(0.0, grid[a]) as i32;
     }
     (lo, hi)
 }
 
-/// Pass `preprocess`: cull, project, conic, radius, tiles touched, SH colour, depth. The radius
-/// is Inria's 3σ, tightened to where alpha can still reach 1/255 for faint splats.
+/// Pass `preprocess`: cull, project, conic, radii, tiles touched, SH colour, depth. The radii
+/// are per axis: Inria's 3σ square clipped to the bounding box of the ellipse where alpha can
+/// still reach 1/255 (same image, fewer empty intersections).
 pub fn preprocess(scene: &Scene, fp: &FrameParams) -> Projected {
     let n = scene.len();
     let mut p = Projected {
@@ -92,7 +94,7 @@ pub fn preprocess(scene: &Scene, fp: &FrameParams) -> Projected {
         conics: vec![[0.0; 4]; n],
         colors: vec![[0.0; 4]; n],
         depths: vec![0.0; n],
-        radii: vec![0; n],
+        radii: vec![[0; 2]; n],
         tiles_touched: vec![0; n],
     };
     let view = glam::Mat4::from_cols_array_2d(&fp.viewmat);
@@ -134,10 +136,11 @@ pub fn preprocess(scene: &Scene, fp: &FrameParams) -> Projected {
         if opacity < 1.0 / 255.0 {
             continue;
         }
-        let extent = (2.0 * (255.0 * opacity).ln()).sqrt().min(3.0);
+        let extent = (2.0 * (255.0 * opacity).ln()).sqrt();
         let mid = 0.5 * (a + c);
         let lambda = mid + (mid * mid - det).max(0.1).sqrt();
-        let radius = (extent * lambda.sqrt()).ceil() as u32;
+        let square = 3.0 * lambda.sqrt();
+        let radius = [square.min(extent * a.sqrt()).ceil() as u32, square.min(extent * c.sqrt()).ceil() as u32];
         let xy = [fx * t.x * rz + cx, fy * t.y * rz + cy];
         let (lo, hi) = tile_rect(fp, xy, radius);
         let touched = ((hi[0] - lo[0]) * (hi[1] - lo[1])) as u32;

@@ -247,7 +247,7 @@ impl Rasterizer {
                 conics: gpu.storage("conics", b * 4)?,
                 colors: gpu.storage("colors", b * 4)?,
                 depths: gpu.storage("depths", b)?,
-                radii: gpu.storage("radii", b)?,
+                radii: gpu.storage("radii", b * 2)?,
                 tiles_touched: gpu.storage("tiles_touched", b)?,
                 vis_offsets: gpu.storage("vis_offsets", b)?,
                 depth_keys: [gpu.storage("depth_keys_a", b)?, gpu.storage("depth_keys_b", b)?],
