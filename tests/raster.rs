@@ -114,6 +114,15 @@ fn passes_match_cpu_twin_on_random_scenes() {
 }
 
 #[test]
+fn passes_match_cpu_twin_on_a_real_splat() {
+    // 152k splats: the scans and sorts run over many blocks.
+    let scene = read_ply(&shared_data("splats/biker.ply")).unwrap();
+    let cam = &orbit_around(&scene, 3, UpAxis::NegY, 256, 192)[2];
+    let p = check_passes(&scene, cam, [0.0, 0.0, 0.0]);
+    assert!(p >= 50.0, "PSNR {p:.1} dB");
+}
+
+#[test]
 fn camera_inside_the_scene_culls_and_matches() {
     // Gaussians behind, beside and in front of the camera, some closer than the near plane.
     let mut rng = Rng::new(12);
