@@ -164,18 +164,26 @@ impl UpAxis {
     }
 }
 
-/// `n` cameras evenly spaced in azimuth on a circle `elevation_deg` above the horizontal
-/// plane, all looking at `center` from `distance`, horizontal field of view `fov_x_deg`.
-pub fn orbit(
-    n: usize,
-    center: Vec3,
-    distance: f32,
-    up: UpAxis,
-    elevation_deg: f32,
-    fov_x_deg: f32,
-    width: u32,
-    height: u32,
-) -> Vec<Camera> {
+/// A circle of cameras `elevation_deg` above the horizontal plane, all looking at `center` from
+/// `distance` (world units), horizontal field of view `fov_x_deg`.
+#[derive(Clone, Copy, Debug)]
+pub struct Orbit {
+    pub center: Vec3,
+    pub distance: f32,
+    pub up: UpAxis,
+    pub elevation_deg: f32,
+    pub fov_x_deg: f32,
+}
+
+impl Orbit {
+    /// `n` cameras evenly spaced in azimuth, named `view_000`…
+    pub fn cameras(&self, n: usize, width: u32, height: u32) -> Vec<Camera> {
+        orbit(self, n, width, height)
+    }
+}
+
+fn orbit(o: &Orbit, n: usize, width: u32, height: u32) -> Vec<Camera> {
+    let Orbit { center, distance, up, elevation_deg, fov_x_deg } = *o;
     let upv = up.vector();
     // Any two axes orthogonal to up span the horizontal plane.
     let a = if upv.x.abs() < 0.9 { Vec3::X } else { Vec3::Y };
@@ -220,5 +228,5 @@ pub fn orbit_around(scene: &crate::scene::Scene, n: usize, up: UpAxis, width: u3
         fov_x.to_radians()
     };
     let distance = radius / (0.5 * fov_min).sin() * 1.05;
-    orbit(n, center, distance, up, 25.0, fov_x, width, height)
+    Orbit { center, distance, up, elevation_deg: 25.0, fov_x_deg: fov_x }.cameras(n, width, height)
 }

@@ -172,19 +172,26 @@ pub fn record_scan(rec: &mut Recorder, k: &Kernels, c: &Counts, s: &Scan) -> Res
     )
 }
 
+/// The buffers of one radix sort: input in `keys[0]`/`vals[0]`, `keys[1]`/`vals[1]` for the
+/// ping-pong, and the digit-major histogram table (`sort_hist_for` entries).
+pub struct SortBuffers<'a> {
+    pub keys: [&'a Buffer; 2],
+    pub vals: [&'a Buffer; 2],
+    pub hist: &'a Buffer,
+}
+
 /// Records a stable LSD radix sort of counts[slot] (key, value) pairs on the low `bits` key
-/// bits, ping-ponging between `keys[0]/vals[0]` (input) and `keys[1]/vals[1]`. Returns the
-/// index of the pair holding the result. The indirect arguments of `slot` must be written.
+/// bits. Returns the index (0 or 1) of the key/value pair holding the result. The indirect
+/// arguments of `slot` must be written.
 pub fn record_sort(
     rec: &mut Recorder,
     k: &Kernels,
     c: &Counts,
     slot: u32,
     bits: u32,
-    keys: [&Buffer; 2],
-    vals: [&Buffer; 2],
-    hist: &Buffer,
+    b: &SortBuffers,
 ) -> Result<usize> {
+    let SortBuffers { keys, vals, hist } = *b;
     // The fewest passes of at most SORT_MAX_BITS, with the bits spread evenly over them.
     let passes = bits.div_ceil(SORT_MAX_BITS);
     let off = Counts::args_offset(slot, ARGS_SORT_BLOCKS);

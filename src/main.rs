@@ -185,17 +185,25 @@ fn cameras(view: &ViewArgs, scene: &Scene) -> Result<Vec<Camera>> {
     Ok(cams)
 }
 
-fn setup(device: Option<String>, view: &ViewArgs) -> Result<(Arc<Gpu>, Arc<Kernels>, Scene, Vec<Camera>)> {
+/// The scene, its cameras (both checked before the device starts) and the device.
+struct Setup {
+    gpu: Arc<Gpu>,
+    k: Arc<Kernels>,
+    scene: Scene,
+    cams: Vec<Camera>,
+}
+
+fn setup(device: Option<String>, view: &ViewArgs) -> Result<Setup> {
     let scene = read_ply(&view.scene)?;
     let cams = cameras(view, &scene)?;
     let gpu = Gpu::new(&GpuOptions::from_env(device))?;
     eprintln!("device: {}", gpu.describe());
     let k = Kernels::new(&gpu)?;
-    Ok((gpu, k, scene, cams))
+    Ok(Setup { gpu, k, scene, cams })
 }
 
 fn render(device: Option<String>, view: &ViewArgs, out: &Path) -> Result<()> {
-    let (gpu, k, scene, cams) = setup(device, view)?;
+    let Setup { gpu, k, scene, cams } = setup(device, view)?;
     std::fs::create_dir_all(out).with_context(|| format!("{}: cannot create folder", out.display()))?;
     let gs = GpuScene::new(&gpu, &scene).with_context(|| view.scene.display().to_string())?;
     let mut r = Rasterizer::new(&gpu, &k)?;
@@ -253,7 +261,7 @@ fn bench(device: Option<String>, view: &ViewArgs, frames: usize, warmup: usize, 
     if frames == 0 {
         bail!("--frames must be at least 1");
     }
-    let (gpu, k, scene, cams) = setup(device, view)?;
+    let Setup { gpu, k, scene, cams } = setup(device, view)?;
     let gs = GpuScene::new(&gpu, &scene)?;
     let mut r = Rasterizer::new(&gpu, &k)?;
     let mut per_pass = Vec::new();
@@ -282,6 +290,7 @@ fn bench(device: Option<String>, view: &ViewArgs, frames: usize, warmup: usize, 
     println!("frame (median)   {fm:.3} ms  ({:.1} FPS)", 1000.0 / fm);
     println!("scene GPU bytes  {}", gs.gpu_bytes());
     println!("frame GPU bytes  {}", r.frame_gpu_bytes());
+    println!("allocator bytes  {} (everything the allocator holds)", gpu.allocated_bytes());
     println!("file bytes       {file_bytes}");
     print_passes(&per_pass);
     println!("GPU sort vs sort_unstable on the last frame's own keys (ms):");
@@ -312,6 +321,7 @@ fn bench(device: Option<String>, view: &ViewArgs, frames: usize, warmup: usize, 
             "fps_median": 1000.0 / fm,
             "scene_gpu_bytes": gs.gpu_bytes(),
             "frame_gpu_bytes": r.frame_gpu_bytes(),
+            "allocated_gpu_bytes": gpu.allocated_bytes(),
             "file_bytes": file_bytes,
             "passes": passes,
             "sorts": sorts.iter().map(|c| serde_json::json!({

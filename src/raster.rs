@@ -11,7 +11,9 @@ use gpu_allocator::MemoryLocation;
 
 use crate::camera::Camera;
 use crate::gpu::{Buffer, CommandBuffer, Gpu, Timer};
-use crate::kernels::{bits_for, record_scan, record_sort, scan_blocks_for, sort_hist_for, Counts, Kernels, Scan};
+use crate::kernels::{
+    bits_for, record_scan, record_sort, scan_blocks_for, sort_hist_for, Counts, Kernels, Scan, SortBuffers,
+};
 use crate::scene::Scene;
 use crate::shared::*;
 
@@ -380,16 +382,12 @@ impl Rasterizer {
             c.record_args(rec, &k, COUNT_VISIBLE)?;
             rec.end_pass("scan")?;
             // Depths are positive floats: the sign bit is 0, so 31 bits order them.
-            depth_result = record_sort(
-                rec,
-                &k,
-                c,
-                COUNT_VISIBLE,
-                31,
-                [&g.depth_keys[0], &g.depth_keys[1]],
-                [&g.depth_ids[0], &g.depth_ids[1]],
-                &is.hist,
-            )?;
+            let depth_bufs = SortBuffers {
+                keys: [&g.depth_keys[0], &g.depth_keys[1]],
+                vals: [&g.depth_ids[0], &g.depth_ids[1]],
+                hist: &is.hist,
+            };
+            depth_result = record_sort(rec, &k, c, COUNT_VISIBLE, 31, &depth_bufs)?;
             rec.end_pass("depth_sort")?;
             let depth_ids = &g.depth_ids[depth_result];
             record_scan(
@@ -427,16 +425,9 @@ impl Rasterizer {
             )?;
             c.record_args(rec, &k, COUNT_ISECT)?;
             rec.end_pass("emit")?;
-            isect_result = record_sort(
-                rec,
-                &k,
-                c,
-                COUNT_ISECT,
-                tile_bits,
-                [&is.keys[0], &is.keys[1]],
-                [&is.ids[0], &is.ids[1]],
-                &is.hist,
-            )?;
+            let tile_bufs =
+                SortBuffers { keys: [&is.keys[0], &is.keys[1]], vals: [&is.ids[0], &is.ids[1]], hist: &is.hist };
+            isect_result = record_sort(rec, &k, c, COUNT_ISECT, tile_bits, &tile_bufs)?;
             rec.end_pass("tile_sort")?;
             rec.dispatch_indirect(
                 &k.ranges,

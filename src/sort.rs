@@ -5,7 +5,7 @@ use std::sync::Arc;
 use anyhow::{bail, Result};
 
 use crate::gpu::{Buffer, CommandBuffer, Gpu, Timer};
-use crate::kernels::{record_sort, sort_hist_for, Counts, Kernels};
+use crate::kernels::{record_sort, sort_hist_for, Counts, Kernels, SortBuffers};
 use crate::shared::COUNT_SORT;
 
 pub struct GpuSort {
@@ -61,16 +61,12 @@ impl GpuSort {
             rec.update(&self.counts.counts, &[0u32, 0, 0, 0, n as u32]);
             self.counts.record_args(rec, &self.k, COUNT_SORT)?;
             rec.end_pass("setup")?;
-            result = record_sort(
-                rec,
-                &self.k,
-                &self.counts,
-                COUNT_SORT,
-                bits,
-                [&self.keys[0], &self.keys[1]],
-                [&self.vals[0], &self.vals[1]],
-                &self.hist,
-            )?;
+            let bufs = SortBuffers {
+                keys: [&self.keys[0], &self.keys[1]],
+                vals: [&self.vals[0], &self.vals[1]],
+                hist: &self.hist,
+            };
+            result = record_sort(rec, &self.k, &self.counts, COUNT_SORT, bits, &bufs)?;
             rec.end_pass("sort")
         })?;
         for _ in 0..repeats.max(1) {

@@ -10,6 +10,9 @@ use instgs_vk::scene::{read_ply, Scene};
 use instgs_vk::shared::*;
 use instgs_vk::util::psnr;
 
+/// (name, expected, got, relative tolerance, absolute tolerance)
+type Field<'a> = (&'a str, &'a [f32], &'a [f32], f32, f32);
+
 fn close(a: f32, b: f32, rel: f32, abs: f32) -> bool {
     (a - b).abs() <= abs + rel * a.abs().max(b.abs())
 }
@@ -51,8 +54,7 @@ fn check_passes_with(
         if want.tiles_touched[i] == 0 {
             continue;
         }
-        // (name, expected, got, relative, absolute tolerance)
-        let fields: [(&str, &[f32], &[f32], f32, f32); 4] = [
+        let fields: [Field; 4] = [
             ("xy", &want.xys[i], &got.xys[i], 1e-5, 1e-3),
             ("conic", &want.conics[i], &got.conics[i], 2e-3, 1e-6),
             ("colour", &want.colors[i][..3], &got.colors[i][..3], 1e-4, 1e-5),
