@@ -26,13 +26,10 @@ layout(std430, binding = 9) writeonly buffer DepthsBuf { float v[]; } depths;
 layout(std430, binding = 10) writeonly buffer RadiiBuf { uvec2 v[]; } radii;
 layout(std430, binding = 11) writeonly buffer TilesTouchedBuf { uint v[]; } tiles_touched;
 
+// Later passes read nothing else of a culled Gaussian.
 void cull(uint i) {
     radii.v[i] = uvec2(0);
     tiles_touched.v[i] = 0;
-    xys.v[i] = vec2(0.0);
-    conics.v[i] = vec4(0.0);
-    colors.v[i] = vec4(0.0);
-    depths.v[i] = 0.0;
 }
 
 void preprocess(uint i) {

@@ -5,7 +5,8 @@ use glam::{Mat3, Vec2, Vec3, Vec4};
 use crate::scene::Scene;
 use crate::shared::{FrameParams, TILE_SIZE};
 
-/// Per-Gaussian output of the preprocess pass (GPU buffers of the same names).
+/// Per-Gaussian output of the preprocess pass (GPU buffers of the same names). A culled
+/// Gaussian has tiles_touched = 0 and radii 0; its other values are unspecified (zero here).
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct Projected {
     pub xys: Vec<[f32; 2]>,
