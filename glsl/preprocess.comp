@@ -70,7 +70,8 @@ void preprocess(uint i) {
     float b = dot(j0, Vj1);
     float c = dot(j1, Vj1) + 0.3;
     float det = a * c - b * b;
-    if (det <= 0.0) {
+    // Also catches NaN (an overflowing exp(scale)).
+    if (!(det > 0.0)) {
         cull(i);
         return;
     }
@@ -84,7 +85,8 @@ void preprocess(uint i) {
     float extent = sqrt(2.0 * log(255.0 * opacity));
     float mid = 0.5 * (a + c);
     float lambda = mid + sqrt(max(0.1, mid * mid - det));
-    uvec2 radius = uvec2(ceil(min(vec2(3.0 * sqrt(lambda)), extent * sqrt(vec2(a, c)))));
+    // Clamped before the conversion, which is undefined for huge values.
+    uvec2 radius = uvec2(ceil(min(vec2(min(3.0 * sqrt(lambda), 1e7)), extent * sqrt(vec2(a, c)))));
     vec2 xy = vec2(fx * t.x * rz + cx, fy * t.y * rz + cy);
 
     ivec2 rmin, rmax;

@@ -129,7 +129,7 @@ pub fn preprocess(scene: &Scene, fp: &FrameParams) -> Projected {
         let b = j0.dot(v * j1);
         let c = j1.dot(v * j1) + 0.3;
         let det = a * c - b * b;
-        if det <= 0.0 {
+        if !(det > 0.0) {
             continue;
         }
         let inv_det = 1.0 / det;
@@ -140,7 +140,7 @@ pub fn preprocess(scene: &Scene, fp: &FrameParams) -> Projected {
         let extent = (2.0 * (255.0 * opacity).ln()).sqrt();
         let mid = 0.5 * (a + c);
         let lambda = mid + (mid * mid - det).max(0.1).sqrt();
-        let square = 3.0 * lambda.sqrt();
+        let square = (3.0 * lambda.sqrt()).min(1e7);
         let radius = [square.min(extent * a.sqrt()).ceil() as u32, square.min(extent * c.sqrt()).ceil() as u32];
         let xy = [fx * t.x * rz + cx, fy * t.y * rz + cy];
         let (lo, hi) = tile_rect(fp, xy, radius);

@@ -241,3 +241,21 @@ fn tight_extents_render_the_3_sigma_image() {
         assert!(max <= 1e-5, "images differ by {max}");
     }
 }
+
+#[test]
+fn extreme_splats_are_culled_cleanly() {
+    // exp(scale) overflowing to infinity, and enormous splats right at the near plane, must be
+    // culled or drawn without NaN or undefined conversions, as in the CPU twin.
+    let mut rng = Rng::new(31);
+    let mut scene = random_scene(&mut rng, 500, 0);
+    for i in 0..20 {
+        scene.scales[i] = [95.0, 95.0, 95.0];
+    }
+    for i in 20..40 {
+        scene.scales[i] = [3.0, 3.0, 3.0];
+        scene.means[i] = [0.0, 0.0, -4.0 + 0.012 * (i - 19) as f32];
+    }
+    let cam = look_at(Vec3::new(0.0, 0.0, -4.0), Vec3::ZERO, -Vec3::Y, 96, 64, 80.0);
+    let p = check_passes(&scene, &cam, [0.1, 0.2, 0.3]);
+    assert!(p >= 50.0, "PSNR {p:.1} dB");
+}
