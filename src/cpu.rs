@@ -129,7 +129,7 @@ pub fn preprocess(scene: &Scene, fp: &FrameParams) -> Projected {
         let b = j0.dot(v * j1);
         let c = j1.dot(v * j1) + 0.3;
         let det = a * c - b * b;
-        if !(det > 0.0) {
+        if det.is_nan() || det <= 0.0 {
             continue;
         }
         let inv_det = 1.0 / det;
