@@ -337,6 +337,19 @@ fn bench(device: Option<String>, view: &ViewArgs, frames: usize, warmup: usize, 
     Ok(())
 }
 
+/// Median milliseconds of Rust's sort_unstable on (key, value) pairs, by key.
+fn time_sort_unstable(keys: &[u32], vals: &[u32], repeats: usize) -> f64 {
+    let mut times = Vec::new();
+    for _ in 0..repeats.max(1) {
+        let mut pairs: Vec<(u32, u32)> = keys.iter().copied().zip(vals.iter().copied()).collect();
+        let t = std::time::Instant::now();
+        pairs.sort_unstable_by_key(|p| p.0);
+        times.push(t.elapsed().as_secs_f64() * 1e3);
+        std::hint::black_box(&pairs);
+    }
+    median(&times)
+}
+
 struct SortComparison {
     name: &'static str,
     keys: usize,
@@ -360,30 +373,19 @@ fn sort_comparison(
     let depth_keys: Vec<u32> = depth_ids.iter().map(|&i| proj.depths[i as usize].to_bits()).collect();
     let fp = instgs_vk::raster::frame_params(scene.len(), scene.sh_degree, cam, background, 0);
     let (tile_keys, tile_ids) = cpu::emit(&fp, &proj, &st.depth_ids);
-    let time_cpu = |keys: &[u32], vals: &[u32]| {
-        let mut times = Vec::new();
-        for _ in 0..5 {
-            let mut pairs: Vec<(u32, u32)> = keys.iter().copied().zip(vals.iter().copied()).collect();
-            let t = std::time::Instant::now();
-            pairs.sort_unstable_by_key(|p| p.0);
-            times.push(t.elapsed().as_secs_f64() * 1e3);
-            std::hint::black_box(&pairs);
-        }
-        median(&times)
-    };
     let gpu = |name: &str| per_pass.iter().find(|(n, _)| n == name).map_or(f64::NAN, |(_, v)| median(v));
     Ok(vec![
         SortComparison {
             name: "depth_sort",
             keys: depth_keys.len(),
             gpu_ms: gpu("depth_sort"),
-            cpu_ms: time_cpu(&depth_keys, &depth_ids),
+            cpu_ms: time_sort_unstable(&depth_keys, &depth_ids, 5),
         },
         SortComparison {
             name: "tile_sort",
             keys: tile_keys.len(),
             gpu_ms: gpu("tile_sort"),
-            cpu_ms: time_cpu(&tile_keys, &tile_ids),
+            cpu_ms: time_sort_unstable(&tile_keys, &tile_ids, 5),
         },
     ])
 }
@@ -410,15 +412,7 @@ fn bench_sort(device: Option<String>, n: usize, bits: u32, repeats: usize) -> Re
     let mut sorter = instgs_vk::sort::GpuSort::new(&gpu, &k, n)?;
     let sorted = sorter.sort(&keys, &vals, bits, repeats)?;
     let gpu_ms = sorted.gpu_ms.ok_or_else(|| anyhow!("the device has no timestamps"))?;
-    let mut cpu_times = Vec::new();
-    for _ in 0..repeats.max(1) {
-        let mut pairs: Vec<(u32, u32)> = keys.iter().copied().zip(vals.iter().copied()).collect();
-        let t = std::time::Instant::now();
-        pairs.sort_unstable_by_key(|p| p.0);
-        cpu_times.push(t.elapsed().as_secs_f64() * 1e3);
-        std::hint::black_box(&pairs);
-    }
-    let cpu_ms = median(&cpu_times);
+    let cpu_ms = time_sort_unstable(&keys, &vals, repeats);
     println!("keys {n}, bits {bits}: GPU radix sort {gpu_ms:.2} ms, sort_unstable (key,value) {cpu_ms:.2} ms, GPU/CPU {:.2}x", gpu_ms / cpu_ms);
     Ok(())
 }
