@@ -14,8 +14,9 @@
 #define SCAN_BLOCK 2048
 // Radix sort: up to SORT_MAX_BITS key bits per pass (the bits needed are spread evenly over
 // the passes); blocks of SORT_WG threads, each thread ranking a run of SORT_ITEMS consecutive
-// keys (specialization constant 1 of the sort kernels). CPU devices (lavapipe) pay a large fixed cost per workgroup that has
-// barriers, so they take long runs; GPUs take short runs for many workgroups.
+// keys (specialization constant 1 of the sort kernels). CPU devices (lavapipe) pay a large
+// fixed cost per workgroup that has barriers, so they take long runs; GPUs take short runs for
+// many workgroups.
 #define SORT_MAX_BITS 6
 #define SORT_MAX_BINS 64
 #define SORT_WG 64

@@ -1,6 +1,6 @@
 #version 450
-// Radix sort pass 1: per block of SORT_WG * SORT_ITEMS keys, the count of each digit (args.bits bits at
-// args.shift), written digit-major (hist[digit * nblocks + block]) so that one exclusive scan
+// Radix sort pass 1: per block of SORT_WG * SORT_ITEMS keys, the count of each digit
+// (args.bits bits at args.shift), written digit-major (hist[digit * nblocks + block]) so that one exclusive scan
 // of the table gives every (digit, block) its global output offset. Each thread counts its own
 // run of keys in a private array (cheaper than shared memory on lavapipe, and no atomics), then
 // publishes it as its column of the block's [digit][thread] table.

@@ -3,7 +3,7 @@
 use glam::{Mat3, Vec2, Vec3, Vec4};
 
 use crate::scene::Scene;
-use crate::shared::{FrameParams, TILE_SIZE};
+use crate::shared::{FrameParams, MAX_GROUPS, SCAN_BLOCK, TILE_SIZE, WG_SIZE};
 
 /// Per-Gaussian output of the preprocess pass (GPU buffers of the same names). A culled
 /// Gaussian has tiles_touched = 0 and radii 0; its other values are unspecified (zero here).
@@ -165,6 +165,12 @@ pub fn preprocess(scene: &Scene, fp: &FrameParams) -> Projected {
         p.tiles_touched[i] = touched;
     }
     p
+}
+
+/// Pass `dispatch_args`: workgroup counts for `n` items, indexed by ARGS_* (one item per
+/// thread, radix-sort blocks of `sort_block` keys, scan blocks), clamped to MAX_GROUPS.
+pub fn dispatch_groups(n: u32, sort_block: u32) -> [u32; 3] {
+    [n.div_ceil(WG_SIZE), n.div_ceil(sort_block), n.div_ceil(SCAN_BLOCK)].map(|g| g.min(MAX_GROUPS))
 }
 
 /// Exclusive prefix sum and total.

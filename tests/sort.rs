@@ -1,7 +1,7 @@
 //! The GPU radix sort equals a CPU stable sort, under validation layers.
 mod common;
 use common::*;
-use instgs_vk::cpu::stable_sort;
+use instgs_vk::cpu::{self, stable_sort};
 use instgs_vk::kernels::{KernelPolicy, Kernels};
 use instgs_vk::sort::GpuSort;
 
@@ -46,4 +46,33 @@ fn check_sort(mut sorter: GpuSort) {
         assert!(got.keys == want_k, "keys differ: n={n} bits={bits}");
         assert!(got.vals == want_v, "values differ (not stable?): n={n} bits={bits}");
     }
+}
+
+#[test]
+fn dispatch_args_match_cpu_twin() {
+    use instgs_vk::kernels::Counts;
+    use instgs_vk::shared::{ARGS_PER_SLOT, COUNT_SLOTS};
+    let (gpu, _) = gpu();
+    for k in both_policies() {
+        let counts = Counts::new(&gpu).unwrap();
+        let ns: Vec<u32> = vec![0, 1, 255, 256, 257, 4_000_000, 50_000_000, u32::MAX / 2];
+        gpu.submit_and_wait(|rec| {
+            rec.fill(&counts.indirect, 0xdead_beef);
+            rec.update(&counts.counts, &ns);
+            for slot in 0..COUNT_SLOTS {
+                counts.record_args(rec, &k, slot)?;
+            }
+            Ok(())
+        })
+        .unwrap();
+        let got: Vec<u32> = gpu.read(&counts.indirect, (COUNT_SLOTS * ARGS_PER_SLOT * 3) as usize).unwrap();
+        for (slot, &n) in ns.iter().enumerate() {
+            let want = cpu::dispatch_groups(n, k.sort_block());
+            for (kind, &groups) in want.iter().enumerate() {
+                let at = (slot * ARGS_PER_SLOT as usize + kind) * 3;
+                assert_eq!(got[at..at + 3], [groups, 1, 1], "n={n} kind={kind}");
+            }
+        }
+    }
+    assert_clean(&gpu);
 }
