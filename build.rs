@@ -32,10 +32,19 @@ fn main() {
     gen.push_str("\n/// SPIR-V of every compute kernel in `glsl/`, by file stem.\npub mod spirv {\n");
     for path in &entries {
         let stem = path.file_stem().unwrap().to_str().unwrap().to_string();
-        let words = compile(&compiler, &glsl_dir, path);
-        let spv = out_dir.join(format!("{stem}.spv"));
-        std::fs::write(&spv, bytemuck_words(&words)).unwrap();
-        writeln!(gen, "    pub const {}: &[u8] = include_bytes!(\"{}\");", stem.to_uppercase(), spv.display()).unwrap();
+        // Kernels that accumulate floats also get a compare-and-swap variant (atomic_add.glsl).
+        let src = std::fs::read_to_string(path).unwrap();
+        let mut variants = vec![(stem.clone(), None)];
+        if src.contains("#include \"atomic_add.glsl\"") {
+            variants.push((format!("{stem}_cas"), Some("NO_FLOAT_ATOMICS")));
+        }
+        for (name, define) in variants {
+            let words = compile(&compiler, &glsl_dir, path, define);
+            let spv = out_dir.join(format!("{name}.spv"));
+            std::fs::write(&spv, bytemuck_words(&words)).unwrap();
+            writeln!(gen, "    pub const {}: &[u8] = include_bytes!(\"{}\");", name.to_uppercase(), spv.display())
+                .unwrap();
+        }
     }
     gen.push_str("}\n");
     std::fs::write(out_dir.join("gpu_shared.rs"), gen).unwrap();
@@ -50,9 +59,12 @@ fn bytemuck_words(words: &[u32]) -> Vec<u8> {
     words.iter().flat_map(|w| w.to_le_bytes()).collect()
 }
 
-fn compile(compiler: &shaderc::Compiler, dir: &Path, path: &Path) -> Vec<u32> {
+fn compile(compiler: &shaderc::Compiler, dir: &Path, path: &Path, define: Option<&str>) -> Vec<u32> {
     let src = std::fs::read_to_string(path).unwrap();
     let mut opts = shaderc::CompileOptions::new().unwrap();
+    if let Some(d) = define {
+        opts.add_macro_definition(d, None);
+    }
     opts.set_target_env(shaderc::TargetEnv::Vulkan, shaderc::EnvVersion::Vulkan1_1 as u32);
     opts.set_target_spirv(shaderc::SpirvVersion::V1_3);
     opts.set_optimization_level(shaderc::OptimizationLevel::Performance);

@@ -1,7 +1,9 @@
 #version 450
 // One workgroup per 16x16 tile: front-to-back alpha blending of the tile's depth-sorted
 // Gaussians. As Inria: alpha = min(0.99, o exp(-q/2)), skip alpha < 1/255, stop before T drops
-// below 1e-4, and out = C + T * background. The alpha channel of out_image holds the final T.
+// below 1e-4, and out = C + T * background. The alpha channel of out_image holds the final T and
+// `last` the number of the tile's splats up to and including the pixel's last blended one (where
+// the backward pass starts).
 // Splats reach the pixels in shared-memory batches of 256; the tile stops early once every
 // pixel is saturated.
 // Each invocation blends PIXELS_PER_THREAD pixels of one tile column (specialization constant
@@ -18,6 +20,7 @@ layout(std430, binding = 3) readonly buffer XysBuf { vec2 v[]; } xys;
 layout(std430, binding = 4) readonly buffer ConicsBuf { vec4 v[]; } conics;
 layout(std430, binding = 5) readonly buffer ColorsBuf { vec4 v[]; } colors;
 layout(std430, binding = 6) writeonly buffer OutImageBuf { vec4 v[]; } out_image;
+layout(std430, binding = 7) writeonly buffer LastBuf { uint v[]; } last;
 
 const uint BATCH = TILE_SIZE * TILE_SIZE;
 shared vec2 s_xy[BATCH];
@@ -25,9 +28,9 @@ shared vec4 s_conic[BATCH];
 shared vec3 s_rgb[BATCH];
 shared uint s_done;
 
-// Blends one splat into (C, T), without branches; false once the pixel is saturated (T would
-// drop below 1e-4), in which case (C, T) stay as they were.
-bool blend_splat(vec2 xy, vec4 co, vec3 rgb, vec2 pixf, inout float T, inout vec3 C) {
+// Blends splat number n (1-based in the tile) into (C, T, n_last), without branches; false once
+// the pixel is saturated (T would drop below 1e-4), in which case (C, T, n_last) stay as they were.
+bool blend_splat(vec2 xy, vec4 co, vec3 rgb, vec2 pixf, uint n, inout float T, inout vec3 C, inout uint n_last) {
     vec2 d = xy - pixf;
     float power = -0.5 * (co.x * d.x * d.x + co.z * d.y * d.y) - co.y * d.x * d.y;
     float alpha = min(0.99, co.w * exp(power));
@@ -37,6 +40,7 @@ bool blend_splat(vec2 xy, vec4 co, vec3 rgb, vec2 pixf, inout float T, inout vec
     bool add = used && !saturated;
     C += rgb * (add ? alpha * T : 0.0);
     T = add ? test_T : T;
+    n_last = add ? n : n_last;
     return !saturated;
 }
 
@@ -47,11 +51,13 @@ void main() {
     uint py0 = gl_WorkGroupID.y * TILE_SIZE + gl_LocalInvocationID.y * PIXELS_PER_THREAD;
     float T[PIXELS_PER_THREAD];
     vec3 C[PIXELS_PER_THREAD];
+    uint n_last[PIXELS_PER_THREAD];
     bool done[PIXELS_PER_THREAD];
     bool thread_done = true;
     for (uint r = 0; r < PIXELS_PER_THREAD; r++) {
         T[r] = 1.0;
         C[r] = vec3(0.0);
+        n_last[r] = 0;
         done[r] = px >= frame.p.width || py0 + r >= frame.p.height;
         thread_done = thread_done && done[r];
     }
@@ -77,7 +83,10 @@ void main() {
             vec3 rgb = s_rgb[j];
             thread_done = true;
             for (uint r = 0; r < PIXELS_PER_THREAD; r++) {
-                if (!done[r]) done[r] = !blend_splat(xy, co, rgb, vec2(px, py0 + r) + 0.5, T[r], C[r]);
+                if (!done[r]) {
+                    vec2 pixf = vec2(px, py0 + r) + 0.5;
+                    done[r] = !blend_splat(xy, co, rgb, pixf, start - range.x + j + 1, T[r], C[r], n_last[r]);
+                }
                 thread_done = thread_done && done[r];
             }
         }
@@ -85,7 +94,9 @@ void main() {
     }
     for (uint r = 0; r < PIXELS_PER_THREAD; r++) {
         if (px < frame.p.width && py0 + r < frame.p.height) {
-            out_image.v[(py0 + r) * frame.p.width + px] = vec4(C[r] + T[r] * frame.p.background.rgb, T[r]);
+            uint pix = (py0 + r) * frame.p.width + px;
+            out_image.v[pix] = vec4(C[r] + T[r] * frame.p.background.rgb, T[r]);
+            last.v[pix] = n_last[r];
         }
     }
 }

@@ -95,4 +95,41 @@ struct DispatchArgs {
     uint _pad2;
 };
 
+/// Push constants of the loss kernels (loss_*.comp).
+struct LossArgs {
+    uint width;
+    uint height;
+    float ssim_weight; // lambda of (1 - lambda) L1 + lambda (1 - SSIM); Inria: 0.2
+    float inv_count; // 1 / (3 width height): both terms are means over pixels and channels
+};
+
+/// Push constants of the Adam step (adam.comp), torch.optim.Adam's update with the bias
+/// corrections precomputed on the host.
+struct AdamArgs {
+    uint count; // parameters in the buffer
+    uint stride; // parameters per Gaussian
+    uint head; // the first `head` of every `stride` use lr_head, the rest lr_tail (SH dc / rest)
+    float lr_head;
+    float lr_tail;
+    float beta1;
+    float beta2;
+    float eps;
+    float inv_bias1; // 1 / (1 - beta1^step)
+    float inv_sqrt_bias2; // 1 / sqrt(1 - beta2^step)
+    uint _pad0;
+    uint _pad1;
+};
+
+// SSIM window: 11 x 11 Gaussian, sigma 1.5 (Wang et al. 2004; Inria's loss_utils.ssim), zero
+// padding at the image border as torch's conv2d with padding 5.
+#define SSIM_RADIUS 5
+// Planes of the SSIM intermediates: 5 window moments (x, y, x^2, y^2, xy) and 3 cotangents,
+// each per colour channel: plane (q * 3 + c) of width * height floats.
+#define SSIM_MOMENTS 5
+#define SSIM_COTANGENTS 3
+// Slots of the loss buffer: sums over pixels and channels of |x - y| and of SSIM.
+#define LOSS_L1 0
+#define LOSS_SSIM 1
+#define LOSS_SLOTS 4
+
 #endif

@@ -35,4 +35,30 @@ void sh_basis(vec3 dir, uint deg, out float b[16]) {
     b[14] = SH_C3[5] * z * (xx - yy);
     b[15] = SH_C3[6] * x * (xx - 3.0 * yy);
 }
+
+// d b[k] / d dir for the same basis (dir treated as a free 3-vector; the caller projects out the
+// radial part of the normalisation).
+void sh_basis_grad(vec3 dir, uint deg, out vec3 db[16]) {
+    for (int k = 0; k < 16; k++) db[k] = vec3(0.0);
+    if (deg < 1) return;
+    float x = dir.x, y = dir.y, z = dir.z;
+    db[1] = vec3(0.0, -SH_C1, 0.0);
+    db[2] = vec3(0.0, 0.0, SH_C1);
+    db[3] = vec3(-SH_C1, 0.0, 0.0);
+    if (deg < 2) return;
+    float xx = x * x, yy = y * y, zz = z * z, xy = x * y, yz = y * z, xz = x * z;
+    db[4] = SH_C2[0] * vec3(y, x, 0.0);
+    db[5] = SH_C2[1] * vec3(0.0, z, y);
+    db[6] = SH_C2[2] * vec3(-2.0 * x, -2.0 * y, 4.0 * z);
+    db[7] = SH_C2[3] * vec3(z, 0.0, x);
+    db[8] = SH_C2[4] * vec3(2.0 * x, -2.0 * y, 0.0);
+    if (deg < 3) return;
+    db[9] = SH_C3[0] * vec3(6.0 * xy, 3.0 * xx - 3.0 * yy, 0.0);
+    db[10] = SH_C3[1] * vec3(yz, xz, xy);
+    db[11] = SH_C3[2] * vec3(-2.0 * xy, 4.0 * zz - xx - 3.0 * yy, 8.0 * yz);
+    db[12] = SH_C3[3] * vec3(-6.0 * xz, -6.0 * yz, 6.0 * zz - 3.0 * xx - 3.0 * yy);
+    db[13] = SH_C3[4] * vec3(4.0 * zz - 3.0 * xx - yy, -2.0 * xy, 8.0 * xz);
+    db[14] = SH_C3[5] * vec3(2.0 * xz, -2.0 * yz, xx - yy);
+    db[15] = SH_C3[6] * vec3(3.0 * xx - 3.0 * yy, -6.0 * xy, 0.0);
+}
 #endif

@@ -52,6 +52,9 @@ pub struct DeviceInfo {
     pub max_storage_buffer_range: u64,
     /// Nanoseconds per timestamp tick; `None` when the compute queue has no timestamps.
     pub timestamp_period_ns: Option<f64>,
+    /// `shaderBufferFloat32AtomicAdd` (VK_EXT_shader_atomic_float) is available and enabled;
+    /// without it the gradient kernels use their compare-and-swap variants.
+    pub float_atomics: bool,
 }
 
 struct Messages(Mutex<Vec<String>>, bool);
@@ -220,10 +223,27 @@ impl Gpu {
         let timestamp_period_ns = (qprops.timestamp_valid_bits > 0 && props.limits.timestamp_period > 0.0)
             .then_some(props.limits.timestamp_period as f64);
 
+        let mut atomic_float = vk::PhysicalDeviceShaderAtomicFloatFeaturesEXT::default();
+        let has_atomic_float = has_ext(ash::ext::shader_atomic_float::NAME);
+        if has_atomic_float {
+            let mut f2 = vk::PhysicalDeviceFeatures2::default().push_next(&mut atomic_float);
+            unsafe { instance.get_physical_device_features2(physical, &mut f2) };
+        }
+        let float_atomics = has_atomic_float && atomic_float.shader_buffer_float32_atomic_add == vk::TRUE;
+        let mut enable_atomic_float = vk::PhysicalDeviceShaderAtomicFloatFeaturesEXT::default()
+            .shader_buffer_float32_atomics(true)
+            .shader_buffer_float32_atomic_add(true);
+
         let prio = [1.0f32];
         let qci = [vk::DeviceQueueCreateInfo::default().queue_family_index(qf).queue_priorities(&prio)];
-        let dexts = [ash::khr::push_descriptor::NAME.as_ptr()];
-        let dci = vk::DeviceCreateInfo::default().queue_create_infos(&qci).enabled_extension_names(&dexts);
+        let mut dexts = vec![ash::khr::push_descriptor::NAME.as_ptr()];
+        if float_atomics {
+            dexts.push(ash::ext::shader_atomic_float::NAME.as_ptr());
+        }
+        let mut dci = vk::DeviceCreateInfo::default().queue_create_infos(&qci).enabled_extension_names(&dexts);
+        if float_atomics {
+            dci = dci.push_next(&mut enable_atomic_float);
+        }
         let device = unsafe { instance.create_device(physical, &dci, None) }.context("vkCreateDevice failed")?;
         let queue = unsafe { device.get_device_queue(qf, 0) };
         let push_descriptor = ash::khr::push_descriptor::Device::new(&instance, &device);
@@ -242,6 +262,7 @@ impl Gpu {
             min_subgroup_size,
             max_storage_buffer_range: props.limits.max_storage_buffer_range as u64,
             timestamp_period_ns,
+            float_atomics,
         };
         Ok(Arc::new(Gpu {
             _entry: entry,

@@ -19,6 +19,13 @@ pub struct Kernels {
     pub scan_down: Kernel,
     pub sort_count: Kernel,
     pub sort_scatter: Kernel,
+    pub blend_backward: Kernel,
+    pub preprocess_backward: Kernel,
+    pub loss_moments_h: Kernel,
+    pub loss_ssim_v: Kernel,
+    pub loss_cotangents_h: Kernel,
+    pub loss_grad_v: Kernel,
+    pub adam: Kernel,
     pub policy: KernelPolicy,
 }
 
@@ -29,22 +36,23 @@ pub struct KernelPolicy {
     pub sort_items: u32,
     /// Pixels of a tile column each blend invocation owns (divides TILE_SIZE).
     pub blend_pixels_per_thread: u32,
+    /// Gradient kernels add floats with atomics (else a compare-and-swap loop).
+    pub float_atomics: bool,
 }
 
 impl KernelPolicy {
     /// For GPUs: short sort runs for many workgroups; one pixel per blend invocation.
-    pub const GPU: KernelPolicy = KernelPolicy { sort_items: SORT_ITEMS_GPU, blend_pixels_per_thread: 1 };
+    pub const GPU: KernelPolicy =
+        KernelPolicy { sort_items: SORT_ITEMS_GPU, blend_pixels_per_thread: 1, float_atomics: true };
     /// For CPU devices (lavapipe): every workgroup with barriers has a large fixed cost
     /// (llvmpipe runs such workgroups as coroutines) and every load costs far more than
     /// arithmetic, so long sort runs and a whole tile column per blend invocation.
-    pub const CPU: KernelPolicy = KernelPolicy { sort_items: SORT_ITEMS_CPU, blend_pixels_per_thread: TILE_SIZE };
+    pub const CPU: KernelPolicy =
+        KernelPolicy { sort_items: SORT_ITEMS_CPU, blend_pixels_per_thread: TILE_SIZE, float_atomics: true };
 
     pub fn for_device(gpu: &Gpu) -> KernelPolicy {
-        if gpu.info.kind == "CPU" {
-            KernelPolicy::CPU
-        } else {
-            KernelPolicy::GPU
-        }
+        let p = if gpu.info.kind == "CPU" { KernelPolicy::CPU } else { KernelPolicy::GPU };
+        KernelPolicy { float_atomics: gpu.info.float_atomics, ..p }
     }
 }
 
@@ -56,25 +64,37 @@ impl Kernels {
 
     /// All kernels with an explicit policy (tests run both on any device).
     pub fn with_policy(gpu: &Arc<Gpu>, policy: KernelPolicy) -> Result<Arc<Kernels>> {
+        if policy.float_atomics && !gpu.info.float_atomics {
+            anyhow::bail!("device '{}' has no float32 buffer atomic add", gpu.info.name);
+        }
         let k = |name: &str, spv: &[u8]| Kernel::new(gpu, name, spv);
+        let atomics = |f: &'static [u8], cas: &'static [u8]| if policy.float_atomics { f } else { cas };
         let sort_items = policy.sort_items;
+        let blend_spec = [policy.blend_pixels_per_thread, TILE_SIZE / policy.blend_pixels_per_thread];
         Ok(Arc::new(Kernels {
             preprocess: k("preprocess", spirv::PREPROCESS)?,
             compact: k("compact", spirv::COMPACT)?,
             emit: k("emit", spirv::EMIT)?,
             ranges: k("ranges", spirv::RANGES)?,
-            blend: Kernel::with_spec(
-                gpu,
-                "blend",
-                spirv::BLEND,
-                &[policy.blend_pixels_per_thread, TILE_SIZE / policy.blend_pixels_per_thread],
-            )?,
+            blend: Kernel::with_spec(gpu, "blend", spirv::BLEND, &blend_spec)?,
             dispatch_args: k("dispatch_args", spirv::DISPATCH_ARGS)?,
             scan_reduce: k("scan_reduce", spirv::SCAN_REDUCE)?,
             scan_blocks: k("scan_blocks", spirv::SCAN_BLOCKS)?,
             scan_down: k("scan_down", spirv::SCAN_DOWN)?,
             sort_count: Kernel::with_spec(gpu, "sort_count", spirv::SORT_COUNT, &[sort_items])?,
             sort_scatter: Kernel::with_spec(gpu, "sort_scatter", spirv::SORT_SCATTER, &[sort_items])?,
+            blend_backward: Kernel::with_spec(
+                gpu,
+                "blend_backward",
+                atomics(spirv::BLEND_BACKWARD, spirv::BLEND_BACKWARD_CAS),
+                &blend_spec,
+            )?,
+            preprocess_backward: k("preprocess_backward", spirv::PREPROCESS_BACKWARD)?,
+            loss_moments_h: k("loss_moments_h", spirv::LOSS_MOMENTS_H)?,
+            loss_ssim_v: k("loss_ssim_v", atomics(spirv::LOSS_SSIM_V, spirv::LOSS_SSIM_V_CAS))?,
+            loss_cotangents_h: k("loss_cotangents_h", spirv::LOSS_COTANGENTS_H)?,
+            loss_grad_v: k("loss_grad_v", spirv::LOSS_GRAD_V)?,
+            adam: k("adam", spirv::ADAM)?,
             policy,
         }))
     }

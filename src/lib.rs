@@ -11,7 +11,9 @@ pub mod shared {
 pub mod camera;
 pub mod cpu;
 pub mod gpu;
+pub mod grad;
 pub mod kernels;
+pub mod optim;
 pub mod raster;
 pub mod scene;
 pub mod sort;

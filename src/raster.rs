@@ -10,7 +10,7 @@ use anyhow::{bail, Result};
 use gpu_allocator::MemoryLocation;
 
 use crate::camera::Camera;
-use crate::gpu::{Buffer, CommandBuffer, Gpu, Timer};
+use crate::gpu::{Buffer, CommandBuffer, Gpu, Recorder, Timer};
 use crate::kernels::{
     bits_for, record_scan, record_sort, scan_blocks_for, sort_hist_for, Counts, Kernels, Scan, SortBuffers,
 };
@@ -58,7 +58,10 @@ pub struct GpuScene {
     pub opacities: Buffer,
     pub sh: Buffer,
     pub len: usize,
+    /// SH degree stored (coefficients per channel: (sh_degree + 1)^2).
     pub sh_degree: u32,
+    /// SH degree evaluated (≤ sh_degree; training raises it step by step).
+    pub active_sh_degree: u32,
 }
 
 /// Refuses a scene whose largest buffer (SH coefficients, or 16 bytes per Gaussian for the
@@ -88,6 +91,7 @@ impl GpuScene {
             sh: gpu.upload("sh", &scene.sh)?,
             len: n,
             sh_degree: scene.sh_degree,
+            active_sh_degree: scene.sh_degree,
         })
     }
 
@@ -126,6 +130,7 @@ struct ImageBufs {
     height: u32,
     ranges: Buffer,
     out_image: Buffer,
+    last: Buffer,
     readback_image: Buffer,
 }
 
@@ -170,6 +175,8 @@ pub struct Rasterizer {
     /// Buffer indices holding the sorted depth and tile lists.
     depth_result: usize,
     isect_result: usize,
+    /// The frame parameters of the last rendered frame.
+    last_params: Option<FrameParams>,
     /// Tests: fill every output buffer with [`POISON`] before the kernels run, so elements a
     /// kernel fails to write show up.
     pub poison: bool,
@@ -204,6 +211,7 @@ impl Rasterizer {
             recorded: None,
             depth_result: 0,
             isect_result: 0,
+            last_params: None,
             poison: false,
         })
     }
@@ -224,7 +232,7 @@ impl Rasterizer {
             b += i.keys.iter().chain(&i.ids).map(|x| x.size).sum::<u64>() + i.hist.size + i.block_sums.size;
         }
         if let Some(im) = &self.image {
-            b += im.ranges.size + im.out_image.size + im.readback_image.size;
+            b += im.ranges.size + im.out_image.size + im.last.size + im.readback_image.size;
         }
         b
     }
@@ -276,6 +284,7 @@ impl Rasterizer {
                 height,
                 ranges: gpu.storage("ranges", tiles * 8)?,
                 out_image: gpu.storage("out_image", pixels * 16)?,
+                last: gpu.storage("last", pixels * 4)?,
                 readback_image: gpu.buffer(
                     "readback-image",
                     pixels * 16,
@@ -319,7 +328,7 @@ impl Rasterizer {
                 .chain(&g.depth_ids)
                 .chain(&is.keys)
                 .chain(&is.ids)
-                .chain([&im.out_image])
+                .chain([&im.out_image, &im.last])
                 {
                     rec.fill(b, POISON);
                 }
@@ -447,6 +456,7 @@ impl Rasterizer {
                     ("conics", &g.conics),
                     ("colors", &g.colors),
                     ("out_image", &im.out_image),
+                    ("last", &im.last),
                 ],
                 &(),
                 [fp.tiles_x, fp.tiles_y, 1],
@@ -469,7 +479,8 @@ impl Rasterizer {
         loop {
             self.ensure_buffers(n, cam.width, cam.height, cap)?;
             cap = self.isect.as_ref().unwrap().cap;
-            let fp = frame_params(n, scene.sh_degree, cam, background, cap as u32);
+            let mut fp = frame_params(n, scene.sh_degree, cam, background, cap as u32);
+            fp.sh_degree = scene.active_sh_degree;
             self.frame_ub.write_mapped(&[fp])?;
             let key = (ash::vk::Handle::as_raw(scene.means.raw), n, cam.width, cam.height, cap);
             if self.recorded != Some(key) || self.poison {
@@ -477,6 +488,7 @@ impl Rasterizer {
                 self.recorded = Some(key);
             }
             self.cmd.submit_and_wait()?;
+            self.last_params = Some(fp);
             let counts: Vec<u32> = self.readback_counts.read_mapped(COUNT_SLOTS as usize)?;
             let needed = counts[COUNT_ISECT_NEEDED as usize] as usize;
             if needed > cap {
@@ -529,5 +541,159 @@ impl Rasterizer {
             ranges: gpu.read(&im.ranges, tiles)?,
             counts,
         })
+    }
+}
+
+/// Gradient buffers of one scene: the parameter gradients (layouts as [`GpuScene`]), the
+/// projected-splat gradients written by `blend_backward`, and the densification statistics.
+pub struct Grads {
+    pub n: usize,
+    pub means: Buffer,
+    pub scales: Buffer,
+    pub quats: Buffer,
+    pub opacities: Buffer,
+    pub sh: Buffer,
+    pub v_xys: Buffer,
+    pub v_conics: Buffer,
+    pub v_colors: Buffer,
+    pub v_opacities: Buffer,
+    /// Sum over views of |dL/d mean2d| in Inria's NDC units (f32 per Gaussian).
+    pub grad2d_accum: Buffer,
+    /// Views in which the Gaussian was visible (u32 per Gaussian).
+    pub grad2d_count: Buffer,
+    /// Largest screen radius in pixels seen (u32 per Gaussian).
+    pub max_radii: Buffer,
+}
+
+impl Grads {
+    pub fn new(gpu: &Arc<Gpu>, scene: &GpuScene) -> Result<Grads> {
+        let n = scene.len as u64;
+        let sh = scene.sh.size;
+        Ok(Grads {
+            n: scene.len,
+            means: gpu.storage("grad_means", n * 12)?,
+            scales: gpu.storage("grad_scales", n * 12)?,
+            quats: gpu.storage("grad_quats", n * 16)?,
+            opacities: gpu.storage("grad_opacities", n * 4)?,
+            sh: gpu.storage("grad_sh", sh)?,
+            v_xys: gpu.storage("v_xys", n * 8)?,
+            v_conics: gpu.storage("v_conics", n * 12)?,
+            v_colors: gpu.storage("v_colors", n * 12)?,
+            v_opacities: gpu.storage("v_opacities", n * 4)?,
+            grad2d_accum: gpu.storage("grad2d_accum", n * 4)?,
+            grad2d_count: gpu.storage("grad2d_count", n * 4)?,
+            max_radii: gpu.storage("max_radii", n * 4)?,
+        })
+    }
+
+    /// Zeroes the densification statistics.
+    pub fn record_reset_stats(&self, rec: &mut Recorder) {
+        rec.fill(&self.grad2d_accum, 0);
+        rec.fill(&self.grad2d_count, 0);
+        rec.fill(&self.max_radii, 0);
+    }
+
+    pub fn gpu_bytes(&self) -> u64 {
+        [
+            &self.means,
+            &self.scales,
+            &self.quats,
+            &self.opacities,
+            &self.sh,
+            &self.v_xys,
+            &self.v_conics,
+            &self.v_colors,
+            &self.v_opacities,
+            &self.grad2d_accum,
+            &self.grad2d_count,
+            &self.max_radii,
+        ]
+        .iter()
+        .map(|b| b.size)
+        .sum()
+    }
+}
+
+impl Rasterizer {
+    /// Records the backward passes of the last rendered frame: `blend_backward` from `v_image`
+    /// (dL/d rgb per pixel, RGBA f32) into the projected-splat gradients, then
+    /// `preprocess_backward` into the parameter gradients and the densification statistics.
+    /// The caller submits; the frame's buffers must not be re-rendered in between.
+    pub fn record_backward(&self, rec: &mut Recorder, scene: &GpuScene, v_image: &Buffer, g: &Grads) -> Result<()> {
+        let fp = self.last_params.as_ref().ok_or_else(|| anyhow::anyhow!("no frame rendered"))?;
+        let gb = self.gauss.as_ref().unwrap();
+        let is = self.isect.as_ref().unwrap();
+        let im = self.image.as_ref().unwrap();
+        if g.n != scene.len {
+            bail!("gradient buffers hold {} Gaussians, the scene {}", g.n, scene.len);
+        }
+        for b in [&g.v_xys, &g.v_conics, &g.v_colors, &g.v_opacities] {
+            rec.fill(b, 0);
+        }
+        rec.dispatch(
+            &self.k.blend_backward,
+            &[
+                ("frame", &self.frame_ub),
+                ("ranges", &im.ranges),
+                ("isect_ids", &is.ids[self.isect_result]),
+                ("xys", &gb.xys),
+                ("conics", &gb.conics),
+                ("colors", &gb.colors),
+                ("out_image", &im.out_image),
+                ("last", &im.last),
+                ("v_image", v_image),
+                ("v_xys", &g.v_xys),
+                ("v_conics", &g.v_conics),
+                ("v_colors", &g.v_colors),
+                ("v_opacities", &g.v_opacities),
+            ],
+            &(),
+            [fp.tiles_x, fp.tiles_y, 1],
+        )?;
+        rec.end_pass("blend_backward")?;
+        rec.dispatch(
+            &self.k.preprocess_backward,
+            &[
+                ("frame", &self.frame_ub),
+                ("means", &scene.means),
+                ("scales", &scene.scales),
+                ("quats", &scene.quats),
+                ("opacities", &scene.opacities),
+                ("sh", &scene.sh),
+                ("radii", &gb.radii),
+                ("tiles_touched", &gb.tiles_touched),
+                ("v_xys", &g.v_xys),
+                ("v_conics", &g.v_conics),
+                ("v_colors", &g.v_colors),
+                ("v_opacities", &g.v_opacities),
+                ("grad_means", &g.means),
+                ("grad_scales", &g.scales),
+                ("grad_quats", &g.quats),
+                ("grad_opacities", &g.opacities),
+                ("grad_sh", &g.sh),
+                ("grad2d_accum", &g.grad2d_accum),
+                ("grad2d_count", &g.grad2d_count),
+                ("max_radii", &g.max_radii),
+            ],
+            &(),
+            [(scene.len as u32).div_ceil(WG_SIZE).min(MAX_GROUPS), 1, 1],
+        )?;
+        rec.end_pass("preprocess_backward")
+    }
+
+    /// The last frame's rendered image buffer (RGBA f32, a = T) on the device.
+    pub fn image_buffer(&self) -> Option<&Buffer> {
+        self.image.as_ref().map(|im| &im.out_image)
+    }
+
+    /// The last frame's per-pixel `last` counts (for tests).
+    pub fn read_last(&self) -> Result<Vec<u32>> {
+        let im = self.image.as_ref().ok_or_else(|| anyhow::anyhow!("no frame rendered"))?;
+        self.gpu.read(&im.last, (im.width * im.height) as usize)
+    }
+
+    /// The frame parameters of the last rendered frame.
+    pub fn last_frame_params(&self) -> Option<FrameParams> {
+        self.last_params
     }
 }

@@ -1,0 +1,174 @@
+#version 450
+// Backward of `preprocess`, one invocation per Gaussian: from the gradients with respect to the
+// projected splat (v_xys, v_conics, v_colors, v_opacities, written by blend_backward) to the
+// gradients of the scene parameters: grad_means, grad_scales (log), grad_quats (raw, before
+// normalisation), grad_opacities (logit) and grad_sh (every stored coefficient; zero above the
+// evaluated degree). Culled Gaussians get zero gradients. Maths as Inria's backward.cu and
+// gsplat's VJPs, except that the Jacobian clamp is differentiated exactly (a clamped x/z passes
+// no gradient to t.x, and d/dz follows the clamped value) and the SH colour passes gradient to
+// the mean through the view direction.
+// Densification statistics of visible Gaussians: grad2d_accum += |v_xy| in Inria's NDC units
+// (pixels scaled by width/2, height/2), grad2d_count += 1, max_radii = max(max_radii, radius).
+#include "common.glsl"
+#include "sh.glsl"
+layout(local_size_x = WG_SIZE) in;
+layout(std140, binding = 0) uniform FrameBuf { FrameParams p; } frame;
+layout(std430, binding = 1) readonly buffer MeansBuf { float v[]; } means;
+layout(std430, binding = 2) readonly buffer ScalesBuf { float v[]; } scales;
+layout(std430, binding = 3) readonly buffer QuatsBuf { vec4 v[]; } quats;
+layout(std430, binding = 4) readonly buffer OpacitiesBuf { float v[]; } opacities;
+layout(std430, binding = 5) readonly buffer ShBuf { float v[]; } sh;
+layout(std430, binding = 6) readonly buffer RadiiBuf { uvec2 v[]; } radii;
+layout(std430, binding = 7) readonly buffer TilesTouchedBuf { uint v[]; } tiles_touched;
+layout(std430, binding = 8) readonly buffer VXysBuf { vec2 v[]; } v_xys;
+layout(std430, binding = 9) readonly buffer VConicsBuf { float v[]; } v_conics;
+layout(std430, binding = 10) readonly buffer VColorsBuf { float v[]; } v_colors;
+layout(std430, binding = 11) readonly buffer VOpacitiesBuf { float v[]; } v_opacities;
+layout(std430, binding = 12) writeonly buffer GradMeansBuf { float v[]; } grad_means;
+layout(std430, binding = 13) writeonly buffer GradScalesBuf { float v[]; } grad_scales;
+layout(std430, binding = 14) writeonly buffer GradQuatsBuf { vec4 v[]; } grad_quats;
+layout(std430, binding = 15) writeonly buffer GradOpacitiesBuf { float v[]; } grad_opacities;
+layout(std430, binding = 16) writeonly buffer GradShBuf { float v[]; } grad_sh;
+layout(std430, binding = 17) buffer Grad2dAccumBuf { float v[]; } grad2d_accum;
+layout(std430, binding = 18) buffer Grad2dCountBuf { uint v[]; } grad2d_count;
+layout(std430, binding = 19) buffer MaxRadiiBuf { uint v[]; } max_radii;
+
+void write_grads(uint i, vec3 gm, vec3 gs, vec4 gq, float go) {
+    grad_means.v[3 * i] = gm.x;
+    grad_means.v[3 * i + 1] = gm.y;
+    grad_means.v[3 * i + 2] = gm.z;
+    grad_scales.v[3 * i] = gs.x;
+    grad_scales.v[3 * i + 1] = gs.y;
+    grad_scales.v[3 * i + 2] = gs.z;
+    grad_quats.v[i] = gq;
+    grad_opacities.v[i] = go;
+}
+
+void backward(uint i) {
+    uint coeffs = frame.p.sh_coeffs;
+    uint off = i * coeffs * 3;
+    if (tiles_touched.v[i] == 0) {
+        write_grads(i, vec3(0.0), vec3(0.0), vec4(0.0), 0.0);
+        for (uint k = 0; k < 3 * coeffs; k++) grad_sh.v[off + k] = 0.0;
+        return;
+    }
+    vec3 p = vec3(means.v[3 * i], means.v[3 * i + 1], means.v[3 * i + 2]);
+    mat3 W = mat3(frame.p.viewmat);
+    vec3 t = (frame.p.viewmat * vec4(p, 1.0)).xyz;
+    vec4 q_raw = quats.v[i];
+    float q_len = length(q_raw);
+    vec4 q = q_raw / q_len;
+    float w = q.x, x = q.y, y = q.z, z = q.w;
+    mat3 R = mat3(1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y + w * z), 2.0 * (x * z - w * y),
+                  2.0 * (x * y - w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z + w * x),
+                  2.0 * (x * z + w * y), 2.0 * (y * z - w * x), 1.0 - 2.0 * (x * x + y * y));
+    vec3 s = exp(vec3(scales.v[3 * i], scales.v[3 * i + 1], scales.v[3 * i + 2]));
+    mat3 M = R * mat3(s.x, 0, 0, 0, s.y, 0, 0, 0, s.z);
+    mat3 V = W * (M * transpose(M)) * transpose(W);
+
+    float fx = frame.p.intrinsics.x, fy = frame.p.intrinsics.y;
+    float cx = frame.p.intrinsics.z, cy = frame.p.intrinsics.w;
+    float tan_fovx = 0.5 * float(frame.p.width) / fx;
+    float tan_fovy = 0.5 * float(frame.p.height) / fy;
+    float lim_xp = (float(frame.p.width) - cx) / fx + 0.3 * tan_fovx;
+    float lim_xn = cx / fx + 0.3 * tan_fovx;
+    float lim_yp = (float(frame.p.height) - cy) / fy + 0.3 * tan_fovy;
+    float lim_yn = cy / fy + 0.3 * tan_fovy;
+    float rz = 1.0 / t.z;
+    float ux = t.x * rz, uy = t.y * rz;
+    float cux = min(lim_xp, max(-lim_xn, ux));
+    float cuy = min(lim_yp, max(-lim_yn, uy));
+    bool free_x = ux == cux, free_y = uy == cuy;
+    vec3 j0 = vec3(fx * rz, 0.0, -fx * cux * rz);
+    vec3 j1 = vec3(0.0, fy * rz, -fy * cuy * rz);
+    vec3 Vj0 = V * j0;
+    vec3 Vj1 = V * j1;
+    float a = dot(j0, Vj0) + 0.3;
+    float b = dot(j0, Vj1);
+    float c = dot(j1, Vj1) + 0.3;
+    float inv_det = 1.0 / (a * c - b * b);
+
+    // Conic (A, B, C) = (c, -b, a) / det is the inverse of Sigma2 = [[a, b], [b, c]].
+    vec3 vc = vec3(v_conics.v[3 * i], v_conics.v[3 * i + 1], v_conics.v[3 * i + 2]);
+    mat2 Q = mat2(c, -b, -b, a) * inv_det;
+    mat2 Gq = mat2(vc.x, 0.5 * vc.y, 0.5 * vc.y, vc.z);
+    mat2 Gs = -(Q * Gq * Q);
+    float va = Gs[0][0], vb = Gs[0][1] + Gs[1][0], vcc = Gs[1][1];
+
+    // Sigma2 = J V J^T + 0.3 I.
+    mat3 v_V = va * outerProduct(j0, j0) + 0.5 * vb * (outerProduct(j0, j1) + outerProduct(j1, j0)) +
+               vcc * outerProduct(j1, j1);
+    vec3 v_j0 = 2.0 * va * Vj0 + vb * Vj1;
+    vec3 v_j1 = vb * Vj0 + 2.0 * vcc * Vj1;
+    vec3 v_t = vec3(0.0);
+    // j0 = (fx / z, 0, -fx u / z), u = clamp(t.x / z).
+    float dux_dtx = free_x ? rz : 0.0, dux_dz = free_x ? -t.x * rz * rz : 0.0;
+    float duy_dty = free_y ? rz : 0.0, duy_dz = free_y ? -t.y * rz * rz : 0.0;
+    v_t.x += v_j0.z * (-fx * rz) * dux_dtx;
+    v_t.y += v_j1.z * (-fy * rz) * duy_dty;
+    v_t.z += v_j0.x * (-fx * rz * rz) + v_j0.z * (fx * cux * rz * rz - fx * rz * dux_dz);
+    v_t.z += v_j1.y * (-fy * rz * rz) + v_j1.z * (fy * cuy * rz * rz - fy * rz * duy_dz);
+    // xy = (fx t.x / z + cx, fy t.y / z + cy).
+    vec2 vxy = v_xys.v[i];
+    v_t.x += vxy.x * fx * rz;
+    v_t.y += vxy.y * fy * rz;
+    v_t.z -= (vxy.x * fx * t.x + vxy.y * fy * t.y) * rz * rz;
+
+    // V = W Sigma W^T, Sigma = M M^T, M = R diag(s).
+    mat3 v_Sigma = transpose(W) * v_V * W;
+    mat3 v_M = 2.0 * v_Sigma * M;
+    vec3 v_s = vec3(dot(v_M[0], R[0]), dot(v_M[1], R[1]), dot(v_M[2], R[2]));
+    mat3 v_R = v_M * mat3(s.x, 0, 0, 0, s.y, 0, 0, 0, s.z);
+    // G[row][col] = v_R[col][row] (GLSL matrices are column-major).
+    float g00 = v_R[0][0], g01 = v_R[1][0], g02 = v_R[2][0];
+    float g10 = v_R[0][1], g11 = v_R[1][1], g12 = v_R[2][1];
+    float g20 = v_R[0][2], g21 = v_R[1][2], g22 = v_R[2][2];
+    vec4 v_q = 2.0 * vec4(-z * g01 + y * g02 + z * g10 - x * g12 - y * g20 + x * g21,
+                          y * g01 + z * g02 + y * g10 - 2.0 * x * g11 - w * g12 + z * g20 + w * g21 - 2.0 * x * g22,
+                          -2.0 * y * g00 + x * g01 + w * g02 + x * g10 + z * g12 - w * g20 + z * g21 - 2.0 * y * g22,
+                          -2.0 * z * g00 - w * g01 + x * g02 + w * g10 - 2.0 * z * g11 + y * g12 + x * g20 + y * g21);
+    v_q = (v_q - q * dot(q, v_q)) / q_len;
+
+    // Colour: rgb = max(SH(dir) + 0.5, 0), dir = normalize(p - campos).
+    vec3 dv = p - frame.p.campos.xyz;
+    float dv_len = length(dv);
+    vec3 dir = dv / dv_len;
+    float basis[16];
+    vec3 dbasis[16];
+    sh_basis(dir, frame.p.sh_degree, basis);
+    sh_basis_grad(dir, frame.p.sh_degree, dbasis);
+    uint nb = (frame.p.sh_degree + 1) * (frame.p.sh_degree + 1);
+    vec3 rgb = vec3(0.0);
+    for (uint k = 0; k < nb; k++) {
+        rgb += basis[k] * vec3(sh.v[off + 3 * k], sh.v[off + 3 * k + 1], sh.v[off + 3 * k + 2]);
+    }
+    rgb += 0.5;
+    vec3 v_rgb = vec3(v_colors.v[3 * i], v_colors.v[3 * i + 1], v_colors.v[3 * i + 2]);
+    v_rgb *= vec3(greaterThan(rgb, vec3(0.0)));
+    vec3 v_dir = vec3(0.0);
+    for (uint k = 0; k < coeffs; k++) {
+        vec3 g = k < nb ? basis[k] * v_rgb : vec3(0.0);
+        grad_sh.v[off + 3 * k] = g.x;
+        grad_sh.v[off + 3 * k + 1] = g.y;
+        grad_sh.v[off + 3 * k + 2] = g.z;
+        if (k < nb) {
+            vec3 c_k = vec3(sh.v[off + 3 * k], sh.v[off + 3 * k + 1], sh.v[off + 3 * k + 2]);
+            v_dir += dot(c_k, v_rgb) * dbasis[k];
+        }
+    }
+    vec3 v_p = transpose(W) * v_t + (v_dir - dir * dot(dir, v_dir)) / dv_len;
+
+    float o = 1.0 / (1.0 + exp(-opacities.v[i]));
+    write_grads(i, v_p, v_s * s, v_q, v_opacities.v[i] * o * (1.0 - o));
+
+    grad2d_accum.v[i] += length(vxy * vec2(0.5 * float(frame.p.width), 0.5 * float(frame.p.height)));
+    grad2d_count.v[i] += 1;
+    uvec2 rad = radii.v[i];
+    max_radii.v[i] = max(max_radii.v[i], max(rad.x, rad.y));
+}
+
+void main() {
+    for (uint i = gl_GlobalInvocationID.x; i < frame.p.num_gaussians; i += gl_NumWorkGroups.x * WG_SIZE) {
+        backward(i);
+    }
+}

@@ -1,0 +1,200 @@
+//! The training loss and Adam on the GPU: recording of the `loss_*` and `adam` kernels and the
+//! buffers they use. CPU twins in [`crate::grad`].
+use std::sync::Arc;
+
+use anyhow::{bail, Result};
+
+use crate::gpu::{Buffer, Gpu, Recorder};
+use crate::kernels::Kernels;
+use crate::raster::{GpuScene, Grads};
+use crate::shared::*;
+
+/// Inria's weight of the D-SSIM term: L = (1 − λ) L1 + λ (1 − SSIM).
+pub const SSIM_WEIGHT: f32 = 0.2;
+
+/// Buffers of the loss at one image size.
+pub struct LossBufs {
+    pub width: u32,
+    pub height: u32,
+    /// Ground truth, RGBA f32 per pixel (alpha unused).
+    pub target: Buffer,
+    moments: Buffer,
+    cotangents: Buffer,
+    filtered: Buffer,
+    /// dL/d rgb per pixel (RGBA f32, a = 0).
+    pub v_image: Buffer,
+    /// LOSS_SLOTS floats: sums of |x − y| and of SSIM over pixels and channels.
+    pub sums: Buffer,
+}
+
+impl LossBufs {
+    pub fn new(gpu: &Arc<Gpu>, width: u32, height: u32) -> Result<LossBufs> {
+        let px = width as u64 * height as u64;
+        let planes = (SSIM_MOMENTS * 3) as u64 * px * 4;
+        if planes > gpu.info.max_storage_buffer_range {
+            bail!("image {width}x{height} is too large for the loss buffers on this device (maxStorageBufferRange {} bytes); use --downscale", gpu.info.max_storage_buffer_range);
+        }
+        Ok(LossBufs {
+            width,
+            height,
+            target: gpu.storage("loss_target", px * 16)?,
+            moments: gpu.storage("loss_moments", planes)?,
+            cotangents: gpu.storage("loss_cotangents", (SSIM_COTANGENTS * 3) as u64 * px * 4)?,
+            filtered: gpu.storage("loss_filtered", (SSIM_COTANGENTS * 3) as u64 * px * 4)?,
+            v_image: gpu.storage("v_image", px * 16)?,
+            sums: gpu.storage("loss_sums", LOSS_SLOTS as u64 * 4)?,
+        })
+    }
+
+    /// (mean L1, mean SSIM) from the read-back sums.
+    pub fn means(&self, sums: &[f32]) -> (f64, f64) {
+        let count = 3.0 * self.width as f64 * self.height as f64;
+        (sums[LOSS_L1 as usize] as f64 / count, sums[LOSS_SSIM as usize] as f64 / count)
+    }
+}
+
+/// Records the loss of `image` (RGBA f32, the rasterizer's output) against `lb.target`: the
+/// sums into `lb.sums` and dL/d image into `lb.v_image`.
+pub fn record_loss(rec: &mut Recorder, k: &Kernels, image: &Buffer, lb: &LossBufs, ssim_weight: f32) -> Result<()> {
+    let px = lb.width * lb.height;
+    let args = LossArgs { width: lb.width, height: lb.height, ssim_weight, inv_count: 1.0 / (3.0 * px as f32) };
+    let groups = [px.div_ceil(WG_SIZE), 1, 1];
+    rec.fill(&lb.sums, 0);
+    rec.dispatch(
+        &k.loss_moments_h,
+        &[("image", image), ("target", &lb.target), ("moments", &lb.moments)],
+        &args,
+        groups,
+    )?;
+    rec.dispatch(
+        &k.loss_ssim_v,
+        &[
+            ("image", image),
+            ("target", &lb.target),
+            ("moments", &lb.moments),
+            ("cotangents", &lb.cotangents),
+            ("loss", &lb.sums),
+        ],
+        &args,
+        groups,
+    )?;
+    rec.dispatch(&k.loss_cotangents_h, &[("cotangents", &lb.cotangents), ("filtered", &lb.filtered)], &args, groups)?;
+    rec.dispatch(
+        &k.loss_grad_v,
+        &[("image", image), ("target", &lb.target), ("filtered", &lb.filtered), ("v_image", &lb.v_image)],
+        &args,
+        groups,
+    )?;
+    rec.end_pass("loss")
+}
+
+/// Learning rates of the parameter groups (Inria's names: xyz, scaling, rotation, opacity,
+/// f_dc, f_rest).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct LearningRates {
+    pub means: f32,
+    pub scales: f32,
+    pub quats: f32,
+    pub opacities: f32,
+    pub sh0: f32,
+    pub sh_rest: f32,
+}
+
+/// Adam's first and second moments of every parameter buffer (layouts as [`GpuScene`]).
+pub struct AdamState {
+    pub exp_avg: [Buffer; 5],
+    pub exp_avg_sq: [Buffer; 5],
+}
+
+impl AdamState {
+    /// Zeroed moments.
+    pub fn new(gpu: &Arc<Gpu>, scene: &GpuScene) -> Result<AdamState> {
+        let sizes = param_buffers(scene).map(|b| b.size);
+        let mk = |name: &str, i: usize| gpu.storage(&format!("{name}{i}"), sizes[i]);
+        let st = AdamState {
+            exp_avg: [mk("exp_avg", 0)?, mk("exp_avg", 1)?, mk("exp_avg", 2)?, mk("exp_avg", 3)?, mk("exp_avg", 4)?],
+            exp_avg_sq: [
+                mk("exp_avg_sq", 0)?,
+                mk("exp_avg_sq", 1)?,
+                mk("exp_avg_sq", 2)?,
+                mk("exp_avg_sq", 3)?,
+                mk("exp_avg_sq", 4)?,
+            ],
+        };
+        gpu.submit_and_wait(|rec| {
+            for b in st.exp_avg.iter().chain(&st.exp_avg_sq) {
+                rec.fill(b, 0);
+            }
+            Ok(())
+        })?;
+        Ok(st)
+    }
+
+    pub fn gpu_bytes(&self) -> u64 {
+        self.exp_avg.iter().chain(&self.exp_avg_sq).map(|b| b.size).sum()
+    }
+}
+
+/// The scene's parameter buffers in a fixed order: means, scales, quats, opacities, sh.
+pub fn param_buffers(s: &GpuScene) -> [&Buffer; 5] {
+    [&s.means, &s.scales, &s.quats, &s.opacities, &s.sh]
+}
+
+/// The gradient buffers in the order of [`param_buffers`].
+pub fn grad_buffers(g: &Grads) -> [&Buffer; 5] {
+    [&g.means, &g.scales, &g.quats, &g.opacities, &g.sh]
+}
+
+/// Adam's constants (Inria: betas (0.9, 0.999), eps 1e-15).
+pub const BETA1: f64 = 0.9;
+pub const BETA2: f64 = 0.999;
+pub const EPS: f32 = 1e-15;
+
+/// Records one Adam step (`step` counted from 1) over every parameter buffer.
+pub fn record_adam(
+    rec: &mut Recorder,
+    k: &Kernels,
+    scene: &GpuScene,
+    grads: &Grads,
+    st: &AdamState,
+    lr: &LearningRates,
+    step: u64,
+) -> Result<()> {
+    let n = scene.len as u32;
+    let coeffs = (scene.sh_degree + 1) * (scene.sh_degree + 1);
+    let inv_bias1 = (1.0 / (1.0 - BETA1.powi(step as i32))) as f32;
+    let inv_sqrt_bias2 = (1.0 / (1.0 - BETA2.powi(step as i32)).sqrt()) as f32;
+    // (stride, head, lr_head, lr_tail) per buffer.
+    let groups = [
+        (3, 3, lr.means, lr.means),
+        (3, 3, lr.scales, lr.scales),
+        (4, 4, lr.quats, lr.quats),
+        (1, 1, lr.opacities, lr.opacities),
+        (coeffs * 3, 3, lr.sh0, lr.sh_rest),
+    ];
+    let params = param_buffers(scene);
+    let gs = grad_buffers(grads);
+    for (i, &(stride, head, lr_head, lr_tail)) in groups.iter().enumerate() {
+        let count = n * stride;
+        let args = AdamArgs {
+            count,
+            stride,
+            head,
+            lr_head,
+            lr_tail,
+            beta1: BETA1 as f32,
+            beta2: BETA2 as f32,
+            eps: EPS,
+            inv_bias1,
+            inv_sqrt_bias2,
+            ..Default::default()
+        };
+        rec.dispatch(
+            &k.adam,
+            &[("params", params[i]), ("grads", gs[i]), ("exp_avg", &st.exp_avg[i]), ("exp_avg_sq", &st.exp_avg_sq[i])],
+            &args,
+            [count.div_ceil(WG_SIZE).min(MAX_GROUPS), 1, 1],
+        )?;
+    }
+    rec.end_pass("adam")
+}
