@@ -88,6 +88,11 @@ struct Frame {
 /// Loads the cameras of a NeRF-synthetic `transforms_*.json`. The image size comes from `w`/`h`
 /// or, when absent, from the first frame's image file next to the JSON.
 pub fn load_transforms(path: &Path) -> Result<Vec<Camera>> {
+    Ok(load_transforms_with_images(path)?.into_iter().map(|(c, _)| c).collect())
+}
+
+/// As [`load_transforms`], with each frame's image path (which need not exist).
+pub fn load_transforms_with_images(path: &Path) -> Result<Vec<(Camera, std::path::PathBuf)>> {
     let what = path.display();
     let text = std::fs::read_to_string(path).with_context(|| format!("{what}: cannot read"))?;
     let tf: TransformsFile = serde_json::from_str(&text).map_err(|e| anyhow!("{what}: not a transforms JSON: {e}"))?;
@@ -125,7 +130,8 @@ pub fn load_transforms(path: &Path) -> Result<Vec<Camera>> {
         let name = name.strip_suffix(".png").unwrap_or(&name).to_string();
         let cam = Camera::from_c2w_opengl(&name, c2w, w.round() as u32, h.round() as u32, intr);
         cam.validate().with_context(|| format!("{what}: frame {k}"))?;
-        cams.push(cam);
+        let dir = path.parent().unwrap_or(Path::new("."));
+        cams.push((cam, image_path(dir, &f.file_path)));
     }
     Ok(cams)
 }

@@ -9,12 +9,16 @@ pub mod shared {
 }
 
 pub mod camera;
+pub mod config;
 pub mod cpu;
+pub mod dataset;
 pub mod gpu;
 pub mod grad;
 pub mod kernels;
 pub mod optim;
+pub mod plot;
 pub mod raster;
 pub mod scene;
 pub mod sort;
+pub mod train;
 pub mod util;

@@ -55,6 +55,46 @@ enum Cmd {
         #[arg(long)]
         json: Option<PathBuf>,
     },
+    /// Train a plain 3DGS scene from a dataset (NeRF-synthetic or COLMAP) on the GPU.
+    Train {
+        #[command(flatten)]
+        data: DataArgs,
+        /// Run folder: checkpoint.bin, metrics.csv, point_cloud.ply, curves.png.
+        #[arg(long)]
+        out: PathBuf,
+        /// Training configuration (TOML; keys not given keep configs/default.toml's values).
+        #[arg(long)]
+        config: Option<PathBuf>,
+        /// Iterations (overrides the configuration's).
+        #[arg(long)]
+        iterations: Option<u64>,
+        /// Continue from OUT/checkpoint.bin.
+        #[arg(long)]
+        resume: bool,
+        /// Print a line every 10 % instead of a progress bar.
+        #[arg(long)]
+        quiet: bool,
+    },
+    /// PSNR and SSIM of a scene on a dataset's held-out (or training) views.
+    Eval {
+        /// Scene file (.ply).
+        #[arg(long)]
+        scene: PathBuf,
+        #[command(flatten)]
+        data: DataArgs,
+        /// Which views: test or train.
+        #[arg(long, default_value = "test")]
+        split: String,
+        /// Print JSON: psnr_mean, ssim_mean and a views list.
+        #[arg(long)]
+        json: bool,
+        /// Also write <view>.png renders and <view>_compare.png (ground truth | render | error ×4).
+        #[arg(long)]
+        out: Option<PathBuf>,
+        /// Background colour r,g,b in [0, 1] (as in training).
+        #[arg(long, default_value = "0,0,0", value_parser = parse_rgb)]
+        background: [f32; 3],
+    },
     /// Time the GPU radix sort against Rust's sort_unstable on the same random keys.
     BenchSort {
         /// Number of keys.
@@ -67,6 +107,16 @@ enum Cmd {
         #[arg(long, default_value_t = 5)]
         repeats: usize,
     },
+}
+
+#[derive(Args)]
+struct DataArgs {
+    /// Dataset folder: NeRF-synthetic (transforms_train.json) or COLMAP (sparse/0, images/).
+    #[arg(long)]
+    data: PathBuf,
+    /// Divide the image resolution by this integer factor.
+    #[arg(long, default_value_t = 1)]
+    downscale: u32,
 }
 
 #[derive(Args)]
@@ -123,7 +173,136 @@ fn run(cli: Cli) -> Result<()> {
         Cmd::Render { view, out } => render(cli.device, &view, &out),
         Cmd::Bench { view, frames, warmup, json } => bench(cli.device, &view, frames, warmup, json.as_deref()),
         Cmd::BenchSort { keys, bits, repeats } => bench_sort(cli.device, keys, bits, repeats),
+        Cmd::Train { data, out, config, iterations, resume, quiet } => {
+            train(cli.device, &data, &out, config.as_deref(), iterations, resume, quiet)
+        }
+        Cmd::Eval { scene, data, split, json, out, background } => {
+            eval(cli.device, &scene, &data, &split, json, out.as_deref(), background)
+        }
     }
+}
+
+fn open_device(device: Option<String>) -> Result<(Arc<Gpu>, Arc<Kernels>)> {
+    let gpu = Gpu::new(&GpuOptions::from_env(device))?;
+    let k = Kernels::new(&gpu)?;
+    Ok((gpu, k))
+}
+
+fn train(
+    device: Option<String>,
+    data: &DataArgs,
+    out: &Path,
+    config: Option<&Path>,
+    iterations: Option<u64>,
+    resume: bool,
+    quiet: bool,
+) -> Result<()> {
+    use instgs_vk::train;
+    let mut cfg = instgs_vk::config::Config::load(config)?;
+    if let Some(n) = iterations {
+        cfg.iterations = n;
+    }
+    let opts = instgs_vk::dataset::LoadOptions { downscale: data.downscale, background: cfg.background };
+    let ds = instgs_vk::dataset::load(&data.data, &opts)?;
+    let (gpu, k) = open_device(device)?;
+    eprintln!(
+        "{}: {} dataset, {} training / {} test views at {}x{}; {}",
+        data.data.display(),
+        ds.kind,
+        ds.train.len(),
+        ds.test.len(),
+        ds.train[0].camera.width,
+        ds.train[0].camera.height,
+        gpu.describe()
+    );
+    ctrlc::set_handler(|| train::INTERRUPTED.store(true, std::sync::atomic::Ordering::SeqCst))
+        .context("cannot install the Ctrl-C handler")?;
+    let opts = train::RunOptions { out: out.to_path_buf(), resume, progress: !quiet };
+    let r = train::run(&gpu, &k, &ds, &cfg, &opts)?;
+    let test = match (r.test_psnr, r.test_ssim) {
+        (Some(p), Some(s)) => format!(", test PSNR {p:.2} dB SSIM {s:.4}"),
+        _ => String::new(),
+    };
+    eprintln!(
+        "{} iterations, {} splats{test}, {:.1} s ({:.2} it/s this session)",
+        r.iterations, r.splats, r.seconds, r.iterations_per_second
+    );
+    if !r.pass_medians.is_empty() {
+        let total: f64 = r.pass_medians.iter().map(|p| p.1).sum();
+        let list: Vec<String> = r.pass_medians.iter().map(|(n, ms)| format!("{n} {ms:.2}")).collect();
+        eprintln!("GPU ms per iteration (medians): {} = {total:.2}", list.join(", "));
+    }
+    let m = gpu.take_validation_messages();
+    if !m.is_empty() {
+        bail!("{} Vulkan validation message(s), first: {}", m.len(), m[0]);
+    }
+    if r.interrupted {
+        bail!(
+            "interrupted at iteration {}; checkpoint written to {}, continue with --resume",
+            r.iterations,
+            train::checkpoint_path(out).display()
+        );
+    }
+    eprintln!("wrote {}", out.join("point_cloud.ply").display());
+    Ok(())
+}
+
+fn eval(
+    device: Option<String>,
+    scene_path: &Path,
+    data: &DataArgs,
+    split: &str,
+    json: bool,
+    out: Option<&Path>,
+    background: [f32; 3],
+) -> Result<()> {
+    let scene = read_ply(scene_path)?;
+    let opts = instgs_vk::dataset::LoadOptions { downscale: data.downscale, background };
+    let ds = instgs_vk::dataset::load(&data.data, &opts)?;
+    let views = ds.split(split)?;
+    if views.is_empty() {
+        bail!("{}: the {split} split has no views", data.data.display());
+    }
+    let (gpu, k) = open_device(device)?;
+    let gs = GpuScene::new(&gpu, &scene)?;
+    let mut r = Rasterizer::new(&gpu, &k)?;
+    if let Some(dir) = out {
+        std::fs::create_dir_all(dir).with_context(|| format!("{}: cannot create", dir.display()))?;
+    }
+    let (psnr, ssim, per) = instgs_vk::train::evaluate(&mut r, &gs, views, background, |v, f| {
+        let Some(dir) = out else { return Ok(()) };
+        let (w, h) = (f.width as usize, f.height as usize);
+        save_png(&dir.join(format!("{}.png", v.camera.name)), f.width, f.height, &f.image)?;
+        let mut cmp = vec![[0.0f32; 4]; 3 * w * h];
+        for y in 0..h {
+            for x in 0..w {
+                let (g, p) = (v.image[y * w + x], f.image[y * w + x]);
+                let err = [0, 1, 2].map(|c| ((p[c] - g[c]).abs() * 4.0).min(1.0));
+                cmp[y * 3 * w + x] = g;
+                cmp[y * 3 * w + w + x] = p;
+                cmp[y * 3 * w + 2 * w + x] = [err[0], err[1], err[2], 1.0];
+            }
+        }
+        save_png(&dir.join(format!("{}_compare.png", v.camera.name)), 3 * f.width, f.height, &cmp)
+    })?;
+    if json {
+        let views: Vec<_> = per.iter().map(|(n, p, s)| serde_json::json!({"name": n, "psnr": p, "ssim": s})).collect();
+        let v = serde_json::json!({
+            "scene": scene_path.display().to_string(),
+            "data": data.data.display().to_string(),
+            "split": split,
+            "psnr_mean": psnr,
+            "ssim_mean": ssim,
+            "views": views,
+        });
+        println!("{}", serde_json::to_string_pretty(&v)?);
+    } else {
+        for (n, p, s) in &per {
+            println!("{n:<24} PSNR {p:7.3} dB  SSIM {s:.4}");
+        }
+        println!("{:<24} PSNR {psnr:7.3} dB  SSIM {ssim:.4}  ({} views)", "mean", per.len());
+    }
+    Ok(())
 }
 
 fn info(path: &Path, json: bool) -> Result<()> {

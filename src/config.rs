@@ -1,0 +1,126 @@
+//! Training configuration: `configs/default.toml` (embedded; the one place the defaults live)
+//! merged with an optional user file holding only the keys it changes.
+use std::path::Path;
+
+use anyhow::{anyhow, bail, Context, Result};
+use serde::{Deserialize, Serialize};
+
+pub const DEFAULT_TOML: &str = include_str!("../configs/default.toml");
+
+#[derive(Clone, Debug, Deserialize, Serialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct Config {
+    pub iterations: u64,
+    pub seed: u64,
+    pub sh_degree: u32,
+    pub sh_increase_interval: u64,
+    pub background: [f32; 3],
+    pub ssim_weight: f32,
+    pub test_interval: u64,
+    pub checkpoint_interval: u64,
+    pub lr: LrConfig,
+    pub densify: DensifyConfig,
+    pub init: InitConfig,
+}
+
+#[derive(Clone, Debug, Deserialize, Serialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct LrConfig {
+    pub position_init: f64,
+    pub position_final: f64,
+    pub position_max_steps: u64,
+    pub sh0: f32,
+    pub sh_rest: f32,
+    pub opacity: f32,
+    pub scaling: f32,
+    pub rotation: f32,
+}
+
+#[derive(Clone, Debug, Deserialize, Serialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct DensifyConfig {
+    pub from_iter: u64,
+    pub until_iter: u64,
+    pub interval: u64,
+    pub grad_threshold: f32,
+    pub percent_dense: f32,
+    pub opacity_reset_interval: u64,
+    pub min_opacity: f32,
+    pub max_screen_size: u32,
+    pub max_world_scale: f32,
+    pub max_splats: usize,
+}
+
+#[derive(Clone, Debug, Deserialize, Serialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct InitConfig {
+    pub random_points: usize,
+    pub opacity: f32,
+}
+
+fn merge(base: &mut toml::Table, over: toml::Table, path: &str) -> Result<()> {
+    for (k, v) in over {
+        let key = if path.is_empty() { k.clone() } else { format!("{path}.{k}") };
+        match (base.get_mut(&k), v) {
+            (Some(toml::Value::Table(b)), toml::Value::Table(o)) => merge(b, o, &key)?,
+            (Some(toml::Value::Table(_)), _) => bail!("`{key}` must be a table"),
+            (Some(slot), v) => *slot = v,
+            (None, _) => bail!("unknown key `{key}`"),
+        }
+    }
+    Ok(())
+}
+
+impl Config {
+    /// The defaults with `text` (TOML) merged over them; `what` names the source in errors.
+    pub fn from_toml(text: &str, what: &str) -> Result<Config> {
+        let mut base: toml::Table = DEFAULT_TOML.parse().expect("configs/default.toml parses");
+        let over: toml::Table = text.parse().map_err(|e| anyhow!("{what}: not valid TOML: {e}"))?;
+        merge(&mut base, over, "").map_err(|e| anyhow!("{what}: {e}"))?;
+        let cfg: Config = toml::Value::Table(base).try_into().map_err(|e| anyhow!("{what}: {e}"))?;
+        cfg.validate().map_err(|e| anyhow!("{what}: {e}"))?;
+        Ok(cfg)
+    }
+
+    pub fn load(path: Option<&Path>) -> Result<Config> {
+        match path {
+            None => Config::from_toml("", "configs/default.toml"),
+            Some(p) => {
+                let text = std::fs::read_to_string(p).with_context(|| format!("{}: cannot read", p.display()))?;
+                Config::from_toml(&text, &p.display().to_string())
+            }
+        }
+    }
+
+    pub fn validate(&self) -> Result<()> {
+        if self.sh_degree > 3 {
+            bail!("sh_degree must be 0..=3");
+        }
+        if !(0.0..=1.0).contains(&self.ssim_weight) {
+            bail!("ssim_weight must be in [0, 1]");
+        }
+        if self.background.iter().any(|c| !(0.0..=1.0).contains(c)) {
+            bail!("background must be RGB in [0, 1]");
+        }
+        let lr = &self.lr;
+        if [lr.sh0, lr.sh_rest, lr.opacity, lr.scaling, lr.rotation].iter().any(|v| !(v.is_finite() && *v >= 0.0))
+            || !(lr.position_init > 0.0 && lr.position_final > 0.0)
+        {
+            bail!("learning rates must be finite and non-negative (position ones positive)");
+        }
+        if self.densify.interval == 0 || self.sh_increase_interval == 0 {
+            bail!("densify.interval and sh_increase_interval must be positive");
+        }
+        if !(self.init.opacity > 0.0 && self.init.opacity < 1.0) {
+            bail!("init.opacity must be in (0, 1)");
+        }
+        Ok(())
+    }
+
+    /// Inria's position learning rate at `step` (get_expon_lr_func without delay), times extent.
+    pub fn position_lr(&self, step: u64, extent: f32) -> f32 {
+        let t = (step as f64 / self.lr.position_max_steps.max(1) as f64).clamp(0.0, 1.0);
+        let lr = (self.lr.position_init.ln() * (1.0 - t) + self.lr.position_final.ln() * t).exp();
+        (lr * extent as f64) as f32
+    }
+}

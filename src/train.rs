@@ -1,0 +1,830 @@
+//! Plain 3DGS training on the GPU, Inria's recipe: one random training view per iteration,
+//! L = (1 − λ) L1 + λ (1 − SSIM), Adam per parameter group with the position learning rate
+//! decaying exponentially, SH degree raised every `sh_increase_interval` iterations, and
+//! clone / split / prune densification with periodic opacity resets (on the CPU, between
+//! iterations). Forward, loss, backward and Adam run on the GPU; the host reads back only the
+//! rendered image (for the training PSNR) and the loss sums, plus the whole state at
+//! densification steps and checkpoints.
+//!
+//! Differences from Inria, on purpose: the Adam step also runs on densification iterations
+//! (Inria skips it for the replaced tensors); the screen-size prune uses the radii seen since the
+//! last densification (Inria's is reset to zero just before it is read, so it never fires).
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+use std::time::Instant;
+
+use anyhow::{anyhow, bail, Context, Result};
+use glam::Vec3;
+use rand::{Rng, SeedableRng};
+use rand_distr::{Distribution, StandardNormal};
+
+use crate::config::Config;
+use crate::dataset::{Dataset, View};
+use crate::gpu::{CommandBuffer, Gpu};
+use crate::kernels::Kernels;
+use crate::optim::{param_buffers, record_adam, record_loss, AdamState, LearningRates, LossBufs};
+use crate::raster::{GpuScene, Grads, Rasterizer};
+use crate::scene::{Scene, SH_C0};
+
+/// Parameters per Gaussian of the five parameter groups (means, scales, quats, opacities, sh).
+fn strides(sh_degree: u32) -> [usize; 5] {
+    [3, 3, 4, 1, 3 * ((sh_degree + 1) * (sh_degree + 1)) as usize]
+}
+
+fn logit(p: f32) -> f32 {
+    (p / (1.0 - p)).ln()
+}
+
+fn sigmoid(x: f32) -> f32 {
+    1.0 / (1.0 + (-x).exp())
+}
+
+/// Everything that defines a training run at an iteration boundary (what a checkpoint holds).
+#[derive(Clone, Debug, PartialEq)]
+pub struct TrainState {
+    /// Iterations completed.
+    pub iteration: u64,
+    pub active_sh_degree: u32,
+    pub scene: Scene,
+    /// Adam moments per parameter group, layouts as the scene's arrays.
+    pub exp_avg: [Vec<f32>; 5],
+    pub exp_avg_sq: [Vec<f32>; 5],
+    pub grad2d_accum: Vec<f32>,
+    pub grad2d_count: Vec<u32>,
+    pub max_radii: Vec<u32>,
+}
+
+impl TrainState {
+    /// A fresh state for `scene` (zero moments and statistics).
+    pub fn new(scene: Scene) -> TrainState {
+        let n = scene.len();
+        let st = strides(scene.sh_degree);
+        let zeros = |k: usize| vec![0.0f32; n * st[k]];
+        TrainState {
+            iteration: 0,
+            active_sh_degree: 0,
+            exp_avg: [zeros(0), zeros(1), zeros(2), zeros(3), zeros(4)],
+            exp_avg_sq: [zeros(0), zeros(1), zeros(2), zeros(3), zeros(4)],
+            grad2d_accum: vec![0.0; n],
+            grad2d_count: vec![0; n],
+            max_radii: vec![0; n],
+            scene,
+        }
+    }
+
+    fn params(&self) -> [&[f32]; 5] {
+        let s = &self.scene;
+        [
+            bytemuck::cast_slice(&s.means),
+            bytemuck::cast_slice(&s.scales),
+            bytemuck::cast_slice(&s.quats),
+            &s.opacities,
+            &s.sh,
+        ]
+    }
+
+    /// Checks that every parameter and moment is finite; names the first bad one.
+    pub fn check_finite(&self) -> Result<()> {
+        let names = ["means", "scales", "quats", "opacities", "sh"];
+        for (k, p) in self.params().iter().enumerate() {
+            let st = strides(self.scene.sh_degree)[k];
+            for (arr, what) in [(*p, ""), (&self.exp_avg[k][..], " (Adam m)"), (&self.exp_avg_sq[k][..], " (Adam v)")] {
+                if let Some(j) = arr.iter().position(|v| !v.is_finite()) {
+                    bail!("non-finite {}{what} of Gaussian {} at iteration {}", names[k], j / st, self.iteration);
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// The state restricted to the rows `rows` (source index, kept Adam moments?).
+    fn gather(&self, rows: &[(usize, bool)]) -> TrainState {
+        let st = strides(self.scene.sh_degree);
+        let params = self.params();
+        let mut p: [Vec<f32>; 5] = Default::default();
+        let mut m: [Vec<f32>; 5] = Default::default();
+        let mut v: [Vec<f32>; 5] = Default::default();
+        for &(i, keep) in rows {
+            for k in 0..5 {
+                let r = i * st[k]..(i + 1) * st[k];
+                p[k].extend_from_slice(&params[k][r.clone()]);
+                if keep {
+                    m[k].extend_from_slice(&self.exp_avg[k][r.clone()]);
+                    v[k].extend_from_slice(&self.exp_avg_sq[k][r]);
+                } else {
+                    m[k].extend(std::iter::repeat_n(0.0, st[k]));
+                    v[k].extend(std::iter::repeat_n(0.0, st[k]));
+                }
+            }
+        }
+        let [means, scales, quats, opacities, sh] = p;
+        TrainState {
+            iteration: self.iteration,
+            active_sh_degree: self.active_sh_degree,
+            scene: Scene {
+                means: bytemuck::cast_slice(&means).to_vec(),
+                scales: bytemuck::cast_slice(&scales).to_vec(),
+                quats: bytemuck::cast_slice(&quats).to_vec(),
+                opacities,
+                sh,
+                sh_degree: self.scene.sh_degree,
+            },
+            exp_avg: m,
+            exp_avg_sq: v,
+            grad2d_accum: rows.iter().map(|&(i, _)| self.grad2d_accum[i]).collect(),
+            grad2d_count: rows.iter().map(|&(i, _)| self.grad2d_count[i]).collect(),
+            max_radii: rows.iter().map(|&(i, keep)| if keep { self.max_radii[i] } else { 0 }).collect(),
+        }
+    }
+}
+
+/// What one densification step did.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct DensifyStats {
+    pub cloned: usize,
+    pub split: usize,
+    pub pruned: usize,
+}
+
+/// Inria's densify_and_prune on the host: clone small splats and split large ones whose mean
+/// view-space gradient passes the threshold (at most `max_splats` in all, highest gradients
+/// first), then prune transparent and oversized ones; statistics are reset. `rng` draws the
+/// split positions (normal with the splat's scales, rotated).
+pub fn densify(st: &TrainState, cfg: &Config, extent: f32, rng: &mut rand_pcg::Pcg64) -> (TrainState, DensifyStats) {
+    let d = &cfg.densify;
+    let n = st.scene.len();
+    let grads: Vec<f32> = (0..n)
+        .map(|i| if st.grad2d_count[i] > 0 { st.grad2d_accum[i] / st.grad2d_count[i] as f32 } else { 0.0 })
+        .collect();
+    let max_scale = |i: usize| st.scene.scales[i].iter().fold(f32::MIN, |a, &b| a.max(b)).exp();
+    let small = d.percent_dense * extent;
+    let mut candidates: Vec<usize> = (0..n).filter(|&i| grads[i] >= d.grad_threshold).collect();
+    // A clone adds one splat, a split net one: cap the growth.
+    let budget = d.max_splats.saturating_sub(n);
+    if candidates.len() > budget {
+        candidates.sort_by(|&a, &b| grads[b].total_cmp(&grads[a]).then(a.cmp(&b)));
+        candidates.truncate(budget);
+        candidates.sort_unstable();
+    }
+    let mut is_split = vec![false; n];
+    let mut rows: Vec<(usize, bool)> = Vec::new();
+    let mut clones = Vec::new();
+    let mut splits = Vec::new();
+    for &i in &candidates {
+        if max_scale(i) <= small {
+            clones.push(i);
+        } else {
+            splits.push(i);
+            is_split[i] = true;
+        }
+    }
+    rows.extend((0..n).filter(|&i| !is_split[i]).map(|i| (i, true)));
+    rows.extend(clones.iter().map(|&i| (i, false)));
+    let n_kept = rows.len();
+    for &i in &splits {
+        rows.push((i, false));
+        rows.push((i, false));
+    }
+    let mut out = st.gather(&rows);
+    // Split children: positions sampled from the parent, scales / (0.8 · 2).
+    for (j, &i) in splits.iter().enumerate() {
+        let s = Vec3::from(st.scene.scales[i]).exp();
+        let r = crate::cpu::quat_to_mat(st.scene.quats[i]);
+        for c in 0..2 {
+            let z: [f32; 3] = [0, 1, 2].map(|_| StandardNormal.sample(rng));
+            let p = r * (Vec3::from(z) * s) + Vec3::from(st.scene.means[i]);
+            let row = n_kept + 2 * j + c;
+            out.scene.means[row] = p.to_array();
+            out.scene.scales[row] = st.scene.scales[i].map(|v| v - (0.8f32 * 2.0).ln());
+        }
+    }
+    // Prune.
+    let after_reset = st.iteration > d.opacity_reset_interval;
+    let keep: Vec<(usize, bool)> = (0..out.scene.len())
+        .filter(|&i| {
+            let transparent = sigmoid(out.scene.opacities[i]) < d.min_opacity;
+            let big_screen = after_reset && out.max_radii[i] > d.max_screen_size;
+            let big_world = after_reset
+                && out.scene.scales[i].iter().fold(f32::MIN, |a, &b| a.max(b)).exp() > d.max_world_scale * extent;
+            !(transparent || big_screen || big_world)
+        })
+        .map(|i| (i, true))
+        .collect();
+    let pruned = out.scene.len() - keep.len();
+    let mut out = out.gather(&keep);
+    out.grad2d_accum.fill(0.0);
+    out.grad2d_count.fill(0);
+    out.max_radii.fill(0);
+    (out, DensifyStats { cloned: clones.len(), split: splits.len(), pruned })
+}
+
+/// Inria's reset_opacity: opacities capped at 0.01, their Adam moments zeroed.
+pub fn reset_opacity(st: &mut TrainState) {
+    let cap = logit(0.01);
+    for o in &mut st.scene.opacities {
+        *o = o.min(cap);
+    }
+    st.exp_avg[3].fill(0.0);
+    st.exp_avg_sq[3].fill(0.0);
+}
+
+/// log of the root mean squared distance to the 3 nearest other points (Inria's distCUDA2,
+/// clamped at 1e-7 squared distance).
+pub fn knn_log_scales(points: &[[f32; 3]]) -> Vec<f32> {
+    let tree: kiddo::immutable::float::kdtree::ImmutableKdTree<f32, u32, 3, 32> =
+        kiddo::immutable::float::kdtree::ImmutableKdTree::new_from_slice(points);
+    points
+        .iter()
+        .enumerate()
+        .map(|(i, p)| {
+            let nn = tree.nearest_n::<kiddo::SquaredEuclidean>(p, 4);
+            let d: Vec<f32> = nn.iter().filter(|n| n.item as usize != i).take(3).map(|n| n.distance).collect();
+            let mean = d.iter().sum::<f32>() / d.len().max(1) as f32;
+            (mean.max(1e-7)).sqrt().ln()
+        })
+        .collect()
+}
+
+/// The initial scene: the dataset's points (or random ones in the cameras' bounding box), one
+/// isotropic Gaussian each with the kNN scale, opacity `init.opacity`, sh0 from the colour.
+pub fn initial_scene(ds: &Dataset, cfg: &Config) -> Scene {
+    let pc = match &ds.points {
+        Some(pc) if !pc.positions.is_empty() => pc.clone(),
+        _ => {
+            let centres: Vec<Vec3> = ds.train.iter().map(|v| v.camera.position()).collect();
+            let lo = centres.iter().copied().fold(Vec3::splat(f32::MAX), Vec3::min);
+            let hi = centres.iter().copied().fold(Vec3::splat(f32::MIN), Vec3::max);
+            let mut rng = rand_pcg::Pcg64::seed_from_u64(cfg.seed);
+            let mut pc = crate::dataset::PointCloud::default();
+            for _ in 0..cfg.init.random_points {
+                let u = Vec3::new(rng.random(), rng.random(), rng.random());
+                pc.positions.push((lo + (hi - lo) * u).to_array());
+                pc.colors.push([rng.random(), rng.random(), rng.random()]);
+            }
+            pc
+        }
+    };
+    let coeffs = ((cfg.sh_degree + 1) * (cfg.sh_degree + 1)) as usize;
+    let scales = knn_log_scales(&pc.positions);
+    let mut s = Scene { sh_degree: cfg.sh_degree, ..Default::default() };
+    for (i, p) in pc.positions.iter().enumerate() {
+        s.means.push(*p);
+        s.scales.push([scales[i]; 3]);
+        s.quats.push([1.0, 0.0, 0.0, 0.0]);
+        s.opacities.push(logit(cfg.init.opacity));
+        for k in 0..coeffs {
+            for c in 0..3 {
+                s.sh.push(if k == 0 { (pc.colors[i][c] - 0.5) / SH_C0 } else { 0.0 });
+            }
+        }
+    }
+    s
+}
+
+/// Losses and PSNR of one training iteration.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct StepStats {
+    pub loss: f64,
+    pub l1: f64,
+    pub ssim: f64,
+    pub psnr: f64,
+}
+
+/// The GPU side of training: scene, gradients, Adam moments, rasterizer and loss buffers.
+pub struct Trainer {
+    gpu: Arc<Gpu>,
+    k: Arc<Kernels>,
+    pub scene: GpuScene,
+    grads: Grads,
+    adam: AdamState,
+    pub raster: Rasterizer,
+    losses: Vec<LossBufs>,
+    cmd: CommandBuffer,
+    timer: Option<crate::gpu::Timer>,
+    /// GPU milliseconds per pass of the last iteration (forward passes, loss, backward, Adam).
+    pub passes: Vec<(String, f64)>,
+}
+
+impl Trainer {
+    pub fn new(gpu: &Arc<Gpu>, k: &Arc<Kernels>, st: &TrainState) -> Result<Trainer> {
+        let (scene, grads, adam) = Trainer::upload_state(gpu, st)?;
+        Ok(Trainer {
+            gpu: gpu.clone(),
+            k: k.clone(),
+            scene,
+            grads,
+            adam,
+            raster: Rasterizer::new(gpu, k)?,
+            losses: Vec::new(),
+            cmd: CommandBuffer::new(gpu)?,
+            timer: crate::gpu::Timer::new(gpu, 16)?,
+            passes: Vec::new(),
+        })
+    }
+
+    fn upload_state(gpu: &Arc<Gpu>, st: &TrainState) -> Result<(GpuScene, Grads, AdamState)> {
+        let mut scene = GpuScene::new(gpu, &st.scene)?;
+        scene.active_sh_degree = st.active_sh_degree;
+        let grads = Grads::new(gpu, &scene)?;
+        let adam = AdamState::new(gpu, &scene)?;
+        for k in 0..5 {
+            gpu.write(&adam.exp_avg[k], &st.exp_avg[k])?;
+            gpu.write(&adam.exp_avg_sq[k], &st.exp_avg_sq[k])?;
+        }
+        gpu.write(&grads.grad2d_accum, &st.grad2d_accum)?;
+        gpu.write(&grads.grad2d_count, &st.grad2d_count)?;
+        gpu.write(&grads.max_radii, &st.max_radii)?;
+        Ok((scene, grads, adam))
+    }
+
+    /// Replaces the device state (after densification or on resume).
+    pub fn load(&mut self, st: &TrainState) -> Result<()> {
+        let (scene, grads, adam) = Trainer::upload_state(&self.gpu, st)?;
+        self.scene = scene;
+        self.grads = grads;
+        self.adam = adam;
+        Ok(())
+    }
+
+    /// Reads the whole device state back.
+    pub fn download(&self, iteration: u64) -> Result<TrainState> {
+        let g = &self.gpu;
+        let n = self.scene.len;
+        let st = strides(self.scene.sh_degree);
+        let read = |b: &crate::gpu::Buffer, len: usize| g.read::<f32>(b, len);
+        let p = param_buffers(&self.scene);
+        let params: Vec<Vec<f32>> = (0..5).map(|k| read(p[k], n * st[k])).collect::<Result<_>>()?;
+        let m: Vec<Vec<f32>> = (0..5).map(|k| read(&self.adam.exp_avg[k], n * st[k])).collect::<Result<_>>()?;
+        let v: Vec<Vec<f32>> = (0..5).map(|k| read(&self.adam.exp_avg_sq[k], n * st[k])).collect::<Result<_>>()?;
+        let to5 = |v: Vec<Vec<f32>>| -> [Vec<f32>; 5] { v.try_into().unwrap() };
+        let [means, scales, quats, opacities, sh] = to5(params);
+        Ok(TrainState {
+            iteration,
+            active_sh_degree: self.scene.active_sh_degree,
+            scene: Scene {
+                means: bytemuck::cast_slice(&means).to_vec(),
+                scales: bytemuck::cast_slice(&scales).to_vec(),
+                quats: bytemuck::cast_slice(&quats).to_vec(),
+                opacities,
+                sh,
+                sh_degree: self.scene.sh_degree,
+            },
+            exp_avg: to5(m),
+            exp_avg_sq: to5(v),
+            grad2d_accum: read(&self.grads.grad2d_accum, n)?,
+            grad2d_count: g.read(&self.grads.grad2d_count, n)?,
+            max_radii: g.read(&self.grads.max_radii, n)?,
+        })
+    }
+
+    /// One iteration on `view`: forward, loss, backward and the Adam step (`step` from 1).
+    pub fn step(&mut self, view: &View, cfg: &Config, lr: &LearningRates, step: u64) -> Result<StepStats> {
+        let cam = &view.camera;
+        let frame = self.raster.render(&self.scene, cam, cfg.background)?;
+        let li = match self.losses.iter().position(|l| l.width == cam.width && l.height == cam.height) {
+            Some(i) => i,
+            None => {
+                self.losses.push(LossBufs::new(&self.gpu, cam.width, cam.height)?);
+                self.losses.len() - 1
+            }
+        };
+        let lb = &self.losses[li];
+        self.gpu.write(&lb.target, &view.image)?;
+        let image = self.raster.image_buffer().unwrap();
+        let (k, scene, grads, adam, raster) = (&self.k, &self.scene, &self.grads, &self.adam, &self.raster);
+        self.cmd.record_timed(self.timer.as_mut(), |rec| {
+            record_loss(rec, k, image, lb, cfg.ssim_weight)?;
+            raster.record_backward(rec, scene, &lb.v_image, grads)?;
+            record_adam(rec, k, scene, grads, adam, lr, step)
+        })?;
+        self.cmd.submit_and_wait()?;
+        self.passes = frame.passes.clone();
+        if let Some(t) = &self.timer {
+            self.passes.extend(t.results()?);
+        }
+        let sums: Vec<f32> = self.gpu.read(&lb.sums, crate::shared::LOSS_SLOTS as usize)?;
+        let (l1, ssim) = lb.means(&sums);
+        let w = cfg.ssim_weight as f64;
+        Ok(StepStats {
+            loss: (1.0 - w) * l1 + w * (1.0 - ssim),
+            l1,
+            ssim,
+            psnr: crate::util::psnr(&frame.image, &view.image),
+        })
+    }
+}
+
+/// Mean PSNR and SSIM of `views` rendered from `scene`, and per view (name, PSNR, SSIM).
+pub fn evaluate(
+    raster: &mut Rasterizer,
+    scene: &GpuScene,
+    views: &[View],
+    background: [f32; 3],
+    mut each: impl FnMut(&View, &crate::raster::Frame) -> Result<()>,
+) -> Result<(f64, f64, Vec<(String, f64, f64)>)> {
+    let mut per = Vec::new();
+    for v in views {
+        let f = raster.render(scene, &v.camera, background)?;
+        let (w, h) = (v.camera.width as usize, v.camera.height as usize);
+        let a: Vec<[f64; 3]> = f.image.iter().map(|p| [0, 1, 2].map(|c| p[c].clamp(0.0, 1.0) as f64)).collect();
+        let b: Vec<[f64; 3]> = v.image.iter().map(|p| [p[0] as f64, p[1] as f64, p[2] as f64]).collect();
+        per.push((v.camera.name.clone(), crate::util::psnr(&f.image, &v.image), crate::grad::ssim(&a, &b, w, h)));
+        each(v, &f)?;
+    }
+    let n = per.len().max(1) as f64;
+    let psnr = per.iter().map(|p| p.1).sum::<f64>() / n;
+    let ssim = per.iter().map(|p| p.2).sum::<f64>() / n;
+    Ok((psnr, ssim, per))
+}
+
+/// The training view of iteration `it` (from 1): every epoch visits each view once, in an order
+/// drawn from (seed, epoch) — stateless, so a resumed run draws the same views.
+pub fn view_index(seed: u64, it: u64, n: usize) -> usize {
+    let epoch = (it - 1) / n as u64;
+    let mut order: Vec<usize> = (0..n).collect();
+    let mut rng = rand_pcg::Pcg64::seed_from_u64(seed ^ epoch.wrapping_mul(0x9e37_79b9_7f4a_7c15));
+    for i in (1..n).rev() {
+        order.swap(i, rng.random_range(0..=i));
+    }
+    order[((it - 1) % n as u64) as usize]
+}
+
+// ---------------------------------------------------------------------------------------------
+// Checkpoints
+
+const MAGIC: &[u8; 8] = b"INSTGSCK";
+const VERSION: u32 = 1;
+
+#[derive(serde::Serialize, serde::Deserialize)]
+struct CheckpointHeader {
+    iteration: u64,
+    active_sh_degree: u32,
+    sh_degree: u32,
+    gaussians: usize,
+    config: Config,
+}
+
+/// Writes `st` atomically (temporary file + rename) after checking it is finite, so a bad state
+/// never replaces the last good checkpoint.
+pub fn write_checkpoint(path: &Path, st: &TrainState, cfg: &Config) -> Result<()> {
+    st.check_finite().context("checkpoint not written; the last good one is kept")?;
+    let header = serde_json::to_vec(&CheckpointHeader {
+        iteration: st.iteration,
+        active_sh_degree: st.active_sh_degree,
+        sh_degree: st.scene.sh_degree,
+        gaussians: st.scene.len(),
+        config: cfg.clone(),
+    })?;
+    crate::util::write_atomic(path, |f| {
+        let mut w = std::io::BufWriter::new(f);
+        w.write_all(MAGIC)?;
+        w.write_all(&VERSION.to_le_bytes())?;
+        w.write_all(&(header.len() as u64).to_le_bytes())?;
+        w.write_all(&header)?;
+        for arr in st.params().iter().chain(st.exp_avg.iter().map(|v| &v[..]).collect::<Vec<_>>().iter()) {
+            w.write_all(bytemuck::cast_slice(arr))?;
+        }
+        for arr in &st.exp_avg_sq {
+            w.write_all(bytemuck::cast_slice(arr))?;
+        }
+        w.write_all(bytemuck::cast_slice(&st.grad2d_accum))?;
+        w.write_all(bytemuck::cast_slice(&st.grad2d_count))?;
+        w.write_all(bytemuck::cast_slice(&st.max_radii))?;
+        w.flush()
+    })
+}
+
+/// Reads a checkpoint; returns the state and the configuration it was written with.
+pub fn read_checkpoint(path: &Path) -> Result<(TrainState, Config)> {
+    let what = path.display();
+    let data = std::fs::read(path).with_context(|| format!("{what}: cannot read checkpoint"))?;
+    if data.len() < 20 || &data[..8] != MAGIC {
+        bail!("{what}: not an instgs-vk checkpoint");
+    }
+    let version = u32::from_le_bytes(data[8..12].try_into().unwrap());
+    if version != VERSION {
+        bail!("{what}: checkpoint version {version}, this build reads {VERSION}");
+    }
+    let hlen = u64::from_le_bytes(data[12..20].try_into().unwrap()) as usize;
+    let header: CheckpointHeader = data
+        .get(20..20 + hlen)
+        .and_then(|h| serde_json::from_slice(h).ok())
+        .ok_or_else(|| anyhow!("{what}: damaged checkpoint header"))?;
+    if header.sh_degree > 3 {
+        bail!("{what}: damaged checkpoint header");
+    }
+    let n = header.gaussians;
+    let st = strides(header.sh_degree);
+    let mut pos = 20 + hlen;
+    let mut take = |count: usize| -> Result<&[u8]> {
+        let bytes = count.checked_mul(4).ok_or_else(|| anyhow!("{what}: damaged checkpoint"))?;
+        let s = data.get(pos..pos + bytes).ok_or_else(|| anyhow!("{what}: truncated checkpoint"))?;
+        pos += bytes;
+        Ok(s)
+    };
+    let mut f32s = |count: usize| -> Result<Vec<f32>> { Ok(bytemuck::pod_collect_to_vec(take(count)?)) };
+    let params: Vec<Vec<f32>> = (0..5).map(|k| f32s(n * st[k])).collect::<Result<_>>()?;
+    let m: Vec<Vec<f32>> = (0..5).map(|k| f32s(n * st[k])).collect::<Result<_>>()?;
+    let v: Vec<Vec<f32>> = (0..5).map(|k| f32s(n * st[k])).collect::<Result<_>>()?;
+    let accum = f32s(n)?;
+    let count: Vec<u32> = bytemuck::pod_collect_to_vec(take(n)?);
+    let radii: Vec<u32> = bytemuck::pod_collect_to_vec(take(n)?);
+    if pos != data.len() {
+        bail!("{what}: checkpoint has {} trailing bytes", data.len() - pos);
+    }
+    let to5 = |v: Vec<Vec<f32>>| -> [Vec<f32>; 5] { v.try_into().unwrap() };
+    let [means, scales, quats, opacities, sh] = to5(params);
+    let state = TrainState {
+        iteration: header.iteration,
+        active_sh_degree: header.active_sh_degree,
+        scene: Scene {
+            means: bytemuck::pod_collect_to_vec(&means),
+            scales: bytemuck::pod_collect_to_vec(&scales),
+            quats: bytemuck::pod_collect_to_vec(&quats),
+            opacities,
+            sh,
+            sh_degree: header.sh_degree,
+        },
+        exp_avg: to5(m),
+        exp_avg_sq: to5(v),
+        grad2d_accum: accum,
+        grad2d_count: count,
+        max_radii: radii,
+    };
+    Ok((state, header.config))
+}
+
+// ---------------------------------------------------------------------------------------------
+// The training run
+
+/// Set by Ctrl-C: the loop writes a checkpoint and stops.
+pub static INTERRUPTED: AtomicBool = AtomicBool::new(false);
+
+pub struct RunOptions {
+    pub out: PathBuf,
+    pub resume: bool,
+    /// Show a progress bar (else a line every 10 %).
+    pub progress: bool,
+}
+
+/// One row of `metrics.csv`.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct MetricsRow {
+    pub iteration: u64,
+    pub loss: f64,
+    pub l1: f64,
+    pub ssim: f64,
+    pub train_psnr: f64,
+    pub splats: usize,
+    pub elapsed_s: f64,
+    pub test_psnr: Option<f64>,
+    pub test_ssim: Option<f64>,
+}
+
+const CSV_HEADER: &str = "iteration,loss,l1,ssim,train_psnr,splats,elapsed_s,test_psnr,test_ssim";
+
+impl MetricsRow {
+    fn csv(&self) -> String {
+        let opt = |v: Option<f64>| v.map(|x| format!("{x:.4}")).unwrap_or_default();
+        format!(
+            "{},{:.6},{:.6},{:.6},{:.4},{},{:.3},{},{}",
+            self.iteration,
+            self.loss,
+            self.l1,
+            self.ssim,
+            self.train_psnr,
+            self.splats,
+            self.elapsed_s,
+            opt(self.test_psnr),
+            opt(self.test_ssim)
+        )
+    }
+
+    fn parse(line: &str) -> Option<MetricsRow> {
+        let f: Vec<&str> = line.split(',').collect();
+        if f.len() != 9 {
+            return None;
+        }
+        let opt = |s: &str| if s.is_empty() { Some(None) } else { s.parse().ok().map(Some) };
+        Some(MetricsRow {
+            iteration: f[0].parse().ok()?,
+            loss: f[1].parse().ok()?,
+            l1: f[2].parse().ok()?,
+            ssim: f[3].parse().ok()?,
+            train_psnr: f[4].parse().ok()?,
+            splats: f[5].parse().ok()?,
+            elapsed_s: f[6].parse().ok()?,
+            test_psnr: opt(f[7])?,
+            test_ssim: opt(f[8])?,
+        })
+    }
+}
+
+/// The outcome of a run.
+pub struct RunSummary {
+    pub iterations: u64,
+    pub splats: usize,
+    pub test_psnr: Option<f64>,
+    pub test_ssim: Option<f64>,
+    pub seconds: f64,
+    pub iterations_per_second: f64,
+    pub interrupted: bool,
+    /// Median GPU milliseconds per pass over this session's iterations.
+    pub pass_medians: Vec<(String, f64)>,
+}
+
+/// `INSTGS_FAULT_NAN_AT=N`: put a NaN into a parameter before iteration N (tests of the
+/// divergence handling).
+fn fault_nan_at() -> Option<u64> {
+    std::env::var("INSTGS_FAULT_NAN_AT").ok()?.parse().ok()
+}
+
+pub fn checkpoint_path(out: &Path) -> PathBuf {
+    out.join("checkpoint.bin")
+}
+
+/// Trains `cfg.iterations` iterations on `ds`, writing into `opts.out`: `checkpoint.bin`,
+/// `metrics.csv`, `point_cloud.ply` and `curves.png`. With `opts.resume` it continues from the
+/// checkpoint (the configuration must match the one it was written with, iterations aside).
+pub fn run(gpu: &Arc<Gpu>, k: &Arc<Kernels>, ds: &Dataset, cfg: &Config, opts: &RunOptions) -> Result<RunSummary> {
+    std::fs::create_dir_all(&opts.out).with_context(|| format!("{}: cannot create", opts.out.display()))?;
+    if ds.train.is_empty() {
+        bail!("the dataset has no training views");
+    }
+    let extent = ds.camera_extent();
+    let ckpt = checkpoint_path(&opts.out);
+    let metrics_path = opts.out.join("metrics.csv");
+    let (mut state, mut rows) = if opts.resume {
+        let (st, saved) =
+            read_checkpoint(&ckpt).with_context(|| "cannot resume (run without --resume to start afresh)")?;
+        let same = Config { iterations: cfg.iterations, ..saved.clone() };
+        if &same != cfg {
+            bail!(
+                "{}: the checkpoint was written with another configuration; resume with the same --config",
+                ckpt.display()
+            );
+        }
+        let text = std::fs::read_to_string(&metrics_path).unwrap_or_default();
+        let rows: Vec<MetricsRow> =
+            text.lines().skip(1).filter_map(MetricsRow::parse).filter(|r| r.iteration <= st.iteration).collect();
+        (st, rows)
+    } else {
+        if ckpt.exists() {
+            bail!("{} exists: continue it with --resume, or choose another --out", ckpt.display());
+        }
+        (TrainState::new(initial_scene(ds, cfg)), Vec::new())
+    };
+    let mut trainer = Trainer::new(gpu, k, &state)?;
+    let write_metrics = |rows: &[MetricsRow]| -> Result<()> {
+        let mut text = String::from(CSV_HEADER);
+        text.push('\n');
+        for r in rows {
+            text.push_str(&r.csv());
+            text.push('\n');
+        }
+        crate::util::write_atomic(&metrics_path, |f| f.write_all(text.as_bytes()))
+    };
+    let start_it = state.iteration;
+    let elapsed0 = rows.last().map_or(0.0, |r| r.elapsed_s);
+    let t0 = Instant::now();
+    let bar = if opts.progress {
+        let b = indicatif::ProgressBar::new(cfg.iterations);
+        b.set_style(indicatif::ProgressStyle::with_template("{bar:30} {pos}/{len} {msg} {per_sec} ETA {eta}").unwrap());
+        b.set_position(start_it);
+        Some(b)
+    } else {
+        None
+    };
+    let mut test = rows.iter().rev().find_map(|r| r.test_psnr.zip(r.test_ssim));
+    let mut interrupted = false;
+    let mut pass_times: Vec<(String, Vec<f64>)> = Vec::new();
+    for it in start_it + 1..=cfg.iterations {
+        if INTERRUPTED.load(Ordering::SeqCst) {
+            interrupted = true;
+            break;
+        }
+        if it % cfg.sh_increase_interval == 0 && trainer.scene.active_sh_degree < trainer.scene.sh_degree {
+            trainer.scene.active_sh_degree += 1;
+        }
+        let lr = LearningRates {
+            means: cfg.position_lr(it, extent),
+            scales: cfg.lr.scaling,
+            quats: cfg.lr.rotation,
+            opacities: cfg.lr.opacity,
+            sh0: cfg.lr.sh0,
+            sh_rest: cfg.lr.sh_rest,
+        };
+        if fault_nan_at() == Some(it) {
+            // Fault injection for the tests: a NaN in the first Gaussian's colour.
+            let mut st = trainer.download(it - 1)?;
+            st.scene.sh[0] = f32::NAN;
+            trainer.load(&st)?;
+        }
+        let view = &ds.train[view_index(cfg.seed, it, ds.train.len())];
+        let last = trainer.step(view, cfg, &lr, it)?;
+        for (name, ms) in &trainer.passes {
+            match pass_times.iter_mut().find(|(n, _)| n == name) {
+                Some(e) => e.1.push(*ms),
+                None => pass_times.push((name.clone(), vec![*ms])),
+            }
+        }
+        if !last.loss.is_finite() {
+            bail!(
+                "the loss became {} at iteration {it} (view {}); stopped without writing a checkpoint — the last good one is {}",
+                last.loss,
+                view.camera.name,
+                ckpt.display()
+            );
+        }
+        let d = &cfg.densify;
+        let densify_now = it < d.until_iter && it > d.from_iter && it % d.interval == 0;
+        let reset_now = d.opacity_reset_interval > 0 && it % d.opacity_reset_interval == 0 && it < d.until_iter;
+        if densify_now || reset_now {
+            state = trainer.download(it)?;
+            if densify_now {
+                let mut rng = rand_pcg::Pcg64::seed_from_u64(cfg.seed.wrapping_add(it.wrapping_mul(0x2545_f491)));
+                state = densify(&state, cfg, extent, &mut rng).0;
+            }
+            if reset_now {
+                reset_opacity(&mut state);
+            }
+            state.check_finite().context("training diverged; the last good checkpoint is kept")?;
+            if state.scene.is_empty() {
+                bail!("densification pruned every splat at iteration {it}");
+            }
+            trainer.load(&state)?;
+        }
+        let mut row = MetricsRow {
+            iteration: it,
+            loss: last.loss,
+            l1: last.l1,
+            ssim: last.ssim,
+            train_psnr: last.psnr,
+            splats: trainer.scene.len,
+            elapsed_s: elapsed0 + t0.elapsed().as_secs_f64(),
+            ..Default::default()
+        };
+        let final_it = it == cfg.iterations;
+        if !ds.test.is_empty() && ((cfg.test_interval > 0 && it % cfg.test_interval == 0) || final_it) {
+            let (p, s, _) = evaluate(&mut trainer.raster, &trainer.scene, &ds.test, cfg.background, |_, _| Ok(()))?;
+            row.test_psnr = Some(p);
+            row.test_ssim = Some(s);
+            test = Some((p, s));
+        }
+        rows.push(row);
+        if (cfg.checkpoint_interval > 0 && it % cfg.checkpoint_interval == 0) || final_it {
+            state = trainer.download(it)?;
+            write_checkpoint(&ckpt, &state, cfg)?;
+            write_metrics(&rows)?;
+        }
+        let msg = format!(
+            "loss {:.4} PSNR {:.2}{} splats {}",
+            last.loss,
+            last.psnr,
+            test.map(|(p, _)| format!(" test {p:.2}")).unwrap_or_default(),
+            trainer.scene.len
+        );
+        match &bar {
+            Some(b) => {
+                b.set_position(it);
+                b.set_message(msg);
+            }
+            None => {
+                if it % (cfg.iterations / 10).max(1) == 0 {
+                    eprintln!("iteration {it}/{}: {msg}", cfg.iterations);
+                }
+            }
+        }
+    }
+    if let Some(b) = &bar {
+        b.finish_and_clear();
+    }
+    let done = rows.last().map_or(start_it, |r| r.iteration);
+    state = trainer.download(done)?;
+    if interrupted || done > start_it {
+        write_checkpoint(&ckpt, &state, cfg)?;
+        write_metrics(&rows)?;
+    }
+    crate::scene::write_ply(&state.scene, &opts.out.join("point_cloud.ply"))?;
+    crate::plot::curves(&rows, &opts.out.join("curves.png"))?;
+    let secs = t0.elapsed().as_secs_f64();
+    Ok(RunSummary {
+        iterations: done,
+        splats: state.scene.len(),
+        test_psnr: test.map(|t| t.0),
+        test_ssim: test.map(|t| t.1),
+        seconds: elapsed0 + secs,
+        iterations_per_second: (done - start_it) as f64 / secs.max(1e-9),
+        interrupted,
+        pass_medians: pass_times
+            .into_iter()
+            .filter(|(n, _)| n != "setup" && n != "readback")
+            .map(|(n, mut v)| {
+                v.sort_by(f64::total_cmp);
+                (n, v[v.len() / 2])
+            })
+            .collect(),
+    })
+}

@@ -1,0 +1,383 @@
+//! Datasets, configuration and training through the binary: a short run on a small version of
+//! ducks6 whose loss falls and test PSNR rises, checkpoint / Ctrl-C / resume reaching the same
+//! parameters as an uninterrupted run, divergence that keeps the last good checkpoint, and bad
+//! datasets that end in one clear error. Validation layers on in every run.
+mod common;
+use std::io::{BufRead, Write};
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
+
+use common::*;
+use instgs_vk::config::Config;
+use instgs_vk::dataset::{self, LoadOptions};
+use instgs_vk::train::read_checkpoint;
+
+const OPTS: LoadOptions = LoadOptions { downscale: 1, background: [0.0; 3] };
+
+fn tmp(name: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("instgs-train-{}-{name}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+struct Out {
+    ok: bool,
+    stderr: String,
+}
+
+fn spawn(args: &[&str], env: &[(&str, &str)]) -> std::process::Child {
+    let mut c = Command::new(env!("CARGO_BIN_EXE_instgs-vk"));
+    c.args(args).env("INSTGS_VALIDATION", "1").stdout(Stdio::null()).stderr(Stdio::piped());
+    for (k, v) in env {
+        c.env(k, v);
+    }
+    c.spawn().unwrap()
+}
+
+fn finish(mut child: std::process::Child, what: &str) -> Out {
+    let stderr = child.stderr.take().unwrap();
+    let reader = std::thread::spawn(move || {
+        let mut s = String::new();
+        for l in std::io::BufReader::new(stderr).lines() {
+            s.push_str(&l.unwrap_or_default());
+            s.push('\n');
+        }
+        s
+    });
+    let start = Instant::now();
+    while child.try_wait().unwrap().is_none() {
+        if start.elapsed() > Duration::from_secs(900) {
+            child.kill().unwrap();
+            panic!("{what} hung");
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    let status = child.wait().unwrap();
+    let stderr = reader.join().unwrap();
+    assert!(!stderr.contains("panicked"), "{what} panicked:\n{stderr}");
+    Out { ok: status.success(), stderr }
+}
+
+fn run(args: &[&str], env: &[(&str, &str)]) -> Out {
+    finish(spawn(args, env), &format!("instgs-vk {args:?}"))
+}
+
+fn config_file(dir: &Path, text: &str) -> PathBuf {
+    let p = dir.join("config.toml");
+    std::fs::write(&p, text).unwrap();
+    p
+}
+
+#[test]
+fn datasets_load() {
+    let ducks = dataset::load(&shared_data("scenes/ducks6"), &LoadOptions { downscale: 4, ..OPTS }).unwrap();
+    assert_eq!((ducks.kind, ducks.train.len(), ducks.test.len()), ("nerf-synthetic", 48, 12));
+    assert_eq!((ducks.train[0].camera.width, ducks.train[0].camera.height), (80, 60));
+    assert!((ducks.train[0].camera.fx - 386.274 / 4.0).abs() < 0.01);
+    assert_eq!(ducks.points.as_ref().unwrap().positions.len(), 20_000);
+    // Poses: a world point projects where the dataset README's formula puts it.
+    let c = &ducks.train[0].camera;
+    let p = (c.viewmat * glam::Vec4::new(0.1, 0.2, 0.05, 1.0)).truncate();
+    assert!(p.z > 0.0, "OpenCV camera looks down +Z");
+
+    let statue = dataset::load(&shared_data("colmap/statue"), &OPTS).unwrap();
+    assert_eq!((statue.kind, statue.train.len(), statue.test.len()), ("colmap", 20, 3));
+    assert_eq!(statue.train[0].camera.width, 500);
+    assert_eq!(statue.points.as_ref().unwrap().positions.len(), 1443);
+    // Every 8th image by name is held out.
+    let names: Vec<&str> = statue.test.iter().map(|v| v.camera.name.as_str()).collect();
+    assert_eq!(names, ["DSC_5283", "DSC_5291", "DSC_5299"]);
+    // The sparse points project into the images (poses and intrinsics right).
+    let pts = &statue.points.as_ref().unwrap().positions;
+    let cam = &statue.train[0].camera;
+    let inside = pts
+        .iter()
+        .filter(|p| {
+            let t = cam.viewmat.transform_point3(glam::Vec3::from(**p));
+            let (u, v) = (cam.fx * t.x / t.z + cam.cx, cam.fy * t.y / t.z + cam.cy);
+            t.z > 0.0 && (0.0..cam.width as f32).contains(&u) && (0.0..cam.height as f32).contains(&v)
+        })
+        .count();
+    assert!(inside > pts.len() / 2, "{inside} of {} points project into the image", pts.len());
+}
+
+#[test]
+fn colmap_text_and_binary_models_agree() {
+    let bin = dataset::read_colmap(&shared_data("colmap/statue/sparse/0")).unwrap();
+    let dir = tmp("colmap-txt");
+    let mut cams = String::from("# CAMERA_ID MODEL WIDTH HEIGHT PARAMS[]\n");
+    for (id, c) in &bin.cameras {
+        let p: Vec<String> = c.params.iter().map(|v| format!("{v:?}")).collect();
+        cams += &format!("{id} {} {} {} {}\n", c.model, c.width, c.height, p.join(" "));
+    }
+    let mut imgs = String::from("# IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME\n# POINTS2D[]\n");
+    for (i, im) in bin.images.iter().enumerate() {
+        let q: Vec<String> = im.qvec.iter().chain(&im.tvec).map(|v| format!("{v:?}")).collect();
+        imgs += &format!("{} {} {} {}\n1.0 2.0 -1\n", i + 1, q.join(" "), im.camera_id, im.name);
+    }
+    let mut pts = String::from("# POINT3D_ID X Y Z R G B ERROR TRACK[]\n");
+    for (i, (p, c)) in bin.points.positions.iter().zip(&bin.points.colors).enumerate() {
+        let rgb = c.map(|v| (v * 255.0).round() as u8);
+        pts += &format!("{} {:?} {:?} {:?} {} {} {} 0.5 1 0\n", i + 1, p[0], p[1], p[2], rgb[0], rgb[1], rgb[2]);
+    }
+    std::fs::write(dir.join("cameras.txt"), cams).unwrap();
+    std::fs::write(dir.join("images.txt"), imgs).unwrap();
+    std::fs::write(dir.join("points3D.txt"), pts).unwrap();
+    let txt = dataset::read_colmap(&dir).unwrap();
+    assert_eq!(txt, bin);
+}
+
+#[test]
+fn camera_models_and_distortion() {
+    let cam =
+        |model: &str, params: Vec<f64>| dataset::ColmapCamera { model: model.into(), width: 640, height: 480, params };
+    assert_eq!(
+        dataset::pinhole(&cam("SIMPLE_PINHOLE", vec![500.0, 320.0, 240.0]), "c").unwrap(),
+        [500.0, 500.0, 320.0, 240.0]
+    );
+    assert_eq!(
+        dataset::pinhole(&cam("PINHOLE", vec![500.0, 510.0, 320.0, 240.0]), "c").unwrap(),
+        [500.0, 510.0, 320.0, 240.0]
+    );
+    // Zero and negligible distortion: a pinhole.
+    assert!(dataset::pinhole(&cam("SIMPLE_RADIAL", vec![500.0, 320.0, 240.0, 0.0]), "c").is_ok());
+    assert!(dataset::pinhole(&cam("OPENCV", vec![500.0, 500.0, 320.0, 240.0, 1e-5, 0.0, 0.0, 0.0]), "c").is_ok());
+    // Real distortion: refused with advice.
+    let e = dataset::pinhole(&cam("RADIAL", vec![500.0, 320.0, 240.0, 0.05, 0.01]), "cam 3").unwrap_err().to_string();
+    assert!(e.contains("cam 3") && e.contains("image_undistorter"), "{e}");
+    let e = dataset::pinhole(&cam("OPENCV_FISHEYE", vec![0.0; 8]), "c").unwrap_err().to_string();
+    assert!(e.contains("not supported"), "{e}");
+}
+
+#[test]
+fn config_merges_over_the_defaults() {
+    let c = Config::from_toml("iterations = 7\n[densify]\nmax_splats = 5\n", "t.toml").unwrap();
+    assert_eq!((c.iterations, c.densify.max_splats, c.densify.interval), (7, 5, 100));
+    assert_eq!(c.lr.position_init, 1.6e-4);
+    let e = Config::from_toml("[densify]\ngrad_treshold = 1.0\n", "t.toml").unwrap_err().to_string();
+    assert!(e.contains("t.toml") && e.contains("densify.grad_treshold"), "{e}");
+    let e = Config::from_toml("ssim_weight = 2.0\n", "t.toml").unwrap_err().to_string();
+    assert!(e.contains("ssim_weight"), "{e}");
+    // Inria's position schedule.
+    assert!((c.position_lr(0, 2.0) - 3.2e-4).abs() < 1e-9);
+    assert!((c.position_lr(30_000, 1.0) - 1.6e-6).abs() < 1e-10);
+}
+
+/// A small copy of ducks6: `n_train` training and 4 test views, optionally damaged.
+fn small_nerf(name: &str, n_train: usize, damage: impl Fn(&Path)) -> PathBuf {
+    let src = shared_data("scenes/ducks6");
+    let dir = tmp(name);
+    for split in ["train", "test"] {
+        let text = std::fs::read_to_string(src.join(format!("transforms_{split}.json"))).unwrap();
+        let mut v: serde_json::Value = serde_json::from_str(&text).unwrap();
+        let keep = if split == "train" { n_train } else { 4 };
+        let frames = v["frames"].as_array_mut().unwrap();
+        frames.truncate(keep);
+        std::fs::create_dir_all(dir.join(split)).unwrap();
+        for f in frames.iter() {
+            let rel = format!("{}.png", f["file_path"].as_str().unwrap());
+            std::fs::copy(src.join(&rel), dir.join(&rel)).unwrap();
+        }
+        std::fs::write(dir.join(format!("transforms_{split}.json")), v.to_string()).unwrap();
+    }
+    std::fs::copy(src.join("points3d.ply"), dir.join("points3d.ply")).unwrap();
+    damage(&dir);
+    dir
+}
+
+#[test]
+fn bad_datasets_give_clear_errors() {
+    let missing = small_nerf("missing", 6, |d| std::fs::remove_file(d.join("train/r_003.png")).unwrap());
+    let e = dataset::load(&missing, &OPTS).err().unwrap().to_string();
+    assert!(e.contains("r_003.png") && e.contains("missing"), "{e}");
+
+    let wrong = small_nerf("wrong-size", 6, |d| {
+        image::RgbImage::new(100, 50).save(d.join("train/r_002.png")).unwrap();
+    });
+    let e = format!("{:#}", dataset::load(&wrong, &OPTS).err().unwrap());
+    assert!(e.contains("r_002.png") && e.contains("100x50") && e.contains("320x240"), "{e}");
+
+    let e = dataset::load(&tmp("empty"), &OPTS).err().unwrap().to_string();
+    assert!(e.contains("not a dataset"), "{e}");
+
+    // A COLMAP model whose images are not there.
+    let dir = tmp("colmap-no-images");
+    std::fs::create_dir_all(dir.join("sparse")).unwrap();
+    let src = shared_data("colmap/statue/sparse/0");
+    std::fs::create_dir_all(dir.join("sparse/0")).unwrap();
+    for f in ["cameras.bin", "images.bin", "points3D.bin"] {
+        std::fs::copy(src.join(f), dir.join("sparse/0").join(f)).unwrap();
+    }
+    let e = dataset::load(&dir, &OPTS).err().unwrap().to_string();
+    assert!(e.contains("/images/DSC_52") && e.contains("missing"), "{e}");
+    // A truncated binary model.
+    let data = std::fs::read(src.join("images.bin")).unwrap();
+    std::fs::write(dir.join("sparse/0/images.bin"), &data[..data.len() / 2]).unwrap();
+    let e = dataset::load(&dir, &OPTS).err().unwrap().to_string();
+    assert!(e.contains("images.bin") && (e.contains("truncated") || e.contains("more than the file holds")), "{e}");
+
+    // Through the binary: one error line, exit code 1.
+    let out = tmp("out-missing");
+    let o = run(&["train", "--data", missing.to_str().unwrap(), "--out", out.to_str().unwrap()], &[]);
+    assert!(!o.ok && o.stderr.contains("error:") && o.stderr.contains("r_003.png"), "{}", o.stderr);
+}
+
+fn rows(run: &Path) -> Vec<Vec<String>> {
+    let text = std::fs::read_to_string(run.join("metrics.csv")).unwrap();
+    text.lines().skip(1).map(|l| l.split(',').map(String::from).collect()).collect()
+}
+
+#[test]
+fn short_training_run_learns() {
+    let data = small_nerf("learn", 16, |_| {});
+    let out = tmp("learn-out");
+    let cfg = config_file(
+        &out,
+        "iterations = 200\ntest_interval = 25\ncheckpoint_interval = 100\nsh_increase_interval = 50\n[densify]\nfrom_iter = 40\ninterval = 40\nopacity_reset_interval = 120\n",
+    );
+    let run_dir = out.join("run");
+    let o = run(
+        &[
+            "train",
+            "--data",
+            data.to_str().unwrap(),
+            "--downscale",
+            "4",
+            "--out",
+            run_dir.to_str().unwrap(),
+            "--config",
+            cfg.to_str().unwrap(),
+            "--quiet",
+        ],
+        &[],
+    );
+    assert!(o.ok, "{}", o.stderr);
+    let r = rows(&run_dir);
+    assert_eq!(r.len(), 200);
+    let mean_loss = |rs: &[Vec<String>]| rs.iter().map(|x| x[1].parse::<f64>().unwrap()).sum::<f64>() / rs.len() as f64;
+    let (first, last) = (mean_loss(&r[..20]), mean_loss(&r[180..]));
+    assert!(last < 0.7 * first, "loss {first} -> {last}");
+    let test: Vec<f64> = r.iter().filter(|x| !x[7].is_empty()).map(|x| x[7].parse().unwrap()).collect();
+    assert_eq!(test.len(), 8);
+    assert!(test[7] > test[0] + 1.0, "test PSNR {test:?}");
+    // Densification changed the splat count.
+    assert_ne!(r[30][5], r[199][5]);
+    for f in ["point_cloud.ply", "curves.png", "checkpoint.bin"] {
+        assert!(run_dir.join(f).exists(), "{f}");
+    }
+    // eval on the trained scene agrees with the run's last test PSNR.
+    let ev = Command::new(env!("CARGO_BIN_EXE_instgs-vk"))
+        .args(["eval", "--scene", run_dir.join("point_cloud.ply").to_str().unwrap(), "--data", data.to_str().unwrap()])
+        .args(["--downscale", "4", "--json", "--out", out.join("eval").to_str().unwrap()])
+        .output()
+        .unwrap();
+    assert!(ev.status.success(), "{}", String::from_utf8_lossy(&ev.stderr));
+    let v: serde_json::Value = serde_json::from_slice(&ev.stdout).unwrap();
+    // The PLY holds the full SH degree, the run evaluated the degree reached (3 by iteration 150).
+    assert!((v["psnr_mean"].as_f64().unwrap() - test[7]).abs() < 0.05, "{v} vs {}", test[7]);
+    assert_eq!(v["views"].as_array().unwrap().len(), 4);
+    assert!(out.join("eval/r_000_compare.png").exists());
+}
+
+fn train_args<'a>(data: &'a str, out: &'a str, cfg: &'a str, its: &'a str) -> Vec<&'a str> {
+    vec!["train", "--data", data, "--downscale", "8", "--out", out, "--config", cfg, "--iterations", its, "--quiet"]
+}
+
+#[test]
+fn interrupted_and_resumed_runs_match_an_uninterrupted_one() {
+    let data = small_nerf("resume", 8, |_| {});
+    let base = tmp("resume-out");
+    let cfg = config_file(
+        &base,
+        "checkpoint_interval = 25\ntest_interval = 0\nsh_increase_interval = 20\n[densify]\nfrom_iter = 10\ninterval = 15\nopacity_reset_interval = 45\n",
+    );
+    let (d, c) = (data.to_str().unwrap(), cfg.to_str().unwrap());
+    // lavapipe with one thread: float atomics add in a fixed order, so runs are bit-exact.
+    let env = [("LP_NUM_THREADS", "1")];
+    let straight = base.join("straight");
+    let o = run(&train_args(d, straight.to_str().unwrap(), c, "90"), &env);
+    assert!(o.ok, "{}", o.stderr);
+    let (want, _) = read_checkpoint(&straight.join("checkpoint.bin")).unwrap();
+    assert_eq!(want.iteration, 90);
+
+    // Stopped by --iterations, then resumed.
+    let split = base.join("split");
+    assert!(run(&train_args(d, split.to_str().unwrap(), c, "37"), &env).ok);
+    let o =
+        run(&train_args(d, split.to_str().unwrap(), c, "90").into_iter().chain(["--resume"]).collect::<Vec<_>>(), &env);
+    assert!(o.ok, "{}", o.stderr);
+    let (got, _) = read_checkpoint(&split.join("checkpoint.bin")).unwrap();
+    assert!(got == want, "resumed run differs from the uninterrupted one");
+    let strip = |rs: Vec<Vec<String>>| {
+        rs.into_iter()
+            .map(|mut r| {
+                r[6].clear();
+                r
+            })
+            .collect::<Vec<_>>()
+    };
+    assert_eq!(strip(rows(&split)), strip(rows(&straight)));
+
+    // Ctrl-C: a checkpoint is written at once, and --resume finishes the run.
+    let sig = base.join("sigint");
+    let child = spawn(&train_args(d, sig.to_str().unwrap(), c, "90"), &env);
+    let start = Instant::now();
+    while !sig.join("checkpoint.bin").exists() {
+        assert!(start.elapsed() < Duration::from_secs(600), "no checkpoint appeared");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let pid = child.id().to_string();
+    assert!(Command::new("kill").args(["-INT", &pid]).status().unwrap().success());
+    let o = finish(child, "interrupted run");
+    let (stopped, _) = read_checkpoint(&sig.join("checkpoint.bin")).unwrap();
+    if stopped.iteration < 90 {
+        assert!(
+            !o.ok && o.stderr.contains("interrupted at iteration") && o.stderr.contains("--resume"),
+            "{}",
+            o.stderr
+        );
+        let o = run(
+            &train_args(d, sig.to_str().unwrap(), c, "90").into_iter().chain(["--resume"]).collect::<Vec<_>>(),
+            &env,
+        );
+        assert!(o.ok, "{}", o.stderr);
+    }
+    let (got, _) = read_checkpoint(&sig.join("checkpoint.bin")).unwrap();
+    assert!(got == want, "run resumed after Ctrl-C differs from the uninterrupted one");
+
+    // Resuming with another configuration is refused; starting over an existing run too.
+    let other = config_file(&base.join("split"), "checkpoint_interval = 5\n");
+    let o = run(
+        &train_args(d, split.to_str().unwrap(), other.to_str().unwrap(), "95")
+            .into_iter()
+            .chain(["--resume"])
+            .collect::<Vec<_>>(),
+        &env,
+    );
+    assert!(!o.ok && o.stderr.contains("another configuration"), "{}", o.stderr);
+    let o = run(&train_args(d, split.to_str().unwrap(), c, "95"), &env);
+    assert!(!o.ok && o.stderr.contains("--resume"), "{}", o.stderr);
+}
+
+#[test]
+fn divergence_keeps_the_last_good_checkpoint() {
+    let data = small_nerf("nan", 6, |_| {});
+    let base = tmp("nan-out");
+    let cfg = config_file(&base, "checkpoint_interval = 10\ntest_interval = 0\n");
+    let out = base.join("run");
+    let o = run(
+        &train_args(data.to_str().unwrap(), out.to_str().unwrap(), cfg.to_str().unwrap(), "40"),
+        &[("INSTGS_FAULT_NAN_AT", "23")],
+    );
+    assert!(!o.ok, "a NaN went unnoticed");
+    assert!(o.stderr.contains("error:") && o.stderr.contains("last good"), "{}", o.stderr);
+    let (st, _) = read_checkpoint(&out.join("checkpoint.bin")).unwrap();
+    assert_eq!(st.iteration, 20);
+    st.check_finite().unwrap();
+    let mut f = std::fs::OpenOptions::new().append(true).open(out.join("checkpoint.bin")).unwrap();
+    f.write_all(b"x").unwrap();
+    let e = read_checkpoint(&out.join("checkpoint.bin")).err().unwrap().to_string();
+    assert!(e.contains("trailing"), "{e}");
+}
