@@ -2,7 +2,8 @@
 // One Adam step over a parameter buffer, exactly torch.optim.Adam's (non-fused) update:
 //   m = m + (1 - beta1)(g - m);  v = beta2 v + (1 - beta2) g^2
 //   param -= lr / (1 - beta1^t) * m / (sqrt(v) / sqrt(1 - beta2^t) + eps)
-// with lr_head for the first `head` of every `stride` parameters and lr_tail for the rest.
+// with lr_head for the first `head` of every `stride` parameters and lr_tail for the rest. One
+// invocation per Gaussian (a row of `stride` parameters): no integer modulo per element.
 #include "common.glsl"
 layout(local_size_x = WG_SIZE) in;
 layout(push_constant) uniform Push { AdamArgs a; } push;
@@ -12,14 +13,18 @@ layout(std430, binding = 2) buffer ExpAvgBuf { float v[]; } exp_avg;
 layout(std430, binding = 3) buffer ExpAvgSqBuf { float v[]; } exp_avg_sq;
 
 void main() {
-    for (uint i = gl_GlobalInvocationID.x; i < push.a.count; i += gl_NumWorkGroups.x * WG_SIZE) {
-        float g = grads.v[i];
-        float m = exp_avg.v[i];
-        m += (g - m) * (1.0 - push.a.beta1);
-        float v = push.a.beta2 * exp_avg_sq.v[i] + (1.0 - push.a.beta2) * g * g;
-        exp_avg.v[i] = m;
-        exp_avg_sq.v[i] = v;
-        float lr = i % push.a.stride < push.a.head ? push.a.lr_head : push.a.lr_tail;
-        params.v[i] -= lr * push.a.inv_bias1 * m / (sqrt(v) * push.a.inv_sqrt_bias2 + push.a.eps);
+    uint rows = push.a.count / push.a.stride;
+    for (uint g = gl_GlobalInvocationID.x; g < rows; g += gl_NumWorkGroups.x * WG_SIZE) {
+        for (uint k = 0; k < push.a.stride; k++) {
+            uint i = g * push.a.stride + k;
+            float grad = grads.v[i];
+            float m = exp_avg.v[i];
+            m += (grad - m) * (1.0 - push.a.beta1);
+            float v = push.a.beta2 * exp_avg_sq.v[i] + (1.0 - push.a.beta2) * grad * grad;
+            exp_avg.v[i] = m;
+            exp_avg_sq.v[i] = v;
+            float lr = k < push.a.head ? push.a.lr_head : push.a.lr_tail;
+            params.v[i] -= lr * push.a.inv_bias1 * m / (sqrt(v) * push.a.inv_sqrt_bias2 + push.a.eps);
+        }
     }
 }

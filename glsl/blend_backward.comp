@@ -90,6 +90,9 @@ void main() {
             vec2 xy = s_xy[j];
             vec4 co = s_conic[j];
             vec3 rgb = s_rgb[j];
+            // alpha >= 1/255 <=> power >= ln(1 / (255 o)) (unless clamped, which needs more):
+            // most pixels of a small splat fail this test before the exponential.
+            float min_power = log(1.0 / (255.0 * co.w));
             vec2 g_xy = vec2(0.0);
             vec3 g_conic = vec3(0.0);
             vec3 g_rgb = vec3(0.0);
@@ -98,9 +101,10 @@ void main() {
             for (uint r = 0; r < PIXELS_PER_THREAD; r++) {
                 vec2 d = xy - (vec2(px, py0 + r) + 0.5);
                 float power = -0.5 * (co.x * d.x * d.x + co.z * d.y * d.y) - co.y * d.x * d.y;
+                if (n > n_last[r] || power > 0.0 || power < min_power - 1e-4) continue;
                 float G = exp(power);
                 float alpha = min(0.99, co.w * G);
-                if (n > n_last[r] || power > 0.0 || alpha < 1.0 / 255.0) continue;
+                if (alpha < 1.0 / 255.0) continue;
                 hit = true;
                 T[r] /= 1.0 - alpha;
                 g_rgb += alpha * T[r] * v_pix[r];

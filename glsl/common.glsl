@@ -123,6 +123,9 @@ struct AdamArgs {
 // SSIM window: 11 x 11 Gaussian, sigma 1.5 (Wang et al. 2004; Inria's loss_utils.ssim), zero
 // padding at the image border as torch's conv2d with padding 5.
 #define SSIM_RADIUS 5
+// Each loss invocation filters a run of LOSS_RUN pixels along the filter direction, so every
+// input is loaded once per run instead of once per tap (loads dominate on lavapipe).
+#define LOSS_RUN 16
 // Planes of the SSIM intermediates: 5 window moments (x, y, x^2, y^2, xy) and 3 cotangents,
 // each per colour channel: plane (q * 3 + c) of width * height floats.
 #define SSIM_MOMENTS 5

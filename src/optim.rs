@@ -58,13 +58,15 @@ impl LossBufs {
 pub fn record_loss(rec: &mut Recorder, k: &Kernels, image: &Buffer, lb: &LossBufs, ssim_weight: f32) -> Result<()> {
     let px = lb.width * lb.height;
     let args = LossArgs { width: lb.width, height: lb.height, ssim_weight, inv_count: 1.0 / (3.0 * px as f32) };
-    let groups = [px.div_ceil(WG_SIZE), 1, 1];
+    let runs_h = lb.width.div_ceil(LOSS_RUN) * lb.height;
+    let runs_v = lb.height.div_ceil(LOSS_RUN) * lb.width;
+    let (groups_h, groups_v) = ([runs_h.div_ceil(WG_SIZE), 1, 1], [runs_v.div_ceil(WG_SIZE), 1, 1]);
     rec.fill(&lb.sums, 0);
     rec.dispatch(
         &k.loss_moments_h,
         &[("image", image), ("target", &lb.target), ("moments", &lb.moments)],
         &args,
-        groups,
+        groups_h,
     )?;
     rec.dispatch(
         &k.loss_ssim_v,
@@ -76,14 +78,14 @@ pub fn record_loss(rec: &mut Recorder, k: &Kernels, image: &Buffer, lb: &LossBuf
             ("loss", &lb.sums),
         ],
         &args,
-        groups,
+        groups_v,
     )?;
-    rec.dispatch(&k.loss_cotangents_h, &[("cotangents", &lb.cotangents), ("filtered", &lb.filtered)], &args, groups)?;
+    rec.dispatch(&k.loss_cotangents_h, &[("cotangents", &lb.cotangents), ("filtered", &lb.filtered)], &args, groups_h)?;
     rec.dispatch(
         &k.loss_grad_v,
         &[("image", image), ("target", &lb.target), ("filtered", &lb.filtered), ("v_image", &lb.v_image)],
         &args,
-        groups,
+        groups_v,
     )?;
     rec.end_pass("loss")
 }
@@ -193,7 +195,7 @@ pub fn record_adam(
             &k.adam,
             &[("params", params[i]), ("grads", gs[i]), ("exp_avg", &st.exp_avg[i]), ("exp_avg_sq", &st.exp_avg_sq[i])],
             &args,
-            [count.div_ceil(WG_SIZE).min(MAX_GROUPS), 1, 1],
+            [n.div_ceil(WG_SIZE).min(MAX_GROUPS), 1, 1],
         )?;
     }
     rec.end_pass("adam")
