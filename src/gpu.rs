@@ -282,7 +282,8 @@ impl Gpu {
     /// One line describing the device, for the CLI.
     pub fn describe(&self) -> String {
         let i = &self.info;
-        format!("{} [{}], subgroup size {}", i.name, i.kind, i.subgroup_size)
+        let atomics = if i.float_atomics { "float atomics" } else { "no float atomics (CAS fallback)" };
+        format!("{} [{}], subgroup size {}, {atomics}", i.name, i.kind, i.subgroup_size)
     }
 
     /// Validation messages collected since the last call.

@@ -232,8 +232,8 @@ fn forward(pr: &Proj, g: &Gaussian, sh_degree: u32) -> Fwd {
     let (basis, dbasis) = sh_basis_grad(dir, sh_degree);
     let nb = ((sh_degree + 1) * (sh_degree + 1)) as usize;
     let mut rgb = DVec3::ZERO;
-    for k in 0..nb {
-        rgb += basis[k] * DVec3::new(g.sh[3 * k], g.sh[3 * k + 1], g.sh[3 * k + 2]);
+    for (k, b) in basis.iter().enumerate().take(nb) {
+        rgb += *b * DVec3::new(g.sh[3 * k], g.sh[3 * k + 1], g.sh[3 * k + 2]);
     }
     Fwd {
         t,

@@ -269,7 +269,7 @@ fn eval(
     if let Some(dir) = out {
         std::fs::create_dir_all(dir).with_context(|| format!("{}: cannot create", dir.display()))?;
     }
-    let (psnr, ssim, per) = instgs_vk::train::evaluate(&mut r, &gs, views, background, |v, f| {
+    let e = instgs_vk::train::evaluate(&mut r, &gs, views, background, |v, f| {
         let Some(dir) = out else { return Ok(()) };
         let (w, h) = (f.width as usize, f.height as usize);
         save_png(&dir.join(format!("{}.png", v.camera.name)), f.width, f.height, &f.image)?;
@@ -286,21 +286,22 @@ fn eval(
         save_png(&dir.join(format!("{}_compare.png", v.camera.name)), 3 * f.width, f.height, &cmp)
     })?;
     if json {
-        let views: Vec<_> = per.iter().map(|(n, p, s)| serde_json::json!({"name": n, "psnr": p, "ssim": s})).collect();
+        let views: Vec<_> =
+            e.views.iter().map(|v| serde_json::json!({"name": v.name, "psnr": v.psnr, "ssim": v.ssim})).collect();
         let v = serde_json::json!({
             "scene": scene_path.display().to_string(),
             "data": data.data.display().to_string(),
             "split": split,
-            "psnr_mean": psnr,
-            "ssim_mean": ssim,
+            "psnr_mean": e.psnr,
+            "ssim_mean": e.ssim,
             "views": views,
         });
         println!("{}", serde_json::to_string_pretty(&v)?);
     } else {
-        for (n, p, s) in &per {
-            println!("{n:<24} PSNR {p:7.3} dB  SSIM {s:.4}");
+        for v in &e.views {
+            println!("{:<24} PSNR {:7.3} dB  SSIM {:.4}", v.name, v.psnr, v.ssim);
         }
-        println!("{:<24} PSNR {psnr:7.3} dB  SSIM {ssim:.4}  ({} views)", "mean", per.len());
+        println!("{:<24} PSNR {:7.3} dB  SSIM {:.4}  ({} views)", "mean", e.psnr, e.ssim, e.views.len());
     }
     Ok(())
 }

@@ -416,27 +416,48 @@ impl Trainer {
     }
 }
 
-/// Mean PSNR and SSIM of `views` rendered from `scene`, and per view (name, PSNR, SSIM).
+/// PSNR and SSIM of one view.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ViewScore {
+    pub name: String,
+    pub psnr: f64,
+    pub ssim: f64,
+}
+
+/// Mean PSNR and SSIM over views, and each view's.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Evaluation {
+    pub psnr: f64,
+    pub ssim: f64,
+    pub views: Vec<ViewScore>,
+}
+
+/// Renders `views` from `scene` and scores them against their images; `each` sees every
+/// rendered frame (for writing pictures).
 pub fn evaluate(
     raster: &mut Rasterizer,
     scene: &GpuScene,
     views: &[View],
     background: [f32; 3],
     mut each: impl FnMut(&View, &crate::raster::Frame) -> Result<()>,
-) -> Result<(f64, f64, Vec<(String, f64, f64)>)> {
+) -> Result<Evaluation> {
     let mut per = Vec::new();
     for v in views {
         let f = raster.render(scene, &v.camera, background)?;
         let (w, h) = (v.camera.width as usize, v.camera.height as usize);
         let a: Vec<[f64; 3]> = f.image.iter().map(|p| [0, 1, 2].map(|c| p[c].clamp(0.0, 1.0) as f64)).collect();
         let b: Vec<[f64; 3]> = v.image.iter().map(|p| [p[0] as f64, p[1] as f64, p[2] as f64]).collect();
-        per.push((v.camera.name.clone(), crate::util::psnr(&f.image, &v.image), crate::grad::ssim(&a, &b, w, h)));
+        per.push(ViewScore {
+            name: v.camera.name.clone(),
+            psnr: crate::util::psnr(&f.image, &v.image),
+            ssim: crate::grad::ssim(&a, &b, w, h),
+        });
         each(v, &f)?;
     }
     let n = per.len().max(1) as f64;
-    let psnr = per.iter().map(|p| p.1).sum::<f64>() / n;
-    let ssim = per.iter().map(|p| p.2).sum::<f64>() / n;
-    Ok((psnr, ssim, per))
+    let psnr = per.iter().map(|p| p.psnr).sum::<f64>() / n;
+    let ssim = per.iter().map(|p| p.ssim).sum::<f64>() / n;
+    Ok(Evaluation { psnr, ssim, views: per })
 }
 
 /// The training view of iteration `it` (from 1): every epoch visits each view once, in an order
@@ -768,10 +789,10 @@ pub fn run(gpu: &Arc<Gpu>, k: &Arc<Kernels>, ds: &Dataset, cfg: &Config, opts: &
         };
         let final_it = it == cfg.iterations;
         if !ds.test.is_empty() && ((cfg.test_interval > 0 && it % cfg.test_interval == 0) || final_it) {
-            let (p, s, _) = evaluate(&mut trainer.raster, &trainer.scene, &ds.test, cfg.background, |_, _| Ok(()))?;
-            row.test_psnr = Some(p);
-            row.test_ssim = Some(s);
-            test = Some((p, s));
+            let e = evaluate(&mut trainer.raster, &trainer.scene, &ds.test, cfg.background, |_, _| Ok(()))?;
+            row.test_psnr = Some(e.psnr);
+            row.test_ssim = Some(e.ssim);
+            test = Some((e.psnr, e.ssim));
         }
         rows.push(row);
         if (cfg.checkpoint_interval > 0 && it % cfg.checkpoint_interval == 0) || final_it {
