@@ -18,7 +18,7 @@
 #extension GL_KHR_shader_subgroup_vote : require
 layout(constant_id = 1) const uint PIXELS_PER_THREAD = 1;
 layout(local_size_x = TILE_SIZE, local_size_y_id = 2) in;
-layout(std140, binding = 0) uniform FrameBuf { FrameParams p; } frame;
+layout(std430, binding = 0) readonly buffer FrameBuf { FrameParams p; } frame;
 layout(std430, binding = 1) readonly buffer RangesBuf { uvec2 v[]; } ranges;
 layout(std430, binding = 2) readonly buffer IsectIdsBuf { uint v[]; } isect_ids;
 layout(std430, binding = 3) readonly buffer XysBuf { vec2 v[]; } xys;

@@ -5,7 +5,7 @@
 #include "common.glsl"
 #include "tiles.glsl"
 layout(local_size_x = WG_SIZE) in;
-layout(std140, binding = 0) uniform FrameBuf { FrameParams p; } frame;
+layout(std430, binding = 0) readonly buffer FrameBuf { FrameParams p; } frame;
 layout(std430, binding = 1) readonly buffer CountsBuf { uint v[]; } counts;
 layout(std430, binding = 2) readonly buffer DepthIdsBuf { uint v[]; } depth_ids;
 layout(std430, binding = 3) readonly buffer IsectOffsetsBuf { uint v[]; } isect_offsets;

@@ -13,7 +13,7 @@
 #include "sh.glsl"
 #include "tiles.glsl"
 layout(local_size_x = WG_SIZE) in;
-layout(std140, binding = 0) uniform FrameBuf { FrameParams p; } frame;
+layout(std430, binding = 0) readonly buffer FrameBuf { FrameParams p; } frame;
 layout(std430, binding = 1) readonly buffer MeansBuf { float v[]; } means;
 layout(std430, binding = 2) readonly buffer ScalesBuf { float v[]; } scales;
 layout(std430, binding = 3) readonly buffer QuatsBuf { vec4 v[]; } quats;

@@ -193,7 +193,7 @@ impl Rasterizer {
             frame_ub: gpu.buffer(
                 "frame",
                 std::mem::size_of::<FrameParams>() as u64,
-                ash::vk::BufferUsageFlags::UNIFORM_BUFFER,
+                ash::vk::BufferUsageFlags::STORAGE_BUFFER,
                 MemoryLocation::CpuToGpu,
             )?,
             counts: Counts::new(gpu)?,
