@@ -93,12 +93,19 @@ void main() {
             // alpha >= 1/255 <=> power >= ln(1 / (255 o)) (unless clamped, which needs more):
             // most pixels of a small splat fail this test before the exponential.
             float min_power = log(1.0 / (255.0 * co.w));
+            // Rows of this invocation's column that the splat's alpha >= 1/255 ellipse can reach:
+            // |dy| <= sqrt(2 ln(255 o) Sigma_yy), Sigma_yy = a / (a c - b^2) for conic (a, b, c).
+            // The bound is the same for every invocation, so the row test below is a uniform
+            // branch that skips work for real (lavapipe runs divergent code for all lanes).
+            float ry = sqrt(max(-2.0 * min_power, 0.0) * co.x / max(co.x * co.z - co.y * co.y, 1e-30)) + 1.0;
+            float row0 = float(PIXELS_PER_THREAD == TILE_SIZE ? gl_WorkGroupID.y * TILE_SIZE : py0) + 0.5;
             vec2 g_xy = vec2(0.0);
             vec3 g_conic = vec3(0.0);
             vec3 g_rgb = vec3(0.0);
             float g_op = 0.0;
             bool hit = false;
             for (uint r = 0; r < PIXELS_PER_THREAD; r++) {
+                if (abs(row0 + float(r) - xy.y) > ry) continue;
                 vec2 d = xy - (vec2(px, py0 + r) + 0.5);
                 float power = -0.5 * (co.x * d.x * d.x + co.z * d.y * d.y) - co.y * d.x * d.y;
                 if (n > n_last[r] || power > 0.0 || power < min_power - 1e-4) continue;
