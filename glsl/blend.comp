@@ -63,6 +63,7 @@ void main() {
     }
     uvec2 range = ranges.v[tile];
     uint t = gl_LocalInvocationIndex;
+    float row0 = float(PIXELS_PER_THREAD == TILE_SIZE ? gl_WorkGroupID.y * TILE_SIZE : py0) + 0.5;
     for (uint start = range.x; start < range.y; start += BATCH) {
         if (t == 0) s_done = 0;
         barrier();
@@ -81,9 +82,13 @@ void main() {
             vec2 xy = s_xy[j];
             vec4 co = s_conic[j];
             vec3 rgb = s_rgb[j];
+            // Rows the splat's alpha >= 1/255 ellipse can reach (|dy| <= sqrt(2 ln(255 o)
+            // Sigma_yy), plus a pixel): a workgroup-uniform test on CPU devices, where lavapipe
+            // then really skips the other rows (a per-lane test would not: lanes run in lock step).
+            float ry = sqrt(max(2.0 * log(255.0 * co.w), 0.0) * co.x / max(co.x * co.z - co.y * co.y, 1e-30)) + 1.0;
             thread_done = true;
             for (uint r = 0; r < PIXELS_PER_THREAD; r++) {
-                if (!done[r]) {
+                if (!done[r] && abs(row0 + float(r) - xy.y) <= ry) {
                     vec2 pixf = vec2(px, py0 + r) + 0.5;
                     done[r] = !blend_splat(xy, co, rgb, pixf, start - range.x + j + 1, T[r], C[r], n_last[r]);
                 }
