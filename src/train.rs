@@ -33,6 +33,19 @@ fn strides(sh_degree: u32) -> [usize; 5] {
     [3, 3, 4, 1, 3 * ((sh_degree + 1) * (sh_degree + 1)) as usize]
 }
 
+/// A scene from its five flat parameter arrays (means, scales, quats, opacities, sh).
+fn scene_from_params(p: [Vec<f32>; 5], sh_degree: u32) -> Scene {
+    let [means, scales, quats, opacities, sh] = p;
+    Scene {
+        means: bytemuck::pod_collect_to_vec(&means),
+        scales: bytemuck::pod_collect_to_vec(&scales),
+        quats: bytemuck::pod_collect_to_vec(&quats),
+        opacities,
+        sh,
+        sh_degree,
+    }
+}
+
 fn logit(p: f32) -> f32 {
     (p / (1.0 - p)).ln()
 }
@@ -119,18 +132,10 @@ impl TrainState {
                 }
             }
         }
-        let [means, scales, quats, opacities, sh] = p;
         TrainState {
             iteration: self.iteration,
             active_sh_degree: self.active_sh_degree,
-            scene: Scene {
-                means: bytemuck::cast_slice(&means).to_vec(),
-                scales: bytemuck::cast_slice(&scales).to_vec(),
-                quats: bytemuck::cast_slice(&quats).to_vec(),
-                opacities,
-                sh,
-                sh_degree: self.scene.sh_degree,
-            },
+            scene: scene_from_params(p, self.scene.sh_degree),
             exp_avg: m,
             exp_avg_sq: v,
             grad2d_accum: rows.iter().map(|&(i, _)| self.grad2d_accum[i]).collect(),
@@ -359,18 +364,10 @@ impl Trainer {
         let m: Vec<Vec<f32>> = (0..5).map(|k| read(&self.adam.exp_avg[k], n * st[k])).collect::<Result<_>>()?;
         let v: Vec<Vec<f32>> = (0..5).map(|k| read(&self.adam.exp_avg_sq[k], n * st[k])).collect::<Result<_>>()?;
         let to5 = |v: Vec<Vec<f32>>| -> [Vec<f32>; 5] { v.try_into().unwrap() };
-        let [means, scales, quats, opacities, sh] = to5(params);
         Ok(TrainState {
             iteration,
             active_sh_degree: self.scene.active_sh_degree,
-            scene: Scene {
-                means: bytemuck::cast_slice(&means).to_vec(),
-                scales: bytemuck::cast_slice(&scales).to_vec(),
-                quats: bytemuck::cast_slice(&quats).to_vec(),
-                opacities,
-                sh,
-                sh_degree: self.scene.sh_degree,
-            },
+            scene: scene_from_params(to5(params), self.scene.sh_degree),
             exp_avg: to5(m),
             exp_avg_sq: to5(v),
             grad2d_accum: read(&self.grads.grad2d_accum, n)?,
@@ -504,10 +501,8 @@ pub fn write_checkpoint(path: &Path, st: &TrainState, cfg: &Config) -> Result<()
         w.write_all(&VERSION.to_le_bytes())?;
         w.write_all(&(header.len() as u64).to_le_bytes())?;
         w.write_all(&header)?;
-        for arr in st.params().iter().chain(st.exp_avg.iter().map(|v| &v[..]).collect::<Vec<_>>().iter()) {
-            w.write_all(bytemuck::cast_slice(arr))?;
-        }
-        for arr in &st.exp_avg_sq {
+        let moments = st.exp_avg.iter().chain(&st.exp_avg_sq).map(|v| &v[..]);
+        for arr in st.params().into_iter().chain(moments) {
             w.write_all(bytemuck::cast_slice(arr))?;
         }
         w.write_all(bytemuck::cast_slice(&st.grad2d_accum))?;
@@ -556,18 +551,10 @@ pub fn read_checkpoint(path: &Path) -> Result<(TrainState, Config)> {
         bail!("{what}: checkpoint has {} trailing bytes", data.len() - pos);
     }
     let to5 = |v: Vec<Vec<f32>>| -> [Vec<f32>; 5] { v.try_into().unwrap() };
-    let [means, scales, quats, opacities, sh] = to5(params);
     let state = TrainState {
         iteration: header.iteration,
         active_sh_degree: header.active_sh_degree,
-        scene: Scene {
-            means: bytemuck::pod_collect_to_vec(&means),
-            scales: bytemuck::pod_collect_to_vec(&scales),
-            quats: bytemuck::pod_collect_to_vec(&quats),
-            opacities,
-            sh,
-            sh_degree: header.sh_degree,
-        },
+        scene: scene_from_params(to5(params), header.sh_degree),
         exp_avg: to5(m),
         exp_avg_sq: to5(v),
         grad2d_accum: accum,
