@@ -477,28 +477,22 @@ pub fn ssim_window() -> [f64; 11] {
 
 /// Separable zero-padded Gaussian filter of one plane (w × h, row-major).
 pub fn gauss_filter(src: &[f64], w: usize, h: usize) -> Vec<f64> {
+    filter_axis(&filter_axis(src, w, h, true), w, h, false)
+}
+
+/// The 11-tap window along x (`horizontal`) or y, zero outside the plane.
+fn filter_axis(src: &[f64], w: usize, h: usize, horizontal: bool) -> Vec<f64> {
     let win = ssim_window();
-    let mut tmp = vec![0.0; w * h];
-    for y in 0..h {
-        for x in 0..w {
-            let mut acc = 0.0;
-            for (k, wk) in win.iter().enumerate() {
-                let xx = x as i64 + k as i64 - 5;
-                if (0..w as i64).contains(&xx) {
-                    acc += wk * src[y * w + xx as usize];
-                }
-            }
-            tmp[y * w + x] = acc;
-        }
-    }
     let mut out = vec![0.0; w * h];
     for y in 0..h {
         for x in 0..w {
+            let (pos, len) = if horizontal { (x, w) } else { (y, h) };
             let mut acc = 0.0;
             for (k, wk) in win.iter().enumerate() {
-                let yy = y as i64 + k as i64 - 5;
-                if (0..h as i64).contains(&yy) {
-                    acc += wk * tmp[yy as usize * w + x];
+                let q = pos as i64 + k as i64 - 5;
+                if (0..len as i64).contains(&q) {
+                    let q = q as usize;
+                    acc += wk * if horizontal { src[y * w + q] } else { src[q * w + x] };
                 }
             }
             out[y * w + x] = acc;
