@@ -61,14 +61,41 @@ struct FrameParams {
     uint height; // image height in pixels
     uint tiles_x; // ceil(width / TILE_SIZE)
     uint tiles_y; // ceil(height / TILE_SIZE)
-    uint num_gaussians; // N
+    uint num_gaussians; // N splats: background Gaussians, then every (template Gaussian, instance) pair
     uint sh_degree; // SH degree evaluated (0..3)
     uint sh_coeffs; // SH coefficients stored per Gaussian and channel ((degree+1)^2 of the scene)
     uint isect_capacity; // length of the intersection buffers
     float near_plane; // Gaussians with camera z <= near_plane are culled
     float far_plane; // and with z > far_plane
+    uint num_background; // splats [0, num_background) are plain Gaussians (parameter row = splat)
+    uint num_groups; // instanced groups in the `groups` buffer (0 for a plain scene)
+    uint num_rows; // parameter rows: background Gaussians, then every group's template Gaussians
     uint _pad0;
     uint _pad1;
+    uint _pad2;
+};
+
+/// One instanced group (paper section 5.3: groups concatenated with start/length tables). Its
+/// splats are [splat_first, splat_first + rows * instances), instance-major: splat
+/// splat_first + k * rows + j is template Gaussian j (parameter row row_first + j) placed by
+/// instance k (transform instance_first + k); its offsets live at pair index
+/// splat - num_background of the offset buffers.
+struct GroupInfo {
+    uint splat_first;
+    uint row_first;
+    uint rows; // template Gaussians
+    uint instances; // K
+    uint instance_first;
+    uint _pad0;
+    uint _pad1;
+    uint _pad2;
+};
+
+/// An instance's template -> world similarity p_world = s R p_template + t (then + offset).
+struct InstanceXform {
+    mat4 transform; // [s R | t], column-major
+    vec4 quat; // R as a unit (w, x, y, z) quaternion; Gaussian rotations become quat * q
+    vec4 scale; // s, ln s, 0, 0; Gaussian log-scales gain ln s
 };
 
 /// Push constants of the generic scan kernels.

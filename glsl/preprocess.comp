@@ -9,6 +9,7 @@
 // e sqrt(Sigma_yy) in y (the ellipse's bounding box, as brush does). The radii are per axis,
 // ceil(min(R, e sqrt(Sigma_xx))) and ceil(min(R, e sqrt(Sigma_yy))): blend skips alpha < 1/255,
 // so the image is Inria's with fewer empty intersections. Splats with o < 1/255 are culled.
+// Instanced splats are expanded first (instance.glsl); nothing expanded is stored.
 #include "common.glsl"
 #include "sh.glsl"
 #include "tiles.glsl"
@@ -25,6 +26,8 @@ layout(std430, binding = 8) writeonly buffer ColorsBuf { vec4 v[]; } colors;
 layout(std430, binding = 9) writeonly buffer DepthsBuf { float v[]; } depths;
 layout(std430, binding = 10) writeonly buffer RadiiBuf { uvec2 v[]; } radii;
 layout(std430, binding = 11) writeonly buffer TilesTouchedBuf { uint v[]; } tiles_touched;
+#define INSTANCE_BINDING 12
+#include "instance.glsl"
 
 // Later passes read nothing else of a culled Gaussian.
 void cull(uint i) {
@@ -33,19 +36,16 @@ void cull(uint i) {
 }
 
 void preprocess(uint i) {
-    vec3 p = vec3(means.v[3 * i], means.v[3 * i + 1], means.v[3 * i + 2]);
+    SplatRef ref = splat_ref(i);
+    Expanded e = expand(ref);
+    vec3 p = e.mean;
     vec3 t = (frame.p.viewmat * vec4(p, 1.0)).xyz;
     if (t.z <= frame.p.near_plane || t.z > frame.p.far_plane) {
         cull(i);
         return;
     }
-    vec4 q = quats.v[i];
-    q /= length(q);
-    float w = q.x, x = q.y, y = q.z, z = q.w;
-    mat3 R = mat3(1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y + w * z), 2.0 * (x * z - w * y),
-                  2.0 * (x * y - w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z + w * x),
-                  2.0 * (x * z + w * y), 2.0 * (y * z - w * x), 1.0 - 2.0 * (x * x + y * y));
-    vec3 s = exp(vec3(scales.v[3 * i], scales.v[3 * i + 1], scales.v[3 * i + 2]));
+    mat3 R = quat_to_mat(e.quat / length(e.quat));
+    vec3 s = exp(e.log_scale);
     mat3 M = R * mat3(s.x, 0, 0, 0, s.y, 0, 0, 0, s.z);
     mat3 W = mat3(frame.p.viewmat);
     mat3 V = W * (M * transpose(M)) * transpose(W);
@@ -77,7 +77,7 @@ void preprocess(uint i) {
     }
     float inv_det = 1.0 / det;
     vec3 conic = vec3(c * inv_det, -b * inv_det, a * inv_det);
-    float opacity = 1.0 / (1.0 + exp(-opacities.v[i]));
+    float opacity = 1.0 / (1.0 + exp(-e.logit));
     if (opacity < 1.0 / 255.0) {
         cull(i);
         return;
@@ -97,12 +97,13 @@ void preprocess(uint i) {
         return;
     }
 
-    vec3 dir = normalize(p - frame.p.campos.xyz);
+    // SH in template space: direction R^T d.
+    vec3 dir = transpose(e.rot) * normalize(p - frame.p.campos.xyz);
     float basis[16];
     sh_basis(dir, frame.p.sh_degree, basis);
     uint nb = (frame.p.sh_degree + 1) * (frame.p.sh_degree + 1);
-    vec3 rgb = vec3(0.0);
-    uint off = i * frame.p.sh_coeffs * 3;
+    vec3 rgb = basis[0] * e.dc;
+    uint off = ref.row * frame.p.sh_coeffs * 3;
     for (uint k = 0; k < nb; k++) {
         rgb += basis[k] * vec3(sh.v[off + 3 * k], sh.v[off + 3 * k + 1], sh.v[off + 3 * k + 2]);
     }

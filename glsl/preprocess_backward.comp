@@ -1,13 +1,19 @@
 #version 450
-// Backward of `preprocess`, one invocation per Gaussian: from the gradients with respect to the
-// projected splat (v_xys, v_conics, v_colors, v_opacities, written by blend_backward) to the
-// gradients of the scene parameters: grad_means, grad_scales (log), grad_quats (raw, before
+// Backward of `preprocess`, one invocation per parameter row: from the gradients with respect to
+// the projected splats (v_xys, v_conics, v_colors, v_opacities, written by blend_backward) to
+// the gradients of the scene parameters: grad_means, grad_scales (log), grad_quats (raw, before
 // normalisation), grad_opacities (logit) and grad_sh (every stored coefficient; zero above the
-// evaluated degree). Culled Gaussians get zero gradients. Maths as Inria's backward.cu and
-// gsplat's VJPs, except that the Jacobian clamp is differentiated exactly (a clamped x/z passes
-// no gradient to t.x, and d/dz follows the clamped value) and the SH colour passes gradient to
-// the mean through the view direction.
-// Densification statistics of visible Gaussians: grad2d_accum += |v_xy| in Inria's NDC units
+// evaluated degree). Culled splats pass no gradient. Maths as Inria's backward.cu and gsplat's
+// VJPs, except that the Jacobian clamp is differentiated exactly (a clamped x/z passes no
+// gradient to t.x, and d/dz follows the clamped value) and the SH colour passes gradient to the
+// mean through the view direction.
+// Instancing (paper Eq. 7-9): a template row loops over its group's K instances, computes each
+// expanded splat's gradient g_ik, writes the offset gradients 1:1 (grad_d_means = dL/dmean,
+// grad_d_sh0 = dL/dDC, grad_d_opacities = dL/dlogit, which includes the sigmoid's derivative)
+// and sums J_k^T g_ik into the template's gradient in registers: means s R^T, log-scales 1,
+// quaternions q_T^-1 * (the transpose of left multiplication by the unit q_T), logit 1, SH 1
+// (the direction is already in template space). No atomics: a row owns its sums.
+// Densification statistics of visible splats: grad2d_accum += |v_xy| in Inria's NDC units
 // (pixels scaled by width/2, height/2), grad2d_count += 1, max_radii = max(max_radii, radius).
 #include "common.glsl"
 #include "sh.glsl"
@@ -28,41 +34,32 @@ layout(std430, binding = 12) writeonly buffer GradMeansBuf { float v[]; } grad_m
 layout(std430, binding = 13) writeonly buffer GradScalesBuf { float v[]; } grad_scales;
 layout(std430, binding = 14) writeonly buffer GradQuatsBuf { vec4 v[]; } grad_quats;
 layout(std430, binding = 15) writeonly buffer GradOpacitiesBuf { float v[]; } grad_opacities;
-layout(std430, binding = 16) writeonly buffer GradShBuf { float v[]; } grad_sh;
+layout(std430, binding = 16) buffer GradShBuf { float v[]; } grad_sh;
 layout(std430, binding = 17) buffer Grad2dAccumBuf { float v[]; } grad2d_accum;
 layout(std430, binding = 18) buffer Grad2dCountBuf { uint v[]; } grad2d_count;
 layout(std430, binding = 19) buffer MaxRadiiBuf { uint v[]; } max_radii;
+layout(std430, binding = 20) writeonly buffer GradDMeansBuf { float v[]; } grad_d_means;
+layout(std430, binding = 21) writeonly buffer GradDSh0Buf { float v[]; } grad_d_sh0;
+layout(std430, binding = 22) writeonly buffer GradDOpacitiesBuf { float v[]; } grad_d_opacities;
+#define INSTANCE_BINDING 23
+#include "instance.glsl"
 
-void write_grads(uint i, vec3 gm, vec3 gs, vec4 gq, float go) {
-    grad_means.v[3 * i] = gm.x;
-    grad_means.v[3 * i + 1] = gm.y;
-    grad_means.v[3 * i + 2] = gm.z;
-    grad_scales.v[3 * i] = gs.x;
-    grad_scales.v[3 * i + 1] = gs.y;
-    grad_scales.v[3 * i + 2] = gs.z;
-    grad_quats.v[i] = gq;
-    grad_opacities.v[i] = go;
-}
-
-void backward(uint i) {
+// Gradient of one expanded splat i (row, expansion e) with respect to its expanded parameters;
+// dL/dSH (every evaluated coefficient) is added to the row's grad_sh. Returns false when culled.
+bool splat_backward(uint i, uint row, Expanded e, out vec3 v_p, out vec3 v_ls, out vec4 v_q, out float v_logit,
+                    out vec3 v_dc) {
+    if (tiles_touched.v[i] == 0) return false;
     uint coeffs = frame.p.sh_coeffs;
-    uint off = i * coeffs * 3;
-    if (tiles_touched.v[i] == 0) {
-        write_grads(i, vec3(0.0), vec3(0.0), vec4(0.0), 0.0);
-        for (uint k = 0; k < 3 * coeffs; k++) grad_sh.v[off + k] = 0.0;
-        return;
-    }
-    vec3 p = vec3(means.v[3 * i], means.v[3 * i + 1], means.v[3 * i + 2]);
+    uint off = row * coeffs * 3;
+    vec3 p = e.mean;
     mat3 W = mat3(frame.p.viewmat);
     vec3 t = (frame.p.viewmat * vec4(p, 1.0)).xyz;
-    vec4 q_raw = quats.v[i];
+    vec4 q_raw = e.quat;
     float q_len = length(q_raw);
     vec4 q = q_raw / q_len;
     float w = q.x, x = q.y, y = q.z, z = q.w;
-    mat3 R = mat3(1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y + w * z), 2.0 * (x * z - w * y),
-                  2.0 * (x * y - w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z + w * x),
-                  2.0 * (x * z + w * y), 2.0 * (y * z - w * x), 1.0 - 2.0 * (x * x + y * y));
-    vec3 s = exp(vec3(scales.v[3 * i], scales.v[3 * i + 1], scales.v[3 * i + 2]));
+    mat3 R = quat_to_mat(q);
+    vec3 s = exp(e.log_scale);
     mat3 M = R * mat3(s.x, 0, 0, 0, s.y, 0, 0, 0, s.z);
     mat3 V = W * (M * transpose(M)) * transpose(W);
 
@@ -123,52 +120,116 @@ void backward(uint i) {
     float g00 = v_R[0][0], g01 = v_R[1][0], g02 = v_R[2][0];
     float g10 = v_R[0][1], g11 = v_R[1][1], g12 = v_R[2][1];
     float g20 = v_R[0][2], g21 = v_R[1][2], g22 = v_R[2][2];
-    vec4 v_q = 2.0 * vec4(-z * g01 + y * g02 + z * g10 - x * g12 - y * g20 + x * g21,
-                          y * g01 + z * g02 + y * g10 - 2.0 * x * g11 - w * g12 + z * g20 + w * g21 - 2.0 * x * g22,
-                          -2.0 * y * g00 + x * g01 + w * g02 + x * g10 + z * g12 - w * g20 + z * g21 - 2.0 * y * g22,
-                          -2.0 * z * g00 - w * g01 + x * g02 + w * g10 - 2.0 * z * g11 + y * g12 + x * g20 + y * g21);
+    v_q = 2.0 * vec4(-z * g01 + y * g02 + z * g10 - x * g12 - y * g20 + x * g21,
+                     y * g01 + z * g02 + y * g10 - 2.0 * x * g11 - w * g12 + z * g20 + w * g21 - 2.0 * x * g22,
+                     -2.0 * y * g00 + x * g01 + w * g02 + x * g10 + z * g12 - w * g20 + z * g21 - 2.0 * y * g22,
+                     -2.0 * z * g00 - w * g01 + x * g02 + w * g10 - 2.0 * z * g11 + y * g12 + x * g20 + y * g21);
     v_q = (v_q - q * dot(q, v_q)) / q_len;
 
-    // Colour: rgb = max(SH(dir) + 0.5, 0), dir = normalize(p - campos).
+    // Colour: rgb = max(SH(R^T dir) + 0.5, 0), dir = normalize(p - campos); DC + offset.
     vec3 dv = p - frame.p.campos.xyz;
     float dv_len = length(dv);
     vec3 dir = dv / dv_len;
+    vec3 dir_t = transpose(e.rot) * dir;
     float basis[16];
     vec3 dbasis[16];
-    sh_basis(dir, frame.p.sh_degree, basis);
-    sh_basis_grad(dir, frame.p.sh_degree, dbasis);
+    sh_basis(dir_t, frame.p.sh_degree, basis);
+    sh_basis_grad(dir_t, frame.p.sh_degree, dbasis);
     uint nb = (frame.p.sh_degree + 1) * (frame.p.sh_degree + 1);
-    vec3 rgb = vec3(0.0);
+    vec3 rgb = basis[0] * e.dc;
     for (uint k = 0; k < nb; k++) {
         rgb += basis[k] * vec3(sh.v[off + 3 * k], sh.v[off + 3 * k + 1], sh.v[off + 3 * k + 2]);
     }
     rgb += 0.5;
     vec3 v_rgb = vec3(v_colors.v[3 * i], v_colors.v[3 * i + 1], v_colors.v[3 * i + 2]);
     v_rgb *= vec3(greaterThan(rgb, vec3(0.0)));
-    vec3 v_dir = vec3(0.0);
-    for (uint k = 0; k < coeffs; k++) {
-        vec3 g = k < nb ? basis[k] * v_rgb : vec3(0.0);
-        grad_sh.v[off + 3 * k] = g.x;
-        grad_sh.v[off + 3 * k + 1] = g.y;
-        grad_sh.v[off + 3 * k + 2] = g.z;
-        if (k < nb) {
-            vec3 c_k = vec3(sh.v[off + 3 * k], sh.v[off + 3 * k + 1], sh.v[off + 3 * k + 2]);
-            v_dir += dot(c_k, v_rgb) * dbasis[k];
-        }
+    vec3 v_dir_t = vec3(0.0);
+    for (uint k = 0; k < nb; k++) {
+        vec3 g = basis[k] * v_rgb;
+        grad_sh.v[off + 3 * k] += g.x;
+        grad_sh.v[off + 3 * k + 1] += g.y;
+        grad_sh.v[off + 3 * k + 2] += g.z;
+        vec3 c_k = vec3(sh.v[off + 3 * k], sh.v[off + 3 * k + 1], sh.v[off + 3 * k + 2]);
+        v_dir_t += dot(c_k, v_rgb) * dbasis[k];
     }
-    vec3 v_p = transpose(W) * v_t + (v_dir - dir * dot(dir, v_dir)) / dv_len;
-
-    float o = 1.0 / (1.0 + exp(-opacities.v[i]));
-    write_grads(i, v_p, v_s * s, v_q, v_opacities.v[i] * o * (1.0 - o));
+    vec3 v_dir = e.rot * v_dir_t;
+    v_p = transpose(W) * v_t + (v_dir - dir * dot(dir, v_dir)) / dv_len;
+    v_ls = v_s * s;
+    v_dc = basis[0] * v_rgb;
+    float o = 1.0 / (1.0 + exp(-e.logit));
+    v_logit = v_opacities.v[i] * o * (1.0 - o);
 
     grad2d_accum.v[i] += length(vxy * vec2(0.5 * float(frame.p.width), 0.5 * float(frame.p.height)));
     grad2d_count.v[i] += 1;
     uvec2 rad = radii.v[i];
     max_radii.v[i] = max(max_radii.v[i], max(rad.x, rad.y));
+    return true;
+}
+
+// Row r: a background Gaussian (one splat) or a template Gaussian (K splats).
+void backward(uint r) {
+    uint coeffs = frame.p.sh_coeffs;
+    for (uint k = 0; k < 3 * coeffs; k++) grad_sh.v[r * coeffs * 3 + k] = 0.0;
+    vec3 gm = vec3(0.0), gs = vec3(0.0);
+    vec4 gq = vec4(0.0);
+    float go = 0.0;
+    uint first = r, count = 1, stride = 0;
+    if (r >= frame.p.num_background) {
+        uint g = 0;
+        while (g + 1 < frame.p.num_groups && r >= groups.v[g + 1].row_first) g++;
+        uint j = r - groups.v[g].row_first;
+        first = groups.v[g].splat_first + j;
+        count = groups.v[g].instances;
+        stride = groups.v[g].rows;
+    }
+    for (uint k = 0; k < count; k++) {
+        uint i = first + k * stride;
+        SplatRef ref = splat_ref(i);
+        Expanded e = expand(ref);
+        vec3 v_p, v_ls, v_dc;
+        vec4 v_q;
+        float v_logit;
+        bool seen = splat_backward(i, r, e, v_p, v_ls, v_q, v_logit, v_dc);
+        if (!seen) {
+            v_p = vec3(0.0);
+            v_ls = vec3(0.0);
+            v_q = vec4(0.0);
+            v_logit = 0.0;
+            v_dc = vec3(0.0);
+        }
+        if (ref.pair == NO_SLOT) {
+            gm = v_p;
+            gs = v_ls;
+            gq = v_q;
+            go = v_logit;
+        } else {
+            uint p = ref.pair;
+            grad_d_means.v[3 * p] = v_p.x;
+            grad_d_means.v[3 * p + 1] = v_p.y;
+            grad_d_means.v[3 * p + 2] = v_p.z;
+            grad_d_sh0.v[3 * p] = v_dc.x;
+            grad_d_sh0.v[3 * p + 1] = v_dc.y;
+            grad_d_sh0.v[3 * p + 2] = v_dc.z;
+            grad_d_opacities.v[p] = v_logit;
+            InstanceXform x = xforms.v[ref.xform];
+            gm += transpose(mat3(x.transform)) * v_p;
+            gs += v_ls;
+            gq += quat_mul(x.quat * vec4(1.0, -1.0, -1.0, -1.0), v_q);
+            go += v_logit;
+        }
+    }
+    grad_means.v[3 * r] = gm.x;
+    grad_means.v[3 * r + 1] = gm.y;
+    grad_means.v[3 * r + 2] = gm.z;
+    grad_scales.v[3 * r] = gs.x;
+    grad_scales.v[3 * r + 1] = gs.y;
+    grad_scales.v[3 * r + 2] = gs.z;
+    grad_quats.v[r] = gq;
+    grad_opacities.v[r] = go;
 }
 
 void main() {
-    for (uint i = gl_GlobalInvocationID.x; i < frame.p.num_gaussians; i += gl_NumWorkGroups.x * WG_SIZE) {
-        backward(i);
+    for (uint r = gl_GlobalInvocationID.x; r < frame.p.num_rows; r += gl_NumWorkGroups.x * WG_SIZE) {
+        backward(r);
     }
 }

@@ -14,6 +14,8 @@ pub mod cpu;
 pub mod dataset;
 pub mod gpu;
 pub mod grad;
+pub mod instance;
+pub mod instgs;
 pub mod kernels;
 pub mod optim;
 pub mod plot;

@@ -6,9 +6,10 @@ use anyhow::{anyhow, bail, Context, Result};
 use clap::{Args, Parser, Subcommand};
 use instgs_vk::camera::{self, Camera, UpAxis};
 use instgs_vk::gpu::{Gpu, GpuOptions};
+use instgs_vk::instgs::{self, AnyScene};
 use instgs_vk::kernels::Kernels;
-use instgs_vk::raster::{GpuScene, Rasterizer};
-use instgs_vk::scene::{read_ply, Scene};
+use instgs_vk::raster::Rasterizer;
+use instgs_vk::scene::read_ply;
 use instgs_vk::util::save_png;
 
 /// Instanced 3D Gaussian Splatting on Vulkan compute.
@@ -25,9 +26,10 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Cmd {
-    /// Print a scene's Gaussian count, SH degree, bounds and file size.
+    /// Print a scene's Gaussian count, SH degree, bounds and file size; for an .instgs scene
+    /// also its groups, instances (template→world transforms) and the bytes of every part.
     Info {
-        /// Scene file (.ply: Inria 3DGS or SuperSplat compressed).
+        /// Scene file (.ply: Inria 3DGS or SuperSplat compressed; .instgs).
         scene: PathBuf,
         /// Print JSON instead of text.
         #[arg(long)]
@@ -77,7 +79,7 @@ enum Cmd {
     },
     /// PSNR and SSIM of a scene on a dataset's held-out (or training) views.
     Eval {
-        /// Scene file (.ply).
+        /// Scene file (.ply or .instgs).
         #[arg(long)]
         scene: PathBuf,
         #[command(flatten)]
@@ -95,6 +97,39 @@ enum Cmd {
         #[arg(long, default_value = "0,0,0", value_parser = parse_rgb)]
         background: [f32; 3],
     },
+    /// Build an instanced scene (.instgs) from template PLYs and a scene graph.
+    Compose {
+        /// NAME=FILE.ply: the template of the scene graph's template_id NAME, in template space
+        /// (the frame of the group's first instance). Repeat per group.
+        #[arg(long = "template", required = true)]
+        templates: Vec<String>,
+        /// The prototype's scene_graph.json: [{template_id, instances: [{instance_id,
+        /// transform}]}], transform = 4×4 row-major world→template (instance 1: identity).
+        #[arg(long)]
+        scene_graph: PathBuf,
+        /// Plain Gaussians around the instances.
+        #[arg(long)]
+        background: Option<PathBuf>,
+        /// Draw every offset (Δp, Δ SH DC, Δ opacity logit) from N(0, SIGMA²).
+        #[arg(long, value_name = "SIGMA")]
+        random_offsets: Option<f32>,
+        /// Seed of --random-offsets.
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+        /// Storage type of the offsets in the file.
+        #[arg(long, value_enum, default_value = "f32")]
+        offset_dtype: OffsetDtype,
+        #[arg(long)]
+        out: PathBuf,
+    },
+    /// Convert an .instgs scene: OUT.ply writes the fully expanded plain 3DGS PLY (SH bands
+    /// rotated per instance; any 3DGS viewer opens it); OUT.json writes its scene_graph.json.
+    Convert {
+        /// The .instgs scene.
+        scene: PathBuf,
+        /// OUT.ply or OUT.json.
+        out: PathBuf,
+    },
     /// Time the GPU radix sort against Rust's sort_unstable on the same random keys.
     BenchSort {
         /// Number of keys.
@@ -109,6 +144,12 @@ enum Cmd {
     },
 }
 
+#[derive(Clone, Copy, clap::ValueEnum)]
+enum OffsetDtype {
+    F32,
+    F16,
+}
+
 #[derive(Args)]
 struct DataArgs {
     /// Dataset folder: NeRF-synthetic (transforms_train.json) or COLMAP (sparse/0, images/).
@@ -121,7 +162,7 @@ struct DataArgs {
 
 #[derive(Args)]
 struct ViewArgs {
-    /// Scene file (.ply: Inria 3DGS or SuperSplat compressed).
+    /// Scene file (.ply: Inria 3DGS or SuperSplat compressed; .instgs).
     #[arg(long)]
     scene: PathBuf,
     /// NeRF-synthetic transforms_*.json with the cameras.
@@ -172,6 +213,15 @@ fn run(cli: Cli) -> Result<()> {
         Cmd::Info { scene, json } => info(&scene, json),
         Cmd::Render { view, out } => render(cli.device, &view, &out),
         Cmd::Bench { view, frames, warmup, json } => bench(cli.device, &view, frames, warmup, json.as_deref()),
+        Cmd::Compose { templates, scene_graph, background, random_offsets, seed, offset_dtype, out } => compose(
+            &templates,
+            &scene_graph,
+            background.as_deref(),
+            random_offsets.map(|s| (s, seed)),
+            offset_dtype,
+            &out,
+        ),
+        Cmd::Convert { scene, out } => convert(&scene, &out),
         Cmd::BenchSort { keys, bits, repeats } => bench_sort(cli.device, keys, bits, repeats),
         Cmd::Train { data, out, config, iterations, resume, quiet } => {
             train(cli.device, &data, &out, config.as_deref(), iterations, resume, quiet)
@@ -256,7 +306,7 @@ fn eval(
     out: Option<&Path>,
     background: [f32; 3],
 ) -> Result<()> {
-    let scene = read_ply(scene_path)?;
+    let scene = AnyScene::read(scene_path)?;
     let opts = instgs_vk::dataset::LoadOptions { downscale: data.downscale, background };
     let ds = instgs_vk::dataset::load(&data.data, &opts)?;
     let views = ds.split(split)?;
@@ -264,7 +314,7 @@ fn eval(
         bail!("{}: the {split} split has no views", data.data.display());
     }
     let (gpu, k) = open_device(device)?;
-    let gs = GpuScene::new(&gpu, &scene)?;
+    let gs = scene.upload(&gpu).with_context(|| scene_path.display().to_string())?;
     let mut r = Rasterizer::new(&gpu, &k)?;
     if let Some(dir) = out {
         std::fs::create_dir_all(dir).with_context(|| format!("{}: cannot create", dir.display()))?;
@@ -307,6 +357,9 @@ fn eval(
 }
 
 fn info(path: &Path, json: bool) -> Result<()> {
+    if path.extension().is_some_and(|e| e.eq_ignore_ascii_case("instgs")) {
+        return info_instgs(path, json);
+    }
     let scene = read_ply(path)?;
     let file_bytes = std::fs::metadata(path)?.len();
     let (lo, hi) = scene.bounds();
@@ -338,7 +391,121 @@ fn info(path: &Path, json: bool) -> Result<()> {
     Ok(())
 }
 
-fn cameras(view: &ViewArgs, scene: &Scene) -> Result<Vec<Camera>> {
+fn info_instgs(path: &Path, json: bool) -> Result<()> {
+    let bytes = std::fs::read(path).with_context(|| format!("{}: cannot read", path.display()))?;
+    let scene = instgs::from_bytes(&bytes, &path.display().to_string())?;
+    let parts = instgs::part_bytes(&bytes)?;
+    let splats = scene.splats();
+    // A plain PLY of the expanded scene: 62 floats per splat at degree 3 (x y z, nx ny nz,
+    // 3 f_dc, 45 f_rest, opacity, 3 scales, 4 rot), fewer at lower degrees; header excluded.
+    let floats = 17 + 3 * (scene.background.sh_coeffs() - 1);
+    let expanded_ply_bytes = (splats * floats * 4) as u64;
+    if json {
+        let groups: Vec<_> = scene
+            .groups
+            .iter()
+            .map(|g| {
+                serde_json::json!({
+                    "name": g.name,
+                    "template_gaussians": g.template.len(),
+                    "instances": g.instances.iter().map(|i| serde_json::json!({
+                        "id": i.id,
+                        "transform": instgs_vk::instance::mat4_to_rows(i.transform.to_mat4()),
+                    })).collect::<Vec<_>>(),
+                })
+            })
+            .collect();
+        let v = serde_json::json!({
+            "file": path.display().to_string(),
+            "kind": "instanced",
+            "sh_degree": scene.sh_degree,
+            "background_gaussians": scene.background.len(),
+            "parameter_rows": scene.rows(),
+            "splats": splats,
+            "groups": groups,
+            "parts": parts,
+            "file_bytes": bytes.len(),
+            "expanded_ply_vertex_bytes": expanded_ply_bytes,
+        });
+        println!("{}", serde_json::to_string_pretty(&v)?);
+    } else {
+        println!("file          {}", path.display());
+        println!("sh degree     {}", scene.sh_degree);
+        println!("background    {} Gaussians", scene.background.len());
+        for g in &scene.groups {
+            println!("group {:?}: {} template Gaussians x {} instances", g.name, g.template.len(), g.instances.len());
+            for i in &g.instances {
+                let t = i.transform;
+                println!(
+                    "  instance {:?}: scale {:.4}, translation {}, rotation (w,x,y,z) {:?}",
+                    i.id,
+                    t.scale,
+                    t.translation,
+                    t.quat_wxyz()
+                );
+            }
+        }
+        println!("splats        {splats} expanded ({} parameter rows)", scene.rows());
+        for p in &parts {
+            println!("  {:<22} {} bytes", p.name, p.bytes);
+        }
+        println!("file size     {} bytes (expanded plain PLY: {expanded_ply_bytes} bytes of vertex data)", bytes.len());
+    }
+    Ok(())
+}
+
+fn compose(
+    templates: &[String],
+    graph: &Path,
+    background: Option<&Path>,
+    random_offsets: Option<(f32, u64)>,
+    dtype: OffsetDtype,
+    out: &Path,
+) -> Result<()> {
+    let mut loaded = Vec::new();
+    for t in templates {
+        let Some((name, file)) = t.split_once('=') else {
+            bail!("--template {t:?}: expected NAME=FILE.ply");
+        };
+        loaded.push((name.to_string(), read_ply(Path::new(file))?));
+    }
+    let graph = instgs_vk::instance::read_scene_graph(graph)?;
+    let background = background.map(read_ply).transpose()?;
+    let scene = instgs_vk::instance::compose(loaded, graph, background, random_offsets)?;
+    let dtype = match dtype {
+        OffsetDtype::F32 => instgs::Dtype::F32,
+        OffsetDtype::F16 => instgs::Dtype::F16,
+    };
+    instgs::write(&scene, out, dtype)?;
+    eprintln!(
+        "wrote {}: {} groups, {} splats from {} parameter rows",
+        out.display(),
+        scene.groups.len(),
+        scene.splats(),
+        scene.rows()
+    );
+    Ok(())
+}
+
+fn convert(path: &Path, out: &Path) -> Result<()> {
+    let scene = instgs::read(path)?;
+    match out.extension().and_then(|e| e.to_str()).map(|e| e.to_ascii_lowercase()).as_deref() {
+        Some("ply") => instgs_vk::scene::write_ply(&scene.expand(), out)?,
+        Some("json") => {
+            let graph = instgs_vk::instance::scene_graph(&scene);
+            let text = serde_json::to_string_pretty(&graph)?;
+            instgs_vk::util::write_atomic(out, |f| {
+                use std::io::Write;
+                f.write_all(text.as_bytes())
+            })?;
+        }
+        _ => bail!("{}: the output must end in .ply (expanded scene) or .json (scene graph)", out.display()),
+    }
+    eprintln!("wrote {}", out.display());
+    Ok(())
+}
+
+fn cameras(view: &ViewArgs, scene: &AnyScene) -> Result<Vec<Camera>> {
     if view.width == Some(0) || view.height == Some(0) {
         bail!("--width and --height must be at least 1");
     }
@@ -357,9 +524,13 @@ fn cameras(view: &ViewArgs, scene: &Scene) -> Result<Vec<Camera>> {
             }
         }
         (None, Some(0)) => bail!("--orbit needs at least 1 camera"),
-        (None, Some(n)) => {
-            camera::orbit_around(scene, n, view.up, view.width.unwrap_or(640), view.height.unwrap_or(480))
-        }
+        (None, Some(n)) => camera::orbit_around_points(
+            &scene.means(),
+            n,
+            view.up,
+            view.width.unwrap_or(640),
+            view.height.unwrap_or(480),
+        ),
         (None, None) => bail!("give --cameras FILE or --orbit N"),
     };
     Ok(cams)
@@ -369,12 +540,12 @@ fn cameras(view: &ViewArgs, scene: &Scene) -> Result<Vec<Camera>> {
 struct Setup {
     gpu: Arc<Gpu>,
     k: Arc<Kernels>,
-    scene: Scene,
+    scene: AnyScene,
     cams: Vec<Camera>,
 }
 
 fn setup(device: Option<String>, view: &ViewArgs) -> Result<Setup> {
-    let scene = read_ply(&view.scene)?;
+    let scene = AnyScene::read(&view.scene)?;
     let cams = cameras(view, &scene)?;
     let gpu = Gpu::new(&GpuOptions::from_env(device))?;
     eprintln!("device: {}", gpu.describe());
@@ -385,7 +556,7 @@ fn setup(device: Option<String>, view: &ViewArgs) -> Result<Setup> {
 fn render(device: Option<String>, view: &ViewArgs, out: &Path) -> Result<()> {
     let Setup { gpu, k, scene, cams } = setup(device, view)?;
     std::fs::create_dir_all(out).with_context(|| format!("{}: cannot create folder", out.display()))?;
-    let gs = GpuScene::new(&gpu, &scene).with_context(|| view.scene.display().to_string())?;
+    let gs = scene.upload(&gpu).with_context(|| view.scene.display().to_string())?;
     let mut r = Rasterizer::new(&gpu, &k)?;
     let mut per_pass: Vec<(String, Vec<f64>)> = Vec::new();
     for cam in &cams {
@@ -442,7 +613,7 @@ fn bench(device: Option<String>, view: &ViewArgs, frames: usize, warmup: usize, 
         bail!("--frames must be at least 1");
     }
     let Setup { gpu, k, scene, cams } = setup(device, view)?;
-    let gs = GpuScene::new(&gpu, &scene)?;
+    let gs = scene.upload(&gpu).with_context(|| view.scene.display().to_string())?;
     let mut r = Rasterizer::new(&gpu, &k)?;
     let mut per_pass = Vec::new();
     let mut frame_ms = Vec::new();
@@ -462,9 +633,9 @@ fn bench(device: Option<String>, view: &ViewArgs, frames: usize, warmup: usize, 
     }
     let fm = median(&frame_ms);
     let file_bytes = std::fs::metadata(&view.scene)?.len();
-    let sorts = sort_comparison(&r, &scene, cams.last().unwrap(), view.background, &per_pass)?;
+    let sorts = sort_comparison(&r, &per_pass)?;
     println!("scene            {}", view.scene.display());
-    println!("gaussians        {}", scene.len());
+    println!("splats           {}", scene.splats());
     println!("visible (median) {}", median(&visible));
     println!("intersections    {}", median(&isects));
     println!("frame (median)   {fm:.3} ms  ({:.1} FPS)", 1000.0 / fm);
@@ -494,7 +665,7 @@ fn bench(device: Option<String>, view: &ViewArgs, frames: usize, warmup: usize, 
             "height": cams[0].height,
             "views": cams.len(),
             "frames": frames,
-            "splats": scene.len(),
+            "splats": scene.splats(),
             "visible": median(&visible),
             "intersections": median(&isects),
             "frame_ms_median": fm,
@@ -539,19 +710,13 @@ struct SortComparison {
 
 /// The GPU's depth and tile sorts (median pass times) against Rust's sort_unstable of the same
 /// (key, value) pairs, rebuilt from the last frame's GPU state in the order the GPU sorted them.
-fn sort_comparison(
-    r: &Rasterizer,
-    scene: &Scene,
-    cam: &Camera,
-    background: [f32; 3],
-    per_pass: &[(String, Vec<f64>)],
-) -> Result<Vec<SortComparison>> {
+fn sort_comparison(r: &Rasterizer, per_pass: &[(String, Vec<f64>)]) -> Result<Vec<SortComparison>> {
     use instgs_vk::cpu;
     let st = r.read_state()?;
     let proj = st.projected;
     let depth_ids: Vec<u32> = (0..proj.depths.len() as u32).filter(|&i| proj.tiles_touched[i as usize] > 0).collect();
     let depth_keys: Vec<u32> = depth_ids.iter().map(|&i| proj.depths[i as usize].to_bits()).collect();
-    let fp = instgs_vk::raster::frame_params(scene.len(), scene.sh_degree, cam, background, 0);
+    let fp = r.last_frame_params().ok_or_else(|| anyhow!("no frame rendered"))?;
     let (tile_keys, tile_ids) = cpu::emit(&fp, &proj, &st.depth_ids);
     let gpu = |name: &str| per_pass.iter().find(|(n, _)| n == name).map_or(f64::NAN, |(_, v)| median(v));
     Ok(vec![

@@ -11,6 +11,7 @@ use gpu_allocator::MemoryLocation;
 
 use crate::camera::Camera;
 use crate::gpu::{Buffer, CommandBuffer, Gpu, Recorder, Timer};
+use crate::instance::{InstancedScene, Offsets};
 use crate::kernels::{
     bits_for, record_scan, record_sort, scan_blocks_for, sort_hist_for, Counts, Kernels, Scan, SortBuffers,
 };
@@ -45,59 +46,212 @@ pub fn frame_params(
         isect_capacity,
         near_plane: NEAR_PLANE,
         far_plane: FAR_PLANE,
+        num_background: num_gaussians as u32,
+        num_groups: 0,
+        num_rows: num_gaussians as u32,
         _pad0: 0,
         _pad1: 0,
+        _pad2: 0,
     }
 }
 
-/// A plain 3DGS scene in device memory.
+/// The instancing tables of a scene in device memory (instance.glsl). A plain scene has no groups
+/// and one-element placeholders (every binding needs a buffer).
+pub struct GpuInstancing {
+    pub groups: Buffer,
+    pub xforms: Buffer,
+    /// Offsets per (template Gaussian, instance) pair, pair index = splat − num_background:
+    /// Δp (3 f32), Δ SH DC (3 f32), Δ opacity logit (f32).
+    pub d_means: Buffer,
+    pub d_sh0: Buffer,
+    pub d_opacities: Buffer,
+    pub num_groups: u32,
+    pub pairs: usize,
+}
+
+/// A scene in device memory: parameter rows (background Gaussians, then every group's template
+/// Gaussians; a plain scene is all background) and the instancing tables. Rendering expands
+/// `len` splats on the fly.
 pub struct GpuScene {
     pub means: Buffer,
     pub scales: Buffer,
     pub quats: Buffer,
     pub opacities: Buffer,
     pub sh: Buffer,
+    /// Parameter rows.
+    pub rows: usize,
+    /// Splats rendered: background + Σ template Gaussians × instances.
     pub len: usize,
+    pub num_background: usize,
+    pub inst: GpuInstancing,
     /// SH degree stored (coefficients per channel: (sh_degree + 1)^2).
     pub sh_degree: u32,
     /// SH degree evaluated (≤ sh_degree; training raises it step by step).
     pub active_sh_degree: u32,
 }
 
-/// Refuses a scene whose largest buffer (SH coefficients, or 16 bytes per Gaussian for the
-/// per-frame conics) would pass the device's `maxStorageBufferRange`.
-pub fn check_scene_fits(n: usize, sh_degree: u32, limit: u64) -> Result<()> {
-    let sh_bytes = n as u64 * ((sh_degree + 1) * (sh_degree + 1) * 3 * 4) as u64;
-    if sh_bytes.max(n as u64 * 16) > limit {
+/// Refuses a scene whose largest buffer (SH coefficients of its rows, or 16 bytes per splat for
+/// the per-frame conics) would pass the device's `maxStorageBufferRange`.
+pub fn check_scene_fits(rows: usize, splats: usize, sh_degree: u32, limit: u64) -> Result<()> {
+    let sh_bytes = rows as u64 * ((sh_degree + 1) * (sh_degree + 1) * 3 * 4) as u64;
+    if sh_bytes > limit {
         bail!(
-            "scene too large for this device: {n} Gaussians at SH degree {sh_degree} need a {sh_bytes}-byte SH buffer, over maxStorageBufferRange ({limit} bytes); splitting a scene is not supported"
+            "scene too large for this device: {rows} Gaussians at SH degree {sh_degree} need a {sh_bytes}-byte SH buffer, over maxStorageBufferRange ({limit} bytes); splitting a scene is not supported"
+        );
+    }
+    if splats as u64 * 16 > limit {
+        bail!(
+            "scene too large for this device: {splats} splats need {}-byte per-frame buffers, over maxStorageBufferRange ({limit} bytes)",
+            splats as u64 * 16
         );
     }
     Ok(())
 }
 
+/// Concatenated offsets of every group (pair order).
+fn all_offsets(scene: &InstancedScene) -> Offsets {
+    let mut o = Offsets::default();
+    for g in &scene.groups {
+        o.d_means.extend_from_slice(&g.offsets.d_means);
+        o.d_sh0.extend_from_slice(&g.offsets.d_sh0);
+        o.d_opacities.extend_from_slice(&g.offsets.d_opacities);
+    }
+    o
+}
+
+/// The parameter rows of an instanced scene: background, then every template.
+pub fn scene_rows(scene: &InstancedScene) -> Scene {
+    let mut rows = scene.background.clone();
+    rows.sh_degree = scene.sh_degree;
+    for g in &scene.groups {
+        let t = &g.template;
+        rows.means.extend_from_slice(&t.means);
+        rows.scales.extend_from_slice(&t.scales);
+        rows.quats.extend_from_slice(&t.quats);
+        rows.opacities.extend_from_slice(&t.opacities);
+        rows.sh.extend_from_slice(&t.sh);
+    }
+    rows
+}
+
+/// The GPU group table and transforms of an instanced scene.
+pub fn instancing_tables(scene: &InstancedScene) -> (Vec<GroupInfo>, Vec<InstanceXform>) {
+    let mut groups = Vec::new();
+    let mut xforms = Vec::new();
+    let mut splat = scene.background.len();
+    let mut row = scene.background.len();
+    for g in &scene.groups {
+        let (t, k) = (g.template.len(), g.instances.len());
+        groups.push(GroupInfo {
+            splat_first: splat as u32,
+            row_first: row as u32,
+            rows: t as u32,
+            instances: k as u32,
+            instance_first: xforms.len() as u32,
+            ..Default::default()
+        });
+        for inst in &g.instances {
+            let x = inst.transform;
+            xforms.push(InstanceXform {
+                transform: x.render_mat4().to_cols_array_2d(),
+                quat: x.quat_wxyz(),
+                scale: [x.scale, x.scale.ln(), 0.0, 0.0],
+            });
+        }
+        splat += t * k;
+        row += t;
+    }
+    (groups, xforms)
+}
+
+/// Uploads `data`, or one zero element where it is empty (placeholder binding).
+fn upload_or_placeholder<T: bytemuck::Pod + Default>(gpu: &Arc<Gpu>, name: &str, data: &[T]) -> Result<Buffer> {
+    if data.is_empty() {
+        gpu.upload(name, &[T::default()])
+    } else {
+        gpu.upload(name, data)
+    }
+}
+
 impl GpuScene {
+    /// A plain 3DGS scene.
     pub fn new(gpu: &Arc<Gpu>, scene: &Scene) -> Result<GpuScene> {
-        let n = scene.len();
+        Self::upload(gpu, scene, scene.len(), &[], &[], &Offsets::default())
+    }
+
+    /// An instanced scene; nothing is expanded.
+    pub fn instanced(gpu: &Arc<Gpu>, scene: &InstancedScene) -> Result<GpuScene> {
+        let (groups, xforms) = instancing_tables(scene);
+        Self::upload(gpu, &scene_rows(scene), scene.background.len(), &groups, &xforms, &all_offsets(scene))
+    }
+
+    fn upload(
+        gpu: &Arc<Gpu>,
+        rows: &Scene,
+        num_background: usize,
+        groups: &[GroupInfo],
+        xforms: &[InstanceXform],
+        offsets: &Offsets,
+    ) -> Result<GpuScene> {
+        let n = rows.len();
         if n == 0 {
             bail!("the scene has no Gaussians");
         }
-        check_scene_fits(n, scene.sh_degree, gpu.info.max_storage_buffer_range)?;
+        let splats = num_background + offsets.len();
+        check_scene_fits(n, splats, rows.sh_degree, gpu.info.max_storage_buffer_range)?;
         Ok(GpuScene {
-            means: gpu.upload("means", &scene.means)?,
-            scales: gpu.upload("scales", &scene.scales)?,
-            quats: gpu.upload("quats", &scene.quats)?,
-            opacities: gpu.upload("opacities", &scene.opacities)?,
-            sh: gpu.upload("sh", &scene.sh)?,
-            len: n,
-            sh_degree: scene.sh_degree,
-            active_sh_degree: scene.sh_degree,
+            means: gpu.upload("means", &rows.means)?,
+            scales: gpu.upload("scales", &rows.scales)?,
+            quats: gpu.upload("quats", &rows.quats)?,
+            opacities: gpu.upload("opacities", &rows.opacities)?,
+            sh: gpu.upload("sh", &rows.sh)?,
+            rows: n,
+            len: splats,
+            num_background,
+            inst: GpuInstancing {
+                groups: upload_or_placeholder(gpu, "groups", groups)?,
+                xforms: upload_or_placeholder(gpu, "xforms", xforms)?,
+                d_means: upload_or_placeholder(gpu, "d_means", &offsets.d_means)?,
+                d_sh0: upload_or_placeholder(gpu, "d_sh0", &offsets.d_sh0)?,
+                d_opacities: upload_or_placeholder(gpu, "d_opacities", &offsets.d_opacities)?,
+                num_groups: groups.len() as u32,
+                pairs: offsets.len(),
+            },
+            sh_degree: rows.sh_degree,
+            active_sh_degree: rows.sh_degree,
         })
     }
 
-    /// Bytes of the scene's device buffers.
+    /// Bytes of the scene's device buffers (parameters and instancing tables).
     pub fn gpu_bytes(&self) -> u64 {
-        [&self.means, &self.scales, &self.quats, &self.opacities, &self.sh].iter().map(|b| b.size).sum()
+        let i = &self.inst;
+        [&self.means, &self.scales, &self.quats, &self.opacities, &self.sh]
+            .into_iter()
+            .chain([&i.groups, &i.xforms, &i.d_means, &i.d_sh0, &i.d_opacities])
+            .map(|b| b.size)
+            .sum()
+    }
+
+    /// The frame parameters for this scene.
+    fn frame_params(&self, cam: &Camera, background: [f32; 3], isect_capacity: u32) -> FrameParams {
+        let mut fp = frame_params(self.len, self.sh_degree, cam, background, isect_capacity);
+        fp.sh_degree = self.active_sh_degree;
+        fp.num_background = self.num_background as u32;
+        fp.num_groups = self.inst.num_groups;
+        fp.num_rows = self.rows as u32;
+        fp
+    }
+
+    /// (name, buffer) bindings of the instancing tables, as instance.glsl names them.
+    fn instancing_bindings(&self) -> [(&'static str, &Buffer); 5] {
+        let i = &self.inst;
+        [
+            ("groups", &i.groups),
+            ("xforms", &i.xforms),
+            ("d_means", &i.d_means),
+            ("d_sh0", &i.d_sh0),
+            ("d_opacities", &i.d_opacities),
+        ]
     }
 }
 
@@ -339,25 +493,24 @@ impl Rasterizer {
             rec.fill(&im.ranges, 0);
             c.record_args(rec, &k, COUNT_GAUSSIANS)?;
             rec.end_pass("setup")?;
-            rec.dispatch(
-                &k.preprocess,
-                &[
-                    ("frame", frame),
-                    ("means", &scene.means),
-                    ("scales", &scene.scales),
-                    ("quats", &scene.quats),
-                    ("opacities", &scene.opacities),
-                    ("sh", &scene.sh),
-                    ("xys", &g.xys),
-                    ("conics", &g.conics),
-                    ("colors", &g.colors),
-                    ("depths", &g.depths),
-                    ("radii", &g.radii),
-                    ("tiles_touched", &g.tiles_touched),
-                ],
-                &(),
-                [groups, 1, 1],
-            )?;
+            let bindings: Vec<(&str, &Buffer)> = [
+                ("frame", frame),
+                ("means", &scene.means),
+                ("scales", &scene.scales),
+                ("quats", &scene.quats),
+                ("opacities", &scene.opacities),
+                ("sh", &scene.sh),
+                ("xys", &g.xys),
+                ("conics", &g.conics),
+                ("colors", &g.colors),
+                ("depths", &g.depths),
+                ("radii", &g.radii),
+                ("tiles_touched", &g.tiles_touched),
+            ]
+            .into_iter()
+            .chain(scene.instancing_bindings())
+            .collect();
+            rec.dispatch(&k.preprocess, &bindings, &(), [groups, 1, 1])?;
             rec.end_pass("preprocess")?;
             record_scan(
                 rec,
@@ -479,8 +632,7 @@ impl Rasterizer {
         loop {
             self.ensure_buffers(n, cam.width, cam.height, cap)?;
             cap = self.isect.as_ref().unwrap().cap;
-            let mut fp = frame_params(n, scene.sh_degree, cam, background, cap as u32);
-            fp.sh_degree = scene.active_sh_degree;
+            let fp = scene.frame_params(cam, background, cap as u32);
             self.frame_ub.write_mapped(&[fp])?;
             let key = (ash::vk::Handle::as_raw(scene.means.raw), n, cam.width, cam.height, cap);
             if self.recorded != Some(key) || self.poison {
@@ -544,15 +696,21 @@ impl Rasterizer {
     }
 }
 
-/// Gradient buffers of one scene: the parameter gradients (layouts as [`GpuScene`]), the
-/// projected-splat gradients written by `blend_backward`, and the densification statistics.
+/// Gradient buffers of one scene: the parameter-row gradients (layouts as [`GpuScene`]), the
+/// offset gradients (pair layout), the per-splat projected gradients written by
+/// `blend_backward`, and the per-splat densification statistics.
 pub struct Grads {
-    pub n: usize,
+    /// Parameter rows and splats they were made for.
+    pub rows: usize,
+    pub splats: usize,
     pub means: Buffer,
     pub scales: Buffer,
     pub quats: Buffer,
     pub opacities: Buffer,
     pub sh: Buffer,
+    pub d_means: Buffer,
+    pub d_sh0: Buffer,
+    pub d_opacities: Buffer,
     pub v_xys: Buffer,
     pub v_conics: Buffer,
     pub v_colors: Buffer,
@@ -567,15 +725,21 @@ pub struct Grads {
 
 impl Grads {
     pub fn new(gpu: &Arc<Gpu>, scene: &GpuScene) -> Result<Grads> {
+        let r = scene.rows as u64;
         let n = scene.len as u64;
+        let pairs = scene.inst.pairs.max(1) as u64;
         let sh = scene.sh.size;
         Ok(Grads {
-            n: scene.len,
-            means: gpu.storage("grad_means", n * 12)?,
-            scales: gpu.storage("grad_scales", n * 12)?,
-            quats: gpu.storage("grad_quats", n * 16)?,
-            opacities: gpu.storage("grad_opacities", n * 4)?,
+            rows: scene.rows,
+            splats: scene.len,
+            means: gpu.storage("grad_means", r * 12)?,
+            scales: gpu.storage("grad_scales", r * 12)?,
+            quats: gpu.storage("grad_quats", r * 16)?,
+            opacities: gpu.storage("grad_opacities", r * 4)?,
             sh: gpu.storage("grad_sh", sh)?,
+            d_means: gpu.storage("grad_d_means", pairs * 12)?,
+            d_sh0: gpu.storage("grad_d_sh0", pairs * 12)?,
+            d_opacities: gpu.storage("grad_d_opacities", pairs * 4)?,
             v_xys: gpu.storage("v_xys", n * 8)?,
             v_conics: gpu.storage("v_conics", n * 12)?,
             v_colors: gpu.storage("v_colors", n * 12)?,
@@ -600,6 +764,9 @@ impl Grads {
             &self.quats,
             &self.opacities,
             &self.sh,
+            &self.d_means,
+            &self.d_sh0,
+            &self.d_opacities,
             &self.v_xys,
             &self.v_conics,
             &self.v_colors,
@@ -624,8 +791,14 @@ impl Rasterizer {
         let gb = self.gauss.as_ref().unwrap();
         let is = self.isect.as_ref().unwrap();
         let im = self.image.as_ref().unwrap();
-        if g.n != scene.len {
-            bail!("gradient buffers hold {} Gaussians, the scene {}", g.n, scene.len);
+        if g.rows != scene.rows || g.splats != scene.len {
+            bail!(
+                "gradient buffers hold {} rows and {} splats, the scene {} and {}",
+                g.rows,
+                g.splats,
+                scene.rows,
+                scene.len
+            );
         }
         for b in [&g.v_xys, &g.v_conics, &g.v_colors, &g.v_opacities] {
             rec.fill(b, 0);
@@ -651,32 +824,39 @@ impl Rasterizer {
             [fp.tiles_x, fp.tiles_y, 1],
         )?;
         rec.end_pass("blend_backward")?;
+        let bindings: Vec<(&str, &Buffer)> = [
+            ("frame", &self.frame_ub),
+            ("means", &scene.means),
+            ("scales", &scene.scales),
+            ("quats", &scene.quats),
+            ("opacities", &scene.opacities),
+            ("sh", &scene.sh),
+            ("radii", &gb.radii),
+            ("tiles_touched", &gb.tiles_touched),
+            ("v_xys", &g.v_xys),
+            ("v_conics", &g.v_conics),
+            ("v_colors", &g.v_colors),
+            ("v_opacities", &g.v_opacities),
+            ("grad_means", &g.means),
+            ("grad_scales", &g.scales),
+            ("grad_quats", &g.quats),
+            ("grad_opacities", &g.opacities),
+            ("grad_sh", &g.sh),
+            ("grad2d_accum", &g.grad2d_accum),
+            ("grad2d_count", &g.grad2d_count),
+            ("max_radii", &g.max_radii),
+            ("grad_d_means", &g.d_means),
+            ("grad_d_sh0", &g.d_sh0),
+            ("grad_d_opacities", &g.d_opacities),
+        ]
+        .into_iter()
+        .chain(scene.instancing_bindings())
+        .collect();
         rec.dispatch(
             &self.k.preprocess_backward,
-            &[
-                ("frame", &self.frame_ub),
-                ("means", &scene.means),
-                ("scales", &scene.scales),
-                ("quats", &scene.quats),
-                ("opacities", &scene.opacities),
-                ("sh", &scene.sh),
-                ("radii", &gb.radii),
-                ("tiles_touched", &gb.tiles_touched),
-                ("v_xys", &g.v_xys),
-                ("v_conics", &g.v_conics),
-                ("v_colors", &g.v_colors),
-                ("v_opacities", &g.v_opacities),
-                ("grad_means", &g.means),
-                ("grad_scales", &g.scales),
-                ("grad_quats", &g.quats),
-                ("grad_opacities", &g.opacities),
-                ("grad_sh", &g.sh),
-                ("grad2d_accum", &g.grad2d_accum),
-                ("grad2d_count", &g.grad2d_count),
-                ("max_radii", &g.max_radii),
-            ],
+            &bindings,
             &(),
-            [(scene.len as u32).div_ceil(WG_SIZE).min(MAX_GROUPS), 1, 1],
+            [(scene.rows as u32).div_ceil(WG_SIZE).min(MAX_GROUPS), 1, 1],
         )?;
         rec.end_pass("preprocess_backward")
     }

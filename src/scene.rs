@@ -17,6 +17,24 @@ use ply_rs_bw::ply::{ElementDef, Encoding, PropertyAccess, PropertyAccessResult}
 /// SH basis constant of degree 0 (colour = SH_C0 * f_dc + 0.5).
 pub const SH_C0: f32 = 0.282_094_8;
 
+/// Bounds of `means` between the `q` and `1 − q` quantiles per axis.
+pub fn robust_bounds(means: &[[f32; 3]], q: f32) -> (Vec3, Vec3) {
+    let mut lo = [0.0f32; 3];
+    let mut hi = [0.0f32; 3];
+    for a in 0..3 {
+        let mut v: Vec<f32> = means.iter().map(|m| m[a]).collect();
+        v.sort_by(f32::total_cmp);
+        let n = v.len();
+        if n == 0 {
+            continue;
+        }
+        let at = |f: f32| v[((f * (n - 1) as f32).round() as usize).min(n - 1)];
+        lo[a] = at(q);
+        hi[a] = at(1.0 - q);
+    }
+    (Vec3::from(lo), Vec3::from(hi))
+}
+
 /// A plain 3DGS scene, structure of arrays, N Gaussians.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct Scene {
@@ -63,20 +81,7 @@ impl Scene {
     /// Bounds of the means between the `q` and `1 − q` quantiles per axis: the object without
     /// its floaters (trained scenes have far-away Gaussians).
     pub fn robust_bounds(&self, q: f32) -> (Vec3, Vec3) {
-        let mut lo = [0.0f32; 3];
-        let mut hi = [0.0f32; 3];
-        for a in 0..3 {
-            let mut v: Vec<f32> = self.means.iter().map(|m| m[a]).collect();
-            v.sort_by(f32::total_cmp);
-            let n = v.len();
-            if n == 0 {
-                continue;
-            }
-            let at = |f: f32| v[((f * (n - 1) as f32).round() as usize).min(n - 1)];
-            lo[a] = at(q);
-            hi[a] = at(1.0 - q);
-        }
-        (Vec3::from(lo), Vec3::from(hi))
+        robust_bounds(&self.means, q)
     }
 
     /// Checks counts and that every value is finite; `what` names the source in errors.

@@ -121,9 +121,3 @@ fn compressed_ply_decodes_like_its_plain_ply() {
     }
     assert_clean(&gpu);
 }
-
-pub fn tempdir(name: &str) -> std::path::PathBuf {
-    let d = std::path::PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join(name);
-    std::fs::create_dir_all(&d).unwrap();
-    d
-}

@@ -173,10 +173,13 @@ fn buffers_past_max_storage_buffer_range_are_refused() {
     use instgs_vk::raster::check_scene_fits;
     let mib128 = 128 << 20;
     // 1M Gaussians at SH degree 3: a 192 MB SH buffer.
-    let e = check_scene_fits(1_000_000, 3, mib128).unwrap_err().to_string();
+    let e = check_scene_fits(1_000_000, 1_000_000, 3, mib128).unwrap_err().to_string();
     assert!(e.contains("scene too large") && e.contains("maxStorageBufferRange"), "{e}");
-    check_scene_fits(600_000, 3, mib128).unwrap();
-    check_scene_fits(1_000_000, 0, mib128).unwrap();
+    check_scene_fits(600_000, 600_000, 3, mib128).unwrap();
+    check_scene_fits(1_000_000, 1_000_000, 0, mib128).unwrap();
+    // An instanced scene: few rows, but 9M splats need 144 MB per-frame conics.
+    let e = check_scene_fits(90_000, 9_000_000, 0, mib128).unwrap_err().to_string();
+    assert!(e.contains("9000000 splats"), "{e}");
 
     // An image whose output buffer would pass the device's own limit is refused before
     // anything is allocated.

@@ -110,3 +110,12 @@ pub fn random_scene(rng: &mut Rng, n: usize, sh_degree: u32) -> Scene {
     }
     s
 }
+
+/// A fresh folder under cargo's per-test temporary directory.
+#[allow(dead_code)]
+pub fn tempdir(name: &str) -> PathBuf {
+    let d = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join(name);
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}

@@ -1,0 +1,77 @@
+// Instancing (InstGS, paper Eq. 6): splat i is either background Gaussian i or the pair
+// (template Gaussian j, instance k) of a group, expanded on the fly and never stored:
+//   mean = s R mean_t + t + dp,  log-scales = log-scales_t + ln s,  quat = q_T * q_t,
+//   opacity logit = logit_t + do,  SH DC = dc_t + dc,  higher SH evaluated in template space
+//   at the direction R^T d (view-dependent colour turns with the instance).
+// The including kernel declares `frame` (FrameBuf) and the parameter buffers means, scales,
+// quats, opacities, and defines INSTANCE_BINDING, the first of the five bindings below.
+layout(std430, binding = INSTANCE_BINDING) readonly buffer GroupsBuf { GroupInfo v[]; } groups;
+layout(std430, binding = INSTANCE_BINDING + 1) readonly buffer XformsBuf { InstanceXform v[]; } xforms;
+layout(std430, binding = INSTANCE_BINDING + 2) readonly buffer DMeansBuf { float v[]; } d_means;
+layout(std430, binding = INSTANCE_BINDING + 3) readonly buffer DSh0Buf { float v[]; } d_sh0;
+layout(std430, binding = INSTANCE_BINDING + 4) readonly buffer DOpacitiesBuf { float v[]; } d_opacities;
+
+// Rotation matrix of a unit (w, x, y, z) quaternion.
+mat3 quat_to_mat(vec4 q) {
+    float w = q.x, x = q.y, y = q.z, z = q.w;
+    return mat3(1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y + w * z), 2.0 * (x * z - w * y),
+                2.0 * (x * y - w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z + w * x),
+                2.0 * (x * z + w * y), 2.0 * (y * z - w * x), 1.0 - 2.0 * (x * x + y * y));
+}
+
+// Hamilton product a * b of (w, x, y, z) quaternions.
+vec4 quat_mul(vec4 a, vec4 b) {
+    return vec4(a.x * b.x - a.y * b.y - a.z * b.z - a.w * b.w, a.x * b.y + a.y * b.x + a.z * b.w - a.w * b.z,
+                a.x * b.z - a.y * b.w + a.z * b.x + a.w * b.y, a.x * b.w + a.y * b.z - a.z * b.y + a.w * b.x);
+}
+
+// Where splat i comes from: its parameter row, and for an instanced splat its offset pair index
+// and transform (NO_SLOT for a background Gaussian).
+struct SplatRef {
+    uint row;
+    uint pair;
+    uint xform;
+};
+
+SplatRef splat_ref(uint i) {
+    if (i < frame.p.num_background) return SplatRef(i, NO_SLOT, NO_SLOT);
+    uint g = 0;
+    while (g + 1 < frame.p.num_groups && i >= groups.v[g + 1].splat_first) g++;
+    uint local = i - groups.v[g].splat_first;
+    uint rows = groups.v[g].rows;
+    uint k = local / rows;
+    return SplatRef(groups.v[g].row_first + local - k * rows, i - frame.p.num_background, groups.v[g].instance_first + k);
+}
+
+// A splat's expanded parameters (the quaternion raw, as stored, not normalised), its SH DC
+// offset and the rotation that maps template directions to world directions.
+struct Expanded {
+    vec3 mean;
+    vec3 log_scale;
+    vec4 quat;
+    float logit;
+    vec3 dc;
+    mat3 rot;
+};
+
+Expanded expand(SplatRef r) {
+    uint row = r.row;
+    Expanded e;
+    e.mean = vec3(means.v[3 * row], means.v[3 * row + 1], means.v[3 * row + 2]);
+    e.log_scale = vec3(scales.v[3 * row], scales.v[3 * row + 1], scales.v[3 * row + 2]);
+    e.quat = quats.v[row];
+    e.logit = opacities.v[row];
+    e.dc = vec3(0.0);
+    e.rot = mat3(1.0);
+    if (r.pair != NO_SLOT) {
+        InstanceXform x = xforms.v[r.xform];
+        uint p = r.pair;
+        e.mean = (x.transform * vec4(e.mean, 1.0)).xyz + vec3(d_means.v[3 * p], d_means.v[3 * p + 1], d_means.v[3 * p + 2]);
+        e.log_scale += x.scale.y;
+        e.quat = quat_mul(x.quat, e.quat);
+        e.logit += d_opacities.v[p];
+        e.dc = vec3(d_sh0.v[3 * p], d_sh0.v[3 * p + 1], d_sh0.v[3 * p + 2]);
+        e.rot = quat_to_mat(x.quat);
+    }
+    return e;
+}

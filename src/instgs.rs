@@ -1,0 +1,378 @@
+//! The `.instgs` file: one instanced scene in one file (format described in
+//! `docs/instgs-format.md`).
+//!
+//! ```text
+//! 0   8 bytes   magic "INSTGS\0\0"
+//! 8   u32 LE    header length H
+//! 12  H bytes   JSON header (UTF-8)
+//!     padding   zeros up to the next multiple of 16: the data start D
+//! D   sections  little-endian arrays at header-declared offsets relative to D
+//! ```
+use std::io::Write;
+use std::path::Path;
+
+use anyhow::{anyhow, bail, Context, Result};
+use half::f16;
+use serde::{Deserialize, Serialize};
+
+use crate::instance::{mat4_from_rows, mat4_to_rows, Group, Instance, InstancedScene, Offsets, Similarity};
+use crate::scene::Scene;
+
+pub const MAGIC: &[u8; 8] = b"INSTGS\0\0";
+pub const VERSION: u32 = 1;
+/// Headers larger than this are refused (a corrupt length would otherwise allocate gigabytes).
+const MAX_HEADER: usize = 64 << 20;
+
+/// Storage type of the offset sections.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Dtype {
+    F32,
+    F16,
+}
+
+impl Dtype {
+    fn size(self) -> usize {
+        match self {
+            Dtype::F32 => 4,
+            Dtype::F16 => 2,
+        }
+    }
+}
+
+#[derive(Serialize, Deserialize)]
+struct Header {
+    format: String,
+    version: u32,
+    sh_degree: u32,
+    background_gaussians: usize,
+    offset_dtype: Dtype,
+    groups: Vec<GroupHeader>,
+    sections: Vec<Section>,
+}
+
+#[derive(Serialize, Deserialize)]
+struct GroupHeader {
+    name: String,
+    template_gaussians: usize,
+    instances: Vec<InstanceHeader>,
+}
+
+#[derive(Serialize, Deserialize)]
+struct InstanceHeader {
+    id: String,
+    /// Template → world, 4×4 row-major (column vectors).
+    transform: [[f32; 4]; 4],
+}
+
+#[derive(Serialize, Deserialize, Clone)]
+struct Section {
+    name: String,
+    dtype: Dtype,
+    shape: Vec<usize>,
+    /// Bytes from the data start.
+    offset: u64,
+    bytes: u64,
+}
+
+/// Bytes of one part of a file, as `info` reports them.
+#[derive(Clone, Debug, Serialize)]
+pub struct PartBytes {
+    pub name: String,
+    pub bytes: u64,
+}
+
+/// The sections of a Gaussian part (`background` or `group/<index>`): name suffix, shape tail.
+fn gauss_sections(sh_coeffs: usize) -> [(&'static str, Vec<usize>); 5] {
+    [("means", vec![3]), ("scales", vec![3]), ("quats", vec![4]), ("opacities", vec![]), ("sh", vec![sh_coeffs, 3])]
+}
+
+const OFFSET_SECTIONS: [(&str, usize); 3] = [("d_means", 3), ("d_sh0", 3), ("d_opacities", 1)];
+
+fn f32_bytes(v: &[f32], dtype: Dtype) -> Vec<u8> {
+    match dtype {
+        Dtype::F32 => v.iter().flat_map(|x| x.to_le_bytes()).collect(),
+        Dtype::F16 => v.iter().flat_map(|x| f16::from_f32(*x).to_le_bytes()).collect(),
+    }
+}
+
+fn scene_arrays(s: &Scene) -> [Vec<f32>; 5] {
+    [s.means.concat(), s.scales.concat(), s.quats.concat(), s.opacities.clone(), s.sh.clone()]
+}
+
+/// Serialises `scene` (offsets stored as `offset_dtype`).
+pub fn to_bytes(scene: &InstancedScene, offset_dtype: Dtype) -> Vec<u8> {
+    let coeffs = ((scene.sh_degree + 1) * (scene.sh_degree + 1)) as usize;
+    let mut sections = Vec::new();
+    let mut data: Vec<u8> = Vec::new();
+    let mut push = |name: String, dtype: Dtype, shape: Vec<usize>, bytes: Vec<u8>, data: &mut Vec<u8>| {
+        sections.push(Section { name, dtype, shape, offset: data.len() as u64, bytes: bytes.len() as u64 });
+        data.extend_from_slice(&bytes);
+        while data.len() % 16 != 0 {
+            data.push(0);
+        }
+    };
+    let mut parts: Vec<(String, &Scene)> = vec![("background".into(), &scene.background)];
+    parts.extend(scene.groups.iter().enumerate().map(|(i, g)| (format!("group/{i}"), &g.template)));
+    for (part, s) in &parts {
+        for ((suffix, tail), arr) in gauss_sections(coeffs).into_iter().zip(scene_arrays(s)) {
+            let shape = [vec![s.len()], tail].concat();
+            push(format!("{part}/{suffix}"), Dtype::F32, shape, f32_bytes(&arr, Dtype::F32), &mut data);
+        }
+    }
+    for (i, g) in scene.groups.iter().enumerate() {
+        let (k, t) = (g.instances.len(), g.template.len());
+        let arrays = [g.offsets.d_means.concat(), g.offsets.d_sh0.concat(), g.offsets.d_opacities.clone()];
+        for ((suffix, width), arr) in OFFSET_SECTIONS.into_iter().zip(arrays) {
+            let shape = if width == 1 { vec![k, t] } else { vec![k, t, width] };
+            push(format!("group/{i}/{suffix}"), offset_dtype, shape, f32_bytes(&arr, offset_dtype), &mut data);
+        }
+    }
+    let header = Header {
+        format: "instgs".into(),
+        version: VERSION,
+        sh_degree: scene.sh_degree,
+        background_gaussians: scene.background.len(),
+        offset_dtype,
+        groups: scene
+            .groups
+            .iter()
+            .map(|g| GroupHeader {
+                name: g.name.clone(),
+                template_gaussians: g.template.len(),
+                instances: g
+                    .instances
+                    .iter()
+                    .map(|i| InstanceHeader { id: i.id.clone(), transform: mat4_to_rows(i.transform.to_mat4()) })
+                    .collect(),
+            })
+            .collect(),
+        sections,
+    };
+    let json = serde_json::to_vec(&header).expect("header serialises");
+    let mut out = Vec::with_capacity(data.len() + json.len() + 32);
+    out.extend_from_slice(MAGIC);
+    out.extend_from_slice(&(json.len() as u32).to_le_bytes());
+    out.extend_from_slice(&json);
+    while out.len() % 16 != 0 {
+        out.push(0);
+    }
+    out.extend_from_slice(&data);
+    out
+}
+
+/// Writes `scene` to `path` atomically.
+pub fn write(scene: &InstancedScene, path: &Path, offset_dtype: Dtype) -> Result<()> {
+    scene.validate(&path.display().to_string())?;
+    let bytes = to_bytes(scene, offset_dtype);
+    crate::util::write_atomic(path, |f| f.write_all(&bytes))
+}
+
+/// Header and data start of a file's bytes.
+fn split(bytes: &[u8]) -> Result<(Header, &[u8], u64)> {
+    if bytes.len() < 12 || &bytes[..8] != MAGIC {
+        bail!("not an .instgs file (no INSTGS magic)");
+    }
+    let len = u32::from_le_bytes(bytes[8..12].try_into().unwrap()) as usize;
+    if len > MAX_HEADER || 12 + len > bytes.len() {
+        bail!("header length {len} runs past the end of the file ({} bytes)", bytes.len());
+    }
+    let value: serde_json::Value =
+        serde_json::from_slice(&bytes[12..12 + len]).map_err(|e| anyhow!("malformed JSON header: {e}"))?;
+    if value.get("format").and_then(|f| f.as_str()) != Some("instgs") {
+        bail!("header: format is not \"instgs\"");
+    }
+    match value.get("version").and_then(|v| v.as_u64()) {
+        Some(v) if v == VERSION as u64 => {}
+        Some(v) => bail!("header: version {v} is not supported (this build reads version {VERSION})"),
+        None => bail!("header: no version"),
+    }
+    let header: Header = serde_json::from_value(value).map_err(|e| anyhow!("header: {e}"))?;
+    let start = (12 + len).div_ceil(16) * 16;
+    let data = bytes.get(start..).unwrap_or(&[]);
+    Ok((header, data, start as u64))
+}
+
+struct Sections<'a> {
+    list: Vec<Section>,
+    data: &'a [u8],
+}
+
+impl Sections<'_> {
+    /// The values of section `name`, which must have `shape`.
+    fn get(&self, name: &str, shape: &[usize], dtype: Dtype) -> Result<Vec<f32>> {
+        let mut found = self.list.iter().filter(|s| s.name == name);
+        let s = found.next().ok_or_else(|| anyhow!("section {name:?} is missing"))?;
+        if found.next().is_some() {
+            bail!("section {name:?} appears twice");
+        }
+        if s.shape != shape {
+            bail!("section {name:?} has shape {:?}; the header's counts need {shape:?}", s.shape);
+        }
+        if s.dtype != dtype {
+            bail!("section {name:?} is {:?}, expected {dtype:?}", s.dtype);
+        }
+        let count = shape.iter().try_fold(1usize, |a, &b| a.checked_mul(b));
+        let need =
+            count.and_then(|c| c.checked_mul(dtype.size())).ok_or_else(|| anyhow!("section {name:?} too large"))?;
+        if s.bytes != need as u64 {
+            bail!("section {name:?} holds {} bytes; its shape needs {need}", s.bytes);
+        }
+        let end = s.offset.checked_add(s.bytes).filter(|&e| e <= self.data.len() as u64);
+        let Some(end) = end else {
+            bail!(
+                "section {name:?} (offset {}, {} bytes) runs past the end of the data ({} bytes)",
+                s.offset,
+                s.bytes,
+                self.data.len()
+            );
+        };
+        let raw = &self.data[s.offset as usize..end as usize];
+        Ok(match dtype {
+            Dtype::F32 => raw.chunks_exact(4).map(|c| f32::from_le_bytes(c.try_into().unwrap())).collect(),
+            Dtype::F16 => raw.chunks_exact(2).map(|c| f16::from_le_bytes(c.try_into().unwrap()).to_f32()).collect(),
+        })
+    }
+
+    fn scene(&self, part: &str, n: usize, sh_degree: u32) -> Result<Scene> {
+        let coeffs = ((sh_degree + 1) * (sh_degree + 1)) as usize;
+        let mut arrays = Vec::new();
+        for (suffix, tail) in gauss_sections(coeffs) {
+            arrays.push(self.get(&format!("{part}/{suffix}"), &[vec![n], tail].concat(), Dtype::F32)?);
+        }
+        let v3 = |a: &[f32]| a.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect();
+        Ok(Scene {
+            means: v3(&arrays[0]),
+            scales: v3(&arrays[1]),
+            quats: arrays[2].chunks_exact(4).map(|c| [c[0], c[1], c[2], c[3]]).collect(),
+            opacities: std::mem::take(&mut arrays[3]),
+            sh: std::mem::take(&mut arrays[4]),
+            sh_degree,
+        })
+    }
+}
+
+/// Parses an `.instgs` file's bytes; `what` names it in errors.
+pub fn from_bytes(bytes: &[u8], what: &str) -> Result<InstancedScene> {
+    let (h, data, _) = split(bytes).with_context(|| what.to_string())?;
+    let parse = || -> Result<InstancedScene> {
+        if h.sh_degree > 3 {
+            bail!("header: SH degree {} is not supported (0..3)", h.sh_degree);
+        }
+        let secs = Sections { list: h.sections.clone(), data };
+        let known = 5 * (1 + h.groups.len()) + 3 * h.groups.len();
+        if h.sections.len() != known {
+            bail!("header lists {} sections; its groups need {known}", h.sections.len());
+        }
+        let background = secs.scene("background", h.background_gaussians, h.sh_degree)?;
+        let mut groups = Vec::new();
+        for (i, g) in h.groups.iter().enumerate() {
+            let template = secs.scene(&format!("group/{i}"), g.template_gaussians, h.sh_degree)?;
+            let (k, t) = (g.instances.len(), g.template_gaussians);
+            let mut off = Vec::new();
+            for (suffix, width) in OFFSET_SECTIONS {
+                let shape = if width == 1 { vec![k, t] } else { vec![k, t, width] };
+                off.push(secs.get(&format!("group/{i}/{suffix}"), &shape, h.offset_dtype)?);
+            }
+            let v3 = |a: &[f32]| a.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect();
+            let instances = g
+                .instances
+                .iter()
+                .map(|inst| {
+                    let w = format!("group {:?} instance {:?}", g.name, inst.id);
+                    Ok(Instance {
+                        id: inst.id.clone(),
+                        transform: Similarity::from_mat4(mat4_from_rows(&inst.transform), &w)?,
+                    })
+                })
+                .collect::<Result<Vec<_>>>()?;
+            groups.push(Group {
+                name: g.name.clone(),
+                template,
+                instances,
+                offsets: Offsets { d_means: v3(&off[0]), d_sh0: v3(&off[1]), d_opacities: std::mem::take(&mut off[2]) },
+            });
+        }
+        let scene = InstancedScene { sh_degree: h.sh_degree, background, groups };
+        scene.validate("contents")?;
+        Ok(scene)
+    };
+    parse().with_context(|| what.to_string())
+}
+
+/// Reads an `.instgs` file.
+pub fn read(path: &Path) -> Result<InstancedScene> {
+    let what = path.display().to_string();
+    let bytes = std::fs::read(path).with_context(|| format!("{what}: cannot read"))?;
+    from_bytes(&bytes, &what)
+}
+
+/// Bytes of every part of a file: header (with padding), background, each group's template and
+/// offsets.
+pub fn part_bytes(bytes: &[u8]) -> Result<Vec<PartBytes>> {
+    let (h, _, start) = split(bytes)?;
+    let mut parts = vec![PartBytes { name: "header".into(), bytes: start }];
+    let sum = |prefix: &str, offsets: bool| -> u64 {
+        h.sections
+            .iter()
+            .filter(|s| {
+                s.name.strip_prefix(prefix).is_some_and(|r| r.starts_with('/') && r[1..].starts_with("d_") == offsets)
+            })
+            .map(|s| s.bytes.div_ceil(16) * 16)
+            .sum()
+    };
+    parts.push(PartBytes { name: "background".into(), bytes: sum("background", false) });
+    for (i, g) in h.groups.iter().enumerate() {
+        parts.push(PartBytes { name: format!("{}/template", g.name), bytes: sum(&format!("group/{i}"), false) });
+        parts.push(PartBytes { name: format!("{}/offsets", g.name), bytes: sum(&format!("group/{i}"), true) });
+    }
+    Ok(parts)
+}
+
+/// A scene file of either kind: a plain 3DGS PLY (Inria or SuperSplat compressed) or an
+/// `.instgs` instanced scene (chosen by the `.instgs` extension).
+pub enum AnyScene {
+    Plain(Scene),
+    Instanced(InstancedScene),
+}
+
+impl AnyScene {
+    pub fn read(path: &Path) -> Result<AnyScene> {
+        if path.extension().is_some_and(|e| e.eq_ignore_ascii_case("instgs")) {
+            Ok(AnyScene::Instanced(read(path)?))
+        } else {
+            Ok(AnyScene::Plain(crate::scene::read_ply(path)?))
+        }
+    }
+
+    /// Splats rendered (an instanced scene's expanded count).
+    pub fn splats(&self) -> usize {
+        match self {
+            AnyScene::Plain(s) => s.len(),
+            AnyScene::Instanced(s) => s.splats(),
+        }
+    }
+
+    pub fn sh_degree(&self) -> u32 {
+        match self {
+            AnyScene::Plain(s) => s.sh_degree,
+            AnyScene::Instanced(s) => s.sh_degree,
+        }
+    }
+
+    /// World-space means of every splat (expanded).
+    pub fn means(&self) -> std::borrow::Cow<'_, [[f32; 3]]> {
+        match self {
+            AnyScene::Plain(s) => std::borrow::Cow::Borrowed(&s.means),
+            AnyScene::Instanced(s) => std::borrow::Cow::Owned(s.expanded_means()),
+        }
+    }
+
+    /// The scene on the device (an instanced scene stays compact).
+    pub fn upload(&self, gpu: &std::sync::Arc<crate::gpu::Gpu>) -> Result<crate::raster::GpuScene> {
+        match self {
+            AnyScene::Plain(s) => crate::raster::GpuScene::new(gpu, s),
+            AnyScene::Instanced(s) => crate::raster::GpuScene::instanced(gpu, s),
+        }
+    }
+}

@@ -1,0 +1,393 @@
+//! Instanced scenes: the instancing preprocess renders what the expanded plain scene renders
+//! (SH degrees 0–3, scaled transforms, offsets, background, several groups); the instancing
+//! backward equals the expanded path's gradients mapped back by Eq. 7–9 and central finite
+//! differences of the f64 twin; the SH band rotation; the scene graph convention. Validation on.
+mod common;
+
+use common::*;
+use glam::{DVec3, Quat, Vec3};
+use instgs_vk::camera::Camera;
+use instgs_vk::grad::{self, Gaussian, Splat};
+use instgs_vk::instance::{quat_mul, Group, Instance, InstancedScene, Offsets, ShRotation, Similarity};
+use instgs_vk::raster::{GpuScene, Grads, Rasterizer};
+use instgs_vk::scene::Scene;
+use instgs_vk::util::psnr;
+
+fn random_quat(rng: &mut Rng) -> Quat {
+    Quat::from_xyzw(rng.normal(), rng.normal(), rng.normal(), rng.normal()).normalize()
+}
+
+/// A small template around the origin (radius ~0.4).
+fn template(rng: &mut Rng, n: usize, deg: u32) -> Scene {
+    let mut t = random_scene(rng, n, deg);
+    for m in &mut t.means {
+        *m = m.map(|v| 0.3 * v);
+    }
+    for s in &mut t.scales {
+        *s = s.map(|v| v - 0.5);
+    }
+    t
+}
+
+/// Groups of (template Gaussians, instances) with random similarity transforms (scale
+/// 0.6–1.5) and offsets, and `background` plain Gaussians.
+pub fn random_instanced(rng: &mut Rng, deg: u32, background: usize, groups: &[(usize, usize)]) -> InstancedScene {
+    let mut bg = random_scene(rng, background, deg);
+    bg.sh_degree = deg;
+    let groups = groups
+        .iter()
+        .enumerate()
+        .map(|(g, &(t, k))| {
+            let template = template(rng, t, deg);
+            let instances = (0..k)
+                .map(|i| Instance {
+                    id: format!("{}", i + 1),
+                    transform: Similarity::from_parts(
+                        random_quat(rng),
+                        rng.range(0.6, 1.5),
+                        Vec3::new(rng.range(-1.0, 1.0), rng.range(-0.8, 0.8), rng.range(-1.0, 1.0)),
+                    ),
+                })
+                .collect::<Vec<_>>();
+            let n = t * k;
+            let mut offsets = Offsets::zeros(n);
+            for p in 0..n {
+                offsets.d_means[p] = [0.0; 3].map(|_| 0.03 * rng.normal());
+                offsets.d_sh0[p] = [0.0; 3].map(|_| 0.2 * rng.normal());
+                offsets.d_opacities[p] = 0.5 * rng.normal();
+            }
+            Group { name: format!("group{g}"), template, instances, offsets }
+        })
+        .collect();
+    InstancedScene { sh_degree: deg, background: bg, groups }
+}
+
+fn camera(w: u32, h: u32) -> Camera {
+    look_at(Vec3::new(0.4, -0.6, -4.2), Vec3::ZERO, Vec3::new(0.0, -1.0, 0.0), w, h, 0.9 * w as f32)
+}
+
+#[test]
+fn sh_rotation_turns_view_dependent_colour_with_the_instance() {
+    let mut rng = Rng::new(4);
+    for deg in 1..=3u32 {
+        let c = ((deg + 1) * (deg + 1)) as usize;
+        for _ in 0..5 {
+            let q = random_quat(&mut rng);
+            let rot = ShRotation::new(q, deg);
+            let sh: Vec<f32> = (0..3 * c).map(|_| rng.range(-1.0, 1.0)).collect();
+            let mut rotated = sh.clone();
+            rot.apply(&mut rotated);
+            let mut back = rotated.clone();
+            rot.apply_transpose(&mut back);
+            for (a, b) in back.iter().zip(&sh) {
+                assert!((a - b).abs() < 1e-4, "D is orthogonal: {a} vs {b}");
+            }
+            for _ in 0..20 {
+                let d = Vec3::new(rng.normal(), rng.normal(), rng.normal()).normalize();
+                let world = instgs_vk::cpu::sh_basis(d, deg);
+                let template = instgs_vk::cpu::sh_basis(q.inverse() * d, deg);
+                for ch in 0..3 {
+                    let want: f32 = (0..c).map(|k| template[k] * sh[k * 3 + ch]).sum();
+                    let got: f32 = (0..c).map(|k| world[k] * rotated[k * 3 + ch]).sum();
+                    assert!((want - got).abs() < 1e-4, "degree {deg}: {got} vs {want}");
+                }
+            }
+        }
+    }
+}
+
+#[test]
+fn instanced_render_equals_the_expanded_scene() {
+    let (gpu, k) = gpu();
+    let mut rng = Rng::new(21);
+    let cam = camera(96, 72);
+    for deg in 0..=3u32 {
+        let scene = random_instanced(&mut rng, deg, 60, &[(40, 3), (25, 5)]);
+        scene.validate("random").unwrap();
+        let expanded = scene.expand();
+        assert_eq!(expanded.len(), scene.splats());
+        let mut r = Rasterizer::new(&gpu, &k).unwrap();
+        r.poison = true;
+        let gi = GpuScene::instanced(&gpu, &scene).unwrap();
+        assert_eq!((gi.rows, gi.len), (60 + 40 + 25, 60 + 120 + 125));
+        let inst = r.render(&gi, &cam, [0.1, 0.2, 0.3]).unwrap();
+        let inst_state = r.read_state().unwrap();
+        let plain = r.render(&GpuScene::new(&gpu, &expanded).unwrap(), &cam, [0.1, 0.2, 0.3]).unwrap();
+        let plain_state = r.read_state().unwrap();
+        let db = psnr(&inst.image, &plain.image);
+        assert!(db >= 60.0, "degree {deg}: instanced vs expanded {db:.1} dB");
+        assert!(inst.visible > 200, "degree {deg}: only {} visible", inst.visible);
+        // The preprocess outputs agree splat by splat with the CPU twin on the expanded scene.
+        assert_eq!(inst_state.projected.tiles_touched, plain_state.projected.tiles_touched);
+        let fp = r.last_frame_params().unwrap();
+        let cpu = instgs_vk::cpu::render(&expanded, &fp);
+        let db = psnr(&inst.image, &cpu);
+        assert!(db >= 50.0, "degree {deg}: instanced GPU vs CPU twin {db:.1} dB");
+    }
+    assert_clean(&gpu);
+}
+
+/// The instanced scene's GPU gradients for `v_image`: (rows as a gradient scene, offsets).
+fn gpu_grads(scene: &InstancedScene, cam: &Camera, v_image: &[[f32; 4]]) -> (Scene, Vec<Offsets>) {
+    let (gpu, k) = gpu();
+    let gs = GpuScene::instanced(&gpu, scene).unwrap();
+    let mut r = Rasterizer::new(&gpu, &k).unwrap();
+    r.render(&gs, cam, [0.0; 3]).unwrap();
+    let v = gpu.upload("v_image", v_image).unwrap();
+    let g = Grads::new(&gpu, &gs).unwrap();
+    gpu.submit_and_wait(|rec| {
+        g.record_reset_stats(rec);
+        for b in [&g.means, &g.scales, &g.quats, &g.opacities, &g.sh, &g.d_means, &g.d_sh0, &g.d_opacities] {
+            rec.fill(b, instgs_vk::raster::POISON);
+        }
+        r.record_backward(rec, &gs, &v, &g)
+    })
+    .unwrap();
+    assert_clean(&gpu);
+    let n = gs.rows;
+    let c = scene.background.sh_coeffs();
+    let rows = Scene {
+        means: gpu.read(&g.means, n).unwrap(),
+        scales: gpu.read(&g.scales, n).unwrap(),
+        quats: gpu.read(&g.quats, n).unwrap(),
+        opacities: gpu.read(&g.opacities, n).unwrap(),
+        sh: gpu.read(&g.sh, n * c * 3).unwrap(),
+        sh_degree: scene.sh_degree,
+    };
+    let pairs = gs.inst.pairs;
+    let (dm, dc, dop): (Vec<[f32; 3]>, Vec<[f32; 3]>, Vec<f32>) = (
+        gpu.read(&g.d_means, pairs).unwrap(),
+        gpu.read(&g.d_sh0, pairs).unwrap(),
+        gpu.read(&g.d_opacities, pairs).unwrap(),
+    );
+    let mut offsets = Vec::new();
+    let mut at = 0;
+    for grp in &scene.groups {
+        let m = grp.offsets.len();
+        offsets.push(Offsets {
+            d_means: dm[at..at + m].to_vec(),
+            d_sh0: dc[at..at + m].to_vec(),
+            d_opacities: dop[at..at + m].to_vec(),
+        });
+        at += m;
+    }
+    (rows, offsets)
+}
+
+fn flat(s: &Scene) -> Vec<f64> {
+    s.means
+        .iter()
+        .flatten()
+        .chain(s.scales.iter().flatten())
+        .chain(s.quats.iter().flatten())
+        .chain(&s.opacities)
+        .chain(&s.sh)
+        .map(|&v| v as f64)
+        .collect()
+}
+
+fn flat_offsets(o: &[Offsets]) -> Vec<f64> {
+    o.iter()
+        .flat_map(|o| o.d_means.iter().flatten().chain(o.d_sh0.iter().flatten()).chain(&o.d_opacities))
+        .map(|&v| v as f64)
+        .collect()
+}
+
+/// max |a − b| / max |b|.
+fn rel_err(a: &[f64], b: &[f64]) -> f64 {
+    assert_eq!(a.len(), b.len());
+    let scale = b.iter().fold(0.0f64, |m, v| m.max(v.abs())).max(1e-12);
+    a.iter().zip(b).fold(0.0f64, |m, (x, y)| m.max((x - y).abs())) / scale
+}
+
+#[test]
+fn instanced_gradients_equal_expanded_gradients_mapped_back() {
+    let (gpu, k) = gpu();
+    let mut rng = Rng::new(8);
+    let cam = camera(80, 60);
+    for deg in 0..=3u32 {
+        let scene = random_instanced(&mut rng, deg, 50, &[(30, 3), (20, 4)]);
+        let npx = (cam.width * cam.height) as usize;
+        let v_image: Vec<[f32; 4]> =
+            (0..npx).map(|_| [rng.range(-1.0, 1.0), rng.range(-1.0, 1.0), rng.range(-1.0, 1.0), 0.0]).collect();
+        let (rows, offsets) = gpu_grads(&scene, &cam, &v_image);
+
+        // The expanded plain scene's gradients, mapped back on the CPU.
+        let expanded = scene.expand();
+        let ge = GpuScene::new(&gpu, &expanded).unwrap();
+        let mut r = Rasterizer::new(&gpu, &k).unwrap();
+        r.render(&ge, &cam, [0.0; 3]).unwrap();
+        let v = gpu.upload("v_image", &v_image).unwrap();
+        let g = Grads::new(&gpu, &ge).unwrap();
+        gpu.submit_and_wait(|rec| {
+            g.record_reset_stats(rec);
+            r.record_backward(rec, &ge, &v, &g)
+        })
+        .unwrap();
+        let n = ge.rows;
+        let c = expanded.sh_coeffs();
+        let g_exp = Scene {
+            means: gpu.read(&g.means, n).unwrap(),
+            scales: gpu.read(&g.scales, n).unwrap(),
+            quats: gpu.read(&g.quats, n).unwrap(),
+            opacities: gpu.read(&g.opacities, n).unwrap(),
+            sh: gpu.read(&g.sh, n * c * 3).unwrap(),
+            sh_degree: deg,
+        };
+        let mapped = scene.map_expanded_grads(&g_exp);
+        let (a, b) = (flat(&rows), flat(&mapped.rows));
+        assert!(b.iter().any(|v| *v != 0.0));
+        let e = rel_err(&a, &b);
+        assert!(e < 2e-3, "degree {deg}: template/background gradients differ by {e:e}");
+        let e = rel_err(&flat_offsets(&offsets), &flat_offsets(&mapped.offsets));
+        assert!(e < 2e-3, "degree {deg}: offset gradients differ by {e:e}");
+    }
+    assert_clean(&gpu);
+}
+
+/// f64 expansion of splat (group g, instance k, template j).
+fn expand64(scene: &InstancedScene, g: usize, k: usize, j: usize) -> Gaussian {
+    let grp = &scene.groups[g];
+    let t = &grp.template;
+    let x = grp.instances[k].transform;
+    let p = k * t.len() + j;
+    let rot = x.rotation.as_dquat();
+    let s = x.scale as f64;
+    let mean = rot * (DVec3::from(t.means[j].map(f64::from)) * s)
+        + x.translation.as_dvec3()
+        + DVec3::from(grp.offsets.d_means[p].map(f64::from));
+    let qt = x.quat_wxyz().map(f64::from);
+    let q = t.quats[j].map(f64::from);
+    let quat = [
+        qt[0] * q[0] - qt[1] * q[1] - qt[2] * q[2] - qt[3] * q[3],
+        qt[0] * q[1] + qt[1] * q[0] + qt[2] * q[3] - qt[3] * q[2],
+        qt[0] * q[2] - qt[1] * q[3] + qt[2] * q[0] + qt[3] * q[1],
+        qt[0] * q[3] + qt[1] * q[2] - qt[2] * q[1] + qt[3] * q[0],
+    ];
+    let c = t.sh_coeffs();
+    let mut sh: Vec<f32> = t.sh[j * c * 3..(j + 1) * c * 3].to_vec();
+    for (v, d) in sh.iter_mut().zip(grp.offsets.d_sh0[p]) {
+        *v += d;
+    }
+    ShRotation::new(x.rotation, scene.sh_degree).apply(&mut sh);
+    Gaussian {
+        mean: mean.to_array(),
+        scale: t.scales[j].map(|v| v as f64 + s.ln()),
+        quat,
+        opacity: t.opacities[j] as f64 + grp.offsets.d_opacities[p] as f64,
+        sh: sh.into_iter().map(f64::from).collect(),
+    }
+}
+
+#[test]
+fn instanced_gradients_match_finite_differences() {
+    let (gpu, k) = gpu();
+    let mut rng = Rng::new(31);
+    let cam = camera(64, 48);
+    let deg = 1;
+    let mut scene = random_instanced(&mut rng, deg, 0, &[(12, 3)]);
+    // Fewer, larger, softer splats: smooth in every parameter.
+    for o in &mut scene.groups[0].template.opacities {
+        *o = o.clamp(-1.0, 1.5);
+    }
+    let npx = (cam.width * cam.height) as usize;
+    let v_image: Vec<[f32; 4]> =
+        (0..npx).map(|_| [rng.range(-1.0, 1.0), rng.range(-1.0, 1.0), rng.range(-1.0, 1.0), 0.0]).collect();
+    let (rows, offsets) = gpu_grads(&scene, &cam, &v_image);
+
+    // The f64 twin: L = Σ v · image, with the tile lists of the GPU frame held fixed.
+    let gi = GpuScene::instanced(&gpu, &scene).unwrap();
+    let mut r = Rasterizer::new(&gpu, &k).unwrap();
+    r.render(&gi, &cam, [0.0; 3]).unwrap();
+    let st = r.read_state().unwrap();
+    let fp = r.last_frame_params().unwrap();
+    let loss = |s: &InstancedScene| -> f64 {
+        let t = s.groups[0].template.len();
+        let splats: Vec<Splat> = (0..3 * t).map(|i| grad::project(&fp, &expand64(s, 0, i / t, i % t))).collect();
+        let (img, _, _) = grad::blend(&fp, &st.ranges, &st.isect_ids, &splats);
+        img.iter().zip(&v_image).map(|(p, v)| p[0] * v[0] as f64 + p[1] * v[1] as f64 + p[2] * v[2] as f64).sum()
+    };
+    type Get = fn(&mut InstancedScene, usize, usize) -> &mut f32;
+    let params: [(&str, Get, usize); 8] = [
+        ("template mean", |s, j, a| &mut s.groups[0].template.means[j][a], 3),
+        ("template log-scale", |s, j, a| &mut s.groups[0].template.scales[j][a], 3),
+        ("template quat", |s, j, a| &mut s.groups[0].template.quats[j][a], 4),
+        ("template logit", |s, j, _| &mut s.groups[0].template.opacities[j], 1),
+        ("template sh", |s, j, a| &mut s.groups[0].template.sh[j * 12 + a], 12),
+        ("offset d_mean", |s, p, a| &mut s.groups[0].offsets.d_means[p][a], 3),
+        ("offset d_sh0", |s, p, a| &mut s.groups[0].offsets.d_sh0[p][a], 3),
+        ("offset d_opacity", |s, p, _| &mut s.groups[0].offsets.d_opacities[p], 1),
+    ];
+    let analytic = |name: &str, i: usize, a: usize| -> f64 {
+        (match name {
+            "template mean" => rows.means[i][a],
+            "template log-scale" => rows.scales[i][a],
+            "template quat" => rows.quats[i][a],
+            "template logit" => rows.opacities[i],
+            "template sh" => rows.sh[i * 12 + a],
+            "offset d_mean" => offsets[0].d_means[i][a],
+            "offset d_sh0" => offsets[0].d_sh0[i][a],
+            _ => offsets[0].d_opacities[i],
+        }) as f64
+    };
+    let (mut checked, mut failed) = (0, Vec::new());
+    for (name, get, width) in params {
+        let count = if name.starts_with("offset") { 36 } else { 12 };
+        for i in (0..count).step_by(3) {
+            for a in 0..width {
+                let x0 = *get(&mut scene, i, a);
+                // f32 parameters: a step that the f32 value holds exactly enough.
+                let h = 1e-3f32 * x0.abs().max(0.1);
+                let mut sp = scene.clone();
+                *get(&mut sp, i, a) = x0 + h;
+                let hp = (*get(&mut sp, i, a) - x0) as f64;
+                let mut sm = scene.clone();
+                *get(&mut sm, i, a) = x0 - h;
+                let hm = (x0 - *get(&mut sm, i, a)) as f64;
+                let numeric = (loss(&sp) - loss(&sm)) / (hp + hm);
+                let an = analytic(name, i, a);
+                checked += 1;
+                if (an - numeric).abs() > 2e-2 * an.abs().max(numeric.abs()) + 1e-3 {
+                    failed.push(format!("{name} {i}.{a}: analytic {an:e} numeric {numeric:e}"));
+                }
+            }
+        }
+    }
+    eprintln!("finite differences: {checked} checked, {} off", failed.len());
+    // Central differences across an alpha threshold jump; allow a few.
+    assert!(failed.len() * 20 <= checked, "{} of {checked} disagree:\n{}", failed.len(), failed.join("\n"));
+    assert_clean(&gpu);
+}
+
+#[test]
+fn scene_graph_round_trip_and_convention() {
+    let mut rng = Rng::new(2);
+    let scene = random_instanced(&mut rng, 0, 0, &[(5, 3)]);
+    let dir = tempdir("scene_graph");
+    let path = dir.join("scene_graph.json");
+    let graph = instgs_vk::instance::scene_graph(&scene);
+    std::fs::write(&path, serde_json::to_string(&graph).unwrap()).unwrap();
+    let back = instgs_vk::instance::read_scene_graph(&path).unwrap();
+    for (inst, got) in scene.groups[0].instances.iter().zip(&back[0].1) {
+        // The file maps world points onto template space: inverse of template→world.
+        let p = Vec3::new(0.3, -0.2, 0.5);
+        let world = inst.transform.render_mat4().transform_point3(p);
+        let again = got.transform.render_mat4().transform_point3(p);
+        assert!((world - again).length() < 1e-4);
+    }
+    // The prototype's quaternion convention q_T · q: a rotation applied to a Gaussian rotation.
+    let a = [0.5f32.sqrt(), 0.0, 0.0, 0.5f32.sqrt()];
+    let r = quat_mul(a, [1.0, 0.0, 0.0, 0.0]);
+    assert_eq!(r, a);
+    // Bad files.
+    std::fs::write(&path, "[{\"template_id\": \"1\", \"instances\": []}]").unwrap();
+    let e = instgs_vk::instance::read_scene_graph(&path).unwrap_err().to_string();
+    assert!(e.contains("no instances"), "{e}");
+    std::fs::write(
+        &path,
+        "[{\"template_id\": \"1\", \"instances\": [{\"instance_id\": \"1\", \"transform\": [[1,0,0,0],[0,2,0,0],[0,0,1,0],[0,0,0,1]]}]}]",
+    )
+    .unwrap();
+    let e = format!("{:#}", instgs_vk::instance::read_scene_graph(&path).unwrap_err());
+    assert!(e.contains("uniform scale"), "{e}");
+}

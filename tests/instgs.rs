@@ -1,0 +1,180 @@
+//! The `.instgs` file: write → read is exact (f32 offsets) or f16-rounded (f16 offsets);
+//! malformed files are refused with clear errors; random corruption never panics.
+mod common;
+
+use common::*;
+use glam::{Quat, Vec3};
+use instgs_vk::instance::{Group, Instance, InstancedScene, Offsets, Similarity};
+use instgs_vk::instgs::{self, Dtype};
+
+fn scene(rng: &mut Rng, deg: u32) -> InstancedScene {
+    let groups = (0..2)
+        .map(|g| {
+            let (t, k) = (7 + g, 3 + g);
+            let instances = (0..k)
+                .map(|i| Instance {
+                    id: format!("{g}-{i}"),
+                    transform: Similarity::from_parts(
+                        Quat::from_xyzw(rng.normal(), rng.normal(), rng.normal(), rng.normal()),
+                        rng.range(0.5, 2.0),
+                        Vec3::new(rng.normal(), rng.normal(), rng.normal()),
+                    ),
+                })
+                .collect();
+            let mut offsets = Offsets::zeros(t * k);
+            for p in 0..t * k {
+                offsets.d_means[p] = [rng.normal(), rng.normal(), rng.normal()];
+                offsets.d_sh0[p] = [rng.normal(), rng.normal(), rng.normal()];
+                offsets.d_opacities[p] = rng.normal();
+            }
+            Group { name: format!("object {g}"), template: random_scene(rng, t, deg), instances, offsets }
+        })
+        .collect();
+    InstancedScene { sh_degree: deg, background: random_scene(rng, 5, deg), groups }
+}
+
+#[test]
+fn write_then_read_is_exact() {
+    let mut rng = Rng::new(1);
+    let dir = tempdir("instgs_roundtrip");
+    for deg in 0..=3 {
+        let s = scene(&mut rng, deg);
+        let path = dir.join(format!("s{deg}.instgs"));
+        instgs::write(&s, &path, Dtype::F32).unwrap();
+        assert_eq!(instgs::read(&path).unwrap(), s, "degree {deg}");
+        // f16 offsets: the same scene with offsets rounded to half precision, a smaller file.
+        let path16 = dir.join(format!("s{deg}_f16.instgs"));
+        instgs::write(&s, &path16, Dtype::F16).unwrap();
+        let back = instgs::read(&path16).unwrap();
+        let mut want = s.clone();
+        for g in &mut want.groups {
+            let r = |v: &mut f32| *v = half::f16::from_f32(*v).to_f32();
+            g.offsets.d_means.iter_mut().flatten().for_each(r);
+            g.offsets.d_sh0.iter_mut().flatten().for_each(r);
+            g.offsets.d_opacities.iter_mut().for_each(r);
+        }
+        assert_eq!(back, want);
+        assert!(std::fs::metadata(&path16).unwrap().len() < std::fs::metadata(&path).unwrap().len());
+    }
+    // A scene without background Gaussians.
+    let mut s = scene(&mut rng, 1);
+    s.background = instgs_vk::scene::Scene { sh_degree: 1, ..Default::default() };
+    let bytes = instgs::to_bytes(&s, Dtype::F32);
+    assert_eq!(instgs::from_bytes(&bytes, "mem").unwrap(), s);
+}
+
+/// (header JSON, data) of a file.
+fn split(bytes: &[u8]) -> (serde_json::Value, Vec<u8>) {
+    let len = u32::from_le_bytes(bytes[8..12].try_into().unwrap()) as usize;
+    let start = (12 + len).div_ceil(16) * 16;
+    (serde_json::from_slice(&bytes[12..12 + len]).unwrap(), bytes[start..].to_vec())
+}
+
+fn join(header: &serde_json::Value, data: &[u8]) -> Vec<u8> {
+    let json = serde_json::to_vec(header).unwrap();
+    let mut out = b"INSTGS\0\0".to_vec();
+    out.extend_from_slice(&(json.len() as u32).to_le_bytes());
+    out.extend_from_slice(&json);
+    while out.len() % 16 != 0 {
+        out.push(0);
+    }
+    out.extend_from_slice(data);
+    out
+}
+
+#[test]
+fn malformed_files_are_refused_with_clear_errors() {
+    let mut rng = Rng::new(2);
+    let s = scene(&mut rng, 1);
+    let good = instgs::to_bytes(&s, Dtype::F32);
+    let (h, data) = split(&good);
+    assert_eq!(instgs::from_bytes(&join(&h, &data), "x").unwrap(), s);
+    let err = |bytes: &[u8]| format!("{:#}", instgs::from_bytes(bytes, "bad.instgs").unwrap_err());
+    let edit = |f: &dyn Fn(&mut serde_json::Value)| {
+        let mut h = h.clone();
+        f(&mut h);
+        err(&join(&h, &data))
+    };
+    let cases: Vec<(String, &str)> = vec![
+        (err(b"PLY\n"), "magic"),
+        (err(&good[..11]), "magic"),
+        (err(&good[..good.len() / 2]), "runs past the end"),
+        (err(&[&good[..8], &u32::MAX.to_le_bytes()[..], &good[12..]].concat()), "header length"),
+        (err(&join(&serde_json::json!("{"), &data)), "format"),
+        (
+            {
+                let mut b = good.clone();
+                b[12] = b'[';
+                err(&b)
+            },
+            "malformed JSON",
+        ),
+        (edit(&|h| h["version"] = 2.into()), "version 2 is not supported"),
+        (edit(&|h| h["format"] = "ply".into()), "format"),
+        (edit(&|h| h["groups"][0]["template_gaussians"] = 8.into()), "shape"),
+        (edit(&|h| h["background_gaussians"] = 4.into()), "shape"),
+        (edit(&|h| h["sections"][3]["offset"] = 1_000_000_000u64.into()), "runs past the end"),
+        (edit(&|h| h["sections"][3]["bytes"] = 8.into()), "bytes"),
+        (edit(&|h| h["sections"][2]["name"] = "background/means".into()), "twice"),
+        (
+            edit(&|h| {
+                h["sections"].as_array_mut().unwrap().pop();
+            }),
+            "sections",
+        ),
+        (edit(&|h| h["sections"][0]["dtype"] = "f16".into()), "expected F32"),
+        (edit(&|h| h["sh_degree"] = 4.into()), "SH degree 4"),
+        (edit(&|h| h["groups"][0]["instances"][0]["transform"][0][0] = 3.0.into()), "uniform scale"),
+        (edit(&|h| h["groups"][0]["instances"][0]["transform"][3][0] = 1.0.into()), "last row"),
+        (edit(&|h| h["groups"][0]["instances"] = serde_json::json!([])), "shape"),
+        (edit(&|h| h["offset_dtype"] = "f64".into()), "unknown variant"),
+    ];
+    for (e, want) in &cases {
+        assert!(e.starts_with("bad.instgs"), "error does not name the file: {e}");
+        assert!(e.contains(want), "expected {want:?} in: {e}");
+    }
+    // A NaN in the data.
+    let mut b = good.clone();
+    let start = b.len() - data.len();
+    b[start..start + 4].copy_from_slice(&f32::NAN.to_le_bytes());
+    assert!(err(&b).contains("non-finite"), "{}", err(&b));
+}
+
+#[test]
+fn corrupted_files_never_panic() {
+    // A deterministic fuzz smoke test (the cargo-fuzz target in fuzz/ runs the same parser
+    // for longer): bit flips, byte runs, truncations and header edits of a valid file.
+    let mut rng = Rng::new(3);
+    let good = instgs::to_bytes(&scene(&mut rng, 2), Dtype::F16);
+    let header_end = 12 + u32::from_le_bytes(good[8..12].try_into().unwrap()) as usize;
+    let mut parsed = 0;
+    for round in 0..3000 {
+        let mut b = good.clone();
+        match round % 4 {
+            0 => {
+                for _ in 0..1 + rng.u32() % 8 {
+                    let i = (rng.u32() as usize) % b.len();
+                    b[i] ^= 1 << (rng.u32() % 8);
+                }
+            }
+            1 => {
+                // Inside the JSON header: digits and punctuation.
+                let i = 12 + (rng.u32() as usize) % (header_end - 12);
+                b[i] = b"0123456789-.e,:[]{}\""[(rng.u32() % 20) as usize];
+            }
+            2 => b.truncate((rng.u32() as usize) % b.len()),
+            _ => {
+                let i = (rng.u32() as usize) % b.len();
+                let n = (1 + rng.u32() % 64) as usize;
+                for j in i..(i + n).min(b.len()) {
+                    b[j] = rng.u32() as u8;
+                }
+            }
+        }
+        if instgs::from_bytes(&b, "fuzz").is_ok() {
+            parsed += 1;
+        }
+    }
+    // Flips inside f16 offsets still parse; most corruptions do not.
+    assert!(parsed > 0 && parsed < 3000, "{parsed}");
+}
