@@ -1,11 +1,13 @@
 //! Training configuration: `configs/default.toml` (embedded; the one place the defaults live)
-//! merged with an optional user file holding only the keys it changes.
+//! merged with an optional user file holding only the keys it changes. Joint optimisation of an
+//! instanced scene merges `configs/instanced.toml` (embedded) over the defaults first.
 use std::path::Path;
 
 use anyhow::{anyhow, bail, Context, Result};
 use serde::{Deserialize, Serialize};
 
 pub const DEFAULT_TOML: &str = include_str!("../configs/default.toml");
+pub const INSTANCED_TOML: &str = include_str!("../configs/instanced.toml");
 
 #[derive(Clone, Debug, Deserialize, Serialize, PartialEq)]
 #[serde(deny_unknown_fields)]
@@ -29,6 +31,11 @@ pub struct LrConfig {
     pub position_init: f64,
     pub position_final: f64,
     pub position_max_steps: u64,
+    /// Scene scale of the position learning rates: 0 = the training cameras' extent (Inria),
+    /// otherwise this fixed value (the InstGS prototype's fine-tuning: 0.1). Absent from
+    /// checkpoints written before it existed: 0.
+    #[serde(default)]
+    pub spatial_scale: f64,
     pub sh0: f32,
     pub sh_rest: f32,
     pub opacity: f32,
@@ -74,7 +81,16 @@ fn merge(base: &mut toml::Table, over: toml::Table, path: &str) -> Result<()> {
 impl Config {
     /// The defaults with `text` (TOML) merged over them; `what` names the source in errors.
     pub fn from_toml(text: &str, what: &str) -> Result<Config> {
+        Self::from_layers(&[], text, what)
+    }
+
+    /// The defaults, then each embedded layer, then `text`.
+    fn from_layers(layers: &[(&str, &str)], text: &str, what: &str) -> Result<Config> {
         let mut base: toml::Table = DEFAULT_TOML.parse().expect("configs/default.toml parses");
+        for (layer, name) in layers {
+            let t: toml::Table = layer.parse().map_err(|e| anyhow!("{name}: {e}"))?;
+            merge(&mut base, t, "").map_err(|e| anyhow!("{name}: {e}"))?;
+        }
         let over: toml::Table = text.parse().map_err(|e| anyhow!("{what}: not valid TOML: {e}"))?;
         merge(&mut base, over, "").map_err(|e| anyhow!("{what}: {e}"))?;
         let cfg: Config = toml::Value::Table(base).try_into().map_err(|e| anyhow!("{what}: {e}"))?;
@@ -83,11 +99,20 @@ impl Config {
     }
 
     pub fn load(path: Option<&Path>) -> Result<Config> {
+        Self::load_layers(&[], path)
+    }
+
+    /// The joint-optimisation configuration: defaults, `configs/instanced.toml`, then `path`.
+    pub fn load_instanced(path: Option<&Path>) -> Result<Config> {
+        Self::load_layers(&[(INSTANCED_TOML, "configs/instanced.toml")], path)
+    }
+
+    fn load_layers(layers: &[(&str, &str)], path: Option<&Path>) -> Result<Config> {
         match path {
-            None => Config::from_toml("", "configs/default.toml"),
+            None => Config::from_layers(layers, "", "configs/default.toml"),
             Some(p) => {
                 let text = std::fs::read_to_string(p).with_context(|| format!("{}: cannot read", p.display()))?;
-                Config::from_toml(&text, &p.display().to_string())
+                Config::from_layers(layers, &text, &p.display().to_string())
             }
         }
     }
@@ -105,6 +130,7 @@ impl Config {
         let lr = &self.lr;
         if [lr.sh0, lr.sh_rest, lr.opacity, lr.scaling, lr.rotation].iter().any(|v| !(v.is_finite() && *v >= 0.0))
             || !(lr.position_init > 0.0 && lr.position_final > 0.0)
+            || !(lr.spatial_scale.is_finite() && lr.spatial_scale >= 0.0)
         {
             bail!("learning rates must be finite and non-negative (position ones positive)");
         }
@@ -117,10 +143,12 @@ impl Config {
         Ok(())
     }
 
-    /// Inria's position learning rate at `step` (get_expon_lr_func without delay), times extent.
+    /// Inria's position learning rate at `step` (get_expon_lr_func without delay), times the
+    /// spatial scale (`lr.spatial_scale`, or `extent` when that is 0).
     pub fn position_lr(&self, step: u64, extent: f32) -> f32 {
         let t = (step as f64 / self.lr.position_max_steps.max(1) as f64).clamp(0.0, 1.0);
         let lr = (self.lr.position_init.ln() * (1.0 - t) + self.lr.position_final.ln() * t).exp();
-        (lr * extent as f64) as f32
+        let scale = if self.lr.spatial_scale > 0.0 { self.lr.spatial_scale } else { extent as f64 };
+        (lr * scale) as f32
     }
 }

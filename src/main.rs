@@ -57,13 +57,18 @@ enum Cmd {
         #[arg(long)]
         json: Option<PathBuf>,
     },
-    /// Train a plain 3DGS scene from a dataset (NeRF-synthetic or COLMAP) on the GPU.
+    /// Train a plain 3DGS scene from a dataset (NeRF-synthetic or COLMAP) on the GPU, or (with
+    /// --init) jointly optimise an instanced scene's templates, offsets and background.
     Train {
         #[command(flatten)]
         data: DataArgs,
-        /// Run folder: checkpoint.bin, metrics.csv, point_cloud.ply, curves.png.
+        /// Run folder: checkpoint.bin, metrics.csv, curves.png and point_cloud.ply (plain) or
+        /// scene.instgs (instanced).
         #[arg(long)]
         out: PathBuf,
+        /// An instanced scene (.instgs) to optimise jointly (configs/instanced.toml applies).
+        #[arg(long)]
+        init: Option<PathBuf>,
         /// Training configuration (TOML; keys not given keep configs/default.toml's values).
         #[arg(long)]
         config: Option<PathBuf>,
@@ -223,8 +228,8 @@ fn run(cli: Cli) -> Result<()> {
         ),
         Cmd::Convert { scene, out } => convert(&scene, &out),
         Cmd::BenchSort { keys, bits, repeats } => bench_sort(cli.device, keys, bits, repeats),
-        Cmd::Train { data, out, config, iterations, resume, quiet } => {
-            train(cli.device, &data, &out, config.as_deref(), iterations, resume, quiet)
+        Cmd::Train { data, out, init, config, iterations, resume, quiet } => {
+            train(cli.device, &data, &out, init.as_deref(), config.as_deref(), iterations, resume, quiet)
         }
         Cmd::Eval { scene, data, split, json, out, background } => {
             eval(cli.device, &scene, &data, &split, json, out.as_deref(), background)
@@ -238,17 +243,27 @@ fn open_device(device: Option<String>) -> Result<(Arc<Gpu>, Arc<Kernels>)> {
     Ok((gpu, k))
 }
 
+#[allow(clippy::too_many_arguments)]
 fn train(
     device: Option<String>,
     data: &DataArgs,
     out: &Path,
+    init: Option<&Path>,
     config: Option<&Path>,
     iterations: Option<u64>,
     resume: bool,
     quiet: bool,
 ) -> Result<()> {
     use instgs_vk::train;
-    let mut cfg = instgs_vk::config::Config::load(config)?;
+    let init = init.map(instgs::read).transpose()?;
+    let ckpt = train::checkpoint_path(out);
+    let instanced =
+        init.is_some() || (resume && train::read_checkpoint(&ckpt).is_ok_and(|(st, _)| st.layout.is_some()));
+    let mut cfg = if instanced {
+        instgs_vk::config::Config::load_instanced(config)?
+    } else {
+        instgs_vk::config::Config::load(config)?
+    };
     if let Some(n) = iterations {
         cfg.iterations = n;
     }
@@ -267,7 +282,7 @@ fn train(
     );
     ctrlc::set_handler(|| train::INTERRUPTED.store(true, std::sync::atomic::Ordering::SeqCst))
         .context("cannot install the Ctrl-C handler")?;
-    let opts = train::RunOptions { out: out.to_path_buf(), resume, progress: !quiet };
+    let opts = train::RunOptions { out: out.to_path_buf(), resume, init, progress: !quiet };
     let r = train::run(&gpu, &k, &ds, &cfg, &opts)?;
     let test = match (r.test_psnr, r.test_ssim) {
         (Some(p), Some(s)) => format!(", test PSNR {p:.2} dB SSIM {s:.4}"),
@@ -293,7 +308,8 @@ fn train(
             train::checkpoint_path(out).display()
         );
     }
-    eprintln!("wrote {}", out.join("point_cloud.ply").display());
+    let result = if instanced { "scene.instgs" } else { "point_cloud.ply" };
+    eprintln!("wrote {}", out.join(result).display());
     Ok(())
 }
 

@@ -102,10 +102,13 @@ pub struct LearningRates {
     pub sh_rest: f32,
 }
 
-/// Adam's first and second moments of every parameter buffer (layouts as [`GpuScene`]).
+/// Adam's first and second moments of every parameter buffer (layouts as [`GpuScene`]) and of
+/// the offset buffers (d_means, d_sh0, d_opacities; one-element placeholders without offsets).
 pub struct AdamState {
     pub exp_avg: [Buffer; 5],
     pub exp_avg_sq: [Buffer; 5],
+    pub offset_exp_avg: [Buffer; 3],
+    pub offset_exp_avg_sq: [Buffer; 3],
 }
 
 impl AdamState {
@@ -113,6 +116,8 @@ impl AdamState {
     pub fn new(gpu: &Arc<Gpu>, scene: &GpuScene) -> Result<AdamState> {
         let sizes = param_buffers(scene).map(|b| b.size);
         let mk = |name: &str, i: usize| gpu.storage(&format!("{name}{i}"), sizes[i]);
+        let offset_sizes = offset_buffers(scene).map(|b| b.size);
+        let mk_off = |name: &str, i: usize| gpu.storage(&format!("{name}{i}"), offset_sizes[i]);
         let st = AdamState {
             exp_avg: [mk("exp_avg", 0)?, mk("exp_avg", 1)?, mk("exp_avg", 2)?, mk("exp_avg", 3)?, mk("exp_avg", 4)?],
             exp_avg_sq: [
@@ -122,9 +127,15 @@ impl AdamState {
                 mk("exp_avg_sq", 3)?,
                 mk("exp_avg_sq", 4)?,
             ],
+            offset_exp_avg: [mk_off("offset_exp_avg", 0)?, mk_off("offset_exp_avg", 1)?, mk_off("offset_exp_avg", 2)?],
+            offset_exp_avg_sq: [
+                mk_off("offset_exp_avg_sq", 0)?,
+                mk_off("offset_exp_avg_sq", 1)?,
+                mk_off("offset_exp_avg_sq", 2)?,
+            ],
         };
         gpu.submit_and_wait(|rec| {
-            for b in st.exp_avg.iter().chain(&st.exp_avg_sq) {
+            for b in st.exp_avg.iter().chain(&st.exp_avg_sq).chain(&st.offset_exp_avg).chain(&st.offset_exp_avg_sq) {
                 rec.fill(b, 0);
             }
             Ok(())
@@ -133,8 +144,24 @@ impl AdamState {
     }
 
     pub fn gpu_bytes(&self) -> u64 {
-        self.exp_avg.iter().chain(&self.exp_avg_sq).map(|b| b.size).sum()
+        self.exp_avg
+            .iter()
+            .chain(&self.exp_avg_sq)
+            .chain(&self.offset_exp_avg)
+            .chain(&self.offset_exp_avg_sq)
+            .map(|b| b.size)
+            .sum()
     }
+}
+
+/// The scene's offset buffers in a fixed order: d_means, d_sh0, d_opacities.
+pub fn offset_buffers(s: &GpuScene) -> [&Buffer; 3] {
+    [&s.inst.d_means, &s.inst.d_sh0, &s.inst.d_opacities]
+}
+
+/// The offset gradient buffers in the order of [`offset_buffers`].
+pub fn offset_grad_buffers(g: &Grads) -> [&Buffer; 3] {
+    [&g.d_means, &g.d_sh0, &g.d_opacities]
 }
 
 /// The scene's parameter buffers in a fixed order: means, scales, quats, opacities, sh.
@@ -152,7 +179,8 @@ pub const BETA1: f64 = 0.9;
 pub const BETA2: f64 = 0.999;
 pub const EPS: f32 = 1e-15;
 
-/// Records one Adam step (`step` counted from 1) over every parameter buffer.
+/// Records one Adam step (`step` counted from 1) over every parameter buffer and, for an
+/// instanced scene, every offset buffer (Δp at the position rate, Δc at sh0's, Δo at opacity's).
 pub fn record_adam(
     rec: &mut Recorder,
     k: &Kernels,
@@ -162,7 +190,7 @@ pub fn record_adam(
     lr: &LearningRates,
     step: u64,
 ) -> Result<()> {
-    let n = scene.len as u32;
+    let n = scene.rows as u32;
     let coeffs = (scene.sh_degree + 1) * (scene.sh_degree + 1);
     let inv_bias1 = (1.0 / (1.0 - BETA1.powi(step as i32))) as f32;
     let inv_sqrt_bias2 = (1.0 / (1.0 - BETA2.powi(step as i32)).sqrt()) as f32;
@@ -174,9 +202,38 @@ pub fn record_adam(
         (1, 1, lr.opacities, lr.opacities),
         (coeffs * 3, 3, lr.sh0, lr.sh_rest),
     ];
-    let params = param_buffers(scene);
-    let gs = grad_buffers(grads);
-    for (i, &(stride, head, lr_head, lr_tail)) in groups.iter().enumerate() {
+    let pairs = scene.inst.pairs as u32;
+    let offset_groups = [(3, lr.means), (3, lr.sh0), (1, lr.opacities)];
+    let jobs = (0..5)
+        .map(|i| {
+            let (stride, head, lr_head, lr_tail) = groups[i];
+            (
+                n,
+                stride,
+                head,
+                lr_head,
+                lr_tail,
+                param_buffers(scene)[i],
+                grad_buffers(grads)[i],
+                &st.exp_avg[i],
+                &st.exp_avg_sq[i],
+            )
+        })
+        .chain((0..3).filter(|_| pairs > 0).map(|i| {
+            let (stride, lr) = offset_groups[i];
+            (
+                pairs,
+                stride,
+                stride,
+                lr,
+                lr,
+                offset_buffers(scene)[i],
+                offset_grad_buffers(grads)[i],
+                &st.offset_exp_avg[i],
+                &st.offset_exp_avg_sq[i],
+            )
+        }));
+    for (n, stride, head, lr_head, lr_tail, param, grad, m, v) in jobs {
         let count = n * stride;
         let args = AdamArgs {
             count,
@@ -193,7 +250,7 @@ pub fn record_adam(
         };
         rec.dispatch(
             &k.adam,
-            &[("params", params[i]), ("grads", gs[i]), ("exp_avg", &st.exp_avg[i]), ("exp_avg_sq", &st.exp_avg_sq[i])],
+            &[("params", param), ("grads", grad), ("exp_avg", m), ("exp_avg_sq", v)],
             &args,
             [n.div_ceil(WG_SIZE).min(MAX_GROUPS), 1, 1],
         )?;

@@ -109,7 +109,7 @@ pub fn check_scene_fits(rows: usize, splats: usize, sh_degree: u32, limit: u64) 
 }
 
 /// Concatenated offsets of every group (pair order).
-fn all_offsets(scene: &InstancedScene) -> Offsets {
+pub fn all_offsets(scene: &InstancedScene) -> Offsets {
     let mut o = Offsets::default();
     for g in &scene.groups {
         o.d_means.extend_from_slice(&g.offsets.d_means);

@@ -6,6 +6,10 @@
 //! rendered image (for the training PSNR) and the loss sums, plus the whole state at
 //! densification steps and checkpoints.
 //!
+//! Instanced scenes (`--init scene.instgs`, InstGS joint optimisation): templates, offsets and
+//! background are optimised together through the instancing rasterizer, without densification
+//! (`configs/instanced.toml`); the run writes `scene.instgs`.
+//!
 //! Differences from Inria, on purpose: the Adam step also runs on densification iterations
 //! (Inria skips it for the replaced tensors); the screen-size prune uses the radii seen since the
 //! last densification (Inria's is reset to zero just before it is read, so it never fires).
@@ -23,8 +27,9 @@ use rand_distr::{Distribution, StandardNormal};
 use crate::config::Config;
 use crate::dataset::{Dataset, View};
 use crate::gpu::{CommandBuffer, Gpu};
+use crate::instance::{Group, Instance, InstancedScene, Offsets, Similarity};
 use crate::kernels::Kernels;
-use crate::optim::{param_buffers, record_adam, record_loss, AdamState, LearningRates, LossBufs};
+use crate::optim::{offset_buffers, param_buffers, record_adam, record_loss, AdamState, LearningRates, LossBufs};
 use crate::raster::{GpuScene, Grads, Rasterizer};
 use crate::scene::{Scene, SH_C0};
 
@@ -54,19 +59,49 @@ fn sigmoid(x: f32) -> f32 {
     1.0 / (1.0 + (-x).exp())
 }
 
+/// How an instanced run's parameter rows and offsets form groups (the data lives in
+/// [`TrainState`]): background rows first, then each group's template rows.
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct Layout {
+    pub background: usize,
+    pub groups: Vec<LayoutGroup>,
+}
+
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct LayoutGroup {
+    pub name: String,
+    pub template_gaussians: usize,
+    /// (id, template→world 4×4 row-major).
+    pub instances: Vec<(String, [[f32; 4]; 4])>,
+}
+
+impl Layout {
+    fn pairs(&self) -> usize {
+        self.groups.iter().map(|g| g.template_gaussians * g.instances.len()).sum()
+    }
+}
+
 /// Everything that defines a training run at an iteration boundary (what a checkpoint holds).
 #[derive(Clone, Debug, PartialEq)]
 pub struct TrainState {
     /// Iterations completed.
     pub iteration: u64,
     pub active_sh_degree: u32,
+    /// Parameter rows (a plain scene; an instanced run's background then templates).
     pub scene: Scene,
     /// Adam moments per parameter group, layouts as the scene's arrays.
     pub exp_avg: [Vec<f32>; 5],
     pub exp_avg_sq: [Vec<f32>; 5],
+    /// Densification statistics per splat (plain runs; empty for instanced ones).
     pub grad2d_accum: Vec<f32>,
     pub grad2d_count: Vec<u32>,
     pub max_radii: Vec<u32>,
+    /// Instanced runs: the groups, every group's offsets (pair order) and their Adam moments
+    /// (d_means, d_sh0, d_opacities).
+    pub layout: Option<Layout>,
+    pub offsets: Offsets,
+    pub offset_exp_avg: [Vec<f32>; 3],
+    pub offset_exp_avg_sq: [Vec<f32>; 3],
 }
 
 impl TrainState {
@@ -84,7 +119,102 @@ impl TrainState {
             grad2d_count: vec![0; n],
             max_radii: vec![0; n],
             scene,
+            layout: None,
+            offsets: Offsets::default(),
+            offset_exp_avg: Default::default(),
+            offset_exp_avg_sq: Default::default(),
         }
+    }
+
+    /// A fresh state for joint optimisation of an instanced scene.
+    pub fn instanced(scene: &InstancedScene) -> TrainState {
+        let rows = crate::raster::scene_rows(scene);
+        let offsets = crate::raster::all_offsets(scene);
+        let n = rows.len();
+        let st = strides(rows.sh_degree);
+        let zeros = |k: usize| vec![0.0f32; n * st[k]];
+        let pairs = offsets.len();
+        let ozeros = || [vec![0.0f32; 3 * pairs], vec![0.0f32; 3 * pairs], vec![0.0f32; pairs]];
+        TrainState {
+            iteration: 0,
+            active_sh_degree: 0,
+            exp_avg: [zeros(0), zeros(1), zeros(2), zeros(3), zeros(4)],
+            exp_avg_sq: [zeros(0), zeros(1), zeros(2), zeros(3), zeros(4)],
+            grad2d_accum: Vec::new(),
+            grad2d_count: Vec::new(),
+            max_radii: Vec::new(),
+            scene: rows,
+            layout: Some(Layout {
+                background: scene.background.len(),
+                groups: scene
+                    .groups
+                    .iter()
+                    .map(|g| LayoutGroup {
+                        name: g.name.clone(),
+                        template_gaussians: g.template.len(),
+                        instances: g
+                            .instances
+                            .iter()
+                            .map(|i| (i.id.clone(), crate::instance::mat4_to_rows(i.transform.to_mat4())))
+                            .collect(),
+                    })
+                    .collect(),
+            }),
+            offsets,
+            offset_exp_avg: ozeros(),
+            offset_exp_avg_sq: ozeros(),
+        }
+    }
+
+    /// The instanced scene of an instanced run (None for a plain run); checks the transforms.
+    pub fn to_instanced(&self) -> Result<Option<InstancedScene>> {
+        let Some(layout) = self.layout.as_ref() else { return Ok(None) };
+        let rows = |from: usize, n: usize| -> Scene {
+            let c = self.scene.sh_coeffs() * 3;
+            let r = from..from + n;
+            Scene {
+                means: self.scene.means[r.clone()].to_vec(),
+                scales: self.scene.scales[r.clone()].to_vec(),
+                quats: self.scene.quats[r.clone()].to_vec(),
+                opacities: self.scene.opacities[r].to_vec(),
+                sh: self.scene.sh[from * c..(from + n) * c].to_vec(),
+                sh_degree: self.scene.sh_degree,
+            }
+        };
+        let mut row = layout.background;
+        let mut pair = 0;
+        let mut groups = Vec::new();
+        for g in &layout.groups {
+            let t = g.template_gaussians;
+            let m = t * g.instances.len();
+            let o = &self.offsets;
+            groups.push(Group {
+                name: g.name.clone(),
+                template: rows(row, t),
+                instances: g
+                    .instances
+                    .iter()
+                    .map(|(id, m)| {
+                        let what = format!("group {:?} instance {id:?}", g.name);
+                        let transform = Similarity::from_mat4(crate::instance::mat4_from_rows(m), &what)?;
+                        Ok(Instance { id: id.clone(), transform })
+                    })
+                    .collect::<Result<_>>()?,
+                offsets: Offsets {
+                    d_means: o.d_means[pair..pair + m].to_vec(),
+                    d_sh0: o.d_sh0[pair..pair + m].to_vec(),
+                    d_opacities: o.d_opacities[pair..pair + m].to_vec(),
+                },
+            });
+            row += t;
+            pair += m;
+        }
+        Ok(Some(InstancedScene { sh_degree: self.scene.sh_degree, background: rows(0, layout.background), groups }))
+    }
+
+    fn offset_arrays(&self) -> [&[f32]; 3] {
+        let o = &self.offsets;
+        [bytemuck::cast_slice(&o.d_means), bytemuck::cast_slice(&o.d_sh0), &o.d_opacities]
     }
 
     fn params(&self) -> [&[f32]; 5] {
@@ -106,6 +236,16 @@ impl TrainState {
             for (arr, what) in [(*p, ""), (&self.exp_avg[k][..], " (Adam m)"), (&self.exp_avg_sq[k][..], " (Adam v)")] {
                 if let Some(j) = arr.iter().position(|v| !v.is_finite()) {
                     bail!("non-finite {}{what} of Gaussian {} at iteration {}", names[k], j / st, self.iteration);
+                }
+            }
+        }
+        let names = ["d_means", "d_sh0", "d_opacities"];
+        for (k, p) in self.offset_arrays().iter().enumerate() {
+            let moments = [(&self.offset_exp_avg[k][..], " (Adam m)"), (&self.offset_exp_avg_sq[k][..], " (Adam v)")];
+            for (arr, what) in [(*p, "")].into_iter().chain(moments) {
+                if let Some(j) = arr.iter().position(|v| !v.is_finite()) {
+                    let pair = j / [3, 3, 1][k];
+                    bail!("non-finite offset {}{what} (pair {pair}) at iteration {}", names[k], self.iteration);
                 }
             }
         }
@@ -141,6 +281,10 @@ impl TrainState {
             grad2d_accum: rows.iter().map(|&(i, _)| self.grad2d_accum[i]).collect(),
             grad2d_count: rows.iter().map(|&(i, _)| self.grad2d_count[i]).collect(),
             max_radii: rows.iter().map(|&(i, keep)| if keep { self.max_radii[i] } else { 0 }).collect(),
+            layout: None,
+            offsets: Offsets::default(),
+            offset_exp_avg: Default::default(),
+            offset_exp_avg_sq: Default::default(),
         }
     }
 }
@@ -302,6 +446,8 @@ pub struct Trainer {
     gpu: Arc<Gpu>,
     k: Arc<Kernels>,
     pub scene: GpuScene,
+    /// The instanced run's groups (None: plain).
+    layout: Option<Layout>,
     grads: Grads,
     adam: AdamState,
     pub raster: Rasterizer,
@@ -319,6 +465,7 @@ impl Trainer {
             gpu: gpu.clone(),
             k: k.clone(),
             scene,
+            layout: st.layout.clone(),
             grads,
             adam,
             raster: Rasterizer::new(gpu, k)?,
@@ -330,7 +477,10 @@ impl Trainer {
     }
 
     fn upload_state(gpu: &Arc<Gpu>, st: &TrainState) -> Result<(GpuScene, Grads, AdamState)> {
-        let mut scene = GpuScene::new(gpu, &st.scene)?;
+        let mut scene = match st.to_instanced()? {
+            Some(inst) => GpuScene::instanced(gpu, &inst)?,
+            None => GpuScene::new(gpu, &st.scene)?,
+        };
         scene.active_sh_degree = st.active_sh_degree;
         let grads = Grads::new(gpu, &scene)?;
         let adam = AdamState::new(gpu, &scene)?;
@@ -338,9 +488,20 @@ impl Trainer {
             gpu.write(&adam.exp_avg[k], &st.exp_avg[k])?;
             gpu.write(&adam.exp_avg_sq[k], &st.exp_avg_sq[k])?;
         }
-        gpu.write(&grads.grad2d_accum, &st.grad2d_accum)?;
-        gpu.write(&grads.grad2d_count, &st.grad2d_count)?;
-        gpu.write(&grads.max_radii, &st.max_radii)?;
+        for k in 0..3 {
+            gpu.write(&adam.offset_exp_avg[k], &st.offset_exp_avg[k])?;
+            gpu.write(&adam.offset_exp_avg_sq[k], &st.offset_exp_avg_sq[k])?;
+        }
+        if st.layout.is_some() {
+            gpu.submit_and_wait(|rec| {
+                grads.record_reset_stats(rec);
+                Ok(())
+            })?;
+        } else {
+            gpu.write(&grads.grad2d_accum, &st.grad2d_accum)?;
+            gpu.write(&grads.grad2d_count, &st.grad2d_count)?;
+            gpu.write(&grads.max_radii, &st.max_radii)?;
+        }
         Ok((scene, grads, adam))
     }
 
@@ -348,6 +509,7 @@ impl Trainer {
     pub fn load(&mut self, st: &TrainState) -> Result<()> {
         let (scene, grads, adam) = Trainer::upload_state(&self.gpu, st)?;
         self.scene = scene;
+        self.layout = st.layout.clone();
         self.grads = grads;
         self.adam = adam;
         Ok(())
@@ -356,7 +518,7 @@ impl Trainer {
     /// Reads the whole device state back.
     pub fn download(&self, iteration: u64) -> Result<TrainState> {
         let g = &self.gpu;
-        let n = self.scene.len;
+        let n = self.scene.rows;
         let st = strides(self.scene.sh_degree);
         let read = |b: &crate::gpu::Buffer, len: usize| g.read::<f32>(b, len);
         let p = param_buffers(&self.scene);
@@ -364,15 +526,35 @@ impl Trainer {
         let m: Vec<Vec<f32>> = (0..5).map(|k| read(&self.adam.exp_avg[k], n * st[k])).collect::<Result<_>>()?;
         let v: Vec<Vec<f32>> = (0..5).map(|k| read(&self.adam.exp_avg_sq[k], n * st[k])).collect::<Result<_>>()?;
         let to5 = |v: Vec<Vec<f32>>| -> [Vec<f32>; 5] { v.try_into().unwrap() };
+        let plain = self.layout.is_none();
+        let stats = if plain { n } else { 0 };
+        let pairs = self.scene.inst.pairs;
+        let ow = [3, 3, 1];
+        let ob = offset_buffers(&self.scene);
+        let off: Vec<Vec<f32>> = (0..3).map(|k| read(ob[k], pairs * ow[k])).collect::<Result<_>>()?;
+        let om: Vec<Vec<f32>> =
+            (0..3).map(|k| read(&self.adam.offset_exp_avg[k], pairs * ow[k])).collect::<Result<_>>()?;
+        let ov: Vec<Vec<f32>> =
+            (0..3).map(|k| read(&self.adam.offset_exp_avg_sq[k], pairs * ow[k])).collect::<Result<_>>()?;
+        let to3 = |v: Vec<Vec<f32>>| -> [Vec<f32>; 3] { v.try_into().unwrap() };
+        let [dm, dc, dop] = to3(off);
         Ok(TrainState {
             iteration,
             active_sh_degree: self.scene.active_sh_degree,
             scene: scene_from_params(to5(params), self.scene.sh_degree),
             exp_avg: to5(m),
             exp_avg_sq: to5(v),
-            grad2d_accum: read(&self.grads.grad2d_accum, n)?,
-            grad2d_count: g.read(&self.grads.grad2d_count, n)?,
-            max_radii: g.read(&self.grads.max_radii, n)?,
+            grad2d_accum: read(&self.grads.grad2d_accum, stats)?,
+            grad2d_count: g.read(&self.grads.grad2d_count, stats)?,
+            max_radii: g.read(&self.grads.max_radii, stats)?,
+            layout: self.layout.clone(),
+            offsets: Offsets {
+                d_means: bytemuck::pod_collect_to_vec(&dm),
+                d_sh0: bytemuck::pod_collect_to_vec(&dc),
+                d_opacities: dop,
+            },
+            offset_exp_avg: to3(om),
+            offset_exp_avg_sq: to3(ov),
         })
     }
 
@@ -482,6 +664,9 @@ struct CheckpointHeader {
     sh_degree: u32,
     gaussians: usize,
     config: Config,
+    /// Instanced runs; then the offsets and their moments follow the statistics.
+    #[serde(default)]
+    layout: Option<Layout>,
 }
 
 /// Writes `st` atomically (temporary file + rename) after checking it is finite, so a bad state
@@ -494,6 +679,7 @@ pub fn write_checkpoint(path: &Path, st: &TrainState, cfg: &Config) -> Result<()
         sh_degree: st.scene.sh_degree,
         gaussians: st.scene.len(),
         config: cfg.clone(),
+        layout: st.layout.clone(),
     })?;
     crate::util::write_atomic(path, |f| {
         let mut w = std::io::BufWriter::new(f);
@@ -508,6 +694,10 @@ pub fn write_checkpoint(path: &Path, st: &TrainState, cfg: &Config) -> Result<()
         w.write_all(bytemuck::cast_slice(&st.grad2d_accum))?;
         w.write_all(bytemuck::cast_slice(&st.grad2d_count))?;
         w.write_all(bytemuck::cast_slice(&st.max_radii))?;
+        let moments = st.offset_exp_avg.iter().chain(&st.offset_exp_avg_sq).map(|v| &v[..]);
+        for arr in st.offset_arrays().into_iter().chain(moments) {
+            w.write_all(bytemuck::cast_slice(arr))?;
+        }
         w.flush()
     })
 }
@@ -544,9 +734,13 @@ pub fn read_checkpoint(path: &Path) -> Result<(TrainState, Config)> {
     let params: Vec<Vec<f32>> = (0..5).map(|k| f32s(n * st[k])).collect::<Result<_>>()?;
     let m: Vec<Vec<f32>> = (0..5).map(|k| f32s(n * st[k])).collect::<Result<_>>()?;
     let v: Vec<Vec<f32>> = (0..5).map(|k| f32s(n * st[k])).collect::<Result<_>>()?;
-    let accum = f32s(n)?;
-    let count: Vec<u32> = bytemuck::pod_collect_to_vec(take(n)?);
-    let radii: Vec<u32> = bytemuck::pod_collect_to_vec(take(n)?);
+    let stats = if header.layout.is_some() { 0 } else { n };
+    let accum = f32s(stats)?;
+    let count: Vec<u32> = bytemuck::pod_collect_to_vec(&f32s(stats)?);
+    let radii: Vec<u32> = bytemuck::pod_collect_to_vec(&f32s(stats)?);
+    let pairs = header.layout.as_ref().map_or(0, |l| l.pairs());
+    let ow = [3, 3, 1];
+    let off: Vec<Vec<f32>> = (0..9).map(|k| f32s(pairs * ow[k % 3])).collect::<Result<_>>()?;
     if pos != data.len() {
         bail!("{what}: checkpoint has {} trailing bytes", data.len() - pos);
     }
@@ -560,7 +754,16 @@ pub fn read_checkpoint(path: &Path) -> Result<(TrainState, Config)> {
         grad2d_accum: accum,
         grad2d_count: count,
         max_radii: radii,
+        layout: header.layout,
+        offsets: Offsets {
+            d_means: bytemuck::pod_collect_to_vec(&off[0]),
+            d_sh0: bytemuck::pod_collect_to_vec(&off[1]),
+            d_opacities: off[2].clone(),
+        },
+        offset_exp_avg: [off[3].clone(), off[4].clone(), off[5].clone()],
+        offset_exp_avg_sq: [off[6].clone(), off[7].clone(), off[8].clone()],
     };
+    state.to_instanced().with_context(|| format!("{what}: damaged instanced checkpoint"))?;
     Ok((state, header.config))
 }
 
@@ -573,6 +776,8 @@ pub static INTERRUPTED: AtomicBool = AtomicBool::new(false);
 pub struct RunOptions {
     pub out: PathBuf,
     pub resume: bool,
+    /// Joint optimisation of this instanced scene (else plain training from the dataset).
+    pub init: Option<InstancedScene>,
     /// Show a progress bar (else a line every 10 %).
     pub progress: bool,
 }
@@ -682,7 +887,10 @@ pub fn run(gpu: &Arc<Gpu>, k: &Arc<Kernels>, ds: &Dataset, cfg: &Config, opts: &
         if ckpt.exists() {
             bail!("{} exists: continue it with --resume, or choose another --out", ckpt.display());
         }
-        (TrainState::new(initial_scene(ds, cfg)), Vec::new())
+        match &opts.init {
+            Some(scene) => (TrainState::instanced(scene), Vec::new()),
+            None => (TrainState::new(initial_scene(ds, cfg)), Vec::new()),
+        }
     };
     let mut trainer = Trainer::new(gpu, k, &state)?;
     let write_metrics = |rows: &[MetricsRow]| -> Result<()> {
@@ -747,8 +955,10 @@ pub fn run(gpu: &Arc<Gpu>, k: &Arc<Kernels>, ds: &Dataset, cfg: &Config, opts: &
             );
         }
         let d = &cfg.densify;
-        let densify_now = it < d.until_iter && it > d.from_iter && it % d.interval == 0;
-        let reset_now = d.opacity_reset_interval > 0 && it % d.opacity_reset_interval == 0 && it < d.until_iter;
+        let plain = state.layout.is_none();
+        let densify_now = plain && it < d.until_iter && it > d.from_iter && it % d.interval == 0;
+        let reset_now =
+            plain && d.opacity_reset_interval > 0 && it % d.opacity_reset_interval == 0 && it < d.until_iter;
         if densify_now || reset_now {
             state = trainer.download(it)?;
             if densify_now {
@@ -815,12 +1025,15 @@ pub fn run(gpu: &Arc<Gpu>, k: &Arc<Kernels>, ds: &Dataset, cfg: &Config, opts: &
         write_checkpoint(&ckpt, &state, cfg)?;
         write_metrics(&rows)?;
     }
-    crate::scene::write_ply(&state.scene, &opts.out.join("point_cloud.ply"))?;
+    match state.to_instanced()? {
+        Some(inst) => crate::instgs::write(&inst, &opts.out.join("scene.instgs"), crate::instgs::Dtype::F32)?,
+        None => crate::scene::write_ply(&state.scene, &opts.out.join("point_cloud.ply"))?,
+    }
     crate::plot::curves(&rows, &opts.out.join("curves.png"))?;
     let secs = t0.elapsed().as_secs_f64();
     Ok(RunSummary {
         iterations: done,
-        splats: state.scene.len(),
+        splats: trainer.scene.len,
         test_psnr: test.map(|t| t.0),
         test_ssim: test.map(|t| t.1),
         seconds: elapsed0 + secs,

@@ -154,3 +154,103 @@ fn bad_input_ends_in_one_clear_error() {
     let o = run(&["render", "--scene", s(&guitar), "--orbit", "2", "--width", "0", "--out", s(&out)]);
     assert_clear_error(&o, &["--width"]);
 }
+
+#[test]
+fn compose_info_convert_and_render_an_instanced_scene() {
+    let d = dir("instanced");
+    let mut rng = Rng::new(12);
+    let mut tpl = template(&mut rng, 300, 2);
+    tpl.opacities.iter_mut().for_each(|o| *o = o.max(0.0));
+    let tpl_path = d.join("mug.ply");
+    instgs_vk::scene::write_ply(&tpl, &tpl_path).unwrap();
+    let bg_path = d.join("floor.ply");
+    instgs_vk::scene::write_ply(&random_scene(&mut rng, 50, 2), &bg_path).unwrap();
+    // The prototype's convention: instance 1 is the template frame; others map world → template.
+    let graph = serde_json::json!([{"template_id": "mug", "instances": [
+        {"instance_id": "1", "transform": [[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]},
+        {"instance_id": "2", "transform": [[0,0.5,0,-0.5],[-0.5,0,0,0.25],[0,0,0.5,0],[0,0,0,1]]},
+        {"instance_id": "3", "transform": [[1,0,0,0.8],[0,1,0,-0.6],[0,0,1,0.3],[0,0,0,1]]}]}]);
+    let graph_path = d.join("scene_graph.json");
+    std::fs::write(&graph_path, graph.to_string()).unwrap();
+    let scene = d.join("scene.instgs");
+    let o = run(&[
+        "compose",
+        "--template",
+        &format!("mug={}", s(&tpl_path)),
+        "--scene-graph",
+        s(&graph_path),
+        "--background",
+        s(&bg_path),
+        "--random-offsets",
+        "0.02",
+        "--seed",
+        "3",
+        "--offset-dtype",
+        "f16",
+        "--out",
+        s(&scene),
+    ]);
+    assert_eq!(o.code, Some(0), "{}", o.stderr);
+    let o = run(&["info", s(&scene), "--json"]);
+    assert_eq!(o.code, Some(0), "{}", o.stderr);
+    let v: serde_json::Value = serde_json::from_str(&o.stdout).unwrap();
+    assert_eq!(v["groups"][0]["name"], "mug");
+    assert_eq!(v["groups"][0]["template_gaussians"], 300);
+    assert_eq!(v["splats"], 50 + 900);
+    let inst = &v["groups"][0]["instances"];
+    assert_eq!(inst.as_array().unwrap().len(), 3);
+    assert_eq!(inst[1]["id"], "2");
+    // Template → world: the inverse of the scene graph's matrix (scale 2, a quarter turn).
+    let m: Vec<Vec<f64>> = serde_json::from_value(inst[1]["transform"].clone()).unwrap();
+    let want = [[0.0, -2.0, 0.0, 0.5], [2.0, 0.0, 0.0, 1.0], [0.0, 0.0, 2.0, 0.0], [0.0, 0.0, 0.0, 1.0]];
+    for r in 0..4 {
+        for c in 0..4 {
+            assert!((m[r][c] - want[r][c]).abs() < 1e-5, "{m:?}");
+        }
+    }
+    let parts: Vec<String> =
+        v["parts"].as_array().unwrap().iter().map(|p| p["name"].as_str().unwrap().into()).collect();
+    assert_eq!(parts, ["header", "background", "mug/template", "mug/offsets"]);
+    // Expanded PLY and scene graph out; the PLY renders like the instanced scene.
+    let ply = d.join("expanded.ply");
+    assert_eq!(run(&["convert", s(&scene), s(&ply)]).code, Some(0));
+    let graph_out = d.join("graph_out.json");
+    assert_eq!(run(&["convert", s(&scene), s(&graph_out)]).code, Some(0));
+    let back: serde_json::Value = serde_json::from_slice(&std::fs::read(&graph_out).unwrap()).unwrap();
+    assert_eq!(back[0]["instances"][2]["instance_id"], "3");
+    let renders: Vec<PathBuf> = [&scene, &ply]
+        .iter()
+        .enumerate()
+        .map(|(i, p)| {
+            let out = d.join(format!("render{i}"));
+            let o =
+                run(&["render", "--scene", s(p), "--orbit", "2", "--width", "80", "--height", "60", "--out", s(&out)]);
+            assert_eq!(o.code, Some(0), "{}", o.stderr);
+            assert!(!o.stderr.contains("validation"), "{}", o.stderr);
+            out.join("view_001.png")
+        })
+        .collect();
+    let (a, b) = (image::open(&renders[0]).unwrap().to_rgb8(), image::open(&renders[1]).unwrap().to_rgb8());
+    let differ =
+        a.pixels().zip(b.pixels()).filter(|(p, q)| p.0.iter().zip(q.0).any(|(x, y)| x.abs_diff(y) > 1)).count();
+    assert_eq!(differ, 0);
+    assert!(a.pixels().any(|p| p.0 != [0, 0, 0]));
+    // Bad input.
+    let o = run(&[
+        "compose",
+        "--template",
+        &format!("cup={}", s(&tpl_path)),
+        "--scene-graph",
+        s(&graph_path),
+        "--out",
+        s(&d.join("x.instgs")),
+    ]);
+    assert_clear_error(&o, &["template_id \"mug\"", "cup"]);
+    assert_clear_error(&run(&["convert", s(&scene), s(&d.join("x.txt"))]), &[".ply", ".json"]);
+    std::fs::write(d.join("bad.instgs"), b"INSTGS\0\0\x05\0\0\0{\"a\":").unwrap();
+    assert_clear_error(&run(&["info", s(&d.join("bad.instgs"))]), &["bad.instgs", "malformed JSON header"]);
+    assert_clear_error(
+        &run(&["render", "--scene", s(&d.join("bad.instgs")), "--orbit", "1", "--out", s(&d)]),
+        &["bad.instgs"],
+    );
+}

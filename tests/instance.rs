@@ -5,62 +5,13 @@
 mod common;
 
 use common::*;
-use glam::{DVec3, Quat, Vec3};
+use glam::{DVec3, Vec3};
 use instgs_vk::camera::Camera;
 use instgs_vk::grad::{self, Gaussian, Splat};
-use instgs_vk::instance::{quat_mul, Group, Instance, InstancedScene, Offsets, ShRotation, Similarity};
+use instgs_vk::instance::{quat_mul, InstancedScene, Offsets, ShRotation};
 use instgs_vk::raster::{GpuScene, Grads, Rasterizer};
 use instgs_vk::scene::Scene;
 use instgs_vk::util::psnr;
-
-fn random_quat(rng: &mut Rng) -> Quat {
-    Quat::from_xyzw(rng.normal(), rng.normal(), rng.normal(), rng.normal()).normalize()
-}
-
-/// A small template around the origin (radius ~0.4).
-fn template(rng: &mut Rng, n: usize, deg: u32) -> Scene {
-    let mut t = random_scene(rng, n, deg);
-    for m in &mut t.means {
-        *m = m.map(|v| 0.3 * v);
-    }
-    for s in &mut t.scales {
-        *s = s.map(|v| v - 0.5);
-    }
-    t
-}
-
-/// Groups of (template Gaussians, instances) with random similarity transforms (scale
-/// 0.6–1.5) and offsets, and `background` plain Gaussians.
-pub fn random_instanced(rng: &mut Rng, deg: u32, background: usize, groups: &[(usize, usize)]) -> InstancedScene {
-    let mut bg = random_scene(rng, background, deg);
-    bg.sh_degree = deg;
-    let groups = groups
-        .iter()
-        .enumerate()
-        .map(|(g, &(t, k))| {
-            let template = template(rng, t, deg);
-            let instances = (0..k)
-                .map(|i| Instance {
-                    id: format!("{}", i + 1),
-                    transform: Similarity::from_parts(
-                        random_quat(rng),
-                        rng.range(0.6, 1.5),
-                        Vec3::new(rng.range(-1.0, 1.0), rng.range(-0.8, 0.8), rng.range(-1.0, 1.0)),
-                    ),
-                })
-                .collect::<Vec<_>>();
-            let n = t * k;
-            let mut offsets = Offsets::zeros(n);
-            for p in 0..n {
-                offsets.d_means[p] = [0.0; 3].map(|_| 0.03 * rng.normal());
-                offsets.d_sh0[p] = [0.0; 3].map(|_| 0.2 * rng.normal());
-                offsets.d_opacities[p] = 0.5 * rng.normal();
-            }
-            Group { name: format!("group{g}"), template, instances, offsets }
-        })
-        .collect();
-    InstancedScene { sh_degree: deg, background: bg, groups }
-}
 
 fn camera(w: u32, h: u32) -> Camera {
     look_at(Vec3::new(0.4, -0.6, -4.2), Vec3::ZERO, Vec3::new(0.0, -1.0, 0.0), w, h, 0.9 * w as f32)
@@ -390,4 +341,90 @@ fn scene_graph_round_trip_and_convention() {
     .unwrap();
     let e = format!("{:#}", instgs_vk::instance::read_scene_graph(&path).unwrap_err());
     assert!(e.contains("uniform scale"), "{e}");
+}
+
+/// A dataset rendered from `scene`: `n` views on a ring around the origin at 64×48.
+fn rendered_views(scene: &InstancedScene, n: usize, phase: f32) -> Vec<instgs_vk::dataset::View> {
+    let (gpu, k) = gpu();
+    let gs = GpuScene::instanced(&gpu, scene).unwrap();
+    let mut r = Rasterizer::new(&gpu, &k).unwrap();
+    (0..n)
+        .map(|i| {
+            let a = phase + i as f32 * std::f32::consts::TAU / n as f32;
+            let eye = Vec3::new(4.0 * a.sin(), -1.2, -4.0 * a.cos());
+            let mut camera = look_at(eye, Vec3::ZERO, Vec3::new(0.0, -1.0, 0.0), 64, 48, 60.0);
+            camera.name = format!("view_{i:03}");
+            let f = r.render(&gs, &camera, [0.0; 3]).unwrap();
+            let image = f
+                .image
+                .iter()
+                .map(|p| [p[0].clamp(0.0, 1.0), p[1].clamp(0.0, 1.0), p[2].clamp(0.0, 1.0), 1.0])
+                .collect();
+            instgs_vk::dataset::View { camera, image, path: Default::default() }
+        })
+        .collect()
+}
+
+#[test]
+fn joint_optimisation_learns_templates_offsets_and_background() {
+    let (gpu, k) = gpu();
+    let mut rng = Rng::new(77);
+    let truth = random_instanced(&mut rng, 1, 80, &[(60, 4)]);
+    let ds = instgs_vk::dataset::Dataset {
+        kind: "nerf-synthetic",
+        train: rendered_views(&truth, 16, 0.0),
+        test: rendered_views(&truth, 4, 0.3),
+        points: None,
+    };
+    // Start from wrong colours: template DC, colour offsets and background DC perturbed.
+    let mut init = truth.clone();
+    let g = &mut init.groups[0];
+    for (j, v) in g.template.sh.iter_mut().enumerate() {
+        if j % 12 < 3 {
+            *v += 0.4 * rng.normal();
+        }
+    }
+    g.offsets.d_sh0.iter_mut().flatten().for_each(|v| *v += 0.3 * rng.normal());
+    for (j, v) in init.background.sh.iter_mut().enumerate() {
+        if j % 12 < 3 {
+            *v += 0.4 * rng.normal();
+        }
+    }
+    let mut cfg = instgs_vk::config::Config::load_instanced(None).unwrap();
+    assert_eq!((cfg.iterations, cfg.lr.spatial_scale, cfg.densify.until_iter), (10_000, 0.1, 0));
+    cfg.iterations = 120;
+    cfg.test_interval = 40;
+    cfg.checkpoint_interval = 60;
+    let out = tempdir("joint");
+    let opts =
+        instgs_vk::train::RunOptions { out: out.clone(), resume: false, init: Some(init.clone()), progress: false };
+    let r = instgs_vk::train::run(&gpu, &k, &ds, &cfg, &opts).unwrap();
+    assert_eq!((r.iterations, r.splats), (120, 80 + 240));
+    let result = instgs_vk::instgs::read(&out.join("scene.instgs")).unwrap();
+    // Every part was optimised (the prototype froze the background); transforms stay.
+    assert_ne!(result.background.sh, init.background.sh, "background frozen");
+    assert_ne!(result.groups[0].template.sh, init.groups[0].template.sh);
+    assert_ne!(result.groups[0].offsets.d_sh0, init.groups[0].offsets.d_sh0);
+    assert_ne!(result.groups[0].offsets.d_means, init.groups[0].offsets.d_means);
+    assert_eq!(result.groups[0].instances, init.groups[0].instances);
+    // Held-out views improve.
+    let mut ras = Rasterizer::new(&gpu, &k).unwrap();
+    let before =
+        instgs_vk::train::evaluate(&mut ras, &GpuScene::instanced(&gpu, &init).unwrap(), &ds.test, [0.0; 3], |_, _| {
+            Ok(())
+        })
+        .unwrap();
+    let after = r.test_psnr.unwrap();
+    eprintln!("test PSNR {:.2} -> {after:.2}", before.psnr);
+    assert!(after > before.psnr + 3.0, "test PSNR {:.2} -> {after:.2}", before.psnr);
+    // The checkpoint resumes an instanced run.
+    let (st, saved) = instgs_vk::train::read_checkpoint(&instgs_vk::train::checkpoint_path(&out)).unwrap();
+    assert_eq!(saved, cfg);
+    assert_eq!(st.to_instanced().unwrap().unwrap(), result);
+    cfg.iterations = 150;
+    let opts = instgs_vk::train::RunOptions { out: out.clone(), resume: true, init: None, progress: false };
+    let r2 = instgs_vk::train::run(&gpu, &k, &ds, &cfg, &opts).unwrap();
+    assert_eq!(r2.iterations, 150);
+    assert!(r2.test_psnr.unwrap() > after - 0.5);
+    assert_clean(&gpu);
 }

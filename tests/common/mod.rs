@@ -119,3 +119,57 @@ pub fn tempdir(name: &str) -> PathBuf {
     std::fs::create_dir_all(&d).unwrap();
     d
 }
+
+pub fn random_quat(rng: &mut Rng) -> glam::Quat {
+    glam::Quat::from_xyzw(rng.normal(), rng.normal(), rng.normal(), rng.normal()).normalize()
+}
+
+/// A small template around the origin (radius ~0.4).
+pub fn template(rng: &mut Rng, n: usize, deg: u32) -> instgs_vk::scene::Scene {
+    let mut t = random_scene(rng, n, deg);
+    for m in &mut t.means {
+        *m = m.map(|v| 0.3 * v);
+    }
+    for s in &mut t.scales {
+        *s = s.map(|v| v - 0.5);
+    }
+    t
+}
+
+/// Groups of (template Gaussians, instances) with random similarity transforms (scale
+/// 0.6–1.5) and offsets, and `background` plain Gaussians.
+pub fn random_instanced(
+    rng: &mut Rng,
+    deg: u32,
+    background: usize,
+    groups: &[(usize, usize)],
+) -> instgs_vk::instance::InstancedScene {
+    let mut bg = random_scene(rng, background, deg);
+    bg.sh_degree = deg;
+    let groups = groups
+        .iter()
+        .enumerate()
+        .map(|(g, &(t, k))| {
+            let template = template(rng, t, deg);
+            let instances = (0..k)
+                .map(|i| instgs_vk::instance::Instance {
+                    id: format!("{}", i + 1),
+                    transform: instgs_vk::instance::Similarity::from_parts(
+                        random_quat(rng),
+                        rng.range(0.6, 1.5),
+                        Vec3::new(rng.range(-1.0, 1.0), rng.range(-0.8, 0.8), rng.range(-1.0, 1.0)),
+                    ),
+                })
+                .collect::<Vec<_>>();
+            let n = t * k;
+            let mut offsets = instgs_vk::instance::Offsets::zeros(n);
+            for p in 0..n {
+                offsets.d_means[p] = [0.0; 3].map(|_| 0.03 * rng.normal());
+                offsets.d_sh0[p] = [0.0; 3].map(|_| 0.2 * rng.normal());
+                offsets.d_opacities[p] = 0.5 * rng.normal();
+            }
+            instgs_vk::instance::Group { name: format!("group{g}"), template, instances, offsets }
+        })
+        .collect();
+    instgs_vk::instance::InstancedScene { sh_degree: deg, background: bg, groups }
+}
