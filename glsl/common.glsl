@@ -70,7 +70,7 @@ struct FrameParams {
     uint num_background; // splats [0, num_background) are plain Gaussians (parameter row = splat)
     uint num_groups; // instanced groups in the `groups` buffer (0 for a plain scene)
     uint num_rows; // parameter rows: background Gaussians, then every group's template Gaussians
-    uint _pad0;
+    uint xform_grads; // 1: preprocess_backward also writes the instance-transform gradient terms
     uint _pad1;
     uint _pad2;
 };
@@ -90,6 +90,11 @@ struct GroupInfo {
     uint _pad1;
     uint _pad2;
 };
+
+// Transform-gradient terms per (template Gaussian, instance) pair, summed per instance by
+// xform_grad_reduce: dL/dt (3), dL/d ln s (1), dL/dR (9, column-major) and dL/dq_R through the
+// rotation composition q_R * q (4, for the unit quaternion).
+#define XFORM_GRAD_TERMS 17
 
 /// An instance's template -> world similarity p_world = s R p_template + t (then + offset).
 struct InstanceXform {

@@ -13,6 +13,10 @@
 // and sums J_k^T g_ik into the template's gradient in registers: means s R^T, log-scales 1,
 // quaternions q_T^-1 * (the transpose of left multiplication by the unit q_T), logit 1, SH 1
 // (the direction is already in template space). No atomics: a row owns its sums.
+// With frame.p.xform_grads, every pair also writes its instance-transform gradient terms
+// (XFORM_GRAD_TERMS; summed per instance by xform_grad_reduce): dL/dt = g_mean, dL/d ln s =
+// g_mean . (s R mean_t) + sum g_logscale, dL/dR = s g_mean mean_t^T + d g_dir_t^T (mean and the
+// template-space SH direction d_t = R^T d), dL/dq_R = g_quat * conj(q_t) (composition).
 // Densification statistics of visible splats: grad2d_accum += |v_xy| in Inria's NDC units
 // (pixels scaled by width/2, height/2), grad2d_count += 1, max_radii = max(max_radii, radius).
 #include "common.glsl"
@@ -41,13 +45,14 @@ layout(std430, binding = 19) buffer MaxRadiiBuf { uint v[]; } max_radii;
 layout(std430, binding = 20) writeonly buffer GradDMeansBuf { float v[]; } grad_d_means;
 layout(std430, binding = 21) writeonly buffer GradDSh0Buf { float v[]; } grad_d_sh0;
 layout(std430, binding = 22) writeonly buffer GradDOpacitiesBuf { float v[]; } grad_d_opacities;
+layout(std430, binding = 28) writeonly buffer XformTermsBuf { float v[]; } xform_terms;
 #define INSTANCE_BINDING 23
 #include "instance.glsl"
 
 // Gradient of one expanded splat i (row, expansion e) with respect to its expanded parameters;
 // dL/dSH (every evaluated coefficient) is added to the row's grad_sh. Returns false when culled.
 bool splat_backward(uint i, uint row, Expanded e, out vec3 v_p, out vec3 v_ls, out vec4 v_q, out float v_logit,
-                    out vec3 v_dc) {
+                    out vec3 v_dc, out vec3 dir, out vec3 v_dir_t) {
     if (tiles_touched.v[i] == 0) return false;
     uint coeffs = frame.p.sh_coeffs;
     uint off = row * coeffs * 3;
@@ -129,7 +134,7 @@ bool splat_backward(uint i, uint row, Expanded e, out vec3 v_p, out vec3 v_ls, o
     // Colour: rgb = max(SH(R^T dir) + 0.5, 0), dir = normalize(p - campos); DC + offset.
     vec3 dv = p - frame.p.campos.xyz;
     float dv_len = length(dv);
-    vec3 dir = dv / dv_len;
+    dir = dv / dv_len;
     vec3 dir_t = transpose(e.rot) * dir;
     float basis[16];
     vec3 dbasis[16];
@@ -143,7 +148,7 @@ bool splat_backward(uint i, uint row, Expanded e, out vec3 v_p, out vec3 v_ls, o
     rgb += 0.5;
     vec3 v_rgb = vec3(v_colors.v[3 * i], v_colors.v[3 * i + 1], v_colors.v[3 * i + 2]);
     v_rgb *= vec3(greaterThan(rgb, vec3(0.0)));
-    vec3 v_dir_t = vec3(0.0);
+    v_dir_t = vec3(0.0);
     for (uint k = 0; k < nb; k++) {
         vec3 g = basis[k] * v_rgb;
         grad_sh.v[off + 3 * k] += g.x;
@@ -186,16 +191,17 @@ void backward(uint r) {
         uint i = first + k * stride;
         SplatRef ref = splat_ref(i);
         Expanded e = expand(ref);
-        vec3 v_p, v_ls, v_dc;
+        vec3 v_p, v_ls, v_dc, dir, v_dir_t;
         vec4 v_q;
         float v_logit;
-        bool seen = splat_backward(i, r, e, v_p, v_ls, v_q, v_logit, v_dc);
+        bool seen = splat_backward(i, r, e, v_p, v_ls, v_q, v_logit, v_dc, dir, v_dir_t);
         if (!seen) {
             v_p = vec3(0.0);
             v_ls = vec3(0.0);
             v_q = vec4(0.0);
             v_logit = 0.0;
             v_dc = vec3(0.0);
+            v_dir_t = vec3(0.0);
         }
         if (ref.pair == NO_SLOT) {
             gm = v_p;
@@ -212,6 +218,26 @@ void backward(uint r) {
             grad_d_sh0.v[3 * p + 2] = v_dc.z;
             grad_d_opacities.v[p] = v_logit;
             InstanceXform x = xforms.v[ref.xform];
+            if (frame.p.xform_grads != 0) {
+                vec3 m_t = vec3(means.v[3 * r], means.v[3 * r + 1], means.v[3 * r + 2]);
+                mat3 v_R = x.scale.x * outerProduct(v_p, m_t) + outerProduct(dir, v_dir_t);
+                vec4 q_t = quats.v[r];
+                vec4 v_qr = quat_mul(v_q, q_t * vec4(1.0, -1.0, -1.0, -1.0));
+                uint o = p * XFORM_GRAD_TERMS;
+                xform_terms.v[o] = v_p.x;
+                xform_terms.v[o + 1] = v_p.y;
+                xform_terms.v[o + 2] = v_p.z;
+                xform_terms.v[o + 3] = dot(v_p, mat3(x.transform) * m_t) + v_ls.x + v_ls.y + v_ls.z;
+                for (uint c = 0; c < 3; c++) {
+                    xform_terms.v[o + 4 + 3 * c] = v_R[c].x;
+                    xform_terms.v[o + 5 + 3 * c] = v_R[c].y;
+                    xform_terms.v[o + 6 + 3 * c] = v_R[c].z;
+                }
+                xform_terms.v[o + 13] = v_qr.x;
+                xform_terms.v[o + 14] = v_qr.y;
+                xform_terms.v[o + 15] = v_qr.z;
+                xform_terms.v[o + 16] = v_qr.w;
+            }
             gm += transpose(mat3(x.transform)) * v_p;
             gs += v_ls;
             gq += quat_mul(x.quat * vec4(1.0, -1.0, -1.0, -1.0), v_q);

@@ -20,6 +20,10 @@ pub struct Config {
     pub ssim_weight: f32,
     pub test_interval: u64,
     pub checkpoint_interval: u64,
+    /// Instanced runs: optimise the instance transforms too (rates `lr.transform_*`). Absent
+    /// from older checkpoints.
+    #[serde(default)]
+    pub refine_transforms: bool,
     pub lr: LrConfig,
     pub densify: DensifyConfig,
     pub init: InitConfig,
@@ -41,6 +45,14 @@ pub struct LrConfig {
     pub opacity: f32,
     pub scaling: f32,
     pub rotation: f32,
+    /// Instance transforms (refine_transforms): Adam rates of the rotation quaternion, the
+    /// translation (scene units) and ln s. Absent from older checkpoints: 0.
+    #[serde(default)]
+    pub transform_rotation: f32,
+    #[serde(default)]
+    pub transform_translation: f32,
+    #[serde(default)]
+    pub transform_scale: f32,
 }
 
 #[derive(Clone, Debug, Deserialize, Serialize, PartialEq)]
@@ -128,7 +140,9 @@ impl Config {
             bail!("background must be RGB in [0, 1]");
         }
         let lr = &self.lr;
-        if [lr.sh0, lr.sh_rest, lr.opacity, lr.scaling, lr.rotation].iter().any(|v| !(v.is_finite() && *v >= 0.0))
+        let rates = [lr.sh0, lr.sh_rest, lr.opacity, lr.scaling, lr.rotation];
+        let transform_rates = [lr.transform_rotation, lr.transform_translation, lr.transform_scale];
+        if rates.iter().chain(&transform_rates).any(|v| !(v.is_finite() && *v >= 0.0))
             || !(lr.position_init > 0.0 && lr.position_final > 0.0)
             || !(lr.spatial_scale.is_finite() && lr.spatial_scale >= 0.0)
         {

@@ -179,13 +179,33 @@ fn proj(fp: &FrameParams) -> Proj {
     }
 }
 
-fn rotation(q: DVec4) -> DMat3 {
+/// Rotation matrix of a unit (w, x, y, z) quaternion.
+pub fn rotation(q: DVec4) -> DMat3 {
     let (w, x, y, z) = (q.x, q.y, q.z, q.w);
     DMat3::from_cols(
         DVec3::new(1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y + w * z), 2.0 * (x * z - w * y)),
         DVec3::new(2.0 * (x * y - w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z + w * x)),
         DVec3::new(2.0 * (x * z + w * y), 2.0 * (y * z - w * x), 1.0 - 2.0 * (x * x + y * y)),
     )
+}
+
+/// Vector-Jacobian product of the rotation matrix of a unit (w, x, y, z) quaternion `q`
+/// (`rotation`, without the normalisation): dL/dq from dL/dR.
+pub fn rotation_vjp(q: DVec4, v_r: DMat3) -> DVec4 {
+    // g[row][col]
+    let gm = |row: usize, col: usize| v_r.col(col)[row];
+    let (w, x, y, z) = (q.x, q.y, q.z, q.w);
+    DVec4::new(
+        -z * gm(0, 1) + y * gm(0, 2) + z * gm(1, 0) - x * gm(1, 2) - y * gm(2, 0) + x * gm(2, 1),
+        y * gm(0, 1) + z * gm(0, 2) + y * gm(1, 0) - 2.0 * x * gm(1, 1) - w * gm(1, 2) + z * gm(2, 0) + w * gm(2, 1)
+            - 2.0 * x * gm(2, 2),
+        -2.0 * y * gm(0, 0) + x * gm(0, 1) + w * gm(0, 2) + x * gm(1, 0) + z * gm(1, 2) - w * gm(2, 0) + z * gm(2, 1)
+            - 2.0 * y * gm(2, 2),
+        -2.0 * z * gm(0, 0) - w * gm(0, 1) + x * gm(0, 2) + w * gm(1, 0) - 2.0 * z * gm(1, 1)
+            + y * gm(1, 2)
+            + x * gm(2, 0)
+            + y * gm(2, 1),
+    ) * 2.0
 }
 
 /// The intermediate values of one projection, shared by forward and VJP.
@@ -307,20 +327,7 @@ pub fn project_vjp(fp: &FrameParams, g: &Gaussian, v: &Splat) -> Gaussian {
     let v_m = v_sigma * f.m * 2.0;
     let v_s = DVec3::new(v_m.x_axis.dot(f.r.x_axis), v_m.y_axis.dot(f.r.y_axis), v_m.z_axis.dot(f.r.z_axis));
     let v_r = v_m * DMat3::from_diagonal(f.s);
-    // g[row][col]
-    let gm = |row: usize, col: usize| v_r.col(col)[row];
-    let (w, x, y, z) = (f.q.x, f.q.y, f.q.z, f.q.w);
-    let v_q = DVec4::new(
-        -z * gm(0, 1) + y * gm(0, 2) + z * gm(1, 0) - x * gm(1, 2) - y * gm(2, 0) + x * gm(2, 1),
-        y * gm(0, 1) + z * gm(0, 2) + y * gm(1, 0) - 2.0 * x * gm(1, 1) - w * gm(1, 2) + z * gm(2, 0) + w * gm(2, 1)
-            - 2.0 * x * gm(2, 2),
-        -2.0 * y * gm(0, 0) + x * gm(0, 1) + w * gm(0, 2) + x * gm(1, 0) + z * gm(1, 2) - w * gm(2, 0) + z * gm(2, 1)
-            - 2.0 * y * gm(2, 2),
-        -2.0 * z * gm(0, 0) - w * gm(0, 1) + x * gm(0, 2) + w * gm(1, 0) - 2.0 * z * gm(1, 1)
-            + y * gm(1, 2)
-            + x * gm(2, 0)
-            + y * gm(2, 1),
-    ) * 2.0;
+    let v_q = rotation_vjp(f.q, v_r);
     let v_q = (v_q - f.q * f.q.dot(v_q)) / f.q_len;
 
     let nb = ((fp.sh_degree + 1) * (fp.sh_degree + 1)) as usize;

@@ -510,3 +510,30 @@ pub fn compose(
     scene.validate("composed scene")?;
     Ok(scene)
 }
+
+/// An instance transform as optimisation parameters: a raw (w, x, y, z) rotation quaternion
+/// (normalised in use), the translation and ln s — 8 values, `[q, t, ln s]`.
+pub fn xform_params(x: &Similarity) -> [f32; 8] {
+    let q = x.quat_wxyz();
+    let t = x.translation;
+    [q[0], q[1], q[2], q[3], t.x, t.y, t.z, x.scale.ln()]
+}
+
+/// The similarity of transform parameters ([`xform_params`]).
+pub fn xform_from_params(p: &[f32; 8]) -> Similarity {
+    Similarity::from_parts(Quat::from_xyzw(p[1], p[2], p[3], p[0]), p[7].exp(), Vec3::new(p[4], p[5], p[6]))
+}
+
+/// dL/d([`xform_params`]) from an instance's summed gradient terms (`XFORM_GRAD_TERMS`:
+/// dL/dt, dL/d ln s, dL/dR column-major, dL/dq̂ through the rotation composition): the rotation
+/// matrix's VJP and the normalisation's, in f64.
+pub fn xform_param_grads(params: &[f32; 8], terms: &[f32]) -> [f64; 8] {
+    let q = glam::DVec4::new(params[0] as f64, params[1] as f64, params[2] as f64, params[3] as f64);
+    let len = q.length();
+    let qn = q / len;
+    let t: Vec<f64> = terms.iter().map(|&v| v as f64).collect();
+    let v_r = glam::DMat3::from_cols_slice(&t[4..13]);
+    let v_qn = crate::grad::rotation_vjp(qn, v_r) + glam::DVec4::new(t[13], t[14], t[15], t[16]);
+    let v_q = (v_qn - qn * qn.dot(v_qn)) / len;
+    [v_q.x, v_q.y, v_q.z, v_q.w, t[0], t[1], t[2], t[3]]
+}

@@ -49,7 +49,7 @@ pub fn frame_params(
         num_background: num_gaussians as u32,
         num_groups: 0,
         num_rows: num_gaussians as u32,
-        _pad0: 0,
+        xform_grads: 0,
         _pad1: 0,
         _pad2: 0,
     }
@@ -67,6 +67,9 @@ pub struct GpuInstancing {
     pub d_opacities: Buffer,
     pub num_groups: u32,
     pub pairs: usize,
+    pub instances: usize,
+    /// Backward also computes the instance-transform gradients (`Grads::xforms`).
+    pub xform_grads: bool,
 }
 
 /// A scene in device memory: parameter rows (background Gaussians, then every group's template
@@ -150,18 +153,19 @@ pub fn instancing_tables(scene: &InstancedScene) -> (Vec<GroupInfo>, Vec<Instanc
             instance_first: xforms.len() as u32,
             ..Default::default()
         });
-        for inst in &g.instances {
-            let x = inst.transform;
-            xforms.push(InstanceXform {
-                transform: x.render_mat4().to_cols_array_2d(),
-                quat: x.quat_wxyz(),
-                scale: [x.scale, x.scale.ln(), 0.0, 0.0],
-            });
-        }
+        xforms.extend(g.instances.iter().map(|i| xform(&i.transform)));
         splat += t * k;
         row += t;
     }
     (groups, xforms)
+}
+
+fn xform(x: &crate::instance::Similarity) -> InstanceXform {
+    InstanceXform {
+        transform: x.render_mat4().to_cols_array_2d(),
+        quat: x.quat_wxyz(),
+        scale: [x.scale, x.scale.ln(), 0.0, 0.0],
+    }
 }
 
 /// Uploads `data`, or one zero element where it is empty (placeholder binding).
@@ -216,6 +220,8 @@ impl GpuScene {
                 d_opacities: upload_or_placeholder(gpu, "d_opacities", &offsets.d_opacities)?,
                 num_groups: groups.len() as u32,
                 pairs: offsets.len(),
+                instances: xforms.len(),
+                xform_grads: false,
             },
             sh_degree: rows.sh_degree,
             active_sh_degree: rows.sh_degree,
@@ -239,7 +245,16 @@ impl GpuScene {
         fp.num_background = self.num_background as u32;
         fp.num_groups = self.inst.num_groups;
         fp.num_rows = self.rows as u32;
+        fp.xform_grads = self.inst.xform_grads as u32;
         fp
+    }
+
+    /// Replaces the instance transforms (instance order: groups, then instances).
+    pub fn write_transforms(&self, gpu: &Arc<Gpu>, transforms: &[crate::instance::Similarity]) -> Result<()> {
+        if transforms.len() != self.inst.instances {
+            bail!("{} transforms for {} instances", transforms.len(), self.inst.instances);
+        }
+        gpu.write(&self.inst.xforms, &transforms.iter().map(xform).collect::<Vec<_>>())
     }
 
     /// (name, buffer) bindings of the instancing tables, as instance.glsl names them.
@@ -711,6 +726,10 @@ pub struct Grads {
     pub d_means: Buffer,
     pub d_sh0: Buffer,
     pub d_opacities: Buffer,
+    /// Per-pair transform-gradient terms and their per-instance sums (XFORM_GRAD_TERMS floats
+    /// each; placeholders unless the scene computes transform gradients).
+    pub xform_terms: Buffer,
+    pub xforms: Buffer,
     pub v_xys: Buffer,
     pub v_conics: Buffer,
     pub v_colors: Buffer,
@@ -740,6 +759,9 @@ impl Grads {
             d_means: gpu.storage("grad_d_means", pairs * 12)?,
             d_sh0: gpu.storage("grad_d_sh0", pairs * 12)?,
             d_opacities: gpu.storage("grad_d_opacities", pairs * 4)?,
+            xform_terms: gpu
+                .storage("xform_terms", if scene.inst.xform_grads { pairs } else { 1 } * XFORM_GRAD_TERMS as u64 * 4)?,
+            xforms: gpu.storage("grad_xforms", scene.inst.instances.max(1) as u64 * XFORM_GRAD_TERMS as u64 * 4)?,
             v_xys: gpu.storage("v_xys", n * 8)?,
             v_conics: gpu.storage("v_conics", n * 12)?,
             v_colors: gpu.storage("v_colors", n * 12)?,
@@ -767,6 +789,8 @@ impl Grads {
             &self.d_means,
             &self.d_sh0,
             &self.d_opacities,
+            &self.xform_terms,
+            &self.xforms,
             &self.v_xys,
             &self.v_conics,
             &self.v_colors,
@@ -848,6 +872,7 @@ impl Rasterizer {
             ("grad_d_means", &g.d_means),
             ("grad_d_sh0", &g.d_sh0),
             ("grad_d_opacities", &g.d_opacities),
+            ("xform_terms", &g.xform_terms),
         ]
         .into_iter()
         .chain(scene.instancing_bindings())
@@ -858,7 +883,25 @@ impl Rasterizer {
             &(),
             [(scene.rows as u32).div_ceil(WG_SIZE).min(MAX_GROUPS), 1, 1],
         )?;
-        rec.end_pass("preprocess_backward")
+        rec.end_pass("preprocess_backward")?;
+        if scene.inst.xform_grads && scene.inst.instances > 0 {
+            if g.xform_terms.size < (scene.inst.pairs * XFORM_GRAD_TERMS as usize * 4) as u64 {
+                bail!("gradient buffers were made without transform gradients");
+            }
+            rec.dispatch(
+                &self.k.xform_grad_reduce,
+                &[
+                    ("frame", &self.frame_ub),
+                    ("groups", &scene.inst.groups),
+                    ("xform_terms", &g.xform_terms),
+                    ("grad_xforms", &g.xforms),
+                ],
+                &(),
+                [scene.inst.instances as u32, 1, 1],
+            )?;
+            rec.end_pass("xform_grad_reduce")?;
+        }
+        Ok(())
     }
 
     /// The last frame's rendered image buffer (RGBA f32, a = T) on the device.

@@ -27,7 +27,9 @@ use rand_distr::{Distribution, StandardNormal};
 use crate::config::Config;
 use crate::dataset::{Dataset, View};
 use crate::gpu::{CommandBuffer, Gpu};
-use crate::instance::{Group, Instance, InstancedScene, Offsets, Similarity};
+use crate::instance::{
+    xform_from_params, xform_param_grads, xform_params, Group, Instance, InstancedScene, Offsets, Similarity,
+};
 use crate::kernels::Kernels;
 use crate::optim::{offset_buffers, param_buffers, record_adam, record_loss, AdamState, LearningRates, LossBufs};
 use crate::raster::{GpuScene, Grads, Rasterizer};
@@ -102,6 +104,11 @@ pub struct TrainState {
     pub offsets: Offsets,
     pub offset_exp_avg: [Vec<f32>; 3],
     pub offset_exp_avg_sq: [Vec<f32>; 3],
+    /// Instanced runs: every instance's transform parameters ([`xform_params`]: raw quaternion,
+    /// translation, ln s; what rendering uses) and their Adam moments (used when refining).
+    pub xform_params: Vec<[f32; 8]>,
+    pub xform_exp_avg: Vec<[f32; 8]>,
+    pub xform_exp_avg_sq: Vec<[f32; 8]>,
 }
 
 impl TrainState {
@@ -123,6 +130,9 @@ impl TrainState {
             offsets: Offsets::default(),
             offset_exp_avg: Default::default(),
             offset_exp_avg_sq: Default::default(),
+            xform_params: Vec::new(),
+            xform_exp_avg: Vec::new(),
+            xform_exp_avg_sq: Vec::new(),
         }
     }
 
@@ -134,6 +144,7 @@ impl TrainState {
         let st = strides(rows.sh_degree);
         let zeros = |k: usize| vec![0.0f32; n * st[k]];
         let pairs = offsets.len();
+        let instances = scene.groups.iter().map(|g| g.instances.len()).sum();
         let ozeros = || [vec![0.0f32; 3 * pairs], vec![0.0f32; 3 * pairs], vec![0.0f32; pairs]];
         TrainState {
             iteration: 0,
@@ -163,6 +174,9 @@ impl TrainState {
             offsets,
             offset_exp_avg: ozeros(),
             offset_exp_avg_sq: ozeros(),
+            xform_params: scene.groups.iter().flat_map(|g| &g.instances).map(|i| xform_params(&i.transform)).collect(),
+            xform_exp_avg: vec![[0.0; 8]; instances],
+            xform_exp_avg_sq: vec![[0.0; 8]; instances],
         }
     }
 
@@ -249,6 +263,11 @@ impl TrainState {
                 }
             }
         }
+        for arr in [&self.xform_params, &self.xform_exp_avg, &self.xform_exp_avg_sq] {
+            if let Some(k) = arr.iter().position(|p| !p.iter().all(|v| v.is_finite())) {
+                bail!("non-finite transform of instance {k} at iteration {}", self.iteration);
+            }
+        }
         Ok(())
     }
 
@@ -285,6 +304,9 @@ impl TrainState {
             offsets: Offsets::default(),
             offset_exp_avg: Default::default(),
             offset_exp_avg_sq: Default::default(),
+            xform_params: Vec::new(),
+            xform_exp_avg: Vec::new(),
+            xform_exp_avg_sq: Vec::new(),
         }
     }
 }
@@ -448,6 +470,9 @@ pub struct Trainer {
     pub scene: GpuScene,
     /// The instanced run's groups (None: plain).
     layout: Option<Layout>,
+    /// Instance-transform parameters and Adam moments (host side; refined when `refine`).
+    xforms: [Vec<[f32; 8]>; 3],
+    refine: bool,
     grads: Grads,
     adam: AdamState,
     pub raster: Rasterizer,
@@ -459,13 +484,16 @@ pub struct Trainer {
 }
 
 impl Trainer {
-    pub fn new(gpu: &Arc<Gpu>, k: &Arc<Kernels>, st: &TrainState) -> Result<Trainer> {
-        let (scene, grads, adam) = Trainer::upload_state(gpu, st)?;
+    /// `refine`: optimise the instance transforms of an instanced state too.
+    pub fn new(gpu: &Arc<Gpu>, k: &Arc<Kernels>, st: &TrainState, refine: bool) -> Result<Trainer> {
+        let (scene, grads, adam) = Trainer::upload_state(gpu, st, refine)?;
         Ok(Trainer {
             gpu: gpu.clone(),
             k: k.clone(),
             scene,
             layout: st.layout.clone(),
+            xforms: [st.xform_params.clone(), st.xform_exp_avg.clone(), st.xform_exp_avg_sq.clone()],
+            refine,
             grads,
             adam,
             raster: Rasterizer::new(gpu, k)?,
@@ -476,9 +504,16 @@ impl Trainer {
         })
     }
 
-    fn upload_state(gpu: &Arc<Gpu>, st: &TrainState) -> Result<(GpuScene, Grads, AdamState)> {
+    fn upload_state(gpu: &Arc<Gpu>, st: &TrainState, refine: bool) -> Result<(GpuScene, Grads, AdamState)> {
         let mut scene = match st.to_instanced()? {
-            Some(inst) => GpuScene::instanced(gpu, &inst)?,
+            Some(inst) => {
+                let mut s = GpuScene::instanced(gpu, &inst)?;
+                s.inst.xform_grads = refine;
+                if refine {
+                    s.write_transforms(gpu, &st.xform_params.iter().map(xform_from_params).collect::<Vec<_>>())?;
+                }
+                s
+            }
             None => GpuScene::new(gpu, &st.scene)?,
         };
         scene.active_sh_degree = st.active_sh_degree;
@@ -507,9 +542,10 @@ impl Trainer {
 
     /// Replaces the device state (after densification or on resume).
     pub fn load(&mut self, st: &TrainState) -> Result<()> {
-        let (scene, grads, adam) = Trainer::upload_state(&self.gpu, st)?;
+        let (scene, grads, adam) = Trainer::upload_state(&self.gpu, st, self.refine)?;
         self.scene = scene;
         self.layout = st.layout.clone();
+        self.xforms = [st.xform_params.clone(), st.xform_exp_avg.clone(), st.xform_exp_avg_sq.clone()];
         self.grads = grads;
         self.adam = adam;
         Ok(())
@@ -547,7 +583,23 @@ impl Trainer {
             grad2d_accum: read(&self.grads.grad2d_accum, stats)?,
             grad2d_count: g.read(&self.grads.grad2d_count, stats)?,
             max_radii: g.read(&self.grads.max_radii, stats)?,
-            layout: self.layout.clone(),
+            layout: self.layout.as_ref().map(|l| {
+                // Refined transforms: the layout's matrices follow the parameters.
+                let mut l = l.clone();
+                if self.refine {
+                    let mut it = self.xforms[0].iter();
+                    for g in &mut l.groups {
+                        for inst in &mut g.instances {
+                            let x = xform_from_params(it.next().expect("one parameter set per instance"));
+                            inst.1 = crate::instance::mat4_to_rows(x.to_mat4());
+                        }
+                    }
+                }
+                l
+            }),
+            xform_params: self.xforms[0].clone(),
+            xform_exp_avg: self.xforms[1].clone(),
+            xform_exp_avg_sq: self.xforms[2].clone(),
             offsets: Offsets {
                 d_means: bytemuck::pod_collect_to_vec(&dm),
                 d_sh0: bytemuck::pod_collect_to_vec(&dc),
@@ -579,12 +631,15 @@ impl Trainer {
             record_adam(rec, k, scene, grads, adam, lr, step)
         })?;
         self.cmd.submit_and_wait()?;
+        let sums: Vec<f32> = self.gpu.read(&lb.sums, crate::shared::LOSS_SLOTS as usize)?;
+        let (l1, ssim) = lb.means(&sums);
+        if self.refine && self.layout.is_some() {
+            self.step_transforms(&cfg.lr, step)?;
+        }
         self.passes = frame.passes.clone();
         if let Some(t) = &self.timer {
             self.passes.extend(t.results()?);
         }
-        let sums: Vec<f32> = self.gpu.read(&lb.sums, crate::shared::LOSS_SLOTS as usize)?;
-        let (l1, ssim) = lb.means(&sums);
         let w = cfg.ssim_weight as f64;
         Ok(StepStats {
             loss: (1.0 - w) * l1 + w * (1.0 - ssim),
@@ -592,6 +647,38 @@ impl Trainer {
             ssim,
             psnr: crate::util::psnr(&frame.image, &view.image),
         })
+    }
+}
+
+impl Trainer {
+    /// Adam on the instance transforms (host side, f64, the twin of `adam.comp`) at the
+    /// `lr.transform_*` rates; then the new transforms go to the device.
+    fn step_transforms(&mut self, cfg: &crate::config::LrConfig, step: u64) -> Result<()> {
+        use crate::shared::XFORM_GRAD_TERMS;
+        let n = self.xforms[0].len();
+        let terms: Vec<f32> = self.gpu.read(&self.grads.xforms, n * XFORM_GRAD_TERMS as usize)?;
+        for (i, chunk) in terms.chunks_exact(XFORM_GRAD_TERMS as usize).enumerate() {
+            let g = xform_param_grads(&self.xforms[0][i], chunk);
+            let f = |a: &[f32; 8]| a.map(f64::from);
+            let (mut p, mut m, mut v) = (f(&self.xforms[0][i]), f(&self.xforms[1][i]), f(&self.xforms[2][i]));
+            for (range, rate) in
+                [(0..4, cfg.transform_rotation), (4..7, cfg.transform_translation), (7..8, cfg.transform_scale)]
+            {
+                let a = crate::grad::AdamStep {
+                    lr: rate as f64,
+                    beta1: crate::optim::BETA1,
+                    beta2: crate::optim::BETA2,
+                    eps: crate::optim::EPS as f64,
+                    step,
+                };
+                crate::grad::adam(&mut p[range.clone()], &g[range.clone()], &mut m[range.clone()], &mut v[range], a);
+            }
+            self.xforms[0][i] = p.map(|x| x as f32);
+            self.xforms[1][i] = m.map(|x| x as f32);
+            self.xforms[2][i] = v.map(|x| x as f32);
+        }
+        let transforms: Vec<Similarity> = self.xforms[0].iter().map(xform_from_params).collect();
+        self.scene.write_transforms(&self.gpu, &transforms)
     }
 }
 
@@ -698,6 +785,9 @@ pub fn write_checkpoint(path: &Path, st: &TrainState, cfg: &Config) -> Result<()
         for arr in st.offset_arrays().into_iter().chain(moments) {
             w.write_all(bytemuck::cast_slice(arr))?;
         }
+        for arr in [&st.xform_params, &st.xform_exp_avg, &st.xform_exp_avg_sq] {
+            w.write_all(bytemuck::cast_slice(arr))?;
+        }
         w.flush()
     })
 }
@@ -741,6 +831,9 @@ pub fn read_checkpoint(path: &Path) -> Result<(TrainState, Config)> {
     let pairs = header.layout.as_ref().map_or(0, |l| l.pairs());
     let ow = [3, 3, 1];
     let off: Vec<Vec<f32>> = (0..9).map(|k| f32s(pairs * ow[k % 3])).collect::<Result<_>>()?;
+    let instances = header.layout.as_ref().map_or(0, |l| l.groups.iter().map(|g| g.instances.len()).sum());
+    let xf: Vec<Vec<[f32; 8]>> =
+        (0..3).map(|_| Ok(bytemuck::pod_collect_to_vec(&f32s(instances * 8)?))).collect::<Result<_>>()?;
     if pos != data.len() {
         bail!("{what}: checkpoint has {} trailing bytes", data.len() - pos);
     }
@@ -762,6 +855,9 @@ pub fn read_checkpoint(path: &Path) -> Result<(TrainState, Config)> {
         },
         offset_exp_avg: [off[3].clone(), off[4].clone(), off[5].clone()],
         offset_exp_avg_sq: [off[6].clone(), off[7].clone(), off[8].clone()],
+        xform_params: xf[0].clone(),
+        xform_exp_avg: xf[1].clone(),
+        xform_exp_avg_sq: xf[2].clone(),
     };
     state.to_instanced().with_context(|| format!("{what}: damaged instanced checkpoint"))?;
     Ok((state, header.config))
@@ -892,7 +988,7 @@ pub fn run(gpu: &Arc<Gpu>, k: &Arc<Kernels>, ds: &Dataset, cfg: &Config, opts: &
             None => (TrainState::new(initial_scene(ds, cfg)), Vec::new()),
         }
     };
-    let mut trainer = Trainer::new(gpu, k, &state)?;
+    let mut trainer = Trainer::new(gpu, k, &state, cfg.refine_transforms)?;
     let write_metrics = |rows: &[MetricsRow]| -> Result<()> {
         let mut text = String::from(CSV_HEADER);
         text.push('\n');

@@ -8,7 +8,9 @@ use common::*;
 use glam::{DVec3, Vec3};
 use instgs_vk::camera::Camera;
 use instgs_vk::grad::{self, Gaussian, Splat};
-use instgs_vk::instance::{quat_mul, InstancedScene, Offsets, ShRotation};
+use instgs_vk::instance::{
+    quat_mul, xform_from_params, xform_param_grads, xform_params, InstancedScene, Offsets, ShRotation,
+};
 use instgs_vk::raster::{GpuScene, Grads, Rasterizer};
 use instgs_vk::scene::Scene;
 use instgs_vk::util::psnr;
@@ -78,17 +80,19 @@ fn instanced_render_equals_the_expanded_scene() {
     assert_clean(&gpu);
 }
 
-/// The instanced scene's GPU gradients for `v_image`: (rows as a gradient scene, offsets).
-fn gpu_grads(scene: &InstancedScene, cam: &Camera, v_image: &[[f32; 4]]) -> (Scene, Vec<Offsets>) {
+/// The instanced scene's GPU gradients for `v_image`: (rows as a gradient scene, offsets,
+/// per-instance transform-gradient terms).
+fn gpu_grads(scene: &InstancedScene, cam: &Camera, v_image: &[[f32; 4]]) -> (Scene, Vec<Offsets>, Vec<f32>) {
     let (gpu, k) = gpu();
-    let gs = GpuScene::instanced(&gpu, scene).unwrap();
+    let mut gs = GpuScene::instanced(&gpu, scene).unwrap();
+    gs.inst.xform_grads = true;
     let mut r = Rasterizer::new(&gpu, &k).unwrap();
     r.render(&gs, cam, [0.0; 3]).unwrap();
     let v = gpu.upload("v_image", v_image).unwrap();
     let g = Grads::new(&gpu, &gs).unwrap();
     gpu.submit_and_wait(|rec| {
         g.record_reset_stats(rec);
-        for b in [&g.means, &g.scales, &g.quats, &g.opacities, &g.sh, &g.d_means, &g.d_sh0, &g.d_opacities] {
+        for b in [&g.means, &g.scales, &g.quats, &g.opacities, &g.sh, &g.d_means, &g.d_sh0, &g.d_opacities, &g.xforms] {
             rec.fill(b, instgs_vk::raster::POISON);
         }
         r.record_backward(rec, &gs, &v, &g)
@@ -122,7 +126,8 @@ fn gpu_grads(scene: &InstancedScene, cam: &Camera, v_image: &[[f32; 4]]) -> (Sce
         });
         at += m;
     }
-    (rows, offsets)
+    let terms = gpu.read(&g.xforms, gs.inst.instances * instgs_vk::shared::XFORM_GRAD_TERMS as usize).unwrap();
+    (rows, offsets, terms)
 }
 
 fn flat(s: &Scene) -> Vec<f64> {
@@ -161,7 +166,7 @@ fn instanced_gradients_equal_expanded_gradients_mapped_back() {
         let npx = (cam.width * cam.height) as usize;
         let v_image: Vec<[f32; 4]> =
             (0..npx).map(|_| [rng.range(-1.0, 1.0), rng.range(-1.0, 1.0), rng.range(-1.0, 1.0), 0.0]).collect();
-        let (rows, offsets) = gpu_grads(&scene, &cam, &v_image);
+        let (rows, offsets, terms) = gpu_grads(&scene, &cam, &v_image);
 
         // The expanded plain scene's gradients, mapped back on the CPU.
         let expanded = scene.expand();
@@ -192,6 +197,34 @@ fn instanced_gradients_equal_expanded_gradients_mapped_back() {
         assert!(e < 2e-3, "degree {deg}: template/background gradients differ by {e:e}");
         let e = rel_err(&flat_offsets(&offsets), &flat_offsets(&mapped.offsets));
         assert!(e < 2e-3, "degree {deg}: offset gradients differ by {e:e}");
+        // Transform gradients: dL/dt = Σ_j dL/dmean and dL/d ln s = Σ_j dL/dmean·(sRμ_j) + Σ dL/dlog σ.
+        let (mut got, mut want) = (Vec::new(), Vec::new());
+        let mut splat = scene.background.len();
+        let mut inst = 0;
+        for grp in &scene.groups {
+            let t = grp.template.len();
+            for (kk, i) in grp.instances.iter().enumerate() {
+                let x = i.transform;
+                let mut v_t = [0.0f64; 3];
+                let mut v_ls = 0.0f64;
+                for j in 0..t {
+                    let e = splat + kk * t + j;
+                    let rel = x.rotation * (Vec3::from(grp.template.means[j]) * x.scale);
+                    for a in 0..3 {
+                        v_t[a] += g_exp.means[e][a] as f64;
+                        v_ls += (g_exp.means[e][a] * rel[a] + g_exp.scales[e][a]) as f64;
+                    }
+                }
+                let tm = &terms[inst * 17..inst * 17 + 4];
+                got.extend(tm.iter().map(|&v| v as f64));
+                want.extend(v_t);
+                want.push(v_ls);
+                inst += 1;
+            }
+            splat += t * grp.instances.len();
+        }
+        let e = rel_err(&got, &want);
+        assert!(e < 2e-3, "degree {deg}: transform gradients differ by {e:e}");
     }
     assert_clean(&gpu);
 }
@@ -244,7 +277,7 @@ fn instanced_gradients_match_finite_differences() {
     let npx = (cam.width * cam.height) as usize;
     let v_image: Vec<[f32; 4]> =
         (0..npx).map(|_| [rng.range(-1.0, 1.0), rng.range(-1.0, 1.0), rng.range(-1.0, 1.0), 0.0]).collect();
-    let (rows, offsets) = gpu_grads(&scene, &cam, &v_image);
+    let (rows, offsets, terms) = gpu_grads(&scene, &cam, &v_image);
 
     // The f64 twin: L = Σ v · image, with the tile lists of the GPU frame held fixed.
     let gi = GpuScene::instanced(&gpu, &scene).unwrap();
@@ -281,7 +314,22 @@ fn instanced_gradients_match_finite_differences() {
             _ => offsets[0].d_opacities[i],
         }) as f64
     };
-    let (mut checked, mut failed) = (0, Vec::new());
+    let (mut checked, mut jumped, mut failed) = (0, 0, Vec::new());
+    let l0 = loss(&scene);
+    // Central differences, unless the one-sided ones disagree: an alpha threshold (1/255) or
+    // the tile lists were crossed inside the step, a jump, not a slope.
+    let mut judge = |what: &str, an: f64, (lp, hp): (f64, f64), (lm, hm): (f64, f64)| {
+        let (fwd, bwd) = ((lp - l0) / hp, (l0 - lm) / hm);
+        if (fwd - bwd).abs() > 0.1 * fwd.abs().max(bwd.abs()) + 1e-3 {
+            jumped += 1;
+            return;
+        }
+        let numeric = (lp - lm) / (hp + hm);
+        checked += 1;
+        if (an - numeric).abs() > 2e-2 * an.abs().max(numeric.abs()) + 1e-3 {
+            failed.push(format!("{what}: analytic {an:e} numeric {numeric:e}"));
+        }
+    };
     for (name, get, width) in params {
         let count = if name.starts_with("offset") { 36 } else { 12 };
         for i in (0..count).step_by(3) {
@@ -295,18 +343,31 @@ fn instanced_gradients_match_finite_differences() {
                 let mut sm = scene.clone();
                 *get(&mut sm, i, a) = x0 - h;
                 let hm = (x0 - *get(&mut sm, i, a)) as f64;
-                let numeric = (loss(&sp) - loss(&sm)) / (hp + hm);
                 let an = analytic(name, i, a);
-                checked += 1;
-                if (an - numeric).abs() > 2e-2 * an.abs().max(numeric.abs()) + 1e-3 {
-                    failed.push(format!("{name} {i}.{a}: analytic {an:e} numeric {numeric:e}"));
-                }
+                judge(&format!("{name} {i}.{a}"), an, (loss(&sp), hp), (loss(&sm), hm));
             }
         }
     }
-    eprintln!("finite differences: {checked} checked, {} off", failed.len());
-    // Central differences across an alpha threshold jump; allow a few.
-    assert!(failed.len() * 20 <= checked, "{} of {checked} disagree:\n{}", failed.len(), failed.join("\n"));
+    // Instance transforms: the 8 parameters (raw quaternion, translation, ln s) of each.
+    for inst in 0..3 {
+        let p0 = xform_params(&scene.groups[0].instances[inst].transform);
+        let an = xform_param_grads(&p0, &terms[inst * 17..(inst + 1) * 17]);
+        for a in 0..8 {
+            let h = 1e-3f32 * p0[a].abs().max(0.1);
+            let with = |d: f32| {
+                let mut p = p0;
+                p[a] += d;
+                let mut s = scene.clone();
+                s.groups[0].instances[inst].transform = xform_from_params(&p);
+                (loss(&s), (p[a] - p0[a]) as f64)
+            };
+            let ((lp, hp), (lm, hm)) = (with(h), with(-h));
+            judge(&format!("transform {inst} param {a}"), an[a], (lp, hp), (lm, -hm));
+        }
+    }
+    eprintln!("finite differences: {checked} checked, {jumped} jumped, {} off", failed.len());
+    assert!(jumped * 4 <= checked, "{jumped} jumps in {checked} finite differences");
+    assert!(failed.len() * 50 <= checked, "{} of {checked} disagree:\n{}", failed.len(), failed.join("\n"));
     assert_clean(&gpu);
 }
 
@@ -426,5 +487,66 @@ fn joint_optimisation_learns_templates_offsets_and_background() {
     let r2 = instgs_vk::train::run(&gpu, &k, &ds, &cfg, &opts).unwrap();
     assert_eq!(r2.iterations, 150);
     assert!(r2.test_psnr.unwrap() > after - 0.5);
+    assert_clean(&gpu);
+}
+
+#[test]
+fn refining_transforms_recovers_perturbed_poses() {
+    let (gpu, k) = gpu();
+    let mut rng = Rng::new(5);
+    let truth = random_instanced(&mut rng, 1, 60, &[(80, 4)]);
+    let ds = instgs_vk::dataset::Dataset {
+        kind: "nerf-synthetic",
+        train: rendered_views(&truth, 16, 0.0),
+        test: rendered_views(&truth, 4, 0.3),
+        points: None,
+    };
+    // Registration-like pose errors: ~3° rotation, 0.04 translation, 3 % scale.
+    let mut init = truth.clone();
+    for inst in &mut init.groups[0].instances {
+        let x = inst.transform;
+        let axis = glam::Vec3::new(rng.normal(), rng.normal(), rng.normal()).normalize();
+        let turn = glam::Quat::from_axis_angle(axis, 3f32.to_radians());
+        let shift = glam::Vec3::new(rng.normal(), rng.normal(), rng.normal()).normalize() * 0.04;
+        inst.transform =
+            instgs_vk::instance::Similarity::from_parts(turn * x.rotation, x.scale * 1.03, x.translation + shift);
+    }
+    let pose_error = |s: &InstancedScene| -> f32 {
+        s.groups[0]
+            .instances
+            .iter()
+            .zip(&truth.groups[0].instances)
+            .map(|(a, b)| (a.transform.translation - b.transform.translation).length())
+            .sum()
+    };
+    let mut results = Vec::new();
+    for refine in [false, true] {
+        let mut cfg = instgs_vk::config::Config::load_instanced(None).unwrap();
+        cfg.iterations = 200;
+        cfg.test_interval = 200;
+        cfg.checkpoint_interval = 0;
+        cfg.refine_transforms = refine;
+        // A short run: larger transform steps than the 10 000-iteration schedule's.
+        cfg.lr.transform_translation *= 4.0;
+        cfg.lr.transform_rotation *= 4.0;
+        cfg.lr.transform_scale *= 4.0;
+        let out = tempdir(&format!("refine_{refine}"));
+        let opts =
+            instgs_vk::train::RunOptions { out: out.clone(), resume: false, init: Some(init.clone()), progress: false };
+        let r = instgs_vk::train::run(&gpu, &k, &ds, &cfg, &opts).unwrap();
+        let result = instgs_vk::instgs::read(&out.join("scene.instgs")).unwrap();
+        results.push((r.test_psnr.unwrap(), pose_error(&result)));
+    }
+    eprintln!(
+        "pose error {:.4}; no refinement: {:.2} dB, error {:.4}; refinement: {:.2} dB, error {:.4}",
+        pose_error(&init),
+        results[0].0,
+        results[0].1,
+        results[1].0,
+        results[1].1
+    );
+    assert_eq!(results[0].1, pose_error(&init), "transforms moved without refinement");
+    assert!(results[1].1 < 0.7 * pose_error(&init), "refinement did not reduce the pose error");
+    assert!(results[1].0 > results[0].0 + 1.0, "refinement: {:?}", results);
     assert_clean(&gpu);
 }
