@@ -235,6 +235,26 @@ fn compose_info_convert_and_render_an_instanced_scene() {
         a.pixels().zip(b.pixels()).filter(|(p, q)| p.0.iter().zip(q.0).any(|(x, y)| x.abs_diff(y) > 1)).count();
     assert_eq!(differ, 0);
     assert!(a.pixels().any(|p| p.0 != [0, 0, 0]));
+    // bench takes .instgs scenes too and reports the expanded splat count.
+    let json = d.join("bench.json");
+    let o = run(&[
+        "bench",
+        "--scene",
+        s(&scene),
+        "--orbit",
+        "1",
+        "--width",
+        "64",
+        "--height",
+        "48",
+        "--frames",
+        "1",
+        "--json",
+        s(&json),
+    ]);
+    assert_eq!(o.code, Some(0), "{}", o.stderr);
+    let b: serde_json::Value = serde_json::from_slice(&std::fs::read(&json).unwrap()).unwrap();
+    assert_eq!(b["splats"], 950);
     // Bad input.
     let o = run(&[
         "compose",
