@@ -203,6 +203,13 @@ fn parse_rgb(s: &str) -> std::result::Result<[f32; 3], String> {
 }
 
 fn main() -> ExitCode {
+    // Output piped into a reader that stops early (`| head`) ends the process quietly, as
+    // Unix tools do, instead of a panic in println!.
+    #[cfg(unix)]
+    // SAFETY: setting a signal disposition to SIG_DFL before any other thread exists.
+    unsafe {
+        libc::signal(libc::SIGPIPE, libc::SIG_DFL);
+    }
     let cli = Cli::parse();
     match run(cli) {
         Ok(()) => ExitCode::SUCCESS,
