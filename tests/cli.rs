@@ -274,3 +274,19 @@ fn compose_info_convert_and_render_an_instanced_scene() {
         &["bad.instgs"],
     );
 }
+
+#[test]
+fn a_closed_output_pipe_ends_quietly() {
+    // `instgs-vk info … | head -1`: the reader goes away; no panic message, no error line.
+    let guitar = shared_data("splats/guitar.ply");
+    let mut child = Command::new(env!("CARGO_BIN_EXE_instgs-vk"))
+        .args(["info", s(&guitar), "--json"])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    drop(child.stdout.take());
+    let o = child.wait_with_output().unwrap();
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert!(!stderr.contains("panicked"), "{stderr}");
+}
