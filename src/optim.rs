@@ -204,36 +204,18 @@ pub fn record_adam(
     ];
     let pairs = scene.inst.pairs as u32;
     let offset_groups = [(3, lr.means), (3, lr.sh0), (1, lr.opacities)];
-    let jobs = (0..5)
-        .map(|i| {
-            let (stride, head, lr_head, lr_tail) = groups[i];
-            (
-                n,
-                stride,
-                head,
-                lr_head,
-                lr_tail,
-                param_buffers(scene)[i],
-                grad_buffers(grads)[i],
-                &st.exp_avg[i],
-                &st.exp_avg_sq[i],
-            )
-        })
-        .chain((0..3).filter(|_| pairs > 0).map(|i| {
-            let (stride, lr) = offset_groups[i];
-            (
-                pairs,
-                stride,
-                stride,
-                lr,
-                lr,
-                offset_buffers(scene)[i],
-                offset_grad_buffers(grads)[i],
-                &st.offset_exp_avg[i],
-                &st.offset_exp_avg_sq[i],
-            )
-        }));
-    for (n, stride, head, lr_head, lr_tail, param, grad, m, v) in jobs {
+    // (rows, stride, head, lr_head, lr_tail, parameters, gradients, exp_avg, exp_avg_sq)
+    let mut jobs = Vec::new();
+    for (i, &(stride, head, lr_head, lr_tail)) in groups.iter().enumerate() {
+        let bufs = (param_buffers(scene)[i], grad_buffers(grads)[i], &st.exp_avg[i], &st.exp_avg_sq[i]);
+        jobs.push((n, stride, head, lr_head, lr_tail, bufs));
+    }
+    for (i, &(stride, lr)) in offset_groups.iter().enumerate().filter(|_| pairs > 0) {
+        let bufs =
+            (offset_buffers(scene)[i], offset_grad_buffers(grads)[i], &st.offset_exp_avg[i], &st.offset_exp_avg_sq[i]);
+        jobs.push((pairs, stride, stride, lr, lr, bufs));
+    }
+    for (n, stride, head, lr_head, lr_tail, (param, grad, m, v)) in jobs {
         let count = n * stride;
         let args = AdamArgs {
             count,

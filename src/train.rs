@@ -300,13 +300,8 @@ impl TrainState {
             grad2d_accum: rows.iter().map(|&(i, _)| self.grad2d_accum[i]).collect(),
             grad2d_count: rows.iter().map(|&(i, _)| self.grad2d_count[i]).collect(),
             max_radii: rows.iter().map(|&(i, keep)| if keep { self.max_radii[i] } else { 0 }).collect(),
-            layout: None,
-            offsets: Offsets::default(),
-            offset_exp_avg: Default::default(),
-            offset_exp_avg_sq: Default::default(),
-            xform_params: Vec::new(),
-            xform_exp_avg: Vec::new(),
-            xform_exp_avg_sq: Vec::new(),
+            // Densification is for plain runs only: no instancing parts.
+            ..TrainState::new(Scene::default())
         }
     }
 }

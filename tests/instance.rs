@@ -426,17 +426,22 @@ fn rendered_views(scene: &InstancedScene, n: usize, phase: f32) -> Vec<instgs_vk
         .collect()
 }
 
+/// 16 training and 4 held-out views of `scene`.
+fn rendered_dataset(scene: &InstancedScene) -> instgs_vk::dataset::Dataset {
+    instgs_vk::dataset::Dataset {
+        kind: "nerf-synthetic",
+        train: rendered_views(scene, 16, 0.0),
+        test: rendered_views(scene, 4, 0.3),
+        points: None,
+    }
+}
+
 #[test]
 fn joint_optimisation_learns_templates_offsets_and_background() {
     let (gpu, k) = gpu();
     let mut rng = Rng::new(77);
     let truth = random_instanced(&mut rng, 1, 80, &[(60, 4)]);
-    let ds = instgs_vk::dataset::Dataset {
-        kind: "nerf-synthetic",
-        train: rendered_views(&truth, 16, 0.0),
-        test: rendered_views(&truth, 4, 0.3),
-        points: None,
-    };
+    let ds = rendered_dataset(&truth);
     // Start from wrong colours: template DC, colour offsets and background DC perturbed.
     let mut init = truth.clone();
     let g = &mut init.groups[0];
@@ -495,12 +500,7 @@ fn refining_transforms_recovers_perturbed_poses() {
     let (gpu, k) = gpu();
     let mut rng = Rng::new(5);
     let truth = random_instanced(&mut rng, 1, 60, &[(80, 4)]);
-    let ds = instgs_vk::dataset::Dataset {
-        kind: "nerf-synthetic",
-        train: rendered_views(&truth, 16, 0.0),
-        test: rendered_views(&truth, 4, 0.3),
-        points: None,
-    };
+    let ds = rendered_dataset(&truth);
     // Registration-like pose errors: ~3° rotation, 0.04 translation, 3 % scale.
     let mut init = truth.clone();
     for inst in &mut init.groups[0].instances {
