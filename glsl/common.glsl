@@ -156,6 +156,14 @@ struct AdamArgs {
     uint _pad1;
 };
 
+/// Push constants of seg_accumulate (gradient-driven segmentation, InstGS Eq. 3).
+struct SegArgs {
+    uint count; // splats
+    uint slot; // scores[slot * count + i]
+    float weight; // 1 for an instance mask, -alpha for the all-pixels pass
+    uint _pad0;
+};
+
 // SSIM window: 11 x 11 Gaussian, sigma 1.5 (Wang et al. 2004; Inria's loss_utils.ssim), zero
 // padding at the image border as torch's conv2d with padding 5.
 #define SSIM_RADIUS 5

@@ -27,6 +27,7 @@ pub struct Kernels {
     pub loss_cotangents_h: Kernel,
     pub loss_grad_v: Kernel,
     pub adam: Kernel,
+    pub seg_accumulate: Kernel,
     pub policy: KernelPolicy,
 }
 
@@ -97,6 +98,7 @@ impl Kernels {
             loss_cotangents_h: k("loss_cotangents_h", spirv::LOSS_COTANGENTS_H)?,
             loss_grad_v: k("loss_grad_v", spirv::LOSS_GRAD_V)?,
             adam: k("adam", spirv::ADAM)?,
+            seg_accumulate: k("seg_accumulate", spirv::SEG_ACCUMULATE)?,
             policy,
         }))
     }

@@ -21,6 +21,7 @@ pub mod optim;
 pub mod plot;
 pub mod raster;
 pub mod scene;
+pub mod segment;
 pub mod sort;
 pub mod train;
 pub mod util;

@@ -135,6 +135,28 @@ enum Cmd {
         /// OUT.ply or OUT.json.
         out: PathBuf,
     },
+    /// Gradient-driven instance segmentation of a trained plain scene with the dataset's
+    /// instance masks (masks/<split>/<image>.png, ids grouped by DIR/instances.json).
+    Segment {
+        /// The trained plain scene (.ply).
+        #[arg(long)]
+        scene: PathBuf,
+        /// Dataset folder (NeRF-synthetic layout with masks/ and instances.json).
+        #[arg(long)]
+        data: PathBuf,
+        /// Views whose masks drive the segmentation.
+        #[arg(long, default_value = "train")]
+        split: String,
+        /// Weight of the background-removal term (paper: 0.8).
+        #[arg(long, default_value_t = 0.8)]
+        alpha: f32,
+        /// labels.json ({ids, labels}) or labels.bin (u32 little-endian per Gaussian; 0 = background).
+        #[arg(long)]
+        out: PathBuf,
+        /// Also write one PLY per instance and background.ply here.
+        #[arg(long)]
+        export_dir: Option<PathBuf>,
+    },
     /// Time the GPU radix sort against Rust's sort_unstable on the same random keys.
     BenchSort {
         /// Number of keys.
@@ -234,6 +256,9 @@ fn run(cli: Cli) -> Result<()> {
             &out,
         ),
         Cmd::Convert { scene, out } => convert(&scene, &out),
+        Cmd::Segment { scene, data, split, alpha, out, export_dir } => {
+            segment(cli.device, &scene, &data, &split, alpha, &out, export_dir.as_deref())
+        }
         Cmd::BenchSort { keys, bits, repeats } => bench_sort(cli.device, keys, bits, repeats),
         Cmd::Train { data, out, init, config, iterations, resume, quiet } => {
             train(cli.device, &data, &out, init.as_deref(), config.as_deref(), iterations, resume, quiet)
@@ -473,6 +498,68 @@ fn info_instgs(path: &Path, json: bool) -> Result<()> {
             println!("  {:<22} {} bytes", p.name, p.bytes);
         }
         println!("file size     {} bytes (expanded plain PLY: {expanded_ply_bytes} bytes of vertex data)", bytes.len());
+    }
+    Ok(())
+}
+
+fn segment(
+    device: Option<String>,
+    scene_path: &Path,
+    data: &Path,
+    split: &str,
+    alpha: f32,
+    out: &Path,
+    export_dir: Option<&Path>,
+) -> Result<()> {
+    use instgs_vk::segment;
+    let scene = read_ply(scene_path)?;
+    let groups = segment::read_groups(&data.join("instances.json"))?;
+    let ids: Vec<u32> = groups.iter().flat_map(|g| g.ids.iter().copied()).collect();
+    let opts = instgs_vk::dataset::LoadOptions { downscale: 1, background: [0.0; 3] };
+    let ds = instgs_vk::dataset::load(data, &opts)?;
+    let views = ds.split(split)?;
+    let masks = segment::load_masks(data, split, views)?;
+    let (gpu, k) = open_device(device)?;
+    let seg = segment::segment(&gpu, &k, &scene, views, &masks, &ids, alpha)?;
+    match out.extension().and_then(|e| e.to_str()) {
+        Some("json") => {
+            let text = serde_json::to_string(&serde_json::json!({"ids": seg.ids, "labels": seg.labels}))?;
+            instgs_vk::util::write_atomic(out, |f| {
+                use std::io::Write;
+                f.write_all(text.as_bytes())
+            })?;
+        }
+        Some("bin") => instgs_vk::util::write_atomic(out, |f| {
+            use std::io::Write;
+            f.write_all(bytemuck::cast_slice(&seg.labels))
+        })?,
+        _ => bail!("{}: the output must end in .json or .bin", out.display()),
+    }
+    // Held-out views with masks: the IoU of every instance's rendered visible region.
+    let test_masks = if ds.test.is_empty() { None } else { segment::load_masks(data, "test", &ds.test).ok() };
+    for g in &groups {
+        for &id in &g.ids {
+            let n = seg.labels.iter().filter(|&&l| l == id).count();
+            let iou = match &test_masks {
+                Some(m) if !m.is_empty() => {
+                    let v = segment::instance_iou(&gpu, &k, &scene, &seg.labels, &ds.test, m, id)?;
+                    format!("  test IoU {:.3} ({} views)", v.iter().sum::<f64>() / v.len().max(1) as f64, v.len())
+                }
+                _ => String::new(),
+            };
+            println!("{} {id}: {n} Gaussians{iou}", g.name);
+        }
+    }
+    println!("background: {} Gaussians", seg.labels.iter().filter(|&&l| l == 0).count());
+    if let Some(dir) = export_dir {
+        std::fs::create_dir_all(dir).with_context(|| format!("{}: cannot create", dir.display()))?;
+        for id in ids.iter().copied().chain([0]) {
+            let part = segment::subset(&scene, &seg.labels, id);
+            let name = if id == 0 { "background.ply".to_string() } else { format!("instance_{id}.ply") };
+            if !part.is_empty() {
+                instgs_vk::scene::write_ply(&part, &dir.join(name))?;
+            }
+        }
     }
     Ok(())
 }

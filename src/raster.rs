@@ -811,6 +811,19 @@ impl Rasterizer {
     /// `preprocess_backward` into the parameter gradients and the densification statistics.
     /// The caller submits; the frame's buffers must not be re-rendered in between.
     pub fn record_backward(&self, rec: &mut Recorder, scene: &GpuScene, v_image: &Buffer, g: &Grads) -> Result<()> {
+        self.record_blend_backward(rec, scene, v_image, g)?;
+        self.record_preprocess_backward(rec, scene, g)
+    }
+
+    /// Records `blend_backward` alone: from `v_image` to the per-splat projected gradients
+    /// (v_xys, v_conics, v_colors, v_opacities) of the last rendered frame.
+    pub fn record_blend_backward(
+        &self,
+        rec: &mut Recorder,
+        scene: &GpuScene,
+        v_image: &Buffer,
+        g: &Grads,
+    ) -> Result<()> {
         let fp = self.last_params.as_ref().ok_or_else(|| anyhow::anyhow!("no frame rendered"))?;
         let gb = self.gauss.as_ref().unwrap();
         let is = self.isect.as_ref().unwrap();
@@ -847,7 +860,11 @@ impl Rasterizer {
             &(),
             [fp.tiles_x, fp.tiles_y, 1],
         )?;
-        rec.end_pass("blend_backward")?;
+        rec.end_pass("blend_backward")
+    }
+
+    fn record_preprocess_backward(&self, rec: &mut Recorder, scene: &GpuScene, g: &Grads) -> Result<()> {
+        let gb = self.gauss.as_ref().unwrap();
         let bindings: Vec<(&str, &Buffer)> = [
             ("frame", &self.frame_ub),
             ("means", &scene.means),
