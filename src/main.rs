@@ -521,6 +521,13 @@ fn segment(
     let masks = segment::load_masks(data, split, views)?;
     let (gpu, k) = open_device(device)?;
     let seg = segment::segment(&gpu, &k, &scene, views, &masks, &ids, alpha)?;
+    if !seg.unknown_ids.is_empty() {
+        eprintln!(
+            "warning: mask ids {:?} are not in {}; their pixels count as background",
+            seg.unknown_ids,
+            data.join("instances.json").display()
+        );
+    }
     match out.extension().and_then(|e| e.to_str()) {
         Some("json") => {
             let text = serde_json::to_string(&serde_json::json!({"ids": seg.ids, "labels": seg.labels}))?;

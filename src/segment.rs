@@ -100,6 +100,8 @@ pub fn load_masks(data: &Path, split: &str, views: &[View]) -> Result<Vec<Vec<u1
 pub struct Segmentation {
     pub ids: Vec<u32>,
     pub labels: Vec<u32>,
+    /// Ids found in the masks that are not instances (their pixels count as background).
+    pub unknown_ids: Vec<u32>,
     /// g for each of `ids`, per Gaussian: `g[k][i]`.
     pub g: Vec<Vec<f32>>,
 }
@@ -117,6 +119,21 @@ pub fn segment(
 ) -> Result<Segmentation> {
     if views.len() != masks.len() {
         bail!("{} views but {} masks", views.len(), masks.len());
+    }
+    for (v, m) in views.iter().zip(masks) {
+        if m.len() != (v.camera.width * v.camera.height) as usize {
+            bail!(
+                "view {}: its mask has {} pixels, the view {}x{}",
+                v.camera.name,
+                m.len(),
+                v.camera.width,
+                v.camera.height
+            );
+        }
+    }
+    let mut unknown = std::collections::BTreeSet::new();
+    for m in masks {
+        unknown.extend(m.iter().map(|&x| x as u32).filter(|x| *x != 0 && !ids.contains(x)));
     }
     let gs = GpuScene::new(gpu, scene)?;
     let grads = Grads::new(gpu, &gs)?;
@@ -168,7 +185,17 @@ pub fn segment(
             }
         })
         .collect();
-    Ok(Segmentation { ids: ids.to_vec(), labels, g })
+    let labels: Vec<u32> = labels;
+    for &id in ids {
+        if !labels.contains(&id) {
+            let pixels: usize = masks.iter().map(|m| m.iter().filter(|&&x| x as u32 == id).count()).sum();
+            bail!(
+                "instance {id}: no Gaussian belongs to it ({pixels} mask pixels in {} views); is it in the scene, and are the masks aligned with the images?",
+                views.len()
+            );
+        }
+    }
+    Ok(Segmentation { ids: ids.to_vec(), labels, g, unknown_ids: unknown.into_iter().collect() })
 }
 
 /// The Gaussians of `scene` labelled `id`.

@@ -77,5 +77,20 @@ fn segmentation_recovers_known_instances() {
     let strict = segment(&gpu, &k, &plain, &views, &masks, &[1, 2, 3], 4.0).unwrap();
     let positives = |l: &[u32]| l.iter().filter(|&&x| x != 0).count();
     assert!(positives(&strict.labels) <= positives(&seg.labels));
+    // Bad input: an id that is not an instance is reported; an instance whose masks claim no
+    // Gaussian (mask pixels where nothing is rendered) is an error naming it.
+    let mut odd = masks.clone();
+    odd[0][0] = 7;
+    let r = segment(&gpu, &k, &plain, &views, &odd, &[1, 2, 3], 0.8).unwrap();
+    assert_eq!(r.unknown_ids, [7]);
+    let mut empty = masks.clone();
+    for m in &mut empty {
+        m.iter_mut().for_each(|x| *x = if *x == 2 { 0 } else { *x });
+    }
+    empty[0][0] = 2;
+    let e = segment(&gpu, &k, &plain, &views, &empty, &[1, 2, 3], 0.8).err().unwrap().to_string();
+    assert!(e.contains("instance 2") && e.contains("no Gaussian"), "{e}");
+    let e = segment(&gpu, &k, &plain, &views, &masks[..3], &[1, 2, 3], 0.8).err().unwrap().to_string();
+    assert!(e.contains("10 views but 3 masks"), "{e}");
     assert_clean(&gpu);
 }
