@@ -20,9 +20,7 @@ pub struct Config {
     pub ssim_weight: f32,
     pub test_interval: u64,
     pub checkpoint_interval: u64,
-    /// Instanced runs: optimise the instance transforms too (rates `lr.transform_*`). Absent
-    /// from older checkpoints.
-    #[serde(default)]
+    /// Instanced runs: optimise the instance transforms too (rates `lr.transform_*`).
     pub refine_transforms: bool,
     pub lr: LrConfig,
     pub densify: DensifyConfig,
@@ -36,9 +34,7 @@ pub struct LrConfig {
     pub position_final: f64,
     pub position_max_steps: u64,
     /// Scene scale of the position learning rates: 0 = the training cameras' extent (Inria),
-    /// otherwise this fixed value (the InstGS prototype's fine-tuning: 0.1). Absent from
-    /// checkpoints written before it existed: 0.
-    #[serde(default)]
+    /// otherwise this fixed value (the InstGS prototype's fine-tuning: 0.1).
     pub spatial_scale: f64,
     pub sh0: f32,
     pub sh_rest: f32,
@@ -46,12 +42,9 @@ pub struct LrConfig {
     pub scaling: f32,
     pub rotation: f32,
     /// Instance transforms (refine_transforms): Adam rates of the rotation quaternion, the
-    /// translation (scene units) and ln s. Absent from older checkpoints: 0.
-    #[serde(default)]
+    /// translation (scene units) and ln s.
     pub transform_rotation: f32,
-    #[serde(default)]
     pub transform_translation: f32,
-    #[serde(default)]
     pub transform_scale: f32,
 }
 
@@ -108,6 +101,29 @@ impl Config {
         let cfg: Config = toml::Value::Table(base).try_into().map_err(|e| anyhow!("{what}: {e}"))?;
         cfg.validate().map_err(|e| anyhow!("{what}: {e}"))?;
         Ok(cfg)
+    }
+
+    /// A configuration saved as JSON (checkpoints) over today's defaults: keys added since it was
+    /// written take their default values.
+    pub fn from_saved(saved: serde_json::Value) -> Result<Config> {
+        fn overlay(base: &mut serde_json::Value, over: serde_json::Value) {
+            match (base, over) {
+                (serde_json::Value::Object(b), serde_json::Value::Object(o)) => {
+                    for (k, v) in o {
+                        match b.get_mut(&k) {
+                            Some(slot) => overlay(slot, v),
+                            None => {
+                                b.insert(k, v);
+                            }
+                        }
+                    }
+                }
+                (slot, v) => *slot = v,
+            }
+        }
+        let mut base = serde_json::to_value(Config::from_toml("", "configs/default.toml")?)?;
+        overlay(&mut base, saved);
+        Ok(serde_json::from_value(base)?)
     }
 
     pub fn load(path: Option<&Path>) -> Result<Config> {

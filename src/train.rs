@@ -745,7 +745,8 @@ struct CheckpointHeader {
     active_sh_degree: u32,
     sh_degree: u32,
     gaussians: usize,
-    config: Config,
+    /// The run's configuration; keys an older checkpoint lacks take today's defaults.
+    config: serde_json::Value,
     /// Instanced runs; then the offsets and their moments follow the statistics.
     #[serde(default)]
     layout: Option<Layout>,
@@ -760,7 +761,7 @@ pub fn write_checkpoint(path: &Path, st: &TrainState, cfg: &Config) -> Result<()
         active_sh_degree: st.active_sh_degree,
         sh_degree: st.scene.sh_degree,
         gaussians: st.scene.len(),
-        config: cfg.clone(),
+        config: serde_json::to_value(cfg)?,
         layout: st.layout.clone(),
     })?;
     crate::util::write_atomic(path, |f| {
@@ -855,7 +856,9 @@ pub fn read_checkpoint(path: &Path) -> Result<(TrainState, Config)> {
         xform_exp_avg_sq: xf[2].clone(),
     };
     state.to_instanced().with_context(|| format!("{what}: damaged instanced checkpoint"))?;
-    Ok((state, header.config))
+    let config =
+        Config::from_saved(header.config).with_context(|| format!("{what}: damaged checkpoint configuration"))?;
+    Ok((state, config))
 }
 
 // ---------------------------------------------------------------------------------------------

@@ -375,3 +375,18 @@ fn divergence_keeps_the_last_good_checkpoint() {
     let e = read_checkpoint(&out.join("checkpoint.bin")).err().unwrap().to_string();
     assert!(e.contains("trailing"), "{e}");
 }
+
+#[test]
+fn configurations_saved_before_new_keys_take_their_defaults() {
+    // A checkpoint's configuration written before `refine_transforms` and the `lr.transform_*`
+    // rates existed resumes with today's defaults for them.
+    let today = instgs_vk::config::Config::load(None).unwrap();
+    let mut saved = serde_json::to_value(&today).unwrap();
+    saved.as_object_mut().unwrap().remove("refine_transforms");
+    saved["lr"].as_object_mut().unwrap().remove("transform_rotation");
+    saved["lr"].as_object_mut().unwrap().remove("spatial_scale");
+    saved["iterations"] = 1234.into();
+    let back = instgs_vk::config::Config::from_saved(saved).unwrap();
+    assert_eq!(back.iterations, 1234);
+    assert_eq!(instgs_vk::config::Config { iterations: today.iterations, ..back }, today);
+}
