@@ -94,3 +94,48 @@ fn segmentation_recovers_known_instances() {
     assert!(e.contains("10 views but 3 masks"), "{e}");
     assert_clean(&gpu);
 }
+
+#[test]
+fn segmentation_scores_match_the_cpu_twin() {
+    // One view: g = (1 + α)·GSeg(M) − α·GSeg(1), GSeg(M)_i = mean over channels of the f64
+    // blend-backward twin's colour gradient for v_image = M.
+    let (gpu, k) = gpu();
+    let mut rng = Rng::new(4);
+    let scene = random_scene(&mut rng, 300, 1);
+    let camera = look_at(Vec3::new(0.3, -0.4, -4.0), Vec3::ZERO, Vec3::new(0.0, -1.0, 0.0), 64, 48, 60.0);
+    let mask: Vec<u16> = (0..64 * 48)
+        .map(|p| {
+            if (p % 64) < 30 {
+                1
+            } else if (p / 64) < 20 {
+                2
+            } else {
+                0
+            }
+        })
+        .collect();
+    let view = instgs_vk::dataset::View { camera: camera.clone(), image: Vec::new(), path: Default::default() };
+    let alpha = 0.8;
+    let seg = segment(&gpu, &k, &scene, &[view], &[mask.clone()], &[1, 2], alpha).unwrap();
+    let mut r = instgs_vk::raster::Rasterizer::new(&gpu, &k).unwrap();
+    r.render(&instgs_vk::raster::GpuScene::new(&gpu, &scene).unwrap(), &camera, [0.0; 3]).unwrap();
+    let st = r.read_state().unwrap();
+    let fp = r.last_frame_params().unwrap();
+    let splats: Vec<_> = (0..scene.len()).map(|i| instgs_vk::grad::Splat::of_projected(&st.projected, i)).collect();
+    let gseg = |keep: &dyn Fn(u16) -> bool| -> Vec<f64> {
+        let v: Vec<[f64; 3]> = mask.iter().map(|&m| if keep(m) { [1.0; 3] } else { [0.0; 3] }).collect();
+        instgs_vk::grad::blend_backward(&fp, &st.ranges, &st.isect_ids, &splats, &v)
+            .iter()
+            .map(|s| s.color.iter().sum::<f64>() / 3.0)
+            .collect()
+    };
+    let all = gseg(&|_| true);
+    for (j, id) in [1u16, 2].into_iter().enumerate() {
+        let m = gseg(&|x| x == id);
+        let want: Vec<f64> = (0..scene.len()).map(|i| (1.0 + alpha as f64) * m[i] - alpha as f64 * all[i]).collect();
+        let scale = want.iter().fold(0.0f64, |a, v| a.max(v.abs()));
+        let err = seg.g[j].iter().zip(&want).fold(0.0f64, |a, (g, w)| a.max((*g as f64 - w).abs()));
+        assert!(scale > 0.1 && err < 2e-3 * scale, "instance {id}: max error {err:e} of {scale:e}");
+    }
+    assert_clean(&gpu);
+}
