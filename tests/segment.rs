@@ -116,7 +116,7 @@ fn segmentation_scores_match_the_cpu_twin() {
         .collect();
     let view = instgs_vk::dataset::View { camera: camera.clone(), image: Vec::new(), path: Default::default() };
     let alpha = 0.8;
-    let seg = segment(&gpu, &k, &scene, &[view], &[mask.clone()], &[1, 2], alpha).unwrap();
+    let seg = segment(&gpu, &k, &scene, &[view], std::slice::from_ref(&mask), &[1, 2], alpha).unwrap();
     let mut r = instgs_vk::raster::Rasterizer::new(&gpu, &k).unwrap();
     r.render(&instgs_vk::raster::GpuScene::new(&gpu, &scene).unwrap(), &camera, [0.0; 3]).unwrap();
     let st = r.read_state().unwrap();
