@@ -156,6 +156,46 @@ enum Cmd {
         /// Also write one PLY per instance and background.ply here.
         #[arg(long)]
         export_dir: Option<PathBuf>,
+        /// The masks' ids mean nothing across frames (e.g. from SAM): each frame's ids are
+        /// associated across views first (view consensus); masks/<split>/<stem>.json gives each
+        /// mask id's category. Needs a .json output, which then carries the associated groups.
+        #[arg(long)]
+        per_frame_ids: bool,
+    },
+    /// Registration and template initialisation (paper §4.2): a segmented plain scene becomes an
+    /// instanced scene (.instgs) ready for joint optimisation (`train --init`).
+    Instance {
+        /// The trained plain scene (.ply) that was segmented.
+        #[arg(long)]
+        scene: PathBuf,
+        /// Its per-Gaussian labels (labels.json or labels.bin from `segment`).
+        #[arg(long)]
+        labels: PathBuf,
+        /// Dataset folder: DIR/instances.json groups the instance ids and names the groups; when
+        /// it carries ground-truth poses, the recovered transforms are checked against them.
+        #[arg(long)]
+        data: PathBuf,
+        /// Group the ids by this file instead of DIR/instances.json (e.g. the labels.json of
+        /// `segment --per-frame-ids`, which carries the associated groups); no ground truth then.
+        #[arg(long)]
+        groups: Option<PathBuf>,
+        /// Template initialisation: merge (paper), max or first (ablations).
+        #[arg(long, value_enum, default_value = "merge")]
+        init: instgs_vk::template::TemplateInit,
+        /// Rigid registration (no per-instance scale).
+        #[arg(long)]
+        rigid: bool,
+        /// Seed of RANSAC.
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+        /// Storage type of the offsets in the file.
+        #[arg(long, value_enum, default_value = "f32")]
+        offset_dtype: OffsetDtype,
+        /// Also write a JSON report (per instance: registration and, with ground truth, errors).
+        #[arg(long)]
+        report: Option<PathBuf>,
+        #[arg(long)]
+        out: PathBuf,
     },
     /// Time the GPU radix sort against Rust's sort_unstable on the same random keys.
     BenchSort {
@@ -175,6 +215,15 @@ enum Cmd {
 enum OffsetDtype {
     F32,
     F16,
+}
+
+impl From<OffsetDtype> for instgs::Dtype {
+    fn from(d: OffsetDtype) -> instgs::Dtype {
+        match d {
+            OffsetDtype::F32 => instgs::Dtype::F32,
+            OffsetDtype::F16 => instgs::Dtype::F16,
+        }
+    }
 }
 
 #[derive(Args)]
@@ -256,8 +305,13 @@ fn run(cli: Cli) -> Result<()> {
             &out,
         ),
         Cmd::Convert { scene, out } => convert(&scene, &out),
-        Cmd::Segment { scene, data, split, alpha, out, export_dir } => {
-            segment(cli.device, &scene, &data, &split, alpha, &out, export_dir.as_deref())
+        Cmd::Segment { scene, data, split, alpha, out, export_dir, per_frame_ids } => {
+            segment(cli.device, &scene, &data, &split, alpha, &out, export_dir.as_deref(), per_frame_ids)
+        }
+        Cmd::Instance { scene, labels, data, groups, init, rigid, seed, offset_dtype, report, out } => {
+            let groups_file = groups.clone().unwrap_or_else(|| data.join("instances.json"));
+            let truth = groups.is_none().then_some(groups_file.as_path());
+            instance(&scene, &labels, &groups_file, truth, init, !rigid, seed, offset_dtype, report.as_deref(), &out)
         }
         Cmd::BenchSort { keys, bits, repeats } => bench_sort(cli.device, keys, bits, repeats),
         Cmd::Train { data, out, init, config, iterations, resume, quiet } => {
@@ -502,6 +556,7 @@ fn info_instgs(path: &Path, json: bool) -> Result<()> {
     Ok(())
 }
 
+#[allow(clippy::too_many_arguments)]
 fn segment(
     device: Option<String>,
     scene_path: &Path,
@@ -510,16 +565,50 @@ fn segment(
     alpha: f32,
     out: &Path,
     export_dir: Option<&Path>,
+    per_frame_ids: bool,
 ) -> Result<()> {
     use instgs_vk::segment;
+    let is_json = out.extension().and_then(|e| e.to_str()) == Some("json");
+    if per_frame_ids && !is_json {
+        bail!("{}: with --per-frame-ids the output must be .json (it carries the associated groups)", out.display());
+    }
     let scene = read_ply(scene_path)?;
-    let groups = segment::read_groups(&data.join("instances.json"))?;
-    let ids: Vec<u32> = groups.iter().flat_map(|g| g.ids.iter().copied()).collect();
     let opts = instgs_vk::dataset::LoadOptions { downscale: 1, background: [0.0; 3] };
     let ds = instgs_vk::dataset::load(data, &opts)?;
     let views = ds.split(split)?;
-    let masks = segment::load_masks(data, split, views)?;
+    let mut masks = segment::load_masks(data, split, views)?;
     let (gpu, k) = open_device(device)?;
+    let mut members_json = serde_json::Map::new();
+    let groups = if per_frame_ids {
+        let cats = segment::load_frame_categories(data, split, views, &masks)?;
+        let o = segment::AssociateOptions { alpha, ..Default::default() };
+        let a = segment::associate(&gpu, &k, &scene, views, &masks, &cats, &o)?;
+        let total: usize = a.members.values().map(Vec::len).sum::<usize>() + a.dropped.len();
+        println!(
+            "association: {} masks of {} views → {} instances in {} groups ({} masks in no instance of ≥ {} views)",
+            total,
+            views.len(),
+            a.members.len(),
+            a.groups.len(),
+            a.dropped.len(),
+            o.min_views
+        );
+        for (id, ms) in &a.members {
+            let list: Vec<serde_json::Value> = ms
+                .iter()
+                .map(|(v, m)| {
+                    let name = views[*v].path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+                    serde_json::json!([name, m])
+                })
+                .collect();
+            members_json.insert(id.to_string(), list.into());
+        }
+        masks = a.masks;
+        a.groups
+    } else {
+        segment::read_groups(&data.join("instances.json"))?
+    };
+    let ids: Vec<u32> = groups.iter().flat_map(|g| g.ids.iter().copied()).collect();
     let seg = segment::segment(&gpu, &k, &scene, views, &masks, &ids, alpha)?;
     if !seg.unknown_ids.is_empty() {
         eprintln!(
@@ -530,7 +619,22 @@ fn segment(
     }
     match out.extension().and_then(|e| e.to_str()) {
         Some("json") => {
-            let text = serde_json::to_string(&serde_json::json!({"ids": seg.ids, "labels": seg.labels}))?;
+            let mut doc = serde_json::json!({"ids": seg.ids, "labels": seg.labels});
+            if per_frame_ids {
+                // A groups file too (`instance --groups`): groups → instances with their masks.
+                doc["groups"] = groups
+                    .iter()
+                    .map(|g| {
+                        let inst: Vec<serde_json::Value> = g
+                            .ids
+                            .iter()
+                            .map(|id| serde_json::json!({"id": id, "masks": members_json[&id.to_string()]}))
+                            .collect();
+                        serde_json::json!({"name": g.name, "instances": inst})
+                    })
+                    .collect();
+            }
+            let text = serde_json::to_string(&doc)?;
             instgs_vk::util::write_atomic(out, |f| {
                 use std::io::Write;
                 f.write_all(text.as_bytes())
@@ -542,8 +646,10 @@ fn segment(
         })?,
         _ => bail!("{}: the output must end in .json or .bin", out.display()),
     }
-    // Held-out views with masks: the IoU of every instance's rendered visible region.
-    let test_masks = if ds.test.is_empty() { None } else { segment::load_masks(data, "test", &ds.test).ok() };
+    // Held-out views with masks (ids meaningful across frames): the IoU of every instance's
+    // rendered visible region.
+    let test_masks =
+        if ds.test.is_empty() || per_frame_ids { None } else { segment::load_masks(data, "test", &ds.test).ok() };
     for g in &groups {
         for &id in &g.ids {
             let n = seg.labels.iter().filter(|&&l| l == id).count();
@@ -571,6 +677,79 @@ fn segment(
     Ok(())
 }
 
+#[allow(clippy::too_many_arguments)]
+fn instance(
+    scene_path: &Path,
+    labels: &Path,
+    groups_path: &Path,
+    truth_path: Option<&Path>,
+    init: instgs_vk::template::TemplateInit,
+    with_scale: bool,
+    seed: u64,
+    dtype: OffsetDtype,
+    report: Option<&Path>,
+    out: &Path,
+) -> Result<()> {
+    use instgs_vk::template;
+    let scene = read_ply(scene_path)?;
+    let labels = template::read_labels(labels, scene.len())?;
+    let groups = instgs_vk::segment::read_groups(groups_path)?;
+    let opts = template::InstanceOptions { init, with_scale, seed, ..Default::default() };
+    let (inst, reports) = template::instantiate(&scene, &labels, &groups, &opts, |line| eprintln!("{line}"))?;
+    instgs::write(&inst, out, dtype.into())?;
+    let truth = match truth_path {
+        Some(p) => template::read_ground_truth(p)?,
+        None => None,
+    };
+    let mut rows = Vec::new();
+    for r in &reports {
+        let mut row = serde_json::json!({
+            "group": r.group, "id": r.id, "gaussians": r.gaussians, "fitness": r.fitness, "rmse": r.rmse,
+            "scale": r.relative.scale,
+        });
+        let mut line = format!(
+            "{} {}: {} Gaussians, fitness {:.3}, RMSE {:.4}, scale {:.4}",
+            r.group, r.id, r.gaussians, r.fitness, r.rmse, r.relative.scale
+        );
+        let first = groups.iter().find(|g| g.name == r.group).map(|g| g.ids[0]);
+        if let (Some(t), Some(first)) = (&truth, first) {
+            if let (Some(a), Some(b)) = (t.get(&first), t.get(&r.id)) {
+                let (rot, trans, scale) = template::pose_error(&r.relative, a, b);
+                line += &format!(
+                    "; against {}: rotation {rot:.3}°, translation {:.3} % of the size, scale {:+.3} %",
+                    groups_path.display(),
+                    100.0 * trans,
+                    100.0 * scale
+                );
+                row["rotation_error_deg"] = rot.into();
+                row["translation_error_fraction"] = trans.into();
+                row["scale_error_fraction"] = scale.into();
+            }
+        }
+        println!("{line}");
+        rows.push(row);
+    }
+    println!(
+        "{}: {} groups, {} template Gaussians, {} background, {} splats ({:?} templates)",
+        out.display(),
+        inst.groups.len(),
+        inst.groups.iter().map(|g| g.template.len()).sum::<usize>(),
+        inst.background.len(),
+        inst.splats(),
+        init
+    );
+    if let Some(path) = report {
+        let text = serde_json::to_string_pretty(
+            &serde_json::json!({"init": format!("{init:?}").to_lowercase(), "instances": rows}),
+        )?;
+        instgs_vk::util::write_atomic(path, |f| {
+            use std::io::Write;
+            f.write_all(text.as_bytes())
+        })?;
+    }
+    Ok(())
+}
+
 fn compose(
     templates: &[String],
     graph: &Path,
@@ -589,11 +768,7 @@ fn compose(
     let graph = instgs_vk::instance::read_scene_graph(graph)?;
     let background = background.map(read_ply).transpose()?;
     let scene = instgs_vk::instance::compose(loaded, graph, background, random_offsets)?;
-    let dtype = match dtype {
-        OffsetDtype::F32 => instgs::Dtype::F32,
-        OffsetDtype::F16 => instgs::Dtype::F16,
-    };
-    instgs::write(&scene, out, dtype)?;
+    instgs::write(&scene, out, dtype.into())?;
     eprintln!(
         "wrote {}: {} groups, {} splats from {} parameter rows",
         out.display(),

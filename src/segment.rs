@@ -9,6 +9,7 @@
 //! (a masked loss with unit residual: what a Gaussian contributes there, whatever the colours).
 //! GSeg is linear in the mask, so GSeg(1 − M) = GSeg(1) − GSeg(M): per view one pass over all
 //! pixels plus one per visible instance. Views are streamed; the scores live on the GPU.
+use std::collections::BTreeMap;
 use std::path::Path;
 use std::sync::Arc;
 
@@ -135,43 +136,12 @@ pub fn segment(
     for m in masks {
         unknown.extend(m.iter().map(|&x| x as u32).filter(|x| *x != 0 && !ids.contains(x)));
     }
-    let gs = GpuScene::new(gpu, scene)?;
-    let grads = Grads::new(gpu, &gs)?;
     let n = scene.len();
-    let slots = ids.len() + 1;
-    let scores = gpu.storage("seg_scores", (n * slots * 4) as u64)?;
-    gpu.submit_and_wait(|rec| {
-        rec.fill(&scores, 0);
-        Ok(())
-    })?;
-    let mut r = Rasterizer::new(gpu, k)?;
+    let mut scorer = Scorer::new(gpu, k, scene, ids.len() + 1)?;
     for (view, mask) in views.iter().zip(masks) {
-        let cam = &view.camera;
-        r.render(&gs, cam, [0.0; 3])?;
-        // Slot `ids.len()`: every pixel; slot j: instance ids[j] where its mask has pixels.
-        let mut passes: Vec<(u32, Vec<[f32; 4]>)> = vec![(ids.len() as u32, vec![[1.0, 1.0, 1.0, 0.0]; mask.len()])];
-        for (j, &id) in ids.iter().enumerate() {
-            if mask.iter().any(|&m| m as u32 == id) {
-                let v = mask.iter().map(|&m| if m as u32 == id { [1.0, 1.0, 1.0, 0.0] } else { [0.0; 4] }).collect();
-                passes.push((j as u32, v));
-            }
-        }
-        for (slot, v_image) in passes {
-            let v = gpu.upload("seg_v_image", &v_image)?;
-            gpu.submit_and_wait(|rec| {
-                r.record_blend_backward(rec, &gs, &v, &grads)?;
-                let args = SegArgs { count: n as u32, slot, weight: 1.0, _pad0: 0 };
-                rec.dispatch(
-                    &k.seg_accumulate,
-                    &[("v_colors", &grads.v_colors), ("scores", &scores)],
-                    &args,
-                    [(n as u32).div_ceil(WG_SIZE).min(MAX_GROUPS), 1, 1],
-                )?;
-                rec.end_pass("seg_accumulate")
-            })?;
-        }
+        scorer.add_view(view, mask, ids)?;
     }
-    let s: Vec<f32> = gpu.read(&scores, n * slots)?;
+    let s = scorer.read()?;
     let all = &s[ids.len() * n..];
     // g = Σ GSeg(M) − α Σ GSeg(1 − M) = (1 + α) Σ GSeg(M) − α Σ GSeg(1).
     let g: Vec<Vec<f32>> =
@@ -196,6 +166,73 @@ pub fn segment(
         }
     }
     Ok(Segmentation { ids: ids.to_vec(), labels, g, unknown_ids: unknown.into_iter().collect() })
+}
+
+/// Per-Gaussian GSeg sums on the GPU: slot j < ids.len() for mask id ids[j], the last slot for
+/// every pixel (GSeg(1)); `scores[slot·n + i]`.
+struct Scorer<'a> {
+    gpu: &'a Arc<Gpu>,
+    k: &'a Arc<Kernels>,
+    gs: GpuScene,
+    grads: Grads,
+    scores: crate::gpu::Buffer,
+    r: Rasterizer,
+    n: usize,
+    slots: usize,
+}
+
+impl<'a> Scorer<'a> {
+    fn new(gpu: &'a Arc<Gpu>, k: &'a Arc<Kernels>, scene: &Scene, slots: usize) -> Result<Scorer<'a>> {
+        let gs = GpuScene::new(gpu, scene)?;
+        let grads = Grads::new(gpu, &gs)?;
+        let n = scene.len();
+        let scores = gpu.storage("seg_scores", (n * slots * 4) as u64)?;
+        let r = Rasterizer::new(gpu, k)?;
+        let s = Scorer { gpu, k, gs, grads, scores, r, n, slots };
+        s.clear()?;
+        Ok(s)
+    }
+
+    fn clear(&self) -> Result<()> {
+        self.gpu.submit_and_wait(|rec| {
+            rec.fill(&self.scores, 0);
+            Ok(())
+        })
+    }
+
+    /// Adds one view: GSeg(1) to the last slot, GSeg(mask == ids[j]) to slot j for each id with
+    /// pixels in the mask.
+    fn add_view(&mut self, view: &View, mask: &[u16], ids: &[u32]) -> Result<()> {
+        let (gpu, k, n) = (self.gpu, self.k, self.n);
+        self.r.render(&self.gs, &view.camera, [0.0; 3])?;
+        let mut passes: Vec<(u32, Vec<[f32; 4]>)> =
+            vec![(self.slots as u32 - 1, vec![[1.0, 1.0, 1.0, 0.0]; mask.len()])];
+        for (j, &id) in ids.iter().enumerate() {
+            if mask.iter().any(|&m| m as u32 == id) {
+                let v = mask.iter().map(|&m| if m as u32 == id { [1.0, 1.0, 1.0, 0.0] } else { [0.0; 4] }).collect();
+                passes.push((j as u32, v));
+            }
+        }
+        for (slot, v_image) in passes {
+            let v = gpu.upload("seg_v_image", &v_image)?;
+            gpu.submit_and_wait(|rec| {
+                self.r.record_blend_backward(rec, &self.gs, &v, &self.grads)?;
+                let args = SegArgs { count: n as u32, slot, weight: 1.0, _pad0: 0 };
+                rec.dispatch(
+                    &k.seg_accumulate,
+                    &[("v_colors", &self.grads.v_colors), ("scores", &self.scores)],
+                    &args,
+                    [(n as u32).div_ceil(WG_SIZE).min(MAX_GROUPS), 1, 1],
+                )?;
+                rec.end_pass("seg_accumulate")
+            })?;
+        }
+        Ok(())
+    }
+
+    fn read(&self) -> Result<Vec<f32>> {
+        self.gpu.read(&self.scores, self.n * self.slots)
+    }
 }
 
 /// The Gaussians of `scene` labelled `id`.
@@ -245,4 +282,218 @@ pub fn instance_iou(
         }
     }
     Ok(out)
+}
+
+/// Per-frame mask categories for masks whose ids mean nothing across frames (e.g. from SAM):
+/// `masks/<split>/<image stem>.json` = `{"<mask id>": "<category>", ...}`; every id in the mask
+/// needs a category.
+pub fn load_frame_categories(
+    data: &Path,
+    split: &str,
+    views: &[View],
+    masks: &[Vec<u16>],
+) -> Result<Vec<BTreeMap<u16, String>>> {
+    views
+        .iter()
+        .zip(masks)
+        .map(|(v, m)| {
+            let stem = v.path.file_stem().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+            let path = data.join("masks").join(split).join(format!("{stem}.json"));
+            let what = path.display();
+            let text = std::fs::read_to_string(&path)
+                .with_context(|| format!("{what}: cannot read the frame's mask categories"))?;
+            let raw: BTreeMap<String, String> = serde_json::from_str(&text)
+                .with_context(|| format!("{what}: not a {{\"<mask id>\": \"<category>\"}} object"))?;
+            let mut cats = BTreeMap::new();
+            for (id, cat) in raw {
+                let n: u16 = id.parse().with_context(|| format!("{what}: {id:?} is not a mask id (1..65535)"))?;
+                if n == 0 {
+                    bail!("{what}: id 0 is the background and takes no category");
+                }
+                cats.insert(n, cat);
+            }
+            let mut present: Vec<u16> = m.iter().copied().filter(|&x| x != 0).collect();
+            present.sort_unstable();
+            present.dedup();
+            if let Some(id) = present.iter().find(|id| !cats.contains_key(id)) {
+                bail!("{what}: mask id {id} of {} has no category", v.path.display());
+            }
+            Ok(cats)
+        })
+        .collect()
+}
+
+/// Parameters of [`associate`].
+#[derive(Clone, Debug)]
+pub struct AssociateOptions {
+    /// α of the per-view lifting (as in [`segment`]).
+    pub alpha: f32,
+    /// A Gaussian counts as seen in a view, or claimed by a mask, with at least this much
+    /// blending weight summed over pixels.
+    pub min_weight: f32,
+    /// Two masks join when their view-consensus rate is at least this.
+    pub threshold: f64,
+    /// Instances need masks in at least this many views; masks of smaller clusters are dropped.
+    pub min_views: usize,
+}
+
+impl Default for AssociateOptions {
+    fn default() -> Self {
+        AssociateOptions { alpha: 0.8, min_weight: 0.05, threshold: 0.5, min_views: 3 }
+    }
+}
+
+/// Cross-frame association of per-frame masks.
+#[derive(Clone, Debug)]
+pub struct Association {
+    /// One group per category, its instances numbered 1.. across groups.
+    pub groups: Vec<InstanceGroup>,
+    /// The masks rewritten with instance ids (0 where a mask joined no instance).
+    pub masks: Vec<Vec<u16>>,
+    /// Per instance id, its masks: (view index, per-frame id).
+    pub members: BTreeMap<u32, Vec<(usize, u16)>>,
+    /// Masks that joined no instance of at least `min_views` views.
+    pub dropped: Vec<(usize, u16)>,
+}
+
+type Bits = Vec<u64>;
+
+fn bits_from(n: usize, f: impl Fn(usize) -> bool) -> Bits {
+    let mut b = vec![0u64; n.div_ceil(64)];
+    for i in 0..n {
+        if f(i) {
+            b[i / 64] |= 1 << (i % 64);
+        }
+    }
+    b
+}
+
+fn count_and(a: &Bits, b: &Bits) -> usize {
+    a.iter().zip(b).map(|(x, y)| (x & y).count_ones() as usize).sum()
+}
+
+/// Associates per-frame masks across views (view consensus, after MaskClustering, the InstGS
+/// paper's reference [53]): each mask is lifted to the Gaussians it claims in its view (g > 0
+/// of Eq. 5 over that view alone); for two masks a, b of different views and one category the
+/// consensus rate is min(|A∩B| / |A ∩ seen(b's view)|, |A∩B| / |B ∩ seen(a's view)|) — of the
+/// Gaussians one mask claims that the other view sees, the share the other mask claims too.
+/// Pairs are merged greedily from the highest rate down to `threshold`, never joining two masks
+/// of one view; clusters spanning at least `min_views` views become instances (numbered by
+/// their first view and id), the rest is dropped.
+pub fn associate(
+    gpu: &Arc<Gpu>,
+    k: &Arc<Kernels>,
+    scene: &Scene,
+    views: &[View],
+    masks: &[Vec<u16>],
+    categories: &[BTreeMap<u16, String>],
+    o: &AssociateOptions,
+) -> Result<Association> {
+    if views.len() != masks.len() || views.len() != categories.len() {
+        bail!("{} views, {} masks, {} category maps", views.len(), masks.len(), categories.len());
+    }
+    let n = scene.len();
+    let frame_ids: Vec<Vec<u32>> = masks
+        .iter()
+        .map(|m| {
+            let mut ids: Vec<u32> = m.iter().filter(|&&x| x != 0).map(|&x| x as u32).collect();
+            ids.sort_unstable();
+            ids.dedup();
+            ids
+        })
+        .collect();
+    let slots = frame_ids.iter().map(Vec::len).max().unwrap_or(0) + 1;
+    let mut scorer = Scorer::new(gpu, k, scene, slots)?;
+    // Lifted masks: (view, id, category, claimed Gaussians); seen Gaussians per view.
+    let mut lifted: Vec<(usize, u16, &str, Bits)> = Vec::new();
+    let mut seen: Vec<Bits> = Vec::new();
+    for (v, (view, mask)) in views.iter().zip(masks).enumerate() {
+        scorer.clear()?;
+        scorer.add_view(view, mask, &frame_ids[v])?;
+        let s = scorer.read()?;
+        let all = &s[(slots - 1) * n..];
+        seen.push(bits_from(n, |i| all[i] >= o.min_weight));
+        for (j, &id) in frame_ids[v].iter().enumerate() {
+            let sj = &s[j * n..(j + 1) * n];
+            let claimed = bits_from(n, |i| sj[i] >= o.min_weight && (1.0 + o.alpha) * sj[i] - o.alpha * all[i] > 0.0);
+            let cat = categories[v].get(&(id as u16)).map(String::as_str).unwrap_or("");
+            lifted.push((v, id as u16, cat, claimed));
+        }
+    }
+    let mut pairs: Vec<(f64, usize, usize)> = Vec::new();
+    for a in 0..lifted.len() {
+        for b in a + 1..lifted.len() {
+            let (la, lb) = (&lifted[a], &lifted[b]);
+            if la.0 == lb.0 || la.2 != lb.2 {
+                continue;
+            }
+            let inter = count_and(&la.3, &lb.3);
+            let (da, db) = (count_and(&la.3, &seen[lb.0]), count_and(&lb.3, &seen[la.0]));
+            if da < 8 || db < 8 {
+                continue;
+            }
+            let rate = (inter as f64 / da as f64).min(inter as f64 / db as f64);
+            if rate >= o.threshold {
+                pairs.push((rate, a, b));
+            }
+        }
+    }
+    pairs.sort_by(|x, y| y.0.total_cmp(&x.0).then((x.1, x.2).cmp(&(y.1, y.2))));
+    // Union-find with the set of views of every cluster at its root.
+    let mut parent: Vec<usize> = (0..lifted.len()).collect();
+    let mut cluster_views: Vec<std::collections::BTreeSet<usize>> =
+        lifted.iter().map(|l| std::collections::BTreeSet::from([l.0])).collect();
+    fn root(p: &mut [usize], mut i: usize) -> usize {
+        while p[i] != i {
+            p[i] = p[p[i]];
+            i = p[i];
+        }
+        i
+    }
+    for (_, a, b) in pairs {
+        let (ra, rb) = (root(&mut parent, a), root(&mut parent, b));
+        if ra == rb || !cluster_views[ra].is_disjoint(&cluster_views[rb]) {
+            continue;
+        }
+        let (keep, gone) = (ra.min(rb), ra.max(rb));
+        parent[gone] = keep;
+        let moved = std::mem::take(&mut cluster_views[gone]);
+        cluster_views[keep].extend(moved);
+    }
+    let mut clusters: BTreeMap<usize, Vec<usize>> = BTreeMap::new();
+    for i in 0..lifted.len() {
+        let r = root(&mut parent, i);
+        clusters.entry(r).or_default().push(i);
+    }
+    let mut members = BTreeMap::new();
+    let mut dropped = Vec::new();
+    let mut groups: Vec<InstanceGroup> = Vec::new();
+    let mut new_id: BTreeMap<(usize, u16), u16> = BTreeMap::new();
+    // Roots are each cluster's smallest index: clusters come in (view, id) order of their first mask.
+    for list in clusters.values() {
+        let ms: Vec<(usize, u16)> = list.iter().map(|&i| (lifted[i].0, lifted[i].1)).collect();
+        if list.len() < o.min_views {
+            dropped.extend(ms);
+            continue;
+        }
+        let id = members.len() as u32 + 1;
+        if id > u16::MAX as u32 {
+            bail!("more than 65535 associated instances");
+        }
+        let cat = lifted[list[0]].2.to_string();
+        match groups.iter_mut().find(|g| g.name == cat) {
+            Some(g) => g.ids.push(id),
+            None => groups.push(InstanceGroup { name: cat, ids: vec![id] }),
+        }
+        for m in &ms {
+            new_id.insert(*m, id as u16);
+        }
+        members.insert(id, ms);
+    }
+    let masks = masks
+        .iter()
+        .enumerate()
+        .map(|(v, m)| m.iter().map(|&x| if x == 0 { 0 } else { new_id.get(&(v, x)).copied().unwrap_or(0) }).collect())
+        .collect();
+    Ok(Association { groups, masks, members, dropped })
 }

@@ -53,11 +53,11 @@ fn scene_from_params(p: [Vec<f32>; 5], sh_degree: u32) -> Scene {
     }
 }
 
-fn logit(p: f32) -> f32 {
+pub(crate) fn logit(p: f32) -> f32 {
     (p / (1.0 - p)).ln()
 }
 
-fn sigmoid(x: f32) -> f32 {
+pub(crate) fn sigmoid(x: f32) -> f32 {
     1.0 / (1.0 + (-x).exp())
 }
 
@@ -399,16 +399,21 @@ pub fn reset_opacity(st: &mut TrainState) {
 /// log of the root mean squared distance to the 3 nearest other points (Inria's distCUDA2,
 /// clamped at 1e-7 squared distance).
 pub fn knn_log_scales(points: &[[f32; 3]]) -> Vec<f32> {
-    let tree: kiddo::immutable::float::kdtree::ImmutableKdTree<f32, u32, 3, 32> =
-        kiddo::immutable::float::kdtree::ImmutableKdTree::new_from_slice(points);
+    let points: Vec<[f64; 3]> = points.iter().map(|p| p.map(|c| c as f64)).collect();
+    let tree = crate::register::tree(&points);
     points
         .iter()
         .enumerate()
         .map(|(i, p)| {
             let nn = tree.nearest_n::<kiddo::SquaredEuclidean>(p, 4);
-            let d: Vec<f32> = nn.iter().filter(|n| n.item as usize != i).take(3).map(|n| n.distance).collect();
-            let mean = d.iter().sum::<f32>() / d.len().max(1) as f32;
-            (mean.max(1e-7)).sqrt().ln()
+            let d: Vec<f64> = nn
+                .iter()
+                .filter(|n| n.item as usize != i)
+                .take(3)
+                .map(|n| (0..3).map(|a| (points[n.item as usize][a] - p[a]).powi(2)).sum::<f64>())
+                .collect();
+            let mean = d.iter().sum::<f64>() / d.len().max(1) as f64;
+            (mean.max(1e-7) as f32).sqrt().ln()
         })
         .collect()
 }

@@ -276,6 +276,82 @@ fn compose_info_convert_and_render_an_instanced_scene() {
 }
 
 #[test]
+fn instance_turns_a_labelled_plain_scene_into_an_instanced_one() {
+    // A plain scene with a known object placed twice (labels 1, 2) over a background (0).
+    let d = dir("instance");
+    let mut rng = Rng::new(13);
+    let mut plain = instgs_vk::scene::Scene { sh_degree: 0, ..Default::default() };
+    let mut labels = Vec::new();
+    for (id, shift) in [(1u32, -1.0f32), (2, 1.0)] {
+        for j in 0..1500 {
+            let (a, b) = (j as f32 * 0.37, j as f32 * 0.011);
+            let r = if j % 3 == 0 { 0.15 } else { 0.3 };
+            let p = [
+                r * a.cos() * b.sin() + shift + if j % 3 == 0 { 0.3 } else { 0.0 },
+                r * a.sin() * b.sin(),
+                0.6 * b.cos(),
+            ];
+            plain.means.push(p);
+            plain.scales.push([-4.0; 3]);
+            plain.quats.push([1.0, 0.0, 0.0, 0.0]);
+            plain.opacities.push(2.0);
+            plain.sh.extend_from_slice(&[rng.range(-1.0, 1.0), 0.0, 0.0]);
+            labels.push(id);
+        }
+    }
+    let mut bg = random_scene(&mut rng, 100, 0);
+    bg.means.iter_mut().for_each(|m| m[2] -= 3.0);
+    for i in 0..bg.len() {
+        plain.means.push(bg.means[i]);
+        plain.scales.push(bg.scales[i]);
+        plain.quats.push(bg.quats[i]);
+        plain.opacities.push(bg.opacities[i]);
+        plain.sh.extend_from_slice(&bg.sh[i * 3..i * 3 + 3]);
+        labels.push(0);
+    }
+    let ply = d.join("plain.ply");
+    instgs_vk::scene::write_ply(&plain, &ply).unwrap();
+    let labels_path = d.join("labels.json");
+    std::fs::write(&labels_path, serde_json::json!({"ids": [1, 2], "labels": labels}).to_string()).unwrap();
+    let groups = serde_json::json!({"groups": [{"name": "blob", "instances": [{"id": 1}, {"id": 2}]}]});
+    std::fs::write(d.join("instances.json"), groups.to_string()).unwrap();
+    let out = d.join("scene.instgs");
+    let report = d.join("report.json");
+    let args = |labels: &Path, init: &str| -> Vec<String> {
+        ["instance", "--scene", s(&ply), "--labels", s(labels), "--data", s(&d), "--init", init, "--out", s(&out)]
+            .iter()
+            .map(|x| x.to_string())
+            .collect()
+    };
+    let mut a = args(&labels_path, "merge");
+    a.extend(["--report".to_string(), s(&report).to_string()]);
+    let o = run(&a.iter().map(String::as_str).collect::<Vec<_>>());
+    assert_eq!(o.code, Some(0), "{}", o.stderr);
+    let r: serde_json::Value = serde_json::from_slice(&std::fs::read(&report).unwrap()).unwrap();
+    let t = &r["instances"][1];
+    assert_eq!(t["id"], 2);
+    assert!((t["scale"].as_f64().unwrap() - 1.0).abs() < 0.02, "{t}");
+    let o = run(&["info", s(&out), "--json"]);
+    let v: serde_json::Value = serde_json::from_str(&o.stdout).unwrap();
+    assert_eq!(v["groups"][0]["name"], "blob");
+    assert_eq!(v["groups"][0]["template_gaussians"], 1500);
+    assert_eq!(v["background_gaussians"], 100);
+    // Bad input: labels of another scene, an unknown id, a missing instance.
+    let short = d.join("short.bin");
+    std::fs::write(&short, [0u8; 12]).unwrap();
+    let bad = |labels: &Path| run(&args(labels, "first").iter().map(String::as_str).collect::<Vec<_>>());
+    assert_clear_error(&bad(&short), &["short.bin", "3 labels for a scene of 3100 Gaussians"]);
+    let mut odd = labels.clone();
+    odd[0] = 9;
+    std::fs::write(&labels_path, serde_json::json!({"ids": [1, 2], "labels": odd}).to_string()).unwrap();
+    assert_clear_error(&bad(&labels_path), &["labels [9] are not instances"]);
+    let none: Vec<u32> = labels.iter().map(|&l| if l == 2 { 0 } else { l }).collect();
+    std::fs::write(&labels_path, serde_json::json!({"ids": [1, 2], "labels": none}).to_string()).unwrap();
+    assert_clear_error(&bad(&labels_path), &["instance 2 claims no Gaussian"]);
+    assert!(!d.join("scene.instgs.tmp").exists());
+}
+
+#[test]
 fn a_closed_output_pipe_ends_quietly() {
     // `instgs-vk info … | head -1`: the reader goes away; no panic message, no error line.
     let guitar = shared_data("splats/guitar.ply");

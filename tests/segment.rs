@@ -4,11 +4,14 @@ mod common;
 
 use common::*;
 use glam::Vec3;
-use instgs_vk::segment::{instance_iou, segment};
+use instgs_vk::segment::{associate, instance_iou, segment, AssociateOptions};
 
-#[test]
-fn segmentation_recovers_known_instances() {
-    let (gpu, k) = gpu();
+/// Three instances of a random template in front of a wall; ten views and their masks rendered
+/// from the true labels: (plain scene, labels, views, masks).
+fn known_scene(
+    gpu: &std::sync::Arc<instgs_vk::gpu::Gpu>,
+    k: &std::sync::Arc<instgs_vk::kernels::Kernels>,
+) -> (instgs_vk::scene::Scene, Vec<u32>, Vec<instgs_vk::dataset::View>, Vec<Vec<u16>>) {
     let mut rng = Rng::new(9);
     let mut scene = random_instanced(&mut rng, 1, 0, &[(150, 3)]);
     // Instances apart (x = -1.2, 0, 1.2), opaque enough to occlude, no offsets.
@@ -50,8 +53,8 @@ fn segmentation_recovers_known_instances() {
                 s.sh_degree = 0;
                 let c0 = instgs_vk::scene::SH_C0;
                 s.sh = truth.iter().flat_map(|&l| [if l == id { 0.5 / c0 } else { -0.5 / c0 }; 3]).collect();
-                let gs = instgs_vk::raster::GpuScene::new(&gpu, &s).unwrap();
-                let f = instgs_vk::raster::Rasterizer::new(&gpu, &k).unwrap().render(&gs, &v.camera, [0.0; 3]).unwrap();
+                let gs = instgs_vk::raster::GpuScene::new(gpu, &s).unwrap();
+                let f = instgs_vk::raster::Rasterizer::new(gpu, k).unwrap().render(&gs, &v.camera, [0.0; 3]).unwrap();
                 for (px, p) in m.iter_mut().zip(&f.image) {
                     if p[0] > 0.5 {
                         *px = id as u16;
@@ -61,6 +64,13 @@ fn segmentation_recovers_known_instances() {
             m
         })
         .collect();
+    (plain, truth, views, masks)
+}
+
+#[test]
+fn segmentation_recovers_known_instances() {
+    let (gpu, k) = gpu();
+    let (plain, truth, views, masks) = known_scene(&gpu, &k);
     let seg = segment(&gpu, &k, &plain, &views, &masks, &[1, 2, 3], 0.8).unwrap();
     // Gaussians that show: labelled as they truly are.
     let s_all: Vec<f32> = (0..plain.len()).map(|i| seg.g.iter().map(|g| g[i].abs()).fold(0.0, f32::max)).collect();
@@ -137,5 +147,60 @@ fn segmentation_scores_match_the_cpu_twin() {
         let err = seg.g[j].iter().zip(&want).fold(0.0f64, |a, (g, w)| a.max((*g as f64 - w).abs()));
         assert!(scale > 0.1 && err < 2e-3 * scale, "instance {id}: max error {err:e} of {scale:e}");
     }
+    assert_clean(&gpu);
+}
+
+#[test]
+fn association_recovers_instances_from_scrambled_per_frame_ids() {
+    let (gpu, k) = gpu();
+    let (plain, truth, views, masks) = known_scene(&gpu, &k);
+    // Every frame renumbers its masks at random (ids 1..=40), all of one category; a stray
+    // fourth mask of a few pixels in one frame has no counterpart elsewhere.
+    let mut rng = Rng::new(11);
+    let mut key: Vec<std::collections::BTreeMap<u16, u16>> = Vec::new();
+    let mut scrambled = masks.clone();
+    let mut cats = Vec::new();
+    for (v, m) in scrambled.iter_mut().enumerate() {
+        let mut map = std::collections::BTreeMap::new();
+        while map.len() < 3 {
+            let new = 1 + (rng.u32() % 40) as u16;
+            if !map.values().any(|&x| x == new) {
+                map.insert(map.len() as u16 + 1, new);
+            }
+        }
+        m.iter_mut().for_each(|x| *x = if *x == 0 { 0 } else { map[x] });
+        let mut c: std::collections::BTreeMap<u16, String> = map.values().map(|&n| (n, "blob".to_string())).collect();
+        if v == 4 {
+            let stray = (1..=40).find(|x| !map.values().any(|y| y == x)).unwrap();
+            m[..6].fill(stray);
+            c.insert(stray, "blob".into());
+        }
+        cats.push(c);
+        key.push(map.into_iter().map(|(t, n)| (n, t)).collect());
+    }
+    let a = associate(&gpu, &k, &plain, &views, &scrambled, &cats, &AssociateOptions::default()).unwrap();
+    assert_eq!(a.groups.len(), 1);
+    assert_eq!(a.groups[0].ids, [1, 2, 3]);
+    // Each instance gathers exactly one true instance's masks, one per view.
+    let mut found = Vec::new();
+    for ms in a.members.values() {
+        let truths: std::collections::BTreeSet<u16> = ms.iter().map(|(v, id)| key[*v][id]).collect();
+        assert_eq!(truths.len(), 1, "an instance mixes true instances {truths:?}");
+        assert_eq!(ms.len(), views.len(), "one mask per view");
+        found.extend(truths);
+    }
+    found.sort();
+    assert_eq!(found, [1, 2, 3]);
+    assert!(a.dropped.iter().all(|(v, _)| *v == 4) && a.dropped.len() <= 1);
+    // The rewritten masks segment like the true ones (up to the instances' numbering).
+    let ids: Vec<u32> = a.groups[0].ids.clone();
+    let seg = segment(&gpu, &k, &plain, &views, &a.masks, &ids, 0.8).unwrap();
+    let truth_of = |id: u32| key[a.members[&id][0].0][&a.members[&id][0].1] as u32;
+    let agree = (0..plain.len())
+        .filter(|&i| truth[i] != 0 && seg.labels[i] != 0)
+        .filter(|&i| truth_of(seg.labels[i]) == truth[i])
+        .count();
+    let labelled = (0..plain.len()).filter(|&i| truth[i] != 0 && seg.labels[i] != 0).count();
+    assert!(labelled > 300 && agree == labelled, "{agree} of {labelled}");
     assert_clean(&gpu);
 }

@@ -1,0 +1,511 @@
+//! Registration of one instance's Gaussian means onto another's (InstGS paper §4.2): FPFH
+//! features (Rusu et al., ICRA 2009) on a voxel-downsampled cloud, RANSAC global alignment over
+//! mutual feature correspondences with edge-length and distance checks (the scheme of Open3D's
+//! `registration_ransac_based_on_feature_matching`), then point-to-point ICP; similarity
+//! transforms (rotation, uniform scale, translation) by Umeyama's closed form when scale is
+//! estimated. All in f64, deterministic for a seed.
+//!
+//! Crates looked at first (2026-11): `threecrate-algorithms` (young, pulls kdtree, rstar, ndarray
+//! and rayon, no similarity ICP), `fast-gicp` (C++ GICP bindings, no FPFH) and `fricp` (ICP only).
+//! None does FPFH + RANSAC + scaled ICP well, so that logic lives here on top of `kiddo` (k-d
+//! trees) and `nalgebra` (SVD, symmetric eigen).
+use std::collections::HashMap;
+
+use anyhow::{bail, Result};
+use kiddo::immutable::float::kdtree::ImmutableKdTree;
+use kiddo::SquaredEuclidean;
+use nalgebra::{Matrix3, SymmetricEigen, Vector3};
+use rand::{Rng, SeedableRng};
+
+pub type Tree3 = ImmutableKdTree<f64, u32, 3, 32>;
+
+/// FPFH bins per angle feature; a descriptor holds three such histograms.
+pub const FPFH_BINS: usize = 11;
+pub const FPFH_DIM: usize = 3 * FPFH_BINS;
+
+/// x ↦ s·R·x + t.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Sim3 {
+    pub rotation: Matrix3<f64>,
+    pub scale: f64,
+    pub translation: Vector3<f64>,
+}
+
+impl Sim3 {
+    pub fn identity() -> Sim3 {
+        Sim3 { rotation: Matrix3::identity(), scale: 1.0, translation: Vector3::zeros() }
+    }
+
+    pub fn apply(&self, p: &[f64; 3]) -> [f64; 3] {
+        let v = self.rotation * Vector3::from(*p) * self.scale + self.translation;
+        [v.x, v.y, v.z]
+    }
+
+    /// self ∘ other.
+    pub fn compose(&self, other: &Sim3) -> Sim3 {
+        Sim3 {
+            rotation: self.rotation * other.rotation,
+            scale: self.scale * other.scale,
+            translation: self.rotation * other.translation * self.scale + self.translation,
+        }
+    }
+
+    pub fn inverse(&self) -> Sim3 {
+        let rt = self.rotation.transpose();
+        Sim3 { rotation: rt, scale: 1.0 / self.scale, translation: -(rt * self.translation) / self.scale }
+    }
+
+    /// The angle of R·other.Rᵀ, degrees.
+    pub fn rotation_error_deg(&self, other: &Sim3) -> f64 {
+        let d = self.rotation * other.rotation.transpose();
+        ((d.trace() - 1.0) / 2.0).clamp(-1.0, 1.0).acos().to_degrees()
+    }
+}
+
+/// The least-squares similarity (or rigid motion, `with_scale = false`) taking `src[i]` to
+/// `dst[i]` (Umeyama 1991). None for fewer than 3 pairs or a degenerate source.
+pub fn umeyama(src: &[[f64; 3]], dst: &[[f64; 3]], with_scale: bool) -> Option<Sim3> {
+    let n = src.len();
+    if n < 3 || dst.len() != n {
+        return None;
+    }
+    let mean = |p: &[[f64; 3]]| p.iter().fold(Vector3::zeros(), |a, x| a + Vector3::from(*x)) / n as f64;
+    let (ms, md) = (mean(src), mean(dst));
+    let mut cov = Matrix3::zeros();
+    let mut var_s = 0.0;
+    for (s, d) in src.iter().zip(dst) {
+        let (s, d) = (Vector3::from(*s) - ms, Vector3::from(*d) - md);
+        cov += d * s.transpose();
+        var_s += s.norm_squared();
+    }
+    cov /= n as f64;
+    var_s /= n as f64;
+    if var_s <= 1e-300 {
+        return None;
+    }
+    let svd = cov.svd(true, true);
+    let (u, v_t) = (svd.u?, svd.v_t?);
+    let mut s = Matrix3::identity();
+    if u.determinant() * v_t.determinant() < 0.0 {
+        s[(2, 2)] = -1.0;
+    }
+    let rotation = u * s * v_t;
+    let scale = if with_scale {
+        let d = svd.singular_values;
+        (d[0] * s[(0, 0)] + d[1] * s[(1, 1)] + d[2] * s[(2, 2)]) / var_s
+    } else {
+        1.0
+    };
+    if !scale.is_finite() || scale <= 0.0 {
+        return None;
+    }
+    Some(Sim3 { rotation, scale, translation: md - rotation * ms * scale })
+}
+
+/// Centroids of the occupied cells of a `voxel`-sized grid, in first-seen cell order.
+pub fn voxel_downsample(points: &[[f64; 3]], voxel: f64) -> Vec<[f64; 3]> {
+    let mut cells: HashMap<[i64; 3], usize> = HashMap::new();
+    let mut sums: Vec<([f64; 3], usize)> = Vec::new();
+    for p in points {
+        let key = p.map(|c| (c / voxel).floor() as i64);
+        let i = *cells.entry(key).or_insert_with(|| {
+            sums.push(([0.0; 3], 0));
+            sums.len() - 1
+        });
+        for (s, c) in sums[i].0.iter_mut().zip(p) {
+            *s += c;
+        }
+        sums[i].1 += 1;
+    }
+    sums.into_iter().map(|(s, n)| s.map(|c| c / n as f64)).collect()
+}
+
+/// A k-d tree of `points` for nearest-neighbour queries (items = indices). `kiddo`'s trees panic
+/// when more points than a bucket holds share a coordinate on one axis (a flat floor, quantised
+/// positions of a compressed PLY): then the tree is built on copies moved by at most 1e-9 of
+/// the cloud's extent per axis (a fixed pattern per index); callers that need exact distances
+/// recompute them from the points.
+pub fn tree(points: &[[f64; 3]]) -> Tree3 {
+    let crowded = (0..3).any(|a| {
+        let mut v: Vec<f64> = points.iter().map(|p| p[a]).collect();
+        v.sort_by(f64::total_cmp);
+        v.chunk_by(|x, y| x == y).any(|run| run.len() >= 16)
+    });
+    if !crowded {
+        return ImmutableKdTree::new_from_slice(points);
+    }
+    let extent = points.iter().flatten().fold(0.0f64, |m, c| m.max(c.abs())).max(1e-30);
+    let moved: Vec<[f64; 3]> = points
+        .iter()
+        .enumerate()
+        .map(|(i, p)| {
+            let h = (i as u64 + 1).wrapping_mul(0x9E37_79B9_7F4A_7C15);
+            std::array::from_fn(|a| {
+                let u = ((h >> (16 * a)) & 0xFFFF) as f64 / 65535.0 - 0.5;
+                p[a] + 2e-9 * extent * u
+            })
+        })
+        .collect();
+    ImmutableKdTree::new_from_slice(&moved)
+}
+
+/// Unit normals from the covariance of the neighbours within `radius` (at most `max_nn`,
+/// nearest first): the eigenvector of the smallest eigenvalue, oriented away from the cloud's
+/// centroid so that the orientation moves with the cloud under any similarity.
+pub fn normals(points: &[[f64; 3]], radius: f64, max_nn: usize) -> Vec<[f64; 3]> {
+    let t = tree(points);
+    let c = centroid(points);
+    points
+        .iter()
+        .map(|p| {
+            let nn = t.nearest_n_within::<SquaredEuclidean>(p, radius * radius, max_nn, true);
+            let n = if nn.len() < 3 {
+                Vector3::from(*p) - c
+            } else {
+                let pts: Vec<Vector3<f64>> = nn.iter().map(|x| Vector3::from(points[x.item as usize])).collect();
+                let m = pts.iter().fold(Vector3::zeros(), |a, x| a + x) / pts.len() as f64;
+                let cov = pts.iter().fold(Matrix3::zeros(), |a, x| a + (x - m) * (x - m).transpose());
+                let e = SymmetricEigen::new(cov);
+                let i = e.eigenvalues.imin();
+                e.eigenvectors.column(i).into_owned()
+            };
+            let n = if n.dot(&(Vector3::from(*p) - c)) < 0.0 { -n } else { n };
+            let len = n.norm();
+            if len > 0.0 {
+                (n / len).into()
+            } else {
+                [0.0, 0.0, 1.0]
+            }
+        })
+        .collect()
+}
+
+fn centroid(points: &[[f64; 3]]) -> Vector3<f64> {
+    points.iter().fold(Vector3::zeros(), |a, x| a + Vector3::from(*x)) / points.len().max(1) as f64
+}
+
+/// The Darboux-frame angles (α, φ, θ) of a point pair (Rusu et al. 2009; PCL's
+/// `computePairFeatures` convention: the source is the point whose normal makes the smaller
+/// angle with the connecting line). None for coincident points or parallel geometry.
+fn pair_features(p1: Vector3<f64>, n1: Vector3<f64>, p2: Vector3<f64>, n2: Vector3<f64>) -> Option<[f64; 3]> {
+    let mut d = p2 - p1;
+    let len = d.norm();
+    if len <= 0.0 {
+        return None;
+    }
+    let (a1, a2) = (n1.dot(&d) / len, n2.dot(&d) / len);
+    let (u, other, f3) = if a1.abs().acos() > a2.abs().acos() {
+        d = -d;
+        (n2, n1, -a2)
+    } else {
+        (n1, n2, a1)
+    };
+    let v = d.cross(&u);
+    let vn = v.norm();
+    if vn <= 0.0 {
+        return None;
+    }
+    let v = v / vn;
+    let w = u.cross(&v);
+    let f2 = v.dot(&other);
+    let f1 = w.dot(&other).atan2(u.dot(&other));
+    Some([f1, f2, f3])
+}
+
+fn bin(x: f64, lo: f64, hi: f64) -> usize {
+    (((x - lo) / (hi - lo) * FPFH_BINS as f64).floor() as isize).clamp(0, FPFH_BINS as isize - 1) as usize
+}
+
+/// Fast point feature histograms: per point, SPFH(p) + (1/k)·Σ SPFH(pₖ)/|p − pₖ| over the
+/// neighbours within `radius` (at most `max_nn`); each 11-bin histogram sums to 100.
+pub fn fpfh(points: &[[f64; 3]], normals: &[[f64; 3]], radius: f64, max_nn: usize) -> Vec<[f64; FPFH_DIM]> {
+    let t = tree(points);
+    let neigh: Vec<Vec<(usize, f64)>> = points
+        .iter()
+        .enumerate()
+        .map(|(i, p)| {
+            t.nearest_n_within::<SquaredEuclidean>(p, radius * radius, max_nn + 1, true)
+                .into_iter()
+                .filter(|n| n.item as usize != i)
+                .take(max_nn)
+                .map(|n| (n.item as usize, n.distance.sqrt()))
+                .collect()
+        })
+        .collect();
+    let spfh: Vec<[f64; FPFH_DIM]> = (0..points.len())
+        .map(|i| {
+            let mut h = [0.0; FPFH_DIM];
+            let (p, n) = (Vector3::from(points[i]), Vector3::from(normals[i]));
+            let feats: Vec<[f64; 3]> = neigh[i]
+                .iter()
+                .filter_map(|&(j, _)| pair_features(p, n, Vector3::from(points[j]), Vector3::from(normals[j])))
+                .collect();
+            if feats.is_empty() {
+                return h;
+            }
+            let inc = 100.0 / feats.len() as f64;
+            for f in feats {
+                h[bin(f[0], -std::f64::consts::PI, std::f64::consts::PI)] += inc;
+                h[FPFH_BINS + bin(f[1], -1.0, 1.0)] += inc;
+                h[2 * FPFH_BINS + bin(f[2], -1.0, 1.0)] += inc;
+            }
+            h
+        })
+        .collect();
+    (0..points.len())
+        .map(|i| {
+            let mut f = spfh[i];
+            let mut nb = [0.0; FPFH_DIM];
+            for &(j, d) in &neigh[i] {
+                if d > 0.0 {
+                    for (a, b) in nb.iter_mut().zip(&spfh[j]) {
+                        *a += b / d;
+                    }
+                }
+            }
+            for part in 0..3 {
+                let r = part * FPFH_BINS..(part + 1) * FPFH_BINS;
+                let sum: f64 = nb[r.clone()].iter().sum();
+                if sum > 0.0 {
+                    for (a, b) in f[r.clone()].iter_mut().zip(&nb[r]) {
+                        *a = (*a + b * 100.0 / sum) / 2.0;
+                    }
+                }
+            }
+            f
+        })
+        .collect()
+}
+
+/// Parameters of [`register`]; lengths in the clouds' units.
+#[derive(Clone, Debug)]
+pub struct RegisterOptions {
+    /// Voxel size of the downsampled clouds (features, RANSAC); ICP runs at half of it.
+    pub voxel: f64,
+    /// Also estimate a uniform scale.
+    pub with_scale: bool,
+    pub ransac_iterations: usize,
+    /// Edge-length check: pairwise source and target distances of a sample agree to this ratio.
+    pub edge_ratio: f64,
+    pub icp_iterations: usize,
+    pub seed: u64,
+}
+
+impl RegisterOptions {
+    /// Defaults for an object whose bounding-box diagonal is `size`: voxel size/25.
+    pub fn for_size(size: f64) -> RegisterOptions {
+        RegisterOptions {
+            voxel: size / 25.0,
+            with_scale: true,
+            ransac_iterations: 100_000,
+            edge_ratio: 0.9,
+            icp_iterations: 60,
+            seed: 0,
+        }
+    }
+}
+
+/// A registration of `source` onto `target`: `transform` maps source points to target points.
+#[derive(Clone, Debug)]
+pub struct Registration {
+    pub transform: Sim3,
+    /// Fraction of (ICP-resolution) source points with a target point within the final ICP
+    /// distance.
+    pub fitness: f64,
+    /// RMS distance of those pairs.
+    pub rmse: f64,
+    /// Mutual feature correspondences RANSAC drew from.
+    pub correspondences: usize,
+}
+
+/// Fitness and RMSE of `x` over `src` against `dst_tree` with pairs closer than `dist`.
+fn evaluate(x: &Sim3, src: &[[f64; 3]], dst_tree: &Tree3, dist: f64) -> (f64, f64, usize) {
+    let mut n = 0;
+    let mut sq = 0.0;
+    for p in src {
+        let nn = dst_tree.nearest_one::<SquaredEuclidean>(&x.apply(p));
+        if nn.distance <= dist * dist {
+            n += 1;
+            sq += nn.distance;
+        }
+    }
+    (n as f64 / src.len().max(1) as f64, if n > 0 { (sq / n as f64).sqrt() } else { f64::INFINITY }, n)
+}
+
+/// Point-to-point ICP from `init`: pairs each source point with its nearest target point within
+/// `dist`, refits (Umeyama) until the transform changes by less than 1e-9 or `iterations` end.
+pub fn icp(src: &[[f64; 3]], dst: &[[f64; 3]], init: Sim3, dist: f64, iterations: usize, with_scale: bool) -> Sim3 {
+    let t = tree(dst);
+    let mut x = init;
+    for _ in 0..iterations {
+        let (mut a, mut b) = (Vec::new(), Vec::new());
+        for p in src {
+            let q = x.apply(p);
+            let nn = t.nearest_one::<SquaredEuclidean>(&q);
+            if nn.distance <= dist * dist {
+                a.push(*p);
+                b.push(dst[nn.item as usize]);
+            }
+        }
+        let Some(next) = umeyama(&a, &b, with_scale) else { break };
+        let change = (next.rotation - x.rotation).norm()
+            + (next.translation - x.translation).norm() / dist
+            + (next.scale - x.scale).abs();
+        x = next;
+        if change < 1e-9 {
+            break;
+        }
+    }
+    x
+}
+
+/// Registers `source` onto `target` (both clouds of one object, any similarity apart): FPFH on
+/// voxel-downsampled clouds, RANSAC over mutual nearest features (3-point samples passing the
+/// edge-length check, scored by correspondence inliers within 1.5 voxels), the 8 best
+/// hypotheses refined by ICP (1.5 voxels, then 0.5 voxel at half the voxel size), the fittest
+/// kept.
+pub fn register(source: &[[f64; 3]], target: &[[f64; 3]], o: &RegisterOptions) -> Result<Registration> {
+    let (s, d) = (voxel_downsample(source, o.voxel), voxel_downsample(target, o.voxel));
+    if s.len() < 8 || d.len() < 8 {
+        bail!(
+            "too few points to register ({} and {} voxels of {:.4}; {} and {} points)",
+            s.len(),
+            d.len(),
+            o.voxel,
+            source.len(),
+            target.len()
+        );
+    }
+    let (ns, nd) = (normals(&s, 2.0 * o.voxel, 30), normals(&d, 2.0 * o.voxel, 30));
+    let (fs, fd) = (fpfh(&s, &ns, 5.0 * o.voxel, 100), fpfh(&d, &nd, 5.0 * o.voxel, 100));
+    let corr = mutual_matches(&fs, &fd);
+    if corr.len() < 3 {
+        bail!("only {} mutual feature correspondences", corr.len());
+    }
+    let dist = 1.5 * o.voxel;
+    let mut rng = rand_pcg::Pcg64::seed_from_u64(o.seed);
+    let mut best: Vec<(usize, Sim3)> = Vec::new();
+    const KEEP: usize = 8;
+    for _ in 0..o.ransac_iterations {
+        let idx = [0; 3].map(|_| rng.random_range(0..corr.len()));
+        if idx[0] == idx[1] || idx[1] == idx[2] || idx[0] == idx[2] {
+            continue;
+        }
+        let a: Vec<[f64; 3]> = idx.iter().map(|&i| s[corr[i].0]).collect();
+        let b: Vec<[f64; 3]> = idx.iter().map(|&i| d[corr[i].1]).collect();
+        if !edges_agree(&a, &b, o.edge_ratio) {
+            continue;
+        }
+        let Some(x) = umeyama(&a, &b, o.with_scale) else { continue };
+        if a.iter().zip(&b).any(|(p, q)| dist2(&x.apply(p), q) > dist * dist) {
+            continue;
+        }
+        let inliers = corr.iter().filter(|&&(i, j)| dist2(&x.apply(&s[i]), &d[j]) <= dist * dist).count();
+        if best.len() < KEEP || inliers > best[KEEP - 1].0 {
+            // Near-duplicates of a kept hypothesis replace it rather than crowd the list.
+            if let Some(k) = best.iter().position(|(_, y)| y.rotation_error_deg(&x) < 5.0) {
+                if inliers > best[k].0 {
+                    best[k] = (inliers, x);
+                }
+            } else {
+                best.push((inliers, x));
+            }
+            best.sort_by_key(|b| std::cmp::Reverse(b.0));
+            best.truncate(KEEP);
+        }
+    }
+    if best.is_empty() {
+        bail!(
+            "RANSAC found no hypothesis passing the edge-length and distance checks ({} correspondences)",
+            corr.len()
+        );
+    }
+    let fine = o.voxel / 2.0;
+    let (s2, d2) = (voxel_downsample(source, fine), voxel_downsample(target, fine));
+    let d2_tree = tree(&d2);
+    let mut result: Option<Registration> = None;
+    for (_, x) in best {
+        let x = icp(&s2, &d2, x, dist, o.icp_iterations, o.with_scale);
+        let x = icp(&s2, &d2, x, o.voxel / 2.0, o.icp_iterations, o.with_scale);
+        let (fitness, rmse, _) = evaluate(&x, &s2, &d2_tree, o.voxel / 2.0);
+        let better = result.as_ref().is_none_or(|r| (fitness, -rmse) > (r.fitness, -r.rmse));
+        if better {
+            result = Some(Registration { transform: x, fitness, rmse, correspondences: corr.len() });
+        }
+    }
+    Ok(result.expect("at least one hypothesis"))
+}
+
+fn dist2(a: &[f64; 3], b: &[f64; 3]) -> f64 {
+    (0..3).map(|i| (a[i] - b[i]) * (a[i] - b[i])).sum()
+}
+
+/// Every pairwise distance of `a` and of `b` agree within `ratio` (shorter ≥ ratio·longer).
+fn edges_agree(a: &[[f64; 3]], b: &[[f64; 3]], ratio: f64) -> bool {
+    for i in 0..a.len() {
+        for j in i + 1..a.len() {
+            let (x, y) = (dist2(&a[i], &a[j]).sqrt(), dist2(&b[i], &b[j]).sqrt());
+            if x < ratio * y || y < ratio * x {
+                return false;
+            }
+        }
+    }
+    true
+}
+
+/// Index pairs (source, target) whose FPFH descriptors are each other's nearest neighbours
+/// (Euclidean; ties: lowest index). Exhaustive search: in 33 dimensions, with histograms full
+/// of equal zeros, a k-d tree prunes little (and `kiddo`'s immutable tree refuses more equal
+/// values on an axis than a bucket holds).
+pub fn mutual_matches(fs: &[[f64; FPFH_DIM]], fd: &[[f64; FPFH_DIM]]) -> Vec<(usize, usize)> {
+    fn nearest(f: &[f64; FPFH_DIM], set: &[[f64; FPFH_DIM]]) -> usize {
+        let mut best = (f64::INFINITY, 0);
+        for (j, g) in set.iter().enumerate() {
+            let d: f64 = f.iter().zip(g).map(|(a, b)| (a - b) * (a - b)).sum();
+            if d < best.0 {
+                best = (d, j);
+            }
+        }
+        best.1
+    }
+    let back: Vec<usize> = fd.iter().map(|g| nearest(g, fs)).collect();
+    fs.iter()
+        .enumerate()
+        .filter_map(|(i, f)| {
+            let j = nearest(f, fd);
+            (back[j] == i).then_some((i, j))
+        })
+        .collect()
+}
+
+/// Farthest-point sampling: `n` indices of `points`, starting from the point nearest the
+/// centroid, each next one the farthest from those already taken (ties: lowest index).
+/// Deterministic; returns every index when `n ≥ points.len()`.
+pub fn farthest_point_sample(points: &[[f64; 3]], n: usize) -> Vec<usize> {
+    if n >= points.len() {
+        return (0..points.len()).collect();
+    }
+    if n == 0 {
+        return Vec::new();
+    }
+    let c = centroid(points);
+    let c = [c.x, c.y, c.z];
+    let first =
+        (0..points.len()).min_by(|&a, &b| dist2(&points[a], &c).total_cmp(&dist2(&points[b], &c))).expect("non-empty");
+    let mut d: Vec<f64> = points.iter().map(|p| dist2(p, &points[first])).collect();
+    let mut out = vec![first];
+    while out.len() < n {
+        let mut next = 0;
+        for i in 1..points.len() {
+            if d[i] > d[next] {
+                next = i;
+            }
+        }
+        out.push(next);
+        let q = points[next];
+        for (di, p) in d.iter_mut().zip(points) {
+            *di = di.min(dist2(p, &q));
+        }
+    }
+    out
+}
