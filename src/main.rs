@@ -53,6 +53,10 @@ enum Cmd {
         /// Untimed frames first.
         #[arg(long, default_value_t = 1)]
         warmup: usize,
+        /// A second scene (.ply or .instgs) rendered interleaved with the first (A B A B …)
+        /// from the same cameras; ratios are A over B.
+        #[arg(long)]
+        compare: Option<PathBuf>,
         /// Also write the results as JSON to this file.
         #[arg(long)]
         json: Option<PathBuf>,
@@ -295,7 +299,9 @@ fn run(cli: Cli) -> Result<()> {
     match cli.cmd {
         Cmd::Info { scene, json } => info(&scene, json),
         Cmd::Render { view, out } => render(cli.device, &view, &out),
-        Cmd::Bench { view, frames, warmup, json } => bench(cli.device, &view, frames, warmup, json.as_deref()),
+        Cmd::Bench { view, frames, warmup, compare, json } => {
+            bench(cli.device, &view, frames, warmup, compare.as_deref(), json.as_deref())
+        }
         Cmd::Compose { templates, scene_graph, background, random_offsets, seed, offset_dtype, out } => compose(
             &templates,
             &scene_graph,
@@ -900,78 +906,185 @@ fn print_passes(per_pass: &[(String, Vec<f64>)]) {
     }
 }
 
-fn bench(device: Option<String>, view: &ViewArgs, frames: usize, warmup: usize, json: Option<&Path>) -> Result<()> {
-    if frames == 0 {
-        bail!("--frames must be at least 1");
+/// One scene of a bench run: its own rasterizer (buffers sized for it) and samples.
+struct BenchScene {
+    path: PathBuf,
+    scene: AnyScene,
+    gs: instgs_vk::raster::GpuScene,
+    r: Rasterizer,
+    per_pass: Vec<(String, Vec<f64>)>,
+    frame_ms: Vec<f64>,
+    isects: Vec<f64>,
+    visible: Vec<f64>,
+}
+
+impl BenchScene {
+    fn new(gpu: &Arc<Gpu>, k: &Arc<Kernels>, path: &Path, scene: AnyScene) -> Result<BenchScene> {
+        let gs = scene.upload(gpu).with_context(|| path.display().to_string())?;
+        let r = Rasterizer::new(gpu, k)?;
+        Ok(BenchScene {
+            path: path.to_path_buf(),
+            scene,
+            gs,
+            r,
+            per_pass: Vec::new(),
+            frame_ms: Vec::new(),
+            isects: Vec::new(),
+            visible: Vec::new(),
+        })
     }
-    let Setup { gpu, k, scene, cams } = setup(device, view)?;
-    let gs = scene.upload(&gpu).with_context(|| view.scene.display().to_string())?;
-    let mut r = Rasterizer::new(&gpu, &k)?;
-    let mut per_pass = Vec::new();
-    let mut frame_ms = Vec::new();
-    let mut isects = Vec::new();
-    let mut visible = Vec::new();
-    for cam in &cams {
-        for _ in 0..warmup {
-            r.render(&gs, cam, view.background)?;
+
+    fn frame(&mut self, cam: &Camera, background: [f32; 3], timed: bool) -> Result<()> {
+        let f = self.r.render(&self.gs, cam, background)?;
+        if timed {
+            self.frame_ms.push(f.passes.iter().map(|p| p.1).sum::<f64>());
+            collect(&mut self.per_pass, &f.passes);
+            self.isects.push(f.intersections as f64);
+            self.visible.push(f.visible as f64);
         }
-        for _ in 0..frames {
-            let f = r.render(&gs, cam, view.background)?;
-            frame_ms.push(f.passes.iter().map(|p| p.1).sum::<f64>());
-            collect(&mut per_pass, &f.passes);
-            isects.push(f.intersections as f64);
-            visible.push(f.visible as f64);
+        Ok(())
+    }
+
+    /// Prints the table and returns the JSON object of this scene.
+    fn report(&self) -> Result<serde_json::Value> {
+        let fm = median(&self.frame_ms);
+        let p90 = percentile(&self.frame_ms, 0.9);
+        let file_bytes = std::fs::metadata(&self.path)?.len();
+        let sorts = sort_comparison(&self.r, &self.per_pass)?;
+        println!("scene            {}", self.path.display());
+        println!("splats           {}", self.scene.splats());
+        println!("visible (median) {}", median(&self.visible));
+        println!("intersections    {}", median(&self.isects));
+        println!("frame (median)   {fm:.3} ms  ({:.1} FPS); p90 {p90:.3} ms", 1000.0 / fm);
+        println!("scene GPU bytes  {}", self.gs.gpu_bytes());
+        println!("frame GPU bytes  {}", self.r.frame_gpu_bytes());
+        println!("file bytes       {file_bytes}");
+        print_passes(&self.per_pass);
+        println!("GPU sort vs sort_unstable on the last frame's own keys (ms):");
+        for c in &sorts {
+            println!(
+                "  {:<11} {:>8} keys  GPU {:>8.2}  sort_unstable {:>7.2}  ratio {:.2}x",
+                c.name,
+                c.keys,
+                c.gpu_ms,
+                c.cpu_ms,
+                c.gpu_ms / c.cpu_ms
+            );
         }
-    }
-    let fm = median(&frame_ms);
-    let file_bytes = std::fs::metadata(&view.scene)?.len();
-    let sorts = sort_comparison(&r, &per_pass)?;
-    println!("scene            {}", view.scene.display());
-    println!("splats           {}", scene.splats());
-    println!("visible (median) {}", median(&visible));
-    println!("intersections    {}", median(&isects));
-    println!("frame (median)   {fm:.3} ms  ({:.1} FPS)", 1000.0 / fm);
-    println!("scene GPU bytes  {}", gs.gpu_bytes());
-    println!("frame GPU bytes  {}", r.frame_gpu_bytes());
-    println!("allocator bytes  {} (everything the allocator holds)", gpu.allocated_bytes());
-    println!("file bytes       {file_bytes}");
-    print_passes(&per_pass);
-    println!("GPU sort vs sort_unstable on the last frame's own keys (ms):");
-    for c in &sorts {
-        println!(
-            "  {:<11} {:>8} keys  GPU {:>8.2}  sort_unstable {:>7.2}  ratio {:.2}x",
-            c.name,
-            c.keys,
-            c.gpu_ms,
-            c.cpu_ms,
-            c.gpu_ms / c.cpu_ms
-        );
-    }
-    if let Some(path) = json {
         let passes: serde_json::Map<String, serde_json::Value> =
-            per_pass.iter().map(|(n, v)| (n.clone(), serde_json::json!(median(v)))).collect();
-        let v = serde_json::json!({
-            "device": gpu.info.name,
-            "scene": view.scene.display().to_string(),
-            "width": cams[0].width,
-            "height": cams[0].height,
-            "views": cams.len(),
-            "frames": frames,
-            "splats": scene.splats(),
-            "visible": median(&visible),
-            "intersections": median(&isects),
+            self.per_pass.iter().map(|(n, v)| (n.clone(), serde_json::json!(median(v)))).collect();
+        Ok(serde_json::json!({
+            "scene": self.path.display().to_string(),
+            "splats": self.scene.splats(),
+            "visible": median(&self.visible),
+            "intersections": median(&self.isects),
             "frame_ms_median": fm,
+            "frame_ms_p90": p90,
             "fps_median": 1000.0 / fm,
-            "scene_gpu_bytes": gs.gpu_bytes(),
-            "frame_gpu_bytes": r.frame_gpu_bytes(),
-            "allocated_gpu_bytes": gpu.allocated_bytes(),
+            "scene_gpu_bytes": self.gs.gpu_bytes(),
+            "frame_gpu_bytes": self.r.frame_gpu_bytes(),
             "file_bytes": file_bytes,
             "passes": passes,
             "sorts": sorts.iter().map(|c| serde_json::json!({
                 "name": c.name, "keys": c.keys, "gpu_ms": c.gpu_ms, "sort_unstable_ms": c.cpu_ms,
                 "ratio": c.gpu_ms / c.cpu_ms,
             })).collect::<Vec<_>>(),
+        }))
+    }
+}
+
+/// The process's resident set (Linux /proc/self/status VmRSS), if known.
+fn cpu_rss_bytes() -> Option<u64> {
+    let status = std::fs::read_to_string("/proc/self/status").ok()?;
+    let line = status.lines().find(|l| l.starts_with("VmRSS:"))?;
+    let kb: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kb * 1024)
+}
+
+fn percentile(v: &[f64], q: f64) -> f64 {
+    let mut v = v.to_vec();
+    v.sort_by(f64::total_cmp);
+    if v.is_empty() {
+        return f64::NAN;
+    }
+    v[((v.len() - 1) as f64 * q).round() as usize]
+}
+
+fn bench(
+    device: Option<String>,
+    view: &ViewArgs,
+    frames: usize,
+    warmup: usize,
+    compare: Option<&Path>,
+    json: Option<&Path>,
+) -> Result<()> {
+    if frames == 0 {
+        bail!("--frames must be at least 1");
+    }
+    let Setup { gpu, k, scene, cams } = setup(device, view)?;
+    let mut runs = vec![BenchScene::new(&gpu, &k, &view.scene, scene)?];
+    if let Some(b) = compare {
+        runs.push(BenchScene::new(&gpu, &k, b, AnyScene::read(b)?)?);
+    }
+    // Interleaved (A B A B …) so that clock and thermal drift hit both scenes alike.
+    for cam in &cams {
+        for _ in 0..warmup {
+            for run in runs.iter_mut() {
+                run.frame(cam, view.background, false)?;
+            }
+        }
+        for _ in 0..frames {
+            for run in runs.iter_mut() {
+                run.frame(cam, view.background, true)?;
+            }
+        }
+    }
+    let mut reports = Vec::new();
+    for (i, run) in runs.iter().enumerate() {
+        if i > 0 {
+            println!();
+        }
+        reports.push(run.report()?);
+    }
+    let rss = cpu_rss_bytes();
+    println!();
+    println!("allocator bytes  {} (everything the allocator holds)", gpu.allocated_bytes());
+    if let Some(rss) = rss {
+        println!("CPU RSS          {rss} bytes (the process)");
+    }
+    let mut v = reports[0].clone();
+    v["device"] = gpu.info.name.clone().into();
+    v["width"] = cams[0].width.into();
+    v["height"] = cams[0].height.into();
+    v["views"] = cams.len().into();
+    v["frames"] = frames.into();
+    v["allocated_gpu_bytes"] = gpu.allocated_bytes().into();
+    v["cpu_rss_bytes"] = rss.into();
+    if let Some(b) = reports.get(1) {
+        let ratio = |key: &str| {
+            let (x, y) = (reports[0][key].as_f64().unwrap_or(f64::NAN), b[key].as_f64().unwrap_or(f64::NAN));
+            x / y
+        };
+        let ratios = serde_json::json!({
+            "fps": ratio("fps_median"),
+            "frame_ms": ratio("frame_ms_median"),
+            "scene_gpu_bytes": ratio("scene_gpu_bytes"),
+            "frame_gpu_bytes": ratio("frame_gpu_bytes"),
+            "file_bytes": ratio("file_bytes"),
+            "intersections": ratio("intersections"),
         });
+        println!(
+            "A over B: FPS {:.3}x, scene GPU bytes {:.3}x, file bytes {:.3}x, frame GPU bytes {:.3}x ({} interleaved frames each)",
+            ratios["fps"].as_f64().unwrap_or(f64::NAN),
+            ratios["scene_gpu_bytes"].as_f64().unwrap_or(f64::NAN),
+            ratios["file_bytes"].as_f64().unwrap_or(f64::NAN),
+            ratios["frame_gpu_bytes"].as_f64().unwrap_or(f64::NAN),
+            runs[0].frame_ms.len()
+        );
+        v["compare"] = b.clone();
+        v["ratios"] = ratios;
+    }
+    if let Some(path) = json {
         instgs_vk::util::write_atomic(path, |f| {
             use std::io::Write;
             f.write_all(serde_json::to_string_pretty(&v).map_err(std::io::Error::other)?.as_bytes())

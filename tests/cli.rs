@@ -255,6 +255,35 @@ fn compose_info_convert_and_render_an_instanced_scene() {
     assert_eq!(o.code, Some(0), "{}", o.stderr);
     let b: serde_json::Value = serde_json::from_slice(&std::fs::read(&json).unwrap()).unwrap();
     assert_eq!(b["splats"], 950);
+    // --compare: the expanded PLY interleaved with the instanced scene, ratios A over B.
+    let o = run(&[
+        "bench",
+        "--scene",
+        s(&scene),
+        "--compare",
+        s(&ply),
+        "--orbit",
+        "1",
+        "--width",
+        "64",
+        "--height",
+        "48",
+        "--frames",
+        "2",
+        "--json",
+        s(&json),
+    ]);
+    assert_eq!(o.code, Some(0), "{}", o.stderr);
+    assert!(o.stdout.contains("A over B"), "{}", o.stdout);
+    let b: serde_json::Value = serde_json::from_slice(&std::fs::read(&json).unwrap()).unwrap();
+    assert_eq!(b["compare"]["splats"], 950);
+    assert_eq!(b["compare"]["intersections"], b["intersections"], "same picture, same work");
+    let fb = b["file_bytes"].as_f64().unwrap() / b["compare"]["file_bytes"].as_f64().unwrap();
+    assert_eq!(b["ratios"]["file_bytes"].as_f64().unwrap(), fb);
+    assert!(b["ratios"]["scene_gpu_bytes"].as_f64().unwrap() < 1.0, "{b}");
+    for key in ["frame_ms_median", "frame_ms_p90", "fps_median", "scene_gpu_bytes", "frame_gpu_bytes", "passes"] {
+        assert!(!b[key].is_null() && !b["compare"][key].is_null(), "{key}");
+    }
     // Bad input.
     let o = run(&[
         "compose",
