@@ -155,7 +155,8 @@ fn association_recovers_instances_from_scrambled_per_frame_ids() {
     let (gpu, k) = gpu();
     let (plain, truth, views, masks) = known_scene(&gpu, &k);
     // Every frame renumbers its masks at random (ids 1..=40), all of one category; a stray
-    // fourth mask of a few pixels in one frame has no counterpart elsewhere.
+    // fourth mask of a few pixels in one frame has no counterpart elsewhere; one view lacks an
+    // instance.
     let mut rng = Rng::new(11);
     let mut key: Vec<std::collections::BTreeMap<u16, u16>> = Vec::new();
     let mut scrambled = masks.clone();
@@ -168,7 +169,11 @@ fn association_recovers_instances_from_scrambled_per_frame_ids() {
                 map.insert(map.len() as u16 + 1, new);
             }
         }
-        m.iter_mut().for_each(|x| *x = if *x == 0 { 0 } else { map[x] });
+        // View 7 does not show instance 3 (as if occluded or out of frame).
+        if v == 7 {
+            map.remove(&3);
+        }
+        m.iter_mut().for_each(|x| *x = if *x == 0 { 0 } else { map.get(x).copied().unwrap_or(0) });
         let mut c: std::collections::BTreeMap<u16, String> = map.values().map(|&n| (n, "blob".to_string())).collect();
         if v == 4 {
             let stray = (1..=40).find(|x| !map.values().any(|y| y == x)).unwrap();
@@ -186,7 +191,8 @@ fn association_recovers_instances_from_scrambled_per_frame_ids() {
     for ms in a.members.values() {
         let truths: std::collections::BTreeSet<u16> = ms.iter().map(|(v, id)| key[*v][id]).collect();
         assert_eq!(truths.len(), 1, "an instance mixes true instances {truths:?}");
-        assert_eq!(ms.len(), views.len(), "one mask per view");
+        let expect = if truths.contains(&3) { views.len() - 1 } else { views.len() };
+        assert_eq!(ms.len(), expect, "one mask per view that shows the instance");
         found.extend(truths);
     }
     found.sort();
@@ -203,4 +209,39 @@ fn association_recovers_instances_from_scrambled_per_frame_ids() {
     let labelled = (0..plain.len()).filter(|&i| truth[i] != 0 && seg.labels[i] != 0).count();
     assert!(labelled > 300 && agree == labelled, "{agree} of {labelled}");
     assert_clean(&gpu);
+}
+
+#[test]
+fn mask_and_category_files_are_checked() {
+    use instgs_vk::segment::{load_frame_categories, read_mask};
+    let d = tempdir("seg_masks");
+    let masks = d.join("masks").join("train");
+    std::fs::create_dir_all(&masks).unwrap();
+    let m = image::ImageBuffer::<image::Luma<u16>, Vec<u16>>::from_fn(10, 8, |x, _| image::Luma([(x / 4) as u16]));
+    m.save(masks.join("r_000.png")).unwrap();
+    assert_eq!(read_mask(&masks.join("r_000.png"), 10, 8).unwrap()[9], 2);
+    let e = format!("{:#}", read_mask(&masks.join("r_000.png"), 12, 8).unwrap_err());
+    assert!(e.contains("r_000.png") && e.contains("10x8") && e.contains("12x8"), "{e}");
+    image::RgbImage::new(10, 8).save(masks.join("rgb.png")).unwrap();
+    let e = format!("{:#}", read_mask(&masks.join("rgb.png"), 10, 8).unwrap_err());
+    assert!(e.contains("rgb.png") && e.contains("greyscale"), "{e}");
+    // Per-frame categories: every id of the mask needs one.
+    let camera = look_at(Vec3::new(0.0, 0.0, -3.0), Vec3::ZERO, Vec3::new(0.0, -1.0, 0.0), 10, 8, 10.0);
+    let view = instgs_vk::dataset::View { camera, image: Vec::new(), path: d.join("train").join("r_000.png") };
+    let mask = read_mask(&masks.join("r_000.png"), 10, 8).unwrap();
+    let load = |text: &str| {
+        std::fs::write(masks.join("r_000.json"), text).unwrap();
+        load_frame_categories(&d, "train", std::slice::from_ref(&view), std::slice::from_ref(&mask))
+    };
+    let ok = load(r#"{"1": "mug", "2": "ball", "9": "unused"}"#).unwrap();
+    assert_eq!(ok[0][&2], "ball");
+    let e = format!("{:#}", load(r#"{"1": "mug"}"#).unwrap_err());
+    assert!(e.contains("r_000.json") && e.contains("mask id 2") && e.contains("no category"), "{e}");
+    let e = format!("{:#}", load(r#"{"x": "mug"}"#).unwrap_err());
+    assert!(e.contains("\"x\" is not a mask id"), "{e}");
+    let e = format!("{:#}", load(r#"{"0": "mug", "1": "a", "2": "b"}"#).unwrap_err());
+    assert!(e.contains("id 0 is the background"), "{e}");
+    std::fs::remove_file(masks.join("r_000.json")).unwrap();
+    let e = format!("{:#}", load_frame_categories(&d, "train", &[view], &[mask]).unwrap_err());
+    assert!(e.contains("r_000.json") && e.contains("cannot read"), "{e}");
 }
