@@ -193,8 +193,12 @@ pub fn instantiate(
             })
             .collect();
         let size = object_size(&opaque[0]);
-        let reg = RegisterOptions { with_scale: o.with_scale, seed: o.seed, ..RegisterOptions::for_size(size) };
-        let reg = RegisterOptions { voxel: size * o.voxel_fraction, ..reg };
+        let reg = RegisterOptions {
+            voxel: size * o.voxel_fraction,
+            with_scale: o.with_scale,
+            seed: o.seed,
+            ..RegisterOptions::for_size(size)
+        };
         // relative[k]: instance k's world → instance 1's world.
         let mut relative = vec![Sim3::identity()];
         reports.push(InstanceReport {
