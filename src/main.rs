@@ -189,6 +189,13 @@ enum Cmd {
         /// Rigid registration (no per-instance scale).
         #[arg(long)]
         rigid: bool,
+        /// Register by shape alone (no colour-aware ICP).
+        #[arg(long)]
+        geometry_only: bool,
+        /// Weight of colour in the colour-aware ICP: a normalised colour difference of 1 counts
+        /// as 2 registration voxels × this.
+        #[arg(long, default_value_t = 1.0)]
+        colour_weight: f64,
         /// Seed of RANSAC.
         #[arg(long, default_value_t = 0)]
         seed: u64,
@@ -314,10 +321,31 @@ fn run(cli: Cli) -> Result<()> {
         Cmd::Segment { scene, data, split, alpha, out, export_dir, per_frame_ids } => {
             segment(cli.device, &scene, &data, &split, alpha, &out, export_dir.as_deref(), per_frame_ids)
         }
-        Cmd::Instance { scene, labels, data, groups, init, rigid, seed, offset_dtype, report, out } => {
+        Cmd::Instance {
+            scene,
+            labels,
+            data,
+            groups,
+            init,
+            rigid,
+            geometry_only,
+            colour_weight,
+            seed,
+            offset_dtype,
+            report,
+            out,
+        } => {
             let groups_file = groups.clone().unwrap_or_else(|| data.join("instances.json"));
             let truth = groups.is_none().then_some(groups_file.as_path());
-            instance(&scene, &labels, &groups_file, truth, init, !rigid, seed, offset_dtype, report.as_deref(), &out)
+            let opts = instgs_vk::template::InstanceOptions {
+                init,
+                with_scale: !rigid,
+                use_colour: !geometry_only,
+                colour_weight,
+                seed,
+                ..Default::default()
+            };
+            instance(&scene, &labels, &groups_file, truth, &opts, offset_dtype, report.as_deref(), &out)
         }
         Cmd::BenchSort { keys, bits, repeats } => bench_sort(cli.device, keys, bits, repeats),
         Cmd::Train { data, out, init, config, iterations, resume, quiet } => {
@@ -689,9 +717,7 @@ fn instance(
     labels: &Path,
     groups_path: &Path,
     truth_path: Option<&Path>,
-    init: instgs_vk::template::TemplateInit,
-    with_scale: bool,
-    seed: u64,
+    opts: &instgs_vk::template::InstanceOptions,
     dtype: OffsetDtype,
     report: Option<&Path>,
     out: &Path,
@@ -700,8 +726,7 @@ fn instance(
     let scene = read_ply(scene_path)?;
     let labels = template::read_labels(labels, scene.len())?;
     let groups = instgs_vk::segment::read_groups(groups_path)?;
-    let opts = template::InstanceOptions { init, with_scale, seed, ..Default::default() };
-    let (inst, reports) = template::instantiate(&scene, &labels, &groups, &opts, |line| eprintln!("{line}"))?;
+    let (inst, reports) = template::instantiate(&scene, &labels, &groups, opts, |line| eprintln!("{line}"))?;
     instgs::write(&inst, out, dtype.into())?;
     let truth = match truth_path {
         Some(p) => template::read_ground_truth(p)?,
@@ -711,7 +736,7 @@ fn instance(
     for r in &reports {
         let mut row = serde_json::json!({
             "group": r.group, "id": r.id, "gaussians": r.gaussians, "fitness": r.fitness, "rmse": r.rmse,
-            "scale": r.relative.scale,
+            "scale": r.relative.scale, "shape_ambiguous": r.shape_ambiguous,
         });
         let mut line = format!(
             "{} {}: {} Gaussians, fitness {:.3}, RMSE {:.4}, scale {:.4}",
@@ -742,11 +767,11 @@ fn instance(
         inst.groups.iter().map(|g| g.template.len()).sum::<usize>(),
         inst.background.len(),
         inst.splats(),
-        init
+        opts.init
     );
     if let Some(path) = report {
         let text = serde_json::to_string_pretty(
-            &serde_json::json!({"init": format!("{init:?}").to_lowercase(), "instances": rows}),
+            &serde_json::json!({"init": format!("{:?}", opts.init).to_lowercase(), "colour": opts.use_colour, "instances": rows}),
         )?;
         instgs_vk::util::write_atomic(path, |f| {
             use std::io::Write;

@@ -104,20 +104,31 @@ pub fn umeyama(src: &[[f64; 3]], dst: &[[f64; 3]], with_scale: bool) -> Option<S
 
 /// Centroids of the occupied cells of a `voxel`-sized grid, in first-seen cell order.
 pub fn voxel_downsample(points: &[[f64; 3]], voxel: f64) -> Vec<[f64; 3]> {
+    voxel_downsample_with(points, None, voxel).0
+}
+
+/// [`voxel_downsample`] that also averages per-point `values` (e.g. colours) per cell.
+fn voxel_downsample_with(
+    points: &[[f64; 3]],
+    values: Option<&[[f64; 3]]>,
+    voxel: f64,
+) -> (Vec<[f64; 3]>, Vec<[f64; 3]>) {
     let mut cells: HashMap<[i64; 3], usize> = HashMap::new();
-    let mut sums: Vec<([f64; 3], usize)> = Vec::new();
-    for p in points {
+    let mut sums: Vec<([f64; 3], [f64; 3], usize)> = Vec::new();
+    for (j, p) in points.iter().enumerate() {
         let key = p.map(|c| (c / voxel).floor() as i64);
         let i = *cells.entry(key).or_insert_with(|| {
-            sums.push(([0.0; 3], 0));
+            sums.push(([0.0; 3], [0.0; 3], 0));
             sums.len() - 1
         });
-        for (s, c) in sums[i].0.iter_mut().zip(p) {
-            *s += c;
+        let v = values.map_or([0.0; 3], |v| v[j]);
+        for a in 0..3 {
+            sums[i].0[a] += p[a];
+            sums[i].1[a] += v[a];
         }
-        sums[i].1 += 1;
+        sums[i].2 += 1;
     }
-    sums.into_iter().map(|(s, n)| s.map(|c| c / n as f64)).collect()
+    sums.into_iter().map(|(s, v, n)| (s.map(|c| c / n as f64), v.map(|c| c / n as f64))).unzip()
 }
 
 /// A k-d tree of `points` for nearest-neighbour queries (items = indices). `kiddo`'s trees panic
@@ -125,8 +136,8 @@ pub fn voxel_downsample(points: &[[f64; 3]], voxel: f64) -> Vec<[f64; 3]> {
 /// positions of a compressed PLY): then the tree is built on copies moved by at most 1e-9 of
 /// the cloud's extent per axis (a fixed pattern per index); callers that need exact distances
 /// recompute them from the points.
-pub fn tree(points: &[[f64; 3]]) -> Tree3 {
-    let crowded = (0..3).any(|a| {
+pub fn tree<const K: usize>(points: &[[f64; K]]) -> ImmutableKdTree<f64, u32, K, 32> {
+    let crowded = (0..K).any(|a| {
         let mut v: Vec<f64> = points.iter().map(|p| p[a]).collect();
         v.sort_by(f64::total_cmp);
         v.chunk_by(|x, y| x == y).any(|run| run.len() >= 16)
@@ -135,13 +146,13 @@ pub fn tree(points: &[[f64; 3]]) -> Tree3 {
         return ImmutableKdTree::new_from_slice(points);
     }
     let extent = points.iter().flatten().fold(0.0f64, |m, c| m.max(c.abs())).max(1e-30);
-    let moved: Vec<[f64; 3]> = points
+    let moved: Vec<[f64; K]> = points
         .iter()
         .enumerate()
         .map(|(i, p)| {
             let h = (i as u64 + 1).wrapping_mul(0x9E37_79B9_7F4A_7C15);
             std::array::from_fn(|a| {
-                let u = ((h >> (16 * a)) & 0xFFFF) as f64 / 65535.0 - 0.5;
+                let u = (h.rotate_left(13 * a as u32) & 0xFFFF) as f64 / 65535.0 - 0.5;
                 p[a] + 2e-9 * extent * u
             })
         })
@@ -288,6 +299,8 @@ pub struct RegisterOptions {
     /// Edge-length check: pairwise source and target distances of a sample agree to this ratio.
     pub edge_ratio: f64,
     pub icp_iterations: usize,
+    /// Weight of colour in [`register_coloured`]'s ICP (0: geometry only).
+    pub colour_weight: f64,
     pub seed: u64,
 }
 
@@ -300,6 +313,7 @@ impl RegisterOptions {
             ransac_iterations: 100_000,
             edge_ratio: 0.9,
             icp_iterations: 60,
+            colour_weight: 1.0,
             seed: 0,
         }
     }
@@ -314,22 +328,37 @@ pub struct Registration {
     pub fitness: f64,
     /// RMS distance of those pairs.
     pub rmse: f64,
+    /// Mean L1 difference of their normalised colours ([`register_coloured`]; 0 without).
+    pub colour_error: f64,
+    /// Another pose fitted the shape nearly as well (colour decided, when given).
+    pub shape_ambiguous: bool,
     /// Mutual feature correspondences RANSAC drew from.
     pub correspondences: usize,
 }
 
-/// Fitness and RMSE of `x` over `src` against `dst_tree` with pairs closer than `dist`.
-fn evaluate(x: &Sim3, src: &[[f64; 3]], dst_tree: &Tree3, dist: f64) -> (f64, f64, usize) {
+/// Fitness, RMSE and mean colour difference (L1 over channels; 0 without colours) of `x` over
+/// `src` against `dst_tree` with pairs closer than `dist`.
+fn evaluate(
+    x: &Sim3,
+    src: &[[f64; 3]],
+    src_c: &[[f64; 3]],
+    dst_tree: &Tree3,
+    dst_c: &[[f64; 3]],
+    dist: f64,
+) -> (f64, f64, f64) {
     let mut n = 0;
-    let mut sq = 0.0;
-    for p in src {
+    let (mut sq, mut col) = (0.0, 0.0);
+    for (p, c) in src.iter().zip(src_c) {
         let nn = dst_tree.nearest_one::<SquaredEuclidean>(&x.apply(p));
         if nn.distance <= dist * dist {
             n += 1;
             sq += nn.distance;
+            col += (0..3).map(|a| (c[a] - dst_c[nn.item as usize][a]).abs()).sum::<f64>();
         }
     }
-    (n as f64 / src.len().max(1) as f64, if n > 0 { (sq / n as f64).sqrt() } else { f64::INFINITY }, n)
+    let rms = if n > 0 { (sq / n as f64).sqrt() } else { f64::INFINITY };
+    let col = if n > 0 { col / n as f64 } else { f64::INFINITY };
+    (n as f64 / src.len().max(1) as f64, rms, col)
 }
 
 /// Point-to-point ICP from `init`: pairs each source point with its nearest target point within
@@ -361,11 +390,56 @@ pub fn icp(src: &[[f64; 3]], dst: &[[f64; 3]], init: Sim3, dist: f64, iterations
 
 /// Registers `source` onto `target` (both clouds of one object, any similarity apart): FPFH on
 /// voxel-downsampled clouds, RANSAC over mutual nearest features (3-point samples passing the
-/// edge-length check, scored by correspondence inliers within 1.5 voxels), the 8 best
-/// hypotheses refined by ICP (1.5 voxels, then 0.5 voxel at half the voxel size), the fittest
-/// kept.
+/// edge-length check, scored by correspondence inliers within 1.5 voxels); the 8 best
+/// hypotheses, each also turned by 90°, 180° and 270° about the target's three principal axes
+/// (the likely symmetries of man-made objects: a mug's handle, a brick's studs), refined by ICP
+/// (1.5 voxels, then 0.5 voxel at half the voxel size); the fittest kept.
 pub fn register(source: &[[f64; 3]], target: &[[f64; 3]], o: &RegisterOptions) -> Result<Registration> {
-    let (s, d) = (voxel_downsample(source, o.voxel), voxel_downsample(target, o.voxel));
+    register_impl(source, None, target, None, o)
+}
+
+/// [`register`] with per-point colours (e.g. the RGB of the SH DC), for objects whose shape is
+/// (nearly) symmetric. Colours are normalised per cloud by their per-channel mean, so a
+/// per-instance tint (a per-channel factor, also after a gamma curve) cancels. Every candidate
+/// is refined further by ICP in (position, λ·colour) space (λ = 2 voxels ×
+/// `colour_weight`), and among the candidates whose geometric fitness is within 90 % of the
+/// best, the one with the smallest mean colour difference of its matched pairs wins.
+pub fn register_coloured(
+    source: &[[f64; 3]],
+    source_rgb: &[[f64; 3]],
+    target: &[[f64; 3]],
+    target_rgb: &[[f64; 3]],
+    o: &RegisterOptions,
+) -> Result<Registration> {
+    if source_rgb.len() != source.len() || target_rgb.len() != target.len() {
+        bail!(
+            "colours for {} and {} points, not {} and {}",
+            source_rgb.len(),
+            target_rgb.len(),
+            source.len(),
+            target.len()
+        );
+    }
+    let (a, b) = (normalise_colours(source_rgb), normalise_colours(target_rgb));
+    register_impl(source, Some(&a), target, Some(&b), o)
+}
+
+/// Colours divided by their per-channel mean.
+fn normalise_colours(c: &[[f64; 3]]) -> Vec<[f64; 3]> {
+    let n = c.len().max(1) as f64;
+    let mean = c.iter().fold([0.0; 3], |m, x| [m[0] + x[0] / n, m[1] + x[1] / n, m[2] + x[2] / n]);
+    c.iter().map(|x| std::array::from_fn(|a| x[a] / mean[a].max(1e-6))).collect()
+}
+
+fn register_impl(
+    source: &[[f64; 3]],
+    source_rgb: Option<&[[f64; 3]]>,
+    target: &[[f64; 3]],
+    target_rgb: Option<&[[f64; 3]]>,
+    o: &RegisterOptions,
+) -> Result<Registration> {
+    let (s, sc) = voxel_downsample_with(source, source_rgb, o.voxel);
+    let (d, dc) = voxel_downsample_with(target, target_rgb, o.voxel);
     if s.len() < 8 || d.len() < 8 {
         bail!(
             "too few points to register ({} and {} voxels of {:.4}; {} and {} points)",
@@ -420,20 +494,129 @@ pub fn register(source: &[[f64; 3]], target: &[[f64; 3]], o: &RegisterOptions) -
             corr.len()
         );
     }
-    let fine = o.voxel / 2.0;
-    let (s2, d2) = (voxel_downsample(source, fine), voxel_downsample(target, fine));
-    let d2_tree = tree(&d2);
-    let mut result: Option<Registration> = None;
-    for (_, x) in best {
-        let x = icp(&s2, &d2, x, dist, o.icp_iterations, o.with_scale);
-        let x = icp(&s2, &d2, x, o.voxel / 2.0, o.icp_iterations, o.with_scale);
-        let (fitness, rmse, _) = evaluate(&x, &s2, &d2_tree, o.voxel / 2.0);
-        let better = result.as_ref().is_none_or(|r| (fitness, -rmse) > (r.fitness, -r.rmse));
-        if better {
-            result = Some(Registration { transform: x, fitness, rmse, correspondences: corr.len() });
+    // Candidates: every kept hypothesis, also spun about the target's principal axes in 30°
+    // steps; screened by a short ICP on the coarse clouds, the 8 fittest refined.
+    let d_tree = tree(&d);
+    let centre = centroid(&d);
+    let axes = principal_axes(&d);
+    let mut screened: Vec<(f64, Sim3)> = Vec::new();
+    for (_, x) in &best {
+        let mut spun = vec![*x];
+        for axis in &axes {
+            for step in 1..12 {
+                let r = *nalgebra::Rotation3::from_axis_angle(axis, step as f64 * std::f64::consts::PI / 6.0).matrix();
+                spun.push(Sim3 { rotation: r, scale: 1.0, translation: centre - r * centre }.compose(x));
+            }
+        }
+        for x in spun {
+            let x = icp(&s, &d, x, dist, 15, o.with_scale);
+            let (fitness, _, _) = evaluate(&x, &s, &sc, &d_tree, &dc, o.voxel / 2.0);
+            screened.push((fitness, x));
         }
     }
-    Ok(result.expect("at least one hypothesis"))
+    screened.sort_by(|a, b| b.0.total_cmp(&a.0));
+    let mut candidates: Vec<Sim3> = Vec::new();
+    for (_, x) in screened {
+        if candidates.len() < KEEP && candidates.iter().all(|y| y.rotation_error_deg(&x) > 5.0) {
+            candidates.push(x);
+        }
+    }
+    let fine = o.voxel / 2.0;
+    let (s2, s2c) = voxel_downsample_with(source, source_rgb, fine);
+    let (d2, d2c) = voxel_downsample_with(target, target_rgb, fine);
+    let d2_tree = tree(&d2);
+    let lambda = 2.0 * o.voxel * o.colour_weight;
+    let coloured = source_rgb.is_some() && target_rgb.is_some() && lambda > 0.0;
+    // Each candidate refined by shape (two ICP stages). When the shape leaves the choice open
+    // (a candidate turned more than 10° from the fittest fits within 95 % as well: a ball, a
+    // can) and colours are given, colour ICP refines every candidate further, the fittest of
+    // those wins and gets a last shape-only ICP; otherwise the fittest shape-only result wins.
+    let score = |x: Sim3| {
+        let (fitness, rmse, colour) = evaluate(&x, &s2, &s2c, &d2_tree, &d2c, o.voxel / 2.0);
+        (x, fitness, rmse, colour)
+    };
+    let fittest = |v: &[(Sim3, f64, f64, f64)]| {
+        *v.iter()
+            .max_by(|a, b| (a.1, -a.2).partial_cmp(&(b.1, -b.2)).unwrap_or(std::cmp::Ordering::Equal))
+            .expect("candidates")
+    };
+    let shaped: Vec<(Sim3, f64, f64, f64)> = candidates
+        .into_iter()
+        .map(|x| {
+            let x = icp(&s2, &d2, x, dist, o.icp_iterations, o.with_scale);
+            score(icp(&s2, &d2, x, o.voxel / 2.0, o.icp_iterations, o.with_scale))
+        })
+        .collect();
+    let best_shape = fittest(&shaped);
+    let rival = shaped.iter().filter(|c| c.0.rotation_error_deg(&best_shape.0) > 10.0).map(|c| c.1).fold(0.0, f64::max);
+    let ambiguous = rival >= 0.95 * best_shape.1;
+    let pick = if coloured && ambiguous {
+        let tinted: Vec<_> = shaped
+            .iter()
+            .map(|c| score(colour_icp(&s2, &s2c, &d2, &d2c, c.0, o.voxel, lambda, o.icp_iterations, o.with_scale)))
+            .collect();
+        score(icp(&s2, &d2, fittest(&tinted).0, o.voxel / 2.0, o.icp_iterations, o.with_scale))
+    } else {
+        best_shape
+    };
+    let (transform, fitness, rmse, colour) = pick;
+    Ok(Registration {
+        transform,
+        fitness,
+        rmse,
+        colour_error: colour,
+        shape_ambiguous: ambiguous,
+        correspondences: corr.len(),
+    })
+}
+
+/// The principal axes (unit eigenvectors of the covariance) of `points`.
+fn principal_axes(points: &[[f64; 3]]) -> Vec<nalgebra::Unit<Vector3<f64>>> {
+    let c = centroid(points);
+    let cov = points.iter().fold(Matrix3::zeros(), |a, p| {
+        let d = Vector3::from(*p) - c;
+        a + d * d.transpose()
+    });
+    let e = SymmetricEigen::new(cov);
+    (0..3).map(|i| nalgebra::Unit::new_normalize(e.eigenvectors.column(i).into_owned())).collect()
+}
+
+/// Point-to-point ICP whose pairs are nearest neighbours in (position, λ·colour) space within
+/// `dist`; the fit uses positions only.
+#[allow(clippy::too_many_arguments)]
+fn colour_icp(
+    src: &[[f64; 3]],
+    src_c: &[[f64; 3]],
+    dst: &[[f64; 3]],
+    dst_c: &[[f64; 3]],
+    init: Sim3,
+    dist: f64,
+    lambda: f64,
+    iterations: usize,
+    with_scale: bool,
+) -> Sim3 {
+    let lift =
+        |p: &[f64; 3], c: &[f64; 3]| -> [f64; 6] { [p[0], p[1], p[2], lambda * c[0], lambda * c[1], lambda * c[2]] };
+    let d6: Vec<[f64; 6]> = dst.iter().zip(dst_c).map(|(p, c)| lift(p, c)).collect();
+    let t = tree(&d6);
+    let mut x = init;
+    for _ in 0..iterations {
+        let (mut a, mut b) = (Vec::new(), Vec::new());
+        for (p, c) in src.iter().zip(src_c) {
+            let nn = t.nearest_one::<SquaredEuclidean>(&lift(&x.apply(p), c));
+            if nn.distance <= dist * dist {
+                a.push(*p);
+                b.push(dst[nn.item as usize]);
+            }
+        }
+        let Some(next) = umeyama(&a, &b, with_scale) else { break };
+        let change = (next.rotation - x.rotation).norm() + (next.translation - x.translation).norm() / dist;
+        x = next;
+        if change < 1e-9 {
+            break;
+        }
+    }
+    x
 }
 
 fn dist2(a: &[f64; 3], b: &[f64; 3]) -> f64 {

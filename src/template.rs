@@ -22,8 +22,8 @@ use glam::{Mat3, Quat, Vec3};
 use kiddo::SquaredEuclidean;
 
 use crate::instance::{quat_mul, Group, Instance, InstancedScene, Offsets, ShRotation, Similarity};
-use crate::register::{farthest_point_sample, register, RegisterOptions, Sim3};
-use crate::scene::Scene;
+use crate::register::{farthest_point_sample, register, register_coloured, RegisterOptions, Sim3};
+use crate::scene::{Scene, SH_C0};
 use crate::segment::InstanceGroup;
 use crate::train::{knn_log_scales, logit, sigmoid};
 
@@ -42,6 +42,10 @@ pub struct InstanceOptions {
     pub init: TemplateInit,
     /// Estimate a uniform scale per instance (registration and ICP).
     pub with_scale: bool,
+    /// Register with the Gaussians' base colours too ([`register_coloured`]), for symmetric shapes.
+    pub use_colour: bool,
+    /// [`RegisterOptions::colour_weight`].
+    pub colour_weight: f64,
     /// Gaussians below this opacity take no part in registration and merging.
     pub min_opacity: f32,
     /// Registration voxel = this fraction of the first instance's size ([`object_size`]).
@@ -54,6 +58,8 @@ impl Default for InstanceOptions {
         InstanceOptions {
             init: TemplateInit::Merge,
             with_scale: true,
+            use_colour: true,
+            colour_weight: 1.0,
             min_opacity: 0.05,
             voxel_fraction: 0.04,
             seed: 0,
@@ -74,6 +80,8 @@ pub struct InstanceReport {
     /// first instance.
     pub fitness: f64,
     pub rmse: f64,
+    /// Another pose fitted the shape nearly as well; colour decided (when used).
+    pub shape_ambiguous: bool,
 }
 
 /// Per-Gaussian labels (0 = background) from `labels.json` ({ids, labels}) or `labels.bin`
@@ -178,24 +186,24 @@ pub fn instantiate(
             }
         }
         let parts: Vec<Scene> = g.ids.iter().map(|id| take(scene, &members[id])).collect();
-        let opaque: Vec<Vec<[f64; 3]>> = parts
+        // Registration clouds: the opaque Gaussians' means and base colours (RGB of the SH DC).
+        let (opaque, colours): (Vec<Vec<[f64; 3]>>, Vec<Vec<[f64; 3]>>) = parts
             .iter()
             .map(|p| {
-                let pts: Vec<[f64; 3]> = (0..p.len())
-                    .filter(|&i| sigmoid(p.opacities[i]) >= o.min_opacity)
-                    .map(|i| to_f64(p.means[i]))
-                    .collect();
-                if pts.len() < 16 {
-                    p.means.iter().map(|m| to_f64(*m)).collect()
-                } else {
-                    pts
+                let mut idx: Vec<usize> = (0..p.len()).filter(|&i| sigmoid(p.opacities[i]) >= o.min_opacity).collect();
+                if idx.len() < 16 {
+                    idx = (0..p.len()).collect();
                 }
+                let c = p.sh_coeffs() * 3;
+                let rgb = |i: usize| std::array::from_fn(|a| (0.5 + SH_C0 * p.sh[i * c + a]).max(0.01) as f64);
+                (idx.iter().map(|&i| to_f64(p.means[i])).collect(), idx.iter().map(|&i| rgb(i)).collect())
             })
-            .collect();
+            .unzip();
         let size = object_size(&opaque[0]);
         let reg = RegisterOptions {
             voxel: size * o.voxel_fraction,
             with_scale: o.with_scale,
+            colour_weight: o.colour_weight,
             seed: o.seed,
             ..RegisterOptions::for_size(size)
         };
@@ -208,6 +216,7 @@ pub fn instantiate(
             relative: Sim3::identity(),
             fitness: 1.0,
             rmse: 0.0,
+            shape_ambiguous: false,
         });
         if g.ids.len() == 1 {
             progress(&format!(
@@ -216,11 +225,23 @@ pub fn instantiate(
             ));
         }
         for k in 1..g.ids.len() {
-            let r = register(&opaque[k], &opaque[0], &RegisterOptions { seed: o.seed + k as u64, ..reg.clone() })
-                .with_context(|| format!("group {:?}: registering instance {} onto {}", g.name, g.ids[k], g.ids[0]))?;
+            let ro = RegisterOptions { seed: o.seed + k as u64, ..reg.clone() };
+            let r = if o.use_colour {
+                register_coloured(&opaque[k], &colours[k], &opaque[0], &colours[0], &ro)
+            } else {
+                register(&opaque[k], &opaque[0], &ro)
+            }
+            .with_context(|| format!("group {:?}: registering instance {} onto {}", g.name, g.ids[k], g.ids[0]))?;
             progress(&format!(
-                "{} {}: registered onto {} (fitness {:.3}, RMSE {:.4}, scale {:.4}, {} correspondences)",
-                g.name, g.ids[k], g.ids[0], r.fitness, r.rmse, r.transform.scale, r.correspondences
+                "{} {}: registered onto {} (fitness {:.3}, RMSE {:.4}, scale {:.4}, {} correspondences{})",
+                g.name,
+                g.ids[k],
+                g.ids[0],
+                r.fitness,
+                r.rmse,
+                r.transform.scale,
+                r.correspondences,
+                if r.shape_ambiguous { "; shape ambiguous" } else { "" }
             ));
             relative.push(r.transform);
             reports.push(InstanceReport {
@@ -230,6 +251,7 @@ pub fn instantiate(
                 relative: r.transform,
                 fitness: r.fitness,
                 rmse: r.rmse,
+                shape_ambiguous: r.shape_ambiguous,
             });
         }
         // Template space: instance 1's world shifted so that its centroid is the origin.

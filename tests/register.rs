@@ -282,3 +282,27 @@ fn point_trees_take_clouds_with_many_equal_coordinates() {
         assert!((dist(pts[got], q) - best).abs() < 1e-8);
     }
 }
+
+#[test]
+fn a_ball_is_flagged_shape_ambiguous_and_colours_are_checked() {
+    // A ball fits in any orientation: registration says so (and then lets colour decide).
+    let mut rng = Rng::new(9);
+    let ball = |rng: &mut Rng| -> (Vec<[f64; 3]>, Vec<[f64; 3]>) {
+        (0..4000)
+            .map(|_| {
+                let d = Vector3::new(rng.normal() as f64, rng.normal() as f64, rng.normal() as f64).normalize();
+                ([0.3 * d.x, 0.3 * d.y, 0.3 * d.z], [0.5 + 0.4 * d.x, 0.5, 0.5])
+            })
+            .unzip()
+    };
+    let (target, target_rgb) = ball(&mut rng);
+    let (source, source_rgb) = ball(&mut rng);
+    let o = RegisterOptions::for_size(0.6);
+    let r = instgs_vk::register::register_coloured(&source, &source_rgb, &target, &target_rgb, &o).unwrap();
+    assert!(r.shape_ambiguous);
+    assert!((r.transform.scale - 1.0).abs() < 0.02 && r.transform.translation.norm() < 0.01, "{:?}", r.transform);
+    let shaped = register(&object(&mut rng, 6000), &object(&mut rng, 6000), &o).unwrap();
+    assert!(!shaped.shape_ambiguous, "the asymmetric object is not");
+    let e = instgs_vk::register::register_coloured(&source, &source_rgb[1..], &target, &target_rgb, &o).unwrap_err();
+    assert!(format!("{e:#}").contains("colours for"), "{e:#}");
+}
