@@ -187,7 +187,8 @@ pub fn instantiate(
         }
         let parts: Vec<Scene> = g.ids.iter().map(|id| take(scene, &members[id])).collect();
         // Registration clouds: the opaque Gaussians' means and base colours (RGB of the SH DC).
-        let (opaque, colours): (Vec<Vec<[f64; 3]>>, Vec<Vec<[f64; 3]>>) = parts
+        type Clouds = Vec<Vec<[f64; 3]>>;
+        let (opaque, colours): (Clouds, Clouds) = parts
             .iter()
             .map(|p| {
                 let mut idx: Vec<usize> = (0..p.len()).filter(|&i| sigmoid(p.opacities[i]) >= o.min_opacity).collect();
