@@ -1,7 +1,8 @@
 //! Registration of one instance's Gaussian means onto another's (InstGS paper §4.2): FPFH
 //! features (Rusu et al., ICRA 2009) on a voxel-downsampled cloud, RANSAC global alignment over
 //! mutual feature correspondences with edge-length and distance checks (the scheme of Open3D's
-//! `registration_ransac_based_on_feature_matching`), then point-to-point ICP; similarity
+//! `registration_ransac_based_on_feature_matching`), candidate poses spun about the principal
+//! axes, then point-to-point ICP, and colour-aware ICP where the shape is ambiguous; similarity
 //! transforms (rotation, uniform scale, translation) by Umeyama's closed form when scale is
 //! estimated. All in f64, deterministic for a seed.
 //!
@@ -390,20 +391,21 @@ pub fn icp(src: &[[f64; 3]], dst: &[[f64; 3]], init: Sim3, dist: f64, iterations
 
 /// Registers `source` onto `target` (both clouds of one object, any similarity apart): FPFH on
 /// voxel-downsampled clouds, RANSAC over mutual nearest features (3-point samples passing the
-/// edge-length check, scored by correspondence inliers within 1.5 voxels); the 8 best
-/// hypotheses, each also turned by 90°, 180° and 270° about the target's three principal axes
-/// (the likely symmetries of man-made objects: a mug's handle, a brick's studs), refined by ICP
-/// (1.5 voxels, then 0.5 voxel at half the voxel size); the fittest kept.
+/// edge-length check, scored by correspondence inliers within 1.5 voxels); the 8 best distinct
+/// hypotheses, each also spun about the target's three principal axes in 30° steps (a mug's
+/// handle, a brick's studs: small asymmetries of symmetric bulk) and screened by a short ICP on
+/// the coarse clouds; the 8 fittest refined by ICP (1.5 voxels, then 0.5 voxel at half the
+/// voxel size); the fittest kept.
 pub fn register(source: &[[f64; 3]], target: &[[f64; 3]], o: &RegisterOptions) -> Result<Registration> {
     register_impl(source, None, target, None, o)
 }
 
 /// [`register`] with per-point colours (e.g. the RGB of the SH DC), for objects whose shape is
 /// (nearly) symmetric. Colours are normalised per cloud by their per-channel mean, so a
-/// per-instance tint (a per-channel factor, also after a gamma curve) cancels. Every candidate
-/// is refined further by ICP in (position, λ·colour) space (λ = 2 voxels ×
-/// `colour_weight`), and among the candidates whose geometric fitness is within 90 % of the
-/// best, the one with the smallest mean colour difference of its matched pairs wins.
+/// per-instance tint (a per-channel factor, also after a gamma curve) cancels. Colour is used
+/// only where the shape leaves the pose open (see `shape_ambiguous`): then every candidate is
+/// refined by ICP in (position, λ·colour) space (λ = 2 voxels × `colour_weight`), the fittest
+/// is polished by shape ICP.
 pub fn register_coloured(
     source: &[[f64; 3]],
     source_rgb: &[[f64; 3]],
