@@ -1053,11 +1053,23 @@ pub fn run(gpu: &Arc<Gpu>, k: &Arc<Kernels>, ds: &Dataset, cfg: &Config, opts: &
                 ckpt.display()
             );
         }
+        // Held-out views after this step's update and before densification and the opacity reset
+        // (Inria's training_report order: a reset iteration reports the trained scene).
+        let final_it = it == cfg.iterations;
+        let mut tested = None;
+        if !ds.test.is_empty() && ((cfg.test_interval > 0 && it % cfg.test_interval == 0) || final_it) {
+            let e = evaluate(&mut trainer.raster, &trainer.scene, &ds.test, cfg.background, |_, _| Ok(()))?;
+            tested = Some((e.psnr, e.ssim));
+        }
         let d = &cfg.densify;
         let plain = state.layout.is_none();
-        let densify_now = plain && it < d.until_iter && it > d.from_iter && it % d.interval == 0;
-        let reset_now =
-            plain && d.opacity_reset_interval > 0 && it % d.opacity_reset_interval == 0 && it < d.until_iter;
+        // Neither on the last iteration: nothing would train after it, it would only alter the output.
+        let densify_now = plain && !final_it && it < d.until_iter && it > d.from_iter && it % d.interval == 0;
+        let reset_now = plain
+            && !final_it
+            && d.opacity_reset_interval > 0
+            && it % d.opacity_reset_interval == 0
+            && it < d.until_iter;
         if densify_now || reset_now {
             state = trainer.download(it)?;
             if densify_now {
@@ -1083,12 +1095,10 @@ pub fn run(gpu: &Arc<Gpu>, k: &Arc<Kernels>, ds: &Dataset, cfg: &Config, opts: &
             elapsed_s: elapsed0 + t0.elapsed().as_secs_f64(),
             ..Default::default()
         };
-        let final_it = it == cfg.iterations;
-        if !ds.test.is_empty() && ((cfg.test_interval > 0 && it % cfg.test_interval == 0) || final_it) {
-            let e = evaluate(&mut trainer.raster, &trainer.scene, &ds.test, cfg.background, |_, _| Ok(()))?;
-            row.test_psnr = Some(e.psnr);
-            row.test_ssim = Some(e.ssim);
-            test = Some((e.psnr, e.ssim));
+        if let Some((p, q)) = tested {
+            row.test_psnr = Some(p);
+            row.test_ssim = Some(q);
+            test = tested;
         }
         rows.push(row);
         if (cfg.checkpoint_interval > 0 && it % cfg.checkpoint_interval == 0) || final_it {
