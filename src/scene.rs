@@ -63,6 +63,19 @@ impl Scene {
     }
 
     /// SH coefficients per channel: (degree + 1)².
+    /// The Gaussians at `idx`, in that order.
+    pub fn select(&self, idx: &[usize]) -> Scene {
+        let c = self.sh_coeffs() * 3;
+        Scene {
+            means: idx.iter().map(|&i| self.means[i]).collect(),
+            scales: idx.iter().map(|&i| self.scales[i]).collect(),
+            quats: idx.iter().map(|&i| self.quats[i]).collect(),
+            opacities: idx.iter().map(|&i| self.opacities[i]).collect(),
+            sh: idx.iter().flat_map(|&i| self.sh[i * c..(i + 1) * c].iter().copied()).collect(),
+            sh_degree: self.sh_degree,
+        }
+    }
+
     pub fn sh_coeffs(&self) -> usize {
         ((self.sh_degree + 1) * (self.sh_degree + 1)) as usize
     }

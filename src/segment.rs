@@ -237,16 +237,8 @@ impl<'a> Scorer<'a> {
 
 /// The Gaussians of `scene` labelled `id`.
 pub fn subset(scene: &Scene, labels: &[u32], id: u32) -> Scene {
-    let c = scene.sh_coeffs() * 3;
     let keep: Vec<usize> = (0..scene.len()).filter(|&i| labels[i] == id).collect();
-    Scene {
-        means: keep.iter().map(|&i| scene.means[i]).collect(),
-        scales: keep.iter().map(|&i| scene.scales[i]).collect(),
-        quats: keep.iter().map(|&i| scene.quats[i]).collect(),
-        opacities: keep.iter().map(|&i| scene.opacities[i]).collect(),
-        sh: keep.iter().flat_map(|&i| scene.sh[i * c..(i + 1) * c].iter().copied()).collect(),
-        sh_degree: scene.sh_degree,
-    }
+    scene.select(&keep)
 }
 
 /// Per view, the IoU of instance `id`'s rendered visible region and its mask: the whole scene
@@ -284,6 +276,14 @@ pub fn instance_iou(
     Ok(out)
 }
 
+/// The distinct non-zero ids of a mask, ascending.
+fn mask_ids(m: &[u16]) -> Vec<u16> {
+    let mut ids: Vec<u16> = m.iter().copied().filter(|&x| x != 0).collect();
+    ids.sort_unstable();
+    ids.dedup();
+    ids
+}
+
 /// Per-frame mask categories for masks whose ids mean nothing across frames (e.g. from SAM):
 /// `masks/<split>/<image stem>.json` = `{"<mask id>": "<category>", ...}`; every id in the mask
 /// needs a category.
@@ -312,10 +312,7 @@ pub fn load_frame_categories(
                 }
                 cats.insert(n, cat);
             }
-            let mut present: Vec<u16> = m.iter().copied().filter(|&x| x != 0).collect();
-            present.sort_unstable();
-            present.dedup();
-            if let Some(id) = present.iter().find(|id| !cats.contains_key(id)) {
+            if let Some(id) = mask_ids(m).iter().find(|id| !cats.contains_key(id)) {
                 bail!("{what}: mask id {id} of {} has no category", v.path.display());
             }
             Ok(cats)
@@ -393,15 +390,7 @@ pub fn associate(
         bail!("{} views, {} masks, {} category maps", views.len(), masks.len(), categories.len());
     }
     let n = scene.len();
-    let frame_ids: Vec<Vec<u32>> = masks
-        .iter()
-        .map(|m| {
-            let mut ids: Vec<u32> = m.iter().filter(|&&x| x != 0).map(|&x| x as u32).collect();
-            ids.sort_unstable();
-            ids.dedup();
-            ids
-        })
-        .collect();
+    let frame_ids: Vec<Vec<u32>> = masks.iter().map(|m| mask_ids(m).into_iter().map(u32::from).collect()).collect();
     let slots = frame_ids.iter().map(Vec::len).max().unwrap_or(0) + 1;
     let mut scorer = Scorer::new(gpu, k, scene, slots)?;
     // Lifted masks: (view, id, category, claimed Gaussians); seen Gaussians per view.

@@ -126,18 +126,6 @@ fn sim3_to_similarity(x: &Sim3) -> Similarity {
     )
 }
 
-fn take(scene: &Scene, idx: &[usize]) -> Scene {
-    let c = scene.sh_coeffs() * 3;
-    Scene {
-        means: idx.iter().map(|&i| scene.means[i]).collect(),
-        scales: idx.iter().map(|&i| scene.scales[i]).collect(),
-        quats: idx.iter().map(|&i| scene.quats[i]).collect(),
-        opacities: idx.iter().map(|&i| scene.opacities[i]).collect(),
-        sh: idx.iter().flat_map(|&i| scene.sh[i * c..(i + 1) * c].iter().copied()).collect(),
-        sh_degree: scene.sh_degree,
-    }
-}
-
 /// `part` (world Gaussians) mapped by `x`, every parameter: means, rotations, log scales, SH.
 fn transform_gaussians(part: &Scene, x: &Similarity) -> Scene {
     let mut out = part.clone();
@@ -185,7 +173,7 @@ pub fn instantiate(
                 bail!("group {:?}: instance {id} claims no Gaussian (its labels are empty)", g.name);
             }
         }
-        let parts: Vec<Scene> = g.ids.iter().map(|id| take(scene, &members[id])).collect();
+        let parts: Vec<Scene> = g.ids.iter().map(|id| scene.select(&members[id])).collect();
         // Registration clouds: the opaque Gaussians' means and base colours (RGB of the SH DC).
         type Clouds = Vec<Vec<[f64; 3]>>;
         let (opaque, colours): (Clouds, Clouds) = parts
@@ -284,7 +272,7 @@ pub fn instantiate(
         let offsets = nearest_offsets(&template, &instances, &parts, reg.voxel as f32);
         out_groups.push(Group { name: g.name.clone(), template, instances, offsets });
     }
-    let background = take(scene, &background_idx);
+    let background = scene.select(&background_idx);
     let out = InstancedScene { sh_degree: scene.sh_degree, background, groups: out_groups };
     out.validate("instanced scene")?;
     Ok((out, reports))
