@@ -11,8 +11,9 @@
 //! (`configs/instanced.toml`); the run writes `scene.instgs`.
 //!
 //! Differences from Inria, on purpose: the Adam step also runs on densification iterations
-//! (Inria skips it for the replaced tensors); the screen-size prune uses the radii seen since the
-//! last densification (Inria's is reset to zero just before it is read, so it never fires).
+//! (Inria skips it for the replaced tensors). The screen-size prune is off by default, as in
+//! effect in Inria (its radii are zeroed just before they are read, so it never fires); when on
+//! (`max_screen_size > 0`) it uses the radii seen since the last densification.
 use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -371,7 +372,7 @@ pub fn densify(st: &TrainState, cfg: &Config, extent: f32, rng: &mut rand_pcg::P
     let keep: Vec<(usize, bool)> = (0..out.scene.len())
         .filter(|&i| {
             let transparent = sigmoid(out.scene.opacities[i]) < d.min_opacity;
-            let big_screen = after_reset && out.max_radii[i] > d.max_screen_size;
+            let big_screen = after_reset && d.max_screen_size > 0 && out.max_radii[i] > d.max_screen_size;
             let big_world = after_reset
                 && out.scene.scales[i].iter().fold(f32::MIN, |a, &b| a.max(b)).exp() > d.max_world_scale * extent;
             !(transparent || big_screen || big_world)
