@@ -192,7 +192,8 @@ pub fn normals(points: &[[f64; 3]], radius: f64, max_nn: usize) -> Vec<[f64; 3]>
         .collect()
 }
 
-fn centroid(points: &[[f64; 3]]) -> Vector3<f64> {
+/// The mean of `points` (origin when empty).
+pub fn centroid(points: &[[f64; 3]]) -> Vector3<f64> {
     points.iter().fold(Vector3::zeros(), |a, x| a + Vector3::from(*x)) / points.len().max(1) as f64
 }
 

@@ -22,7 +22,7 @@ use glam::{Mat3, Quat, Vec3};
 use kiddo::SquaredEuclidean;
 
 use crate::instance::{quat_mul, Group, Instance, InstancedScene, Offsets, ShRotation, Similarity};
-use crate::register::{farthest_point_sample, register, register_coloured, RegisterOptions, Sim3};
+use crate::register::{centroid, farthest_point_sample, register, register_coloured, RegisterOptions, Sim3};
 use crate::scene::{Scene, SH_C0};
 use crate::segment::InstanceGroup;
 use crate::train::{knn_log_scales, logit, sigmoid};
@@ -244,9 +244,7 @@ pub fn instantiate(
             });
         }
         // Template space: instance 1's world shifted so that its centroid is the origin.
-        let c1 = opaque[0].iter().fold([0.0; 3], |a, p| [a[0] + p[0], a[1] + p[1], a[2] + p[2]]);
-        let c1 = c1.map(|v| v / opaque[0].len() as f64);
-        let shift = Sim3 { translation: nalgebra::Vector3::from(c1), ..Sim3::identity() };
+        let shift = Sim3 { translation: centroid(&opaque[0]), ..Sim3::identity() };
         // template → world of instance k, and its inverse.
         let to_world: Vec<Sim3> = relative.iter().map(|a| a.inverse().compose(&shift)).collect();
         let to_template: Vec<Similarity> = to_world.iter().map(|x| sim3_to_similarity(&x.inverse())).collect();
@@ -281,9 +279,8 @@ pub fn instantiate(
 /// An object's size, rotation-invariant: twice the 98th percentile of the points' distances to
 /// their centroid (a stray Gaussian does not count).
 pub fn object_size(points: &[[f64; 3]]) -> f64 {
-    let n = points.len().max(1) as f64;
-    let c = points.iter().fold([0.0; 3], |a, p| [a[0] + p[0] / n, a[1] + p[1] / n, a[2] + p[2] / n]);
-    let mut d: Vec<f64> = points.iter().map(|p| (0..3).map(|i| (p[i] - c[i]).powi(2)).sum::<f64>().sqrt()).collect();
+    let c = centroid(points);
+    let mut d: Vec<f64> = points.iter().map(|p| (nalgebra::Vector3::from(*p) - c).norm()).collect();
     d.sort_by(f64::total_cmp);
     2.0 * d.get(((d.len() as f64 - 1.0) * 0.98) as usize).copied().unwrap_or(0.0)
 }

@@ -237,45 +237,20 @@ fn compose_info_convert_and_render_an_instanced_scene() {
     assert!(a.pixels().any(|p| p.0 != [0, 0, 0]));
     // bench takes .instgs scenes too and reports the expanded splat count.
     let json = d.join("bench.json");
-    let o = run(&[
-        "bench",
-        "--scene",
-        s(&scene),
-        "--orbit",
-        "1",
-        "--width",
-        "64",
-        "--height",
-        "48",
-        "--frames",
-        "1",
-        "--json",
-        s(&json),
-    ]);
-    assert_eq!(o.code, Some(0), "{}", o.stderr);
-    let b: serde_json::Value = serde_json::from_slice(&std::fs::read(&json).unwrap()).unwrap();
+    let bench = |extra: &[&str], frames: &str| -> (Out, serde_json::Value) {
+        let mut args = vec!["bench", "--scene", s(&scene)];
+        args.extend_from_slice(extra);
+        args.extend(["--orbit", "1", "--width", "64", "--height", "48", "--frames", frames, "--json", s(&json)]);
+        let o = run(&args);
+        assert_eq!(o.code, Some(0), "{}", o.stderr);
+        let b = serde_json::from_slice(&std::fs::read(&json).unwrap()).unwrap();
+        (o, b)
+    };
+    let (_, b) = bench(&[], "1");
     assert_eq!(b["splats"], 950);
     // --compare: the expanded PLY interleaved with the instanced scene, ratios A over B.
-    let o = run(&[
-        "bench",
-        "--scene",
-        s(&scene),
-        "--compare",
-        s(&ply),
-        "--orbit",
-        "1",
-        "--width",
-        "64",
-        "--height",
-        "48",
-        "--frames",
-        "2",
-        "--json",
-        s(&json),
-    ]);
-    assert_eq!(o.code, Some(0), "{}", o.stderr);
+    let (o, b) = bench(&["--compare", s(&ply)], "2");
     assert!(o.stdout.contains("A over B"), "{}", o.stdout);
-    let b: serde_json::Value = serde_json::from_slice(&std::fs::read(&json).unwrap()).unwrap();
     assert_eq!(b["compare"]["splats"], 950);
     assert_eq!(b["compare"]["intersections"], b["intersections"], "same picture, same work");
     let fb = b["file_bytes"].as_f64().unwrap() / b["compare"]["file_bytes"].as_f64().unwrap();
