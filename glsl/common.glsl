@@ -164,6 +164,18 @@ struct SegArgs {
     uint _pad0;
 };
 
+/// Push constants of present.comp (the player's copy of a frame into a swapchain image).
+struct PresentArgs {
+    uint width; // image width in pixels
+    uint height; // image height in pixels
+    uint overlay_width; // the overlay covers pixels x < overlay_width, y < overlay_height
+    uint overlay_height; // (0: no overlay)
+    uint bgra; // 1: pack as B8G8R8A8, 0: as R8G8B8A8
+    uint srgb_decode; // 1: the swapchain format is _SRGB (it encodes on write), so decode first
+    uint _pad0;
+    uint _pad1;
+};
+
 // SSIM window: 11 x 11 Gaussian, sigma 1.5 (Wang et al. 2004; Inria's loss_utils.ssim), zero
 // padding at the image border as torch's conv2d with padding 5.
 #define SSIM_RADIUS 5

@@ -443,42 +443,76 @@ pub fn pinhole(cam: &ColmapCamera, what: &str) -> Result<[f32; 4]> {
     Ok(f.map(|v| v as f32))
 }
 
-fn load_colmap(dir: &Path, opts: &LoadOptions) -> Result<Dataset> {
+/// Every registered image of a COLMAP model as (camera, image path), sorted by image name.
+fn colmap_cameras(dir: &Path, model: &ColmapModel) -> Result<Vec<(Camera, PathBuf)>> {
     let sparse = dir.join("sparse/0");
-    let model = read_colmap(&sparse)?;
     let mut images = model.images.clone();
     images.sort_by(|a, b| a.name.cmp(&b.name));
+    images
+        .iter()
+        .map(|im| {
+            let cam = model.cameras.get(&im.camera_id).ok_or_else(|| {
+                anyhow!(
+                    "{}: image {} refers to camera {}, which cameras.* lacks",
+                    sparse.display(),
+                    im.name,
+                    im.camera_id
+                )
+            })?;
+            let intr = pinhole(cam, &format!("{}: camera {}", sparse.display(), im.camera_id))?;
+            let [w, x, y, z] = im.qvec.map(|v| v as f32);
+            let rot = Mat3::from_quat(Quat::from_xyzw(x, y, z, w).normalize());
+            let t = Vec3::new(im.tvec[0] as f32, im.tvec[1] as f32, im.tvec[2] as f32);
+            let viewmat =
+                Mat4::from_cols(rot.x_axis.extend(0.0), rot.y_axis.extend(0.0), rot.z_axis.extend(0.0), t.extend(1.0));
+            let name = Path::new(&im.name).file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
+            let camera = Camera {
+                name,
+                width: cam.width,
+                height: cam.height,
+                fx: intr[0],
+                fy: intr[1],
+                cx: intr[2],
+                cy: intr[3],
+                viewmat,
+            };
+            camera.validate().with_context(|| format!("{}: image {}", sparse.display(), im.name))?;
+            Ok((camera, dir.join("images").join(&im.name)))
+        })
+        .collect()
+}
+
+fn load_colmap(dir: &Path, opts: &LoadOptions) -> Result<Dataset> {
+    let model = read_colmap(&dir.join("sparse/0"))?;
     let mut train = Vec::new();
     let mut test = Vec::new();
-    for (k, im) in images.iter().enumerate() {
-        let cam = model.cameras.get(&im.camera_id).ok_or_else(|| {
-            anyhow!("{}: image {} refers to camera {}, which cameras.* lacks", sparse.display(), im.name, im.camera_id)
-        })?;
-        let intr = pinhole(cam, &format!("{}: camera {}", sparse.display(), im.camera_id))?;
-        let [w, x, y, z] = im.qvec.map(|v| v as f32);
-        let rot = Mat3::from_quat(Quat::from_xyzw(x, y, z, w).normalize());
-        let t = Vec3::new(im.tvec[0] as f32, im.tvec[1] as f32, im.tvec[2] as f32);
-        let viewmat =
-            Mat4::from_cols(rot.x_axis.extend(0.0), rot.y_axis.extend(0.0), rot.z_axis.extend(0.0), t.extend(1.0));
-        let name = Path::new(&im.name).file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
-        let camera = Camera {
-            name,
-            width: cam.width,
-            height: cam.height,
-            fx: intr[0],
-            fy: intr[1],
-            cx: intr[2],
-            cy: intr[3],
-            viewmat,
-        };
-        camera.validate().with_context(|| format!("{}: image {}", sparse.display(), im.name))?;
-        let path = dir.join("images").join(&im.name);
+    for (k, view) in colmap_cameras(dir, &model)?.into_iter().enumerate() {
         if k % 8 == 0 {
-            test.push((camera, path));
+            test.push(view);
         } else {
-            train.push((camera, path));
+            train.push(view);
         }
     }
     let points = (!model.points.positions.is_empty()).then_some(model.points);
     Ok(Dataset { kind: "colmap", train: load_views(train, opts)?, test: load_views(test, opts)?, points })
+}
+
+/// The cameras of a dataset folder without loading its images: NeRF-synthetic's training
+/// cameras, or every COLMAP image's camera (sorted by name). A `.json` path is read as a
+/// NeRF-synthetic transforms file.
+pub fn dataset_cameras(path: &Path) -> Result<Vec<Camera>> {
+    if path.extension().is_some_and(|e| e == "json") {
+        return crate::camera::load_transforms(path);
+    }
+    if path.join("transforms_train.json").exists() {
+        crate::camera::load_transforms(&path.join("transforms_train.json"))
+    } else if ["cameras.bin", "cameras.txt"].iter().any(|f| path.join("sparse/0").join(f).exists()) {
+        let model = read_colmap(&path.join("sparse/0"))?;
+        Ok(colmap_cameras(path, &model)?.into_iter().map(|(c, _)| c).collect())
+    } else {
+        bail!(
+            "{}: no cameras: expected a transforms_*.json file, or a folder with transforms_train.json (NeRF-synthetic) or sparse/0/cameras.bin|txt (COLMAP)",
+            path.display()
+        )
+    }
 }

@@ -25,6 +25,9 @@ pub struct GpuOptions {
     pub validation: bool,
     /// Echo validation messages to stderr as they arrive.
     pub echo_messages: bool,
+    /// A window to present to: enables the surface and swapchain extensions, creates its
+    /// surface ([`Gpu::surface`]) and requires a queue family that can present to it.
+    pub window: Option<(raw_window_handle::RawDisplayHandle, raw_window_handle::RawWindowHandle)>,
 }
 
 impl GpuOptions {
@@ -36,6 +39,7 @@ impl GpuOptions {
             device: device.or_else(|| std::env::var("INSTGS_DEVICE").ok().filter(|s| !s.is_empty())),
             validation,
             echo_messages: true,
+            window: None,
         }
     }
 }
@@ -59,6 +63,13 @@ pub struct DeviceInfo {
 
 struct Messages(Mutex<Vec<String>>, bool);
 
+/// A window surface and the swapchain entry points (see [`GpuOptions::window`]).
+pub struct Surface {
+    pub loader: ash::khr::surface::Instance,
+    pub raw: vk::SurfaceKHR,
+    pub swapchain: ash::khr::swapchain::Device,
+}
+
 /// The Vulkan instance, device, queue and allocator. Shared as `Arc<Gpu>`.
 pub struct Gpu {
     _entry: ash::Entry,
@@ -72,6 +83,8 @@ pub struct Gpu {
     /// Submissions to `queue` must be externally synchronised.
     queue_lock: Mutex<()>,
     queue_family: u32,
+    pub physical: vk::PhysicalDevice,
+    pub surface: Option<Surface>,
     pub info: DeviceInfo,
 }
 
@@ -124,6 +137,12 @@ impl Gpu {
             layers.push(validation_layer.as_ptr());
             extensions.push(ash::ext::debug_utils::NAME.as_ptr());
         }
+        if let Some((display, _)) = opts.window {
+            extensions.extend_from_slice(
+                ash_window::enumerate_required_extensions(display)
+                    .context("this display has no Vulkan surface support")?,
+            );
+        }
         let enables = [vk::ValidationFeatureEnableEXT::SYNCHRONIZATION_VALIDATION];
         let mut features = vk::ValidationFeaturesEXT::default().enabled_validation_features(&enables);
         let mut ci = vk::InstanceCreateInfo::default()
@@ -154,6 +173,14 @@ impl Gpu {
             None
         };
 
+        let surface = match opts.window {
+            Some((display, window)) => {
+                let raw = unsafe { ash_window::create_surface(&entry, &instance, display, window, None) }
+                    .context("cannot create a Vulkan surface for the window")?;
+                Some((ash::khr::surface::Instance::new(&entry, &instance), raw))
+            }
+            None => None,
+        };
         let physicals = unsafe { instance.enumerate_physical_devices()? };
         if physicals.is_empty() {
             bail!("no Vulkan device found; install a driver (lavapipe: apt-get install mesa-vulkan-drivers)");
@@ -214,11 +241,20 @@ impl Gpu {
         };
 
         let families = unsafe { instance.get_physical_device_queue_family_properties(physical) };
+        let presents = |qf: usize| match &surface {
+            Some((loader, raw)) => unsafe {
+                loader.get_physical_device_surface_support(physical, qf as u32, *raw).unwrap_or(false)
+            },
+            None => true,
+        };
         let (qf, qprops) = families
             .iter()
             .enumerate()
-            .find(|(_, f)| f.queue_flags.contains(vk::QueueFlags::COMPUTE))
-            .ok_or_else(|| anyhow!("device '{}' has no compute queue", chosen.1))?;
+            .find(|&(i, f)| f.queue_flags.contains(vk::QueueFlags::COMPUTE) && presents(i))
+            .ok_or_else(|| match surface {
+                Some(_) => anyhow!("device '{}' has no compute queue that can present to the window", chosen.1),
+                None => anyhow!("device '{}' has no compute queue", chosen.1),
+            })?;
         let qf = qf as u32;
         let timestamp_period_ns = (qprops.timestamp_valid_bits > 0 && props.limits.timestamp_period > 0.0)
             .then_some(props.limits.timestamp_period as f64);
@@ -240,6 +276,12 @@ impl Gpu {
         if float_atomics {
             dexts.push(ash::ext::shader_atomic_float::NAME.as_ptr());
         }
+        if surface.is_some() {
+            if !has_ext(ash::khr::swapchain::NAME) {
+                bail!("device '{}' lacks VK_KHR_swapchain", chosen.1);
+            }
+            dexts.push(ash::khr::swapchain::NAME.as_ptr());
+        }
         let mut dci = vk::DeviceCreateInfo::default().queue_create_infos(&qci).enabled_extension_names(&dexts);
         if float_atomics {
             dci = dci.push_next(&mut enable_atomic_float);
@@ -247,6 +289,11 @@ impl Gpu {
         let device = unsafe { instance.create_device(physical, &dci, None) }.context("vkCreateDevice failed")?;
         let queue = unsafe { device.get_device_queue(qf, 0) };
         let push_descriptor = ash::khr::push_descriptor::Device::new(&instance, &device);
+        let surface = surface.map(|(loader, raw)| Surface {
+            loader,
+            raw,
+            swapchain: ash::khr::swapchain::Device::new(&instance, &device),
+        });
         let allocator = Allocator::new(&AllocatorCreateDesc {
             instance: instance.clone(),
             device: device.clone(),
@@ -275,6 +322,8 @@ impl Gpu {
             allocator: ManuallyDrop::new(Mutex::new(allocator)),
             queue_lock: Mutex::new(()),
             queue_family: qf,
+            physical,
+            surface,
             info,
         }))
     }
@@ -376,6 +425,16 @@ impl Gpu {
         Ok(bytemuck::pod_collect_to_vec(&mapped[..bytes as usize]))
     }
 
+    /// Runs `f` with the queue, holding the lock that serialises submissions.
+    pub fn with_queue<R>(&self, f: impl FnOnce(vk::Queue) -> R) -> R {
+        let _q = self.queue_lock.lock().unwrap();
+        f(self.queue)
+    }
+
+    pub fn queue_family(&self) -> u32 {
+        self.queue_family
+    }
+
     /// Records commands with `f`, submits them and waits for completion.
     pub fn submit_and_wait(self: &Arc<Self>, f: impl FnOnce(&mut Recorder) -> Result<()>) -> Result<()> {
         let cmd = CommandBuffer::new(self)?;
@@ -390,6 +449,9 @@ impl Drop for Gpu {
             let _ = self.device.device_wait_idle();
             ManuallyDrop::drop(&mut self.allocator);
             self.device.destroy_device(None);
+            if let Some(s) = self.surface.take() {
+                s.loader.destroy_surface(s.raw, None);
+            }
             if let Some((du, m)) = self.debug.take() {
                 du.destroy_debug_utils_messenger(m, None);
             }
@@ -650,6 +712,12 @@ impl Recorder<'_> {
         };
     }
 
+    /// The command buffer being recorded, for commands this wrapper does not cover (image
+    /// layout transitions and copies of the player).
+    pub fn raw(&self) -> vk::CommandBuffer {
+        self.cmd
+    }
+
     /// Marks the end of a pass called `name` (timestamps, when the device has them).
     pub fn end_pass(&mut self, name: &str) -> Result<()> {
         if let Some(t) = self.timer.as_deref_mut() {
@@ -819,9 +887,25 @@ impl CommandBuffer {
     }
 
     pub fn submit_and_wait(&self) -> Result<()> {
+        self.submit_and_wait_sync(&[], &[])
+    }
+
+    /// Submits after `waits` (semaphore, stage) are signalled, signals `signals` when done,
+    /// and waits.
+    pub fn submit_and_wait_sync(
+        &self,
+        waits: &[(vk::Semaphore, vk::PipelineStageFlags)],
+        signals: &[vk::Semaphore],
+    ) -> Result<()> {
         let d = &self.gpu.device;
         let cmds = [self.cmd];
-        let submit = [vk::SubmitInfo::default().command_buffers(&cmds)];
+        let wait_sems: Vec<vk::Semaphore> = waits.iter().map(|w| w.0).collect();
+        let wait_stages: Vec<vk::PipelineStageFlags> = waits.iter().map(|w| w.1).collect();
+        let submit = [vk::SubmitInfo::default()
+            .command_buffers(&cmds)
+            .wait_semaphores(&wait_sems)
+            .wait_dst_stage_mask(&wait_stages)
+            .signal_semaphores(signals)];
         unsafe {
             d.reset_fences(&[self.fence])?;
             {

@@ -28,6 +28,7 @@ pub struct Kernels {
     pub loss_grad_v: Kernel,
     pub adam: Kernel,
     pub seg_accumulate: Kernel,
+    pub present: Kernel,
     pub policy: KernelPolicy,
 }
 
@@ -99,6 +100,7 @@ impl Kernels {
             loss_grad_v: k("loss_grad_v", spirv::LOSS_GRAD_V)?,
             adam: k("adam", spirv::ADAM)?,
             seg_accumulate: k("seg_accumulate", spirv::SEG_ACCUMULATE)?,
+            present: k("present", spirv::PRESENT)?,
             policy,
         }))
     }

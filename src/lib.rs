@@ -18,6 +18,8 @@ pub mod instance;
 pub mod instgs;
 pub mod kernels;
 pub mod optim;
+pub mod overlay;
+pub mod player;
 pub mod plot;
 pub mod raster;
 pub mod register;

@@ -208,6 +208,46 @@ enum Cmd {
         #[arg(long)]
         out: PathBuf,
     },
+    /// The standalone player: a window with the scene, orbit/fly camera and FPS overlay (see
+    /// the README for the controls), or with --headless frames saved to PNG files.
+    View {
+        /// Scene file (.ply: Inria 3DGS or SuperSplat compressed; .instgs).
+        scene: PathBuf,
+        /// Start from a dataset's camera: a transforms_*.json file, or a NeRF-synthetic or
+        /// COLMAP folder. Default: framing the scene's bounds.
+        #[arg(long)]
+        cameras: Option<PathBuf>,
+        /// Which of those cameras.
+        #[arg(long, default_value_t = 0, requires = "cameras")]
+        camera: usize,
+        /// Which world axis is up (orbit and fly moves).
+        #[arg(long, value_enum, default_value = "-y", allow_hyphen_values = true)]
+        up: UpAxis,
+        /// Window (or headless frame) width.
+        #[arg(long, default_value_t = 1280)]
+        width: u32,
+        /// Window (or headless frame) height.
+        #[arg(long, default_value_t = 720)]
+        height: u32,
+        /// Background colour r,g,b in [0, 1] (B cycles black, white, grey).
+        #[arg(long, default_value = "0,0,0", value_parser = parse_rgb)]
+        background: [f32; 3],
+        /// Wait for vertical sync (default: off, immediate or mailbox presentation).
+        #[arg(long)]
+        vsync: bool,
+        /// No FPS overlay (H toggles it).
+        #[arg(long)]
+        no_overlay: bool,
+        /// Exit after N frames (windowed: the last one is saved as a screenshot in --out).
+        #[arg(long)]
+        frames: Option<u64>,
+        /// Folder for screenshots (windowed) or frames (headless).
+        #[arg(long)]
+        out: Option<PathBuf>,
+        /// No window: render --frames N turntable frames offscreen into --out DIR.
+        #[arg(long, requires_all = ["frames", "out"])]
+        headless: bool,
+    },
     /// Time the GPU radix sort against Rust's sort_unstable on the same random keys.
     BenchSort {
         /// Number of keys.
@@ -347,6 +387,33 @@ fn run(cli: Cli) -> Result<()> {
             };
             instance(&scene, &labels, &groups_file, truth, &opts, offset_dtype, report.as_deref(), &out)
         }
+        Cmd::View {
+            scene,
+            cameras,
+            camera,
+            up,
+            width,
+            height,
+            background,
+            vsync,
+            no_overlay,
+            frames,
+            out,
+            headless,
+        } => {
+            let opts = instgs_vk::player::PlayerOptions {
+                scene_path: scene,
+                device: cli.device,
+                width,
+                height,
+                background,
+                vsync,
+                overlay: !no_overlay,
+                frames,
+                out,
+            };
+            view(opts, cameras.as_deref(), camera, up, headless)
+        }
         Cmd::BenchSort { keys, bits, repeats } => bench_sort(cli.device, keys, bits, repeats),
         Cmd::Train { data, out, init, config, iterations, resume, quiet } => {
             train(cli.device, &data, &out, init.as_deref(), config.as_deref(), iterations, resume, quiet)
@@ -354,6 +421,43 @@ fn run(cli: Cli) -> Result<()> {
         Cmd::Eval { scene, data, split, json, out, background } => {
             eval(cli.device, &scene, &data, &split, json, out.as_deref(), background)
         }
+    }
+}
+
+fn view(
+    opts: instgs_vk::player::PlayerOptions,
+    cameras: Option<&Path>,
+    camera: usize,
+    up: UpAxis,
+    headless: bool,
+) -> Result<()> {
+    use instgs_vk::player::{run_headless, run_window, ViewCamera};
+    if opts.width == 0 || opts.height == 0 {
+        bail!("--width and --height must be at least 1");
+    }
+    if opts.frames == Some(0) {
+        bail!("--frames must be at least 1");
+    }
+    let scene = AnyScene::read(&opts.scene_path)?;
+    let means = scene.means();
+    let (lo, hi) = instgs_vk::scene::robust_bounds(&means, 0.02);
+    let centre = 0.5 * (lo + hi);
+    let start = match cameras {
+        Some(path) => {
+            let cams = instgs_vk::dataset::dataset_cameras(path)?;
+            let n = cams.len();
+            cams.into_iter()
+                .nth(camera)
+                .ok_or_else(|| anyhow::anyhow!("{}: --camera {camera} is out of range ({n} cameras)", path.display()))?
+        }
+        None => instgs_vk::camera::orbit_around_points(&means, 1, up, opts.width, opts.height).remove(0),
+    };
+    let start = ViewCamera::from_camera(&start, centre, up.vector());
+    drop(means);
+    if headless {
+        run_headless(&opts, &scene, start)
+    } else {
+        run_window(opts, scene, start)
     }
 }
 
@@ -960,7 +1064,7 @@ impl BenchScene {
     }
 
     fn frame(&mut self, cam: &Camera, background: [f32; 3], timed: bool) -> Result<()> {
-        let f = self.r.render(&self.gs, cam, background)?;
+        let f = self.r.render_resident(&self.gs, cam, background)?;
         if timed {
             self.frame_ms.push(f.passes.iter().map(|p| p.1).sum::<f64>());
             collect(&mut self.per_pass, &f.passes);

@@ -1,9 +1,12 @@
 //! The GPU forward rasterizer: a scene on the device and the per-frame passes
 //! preprocess → scan visible → compact → depth sort → scan tiles → emit → tile sort → ranges →
 //! blend, all sized on the GPU (indirect dispatch from GPU-written counts). The command buffer is
-//! recorded once per scene, image size and intersection capacity and replayed for every frame;
-//! the only read-back is the frame's result (image and counts), used to grow the intersection
-//! buffers when a frame needs more than they hold.
+//! recorded once per scene, image size and intersection capacity and replayed for every frame.
+//! [`Rasterizer::render`] reads the image back; [`Rasterizer::render_resident`] (bench, player)
+//! leaves it on the device. Either way the GPU copies its 32-byte counts into host-visible
+//! memory, which the host reads after the frame's fence to grow the intersection buffers when a
+//! frame needed more than they hold (the tile lists are clamped to capacity, so such a frame is
+//! incomplete, never out of bounds, and is rendered again).
 use std::sync::Arc;
 
 use anyhow::{bail, Result};
@@ -300,7 +303,17 @@ struct ImageBufs {
     ranges: Buffer,
     out_image: Buffer,
     last: Buffer,
-    readback_image: Buffer,
+    /// Allocated on the first frame that reads its image back.
+    readback_image: Option<Buffer>,
+}
+
+/// Counts and timings of one frame.
+#[derive(Clone, Debug, Default)]
+pub struct FrameStats {
+    pub visible: u32,
+    pub intersections: u32,
+    /// GPU milliseconds per pass, in execution order (empty without timestamps).
+    pub passes: Vec<(String, f64)>,
 }
 
 /// The result of one frame.
@@ -339,8 +352,9 @@ pub struct Rasterizer {
     image: Option<ImageBufs>,
     cmd: CommandBuffer,
     timer: Option<Timer>,
-    /// (scene buffer handle, N, width, height, capacity) the command buffer was recorded for.
-    recorded: Option<(u64, usize, u32, u32, usize)>,
+    /// (scene buffer handle, N, width, height, capacity, image read back) the command buffer
+    /// was recorded for.
+    recorded: Option<(u64, usize, u32, u32, usize, bool)>,
     /// Buffer indices holding the sorted depth and tile lists.
     depth_result: usize,
     isect_result: usize,
@@ -401,12 +415,12 @@ impl Rasterizer {
             b += i.keys.iter().chain(&i.ids).map(|x| x.size).sum::<u64>() + i.hist.size + i.block_sums.size;
         }
         if let Some(im) = &self.image {
-            b += im.ranges.size + im.out_image.size + im.last.size + im.readback_image.size;
+            b += im.ranges.size + im.out_image.size + im.last.size + im.readback_image.as_ref().map_or(0, |r| r.size);
         }
         b
     }
 
-    fn ensure_buffers(&mut self, n: usize, width: u32, height: u32, cap: usize) -> Result<()> {
+    fn ensure_buffers(&mut self, n: usize, width: u32, height: u32, cap: usize, readback: bool) -> Result<()> {
         let gpu = self.gpu.clone();
         let limit = gpu.info.max_storage_buffer_range;
         if (cap as u64) * 4 > limit {
@@ -454,18 +468,18 @@ impl Rasterizer {
                 ranges: gpu.storage("ranges", tiles * 8)?,
                 out_image: gpu.storage("out_image", pixels * 16)?,
                 last: gpu.storage("last", pixels * 4)?,
-                readback_image: gpu.buffer(
-                    "readback-image",
-                    pixels * 16,
-                    Default::default(),
-                    MemoryLocation::GpuToCpu,
-                )?,
+                readback_image: None,
             });
+        }
+        let im = self.image.as_mut().unwrap();
+        if readback && im.readback_image.is_none() {
+            im.readback_image =
+                Some(gpu.buffer("readback-image", pixels * 16, Default::default(), MemoryLocation::GpuToCpu)?);
         }
         Ok(())
     }
 
-    fn record(&mut self, scene: &GpuScene, fp: &FrameParams) -> Result<()> {
+    fn record(&mut self, scene: &GpuScene, fp: &FrameParams, readback: bool) -> Result<()> {
         let k = self.k.clone();
         let g = self.gauss.as_ref().unwrap();
         let is = self.isect.as_ref().unwrap();
@@ -630,7 +644,9 @@ impl Rasterizer {
                 [fp.tiles_x, fp.tiles_y, 1],
             )?;
             rec.end_pass("blend")?;
-            rec.copy(&im.out_image, &im.readback_image, im.out_image.size);
+            if readback {
+                rec.copy(&im.out_image, im.readback_image.as_ref().unwrap(), im.out_image.size);
+            }
             rec.copy(&c.counts, readback_counts, c.counts.size);
             rec.end_pass("readback")
         })?;
@@ -639,19 +655,46 @@ impl Rasterizer {
         Ok(())
     }
 
-    /// Renders one frame of `scene` seen by `cam` over `background` (linear RGB in [0, 1]).
+    /// Renders one frame of `scene` seen by `cam` over `background` (linear RGB in [0, 1]) and
+    /// reads the image back.
     pub fn render(&mut self, scene: &GpuScene, cam: &Camera, background: [f32; 3]) -> Result<Frame> {
+        let stats = self.render_frame(scene, cam, background, true)?;
+        let im = self.image.as_ref().unwrap();
+        let image = im.readback_image.as_ref().unwrap().read_mapped((cam.width * cam.height) as usize)?;
+        Ok(Frame {
+            width: cam.width,
+            height: cam.height,
+            image,
+            visible: stats.visible,
+            intersections: stats.intersections,
+            passes: stats.passes,
+        })
+    }
+
+    /// Renders one frame and leaves the image on the device ([`Rasterizer::image_buffer`]):
+    /// the steady state of the bench and the player, where nothing but the counts is read.
+    pub fn render_resident(&mut self, scene: &GpuScene, cam: &Camera, background: [f32; 3]) -> Result<FrameStats> {
+        self.render_frame(scene, cam, background, false)
+    }
+
+    fn render_frame(
+        &mut self,
+        scene: &GpuScene,
+        cam: &Camera,
+        background: [f32; 3],
+        readback: bool,
+    ) -> Result<FrameStats> {
         cam.validate()?;
         let n = scene.len;
         let mut cap = self.isect.as_ref().map_or(n.max(1 << 16), |i| i.cap);
         loop {
-            self.ensure_buffers(n, cam.width, cam.height, cap)?;
+            self.ensure_buffers(n, cam.width, cam.height, cap, readback)?;
             cap = self.isect.as_ref().unwrap().cap;
             let fp = scene.frame_params(cam, background, cap as u32);
             self.frame_ub.write_mapped(&[fp])?;
-            let key = (ash::vk::Handle::as_raw(scene.means.raw), n, cam.width, cam.height, cap);
+            let key = (ash::vk::Handle::as_raw(scene.means.raw), n, cam.width, cam.height, cap, readback);
             if self.recorded != Some(key) || self.poison {
-                self.record(scene, &fp)?;
+                self.record(scene, &fp, readback)?;
                 self.recorded = Some(key);
             }
             self.cmd.submit_and_wait()?;
@@ -663,16 +706,11 @@ impl Rasterizer {
                 cap = needed + needed / 4;
                 continue;
             }
-            let im = self.image.as_ref().unwrap();
-            let image = im.readback_image.read_mapped((cam.width * cam.height) as usize)?;
             let passes = match &self.timer {
                 Some(t) => t.results()?.into_iter().filter(|(n, _)| n != "setup" && n != "readback").collect(),
                 None => Vec::new(),
             };
-            return Ok(Frame {
-                width: cam.width,
-                height: cam.height,
-                image,
+            return Ok(FrameStats {
                 visible: counts[COUNT_VISIBLE as usize],
                 intersections: counts[COUNT_ISECT as usize],
                 passes,
@@ -921,7 +959,8 @@ impl Rasterizer {
         Ok(())
     }
 
-    /// The last frame's rendered image buffer (RGBA f32, a = T) on the device.
+    /// The last frame's rendered image buffer (row-major RGBA f32, rgb = C + T·background,
+    /// a = T) on the device.
     pub fn image_buffer(&self) -> Option<&Buffer> {
         self.image.as_ref().map(|im| &im.out_image)
     }

@@ -13,7 +13,7 @@ use instgs_vk::scene::Scene;
 pub fn gpu() -> (Arc<Gpu>, Arc<Kernels>) {
     static G: OnceLock<(Arc<Gpu>, Arc<Kernels>)> = OnceLock::new();
     G.get_or_init(|| {
-        let opts = GpuOptions { device: None, validation: true, echo_messages: true };
+        let opts = GpuOptions { device: None, validation: true, echo_messages: true, window: None };
         let gpu = Gpu::new(&opts).expect("a Vulkan device with validation layers");
         let k = Kernels::new(&gpu).expect("kernels");
         (gpu, k)

@@ -1,0 +1,975 @@
+//! `instgs-vk view`: the standalone player. A winit window with a Vulkan swapchain; every frame
+//! replays the rasterizer's recorded command buffer (the image stays on the device), then
+//! `present.comp` packs the image (plus the text overlay) into 8-bit texels that are copied into
+//! the acquired swapchain image. Vsync is off by default (immediate, else mailbox, else FIFO).
+//!
+//! Controls: left drag orbits the target, right drag looks around (fly), middle drag pans, the
+//! wheel dollies, W/A/S/D move, Q/E go down/up (Shift: 4× faster), R resets the camera, B cycles
+//! the background, H hides the overlay, V toggles vsync, P or F12 saves a screenshot (the
+//! presented swapchain image), Esc quits.
+//!
+//! Cameras are OpenCV (x right, y down, z forward), as everywhere in this crate; the player's
+//! camera has no roll (its horizon stays level with the up axis).
+use std::collections::HashSet;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::time::Instant;
+
+use anyhow::{anyhow, bail, Context, Result};
+use ash::vk;
+use glam::{Mat4, Vec3};
+use gpu_allocator::MemoryLocation;
+use raw_window_handle::{HasDisplayHandle, HasWindowHandle};
+use winit::application::ApplicationHandler;
+use winit::event::{ElementState, MouseButton, MouseScrollDelta, WindowEvent};
+use winit::event_loop::{ActiveEventLoop, ControlFlow, EventLoop};
+use winit::keyboard::{KeyCode, PhysicalKey};
+use winit::window::{Window, WindowId};
+
+use crate::camera::Camera;
+use crate::gpu::{Buffer, CommandBuffer, Gpu, GpuOptions};
+use crate::instgs::AnyScene;
+use crate::kernels::Kernels;
+use crate::raster::{GpuScene, Rasterizer};
+use crate::shared::*;
+
+/// The player's camera: a target point, a distance and yaw/pitch of the eye about the up axis.
+/// Orbit moves the eye around the target; fly moves shift both.
+#[derive(Clone, Debug)]
+pub struct ViewCamera {
+    pub target: Vec3,
+    pub distance: f32,
+    /// Azimuth of the eye around the target (radians).
+    pub yaw: f32,
+    /// Elevation of the eye above the target's horizontal plane (radians, within ±89°).
+    pub pitch: f32,
+    /// Horizontal field of view (radians).
+    pub fov_x: f32,
+    up: Vec3,
+    e1: Vec3,
+    e2: Vec3,
+}
+
+const MAX_PITCH: f32 = 89.0 * std::f32::consts::PI / 180.0;
+
+impl ViewCamera {
+    /// The view of `start` (its eye, viewing direction and horizontal field of view), with the
+    /// target where the viewing ray passes closest to `centre`. `up` is the world's up axis.
+    pub fn from_camera(start: &Camera, centre: Vec3, up: Vec3) -> ViewCamera {
+        let up = up.normalize();
+        let a = if up.x.abs() < 0.9 { Vec3::X } else { Vec3::Y };
+        let e1 = (a - up * a.dot(up)).normalize();
+        let e2 = up.cross(e1);
+        let c2w = start.viewmat.inverse();
+        let eye = c2w.w_axis.truncate();
+        let forward = c2w.z_axis.truncate().normalize();
+        let along = (centre - eye).dot(forward);
+        let distance = if along > 1e-3 { along } else { (centre - eye).length().max(1e-3) };
+        let dir = -forward;
+        ViewCamera {
+            target: eye + forward * distance,
+            distance,
+            yaw: dir.dot(e2).atan2(dir.dot(e1)),
+            pitch: dir.dot(up).clamp(-1.0, 1.0).asin().clamp(-MAX_PITCH, MAX_PITCH),
+            fov_x: 2.0 * (0.5 * start.width as f32 / start.fx).atan(),
+            up,
+            e1,
+            e2,
+        }
+    }
+
+    /// Unit vector from the target to the eye.
+    fn eye_dir(&self) -> Vec3 {
+        (self.e1 * self.yaw.cos() + self.e2 * self.yaw.sin()) * self.pitch.cos() + self.up * self.pitch.sin()
+    }
+
+    pub fn eye(&self) -> Vec3 {
+        self.target + self.eye_dir() * self.distance
+    }
+
+    /// The camera for a `width` × `height` image (square pixels, centred principal point).
+    pub fn camera(&self, width: u32, height: u32) -> Camera {
+        let eye = self.eye();
+        let z = -self.eye_dir();
+        let x = z.cross(self.up).normalize();
+        let y = z.cross(x);
+        let c2w = Mat4::from_cols(x.extend(0.0), y.extend(0.0), z.extend(0.0), eye.extend(1.0));
+        let fx = 0.5 * width as f32 / (0.5 * self.fov_x).tan();
+        Camera {
+            name: "view".into(),
+            width,
+            height,
+            fx,
+            fy: fx,
+            cx: 0.5 * width as f32,
+            cy: 0.5 * height as f32,
+            viewmat: c2w.inverse(),
+        }
+    }
+
+    /// Turns the eye around the target.
+    pub fn orbit(&mut self, d_yaw: f32, d_pitch: f32) {
+        self.yaw += d_yaw;
+        self.pitch = (self.pitch + d_pitch).clamp(-MAX_PITCH, MAX_PITCH);
+    }
+
+    /// Turns the view around the eye (the target moves).
+    pub fn look(&mut self, d_yaw: f32, d_pitch: f32) {
+        let eye = self.eye();
+        self.orbit(d_yaw, d_pitch);
+        self.target = eye - self.eye_dir() * self.distance;
+    }
+
+    /// Moves eye and target by (right, up, forward) × distance.
+    pub fn fly(&mut self, right: f32, up: f32, forward: f32) {
+        let z = -self.eye_dir();
+        let x = z.cross(self.up).normalize();
+        self.target += (x * right + self.up * up + z * forward) * self.distance;
+    }
+
+    /// Moves the eye towards (factor < 1) or away from the target.
+    pub fn dolly(&mut self, factor: f32) {
+        self.distance = (self.distance * factor).max(1e-4);
+    }
+}
+
+/// What the player shows and how.
+pub struct PlayerOptions {
+    pub scene_path: PathBuf,
+    pub device: Option<String>,
+    pub width: u32,
+    pub height: u32,
+    pub background: [f32; 3],
+    pub vsync: bool,
+    pub overlay: bool,
+    /// Exit after this many frames (the last one is saved as a screenshot when `out` is set).
+    pub frames: Option<u64>,
+    /// Where screenshots (windowed) or frames (headless) go.
+    pub out: Option<PathBuf>,
+}
+
+/// Backgrounds the B key cycles through.
+const BACKGROUNDS: [[f32; 3]; 3] = [[0.0; 3], [1.0; 3], [0.5; 3]];
+
+/// Packs one pixel as present.comp does (CPU twin): clamp, blend the overlay texel (RGBA8,
+/// straight alpha), decode sRGB for an _SRGB swapchain, swap to BGRA, round to 8 bits.
+pub fn present_texel(rgb: [f32; 3], overlay: Option<u32>, bgra: bool, srgb_decode: bool) -> u32 {
+    let mut c = rgb.map(|v| v.clamp(0.0, 1.0));
+    if let Some(o) = overlay {
+        let o = o.to_le_bytes().map(|b| b as f32 / 255.0);
+        c = [0, 1, 2].map(|i| c[i] * (1.0 - o[3]) + o[i] * o[3]);
+    }
+    if srgb_decode {
+        c = c.map(|v| if v > 0.04045 { ((v + 0.055) / 1.055).powf(2.4) } else { v / 12.92 });
+    }
+    if bgra {
+        c = [c[2], c[1], c[0]];
+    }
+    let q = c.map(|v| (v * 255.0).round() as u8);
+    u32::from_le_bytes([q[0], q[1], q[2], 255])
+}
+
+/// Renders `frames` frames offscreen on a turntable that starts at `start` (one turn about the
+/// up axis) and saves them as `out/frame_NNN.png`; prints the median GPU time per frame.
+pub fn run_headless(opts: &PlayerOptions, scene: &AnyScene, start: ViewCamera) -> Result<()> {
+    let frames = opts.frames.ok_or_else(|| anyhow!("--headless needs --frames N"))?;
+    let out = opts.out.as_deref().ok_or_else(|| anyhow!("--headless needs --out DIR"))?;
+    if frames == 0 {
+        bail!("--frames must be at least 1");
+    }
+    std::fs::create_dir_all(out).with_context(|| format!("{}: cannot create folder", out.display()))?;
+    let gpu = Gpu::new(&GpuOptions::from_env(opts.device.clone()))?;
+    eprintln!("device: {}", gpu.describe());
+    let k = Kernels::new(&gpu)?;
+    let gs = scene.upload(&gpu).with_context(|| opts.scene_path.display().to_string())?;
+    let mut r = Rasterizer::new(&gpu, &k)?;
+    let mut gpu_ms = Vec::new();
+    for i in 0..frames {
+        let mut view = start.clone();
+        view.orbit(std::f32::consts::TAU * i as f32 / frames as f32, 0.0);
+        let f = r.render(&gs, &view.camera(opts.width, opts.height), opts.background)?;
+        crate::util::save_png(&out.join(format!("frame_{i:03}.png")), f.width, f.height, &f.image)?;
+        gpu_ms.push(f.passes.iter().map(|p| p.1).sum::<f64>());
+    }
+    report(&gpu, frames, &mut gpu_ms, None)?;
+    eprintln!("wrote {frames} frames to {}", out.display());
+    Ok(())
+}
+
+fn report(gpu: &Gpu, frames: u64, gpu_ms: &mut [f64], wall_fps: Option<f64>) -> Result<()> {
+    gpu_ms.sort_by(f64::total_cmp);
+    if let Some(m) = gpu_ms.get(gpu_ms.len() / 2) {
+        let wall = wall_fps.map_or(String::new(), |f| format!(", {f:.1} frames/s presented"));
+        eprintln!("{frames} frames: GPU {m:.3} ms per frame (median; {:.1} FPS){wall}", 1000.0 / m);
+    }
+    let m = gpu.take_validation_messages();
+    if !m.is_empty() {
+        bail!("{} Vulkan validation message(s), first: {}", m.len(), m[0]);
+    }
+    Ok(())
+}
+
+/// Opens the window and runs until it is closed (or `frames` frames were shown).
+pub fn run_window(opts: PlayerOptions, scene: AnyScene, start: ViewCamera) -> Result<()> {
+    let event_loop = EventLoop::new().map_err(|e| {
+        anyhow!(
+            "cannot open a window ({e}); without a display use --headless --frames N --out DIR, or run under xvfb-run"
+        )
+    })?;
+    let mut app = App {
+        opts,
+        scene,
+        home: start.clone(),
+        view: start,
+        running: None,
+        error: None,
+        input: Input::default(),
+        background: 0,
+        frames: 0,
+        screenshots: 0,
+        started: None,
+        gpu_ms: Vec::new(),
+    };
+    event_loop.run_app(&mut app).map_err(|e| anyhow!("the window's event loop failed: {e}"))?;
+    if let Some(e) = app.error.take() {
+        return Err(e);
+    }
+    let Some(running) = app.running.take() else { bail!("the window never opened") };
+    let wall_fps = app.started.map(|t| app.frames.saturating_sub(1) as f64 / t.elapsed().as_secs_f64());
+    report(&running.gpu, app.frames, &mut app.gpu_ms, wall_fps)
+}
+
+#[derive(Default)]
+struct Input {
+    held: HashSet<KeyCode>,
+    buttons: HashSet<u8>,
+    cursor: Option<(f64, f64)>,
+    last_tick: Option<Instant>,
+}
+
+struct App {
+    opts: PlayerOptions,
+    scene: AnyScene,
+    home: ViewCamera,
+    view: ViewCamera,
+    running: Option<Running>,
+    error: Option<anyhow::Error>,
+    input: Input,
+    background: usize,
+    frames: u64,
+    screenshots: u32,
+    /// When the first frame was presented.
+    started: Option<Instant>,
+    gpu_ms: Vec<f64>,
+}
+
+/// Everything that lives while the window is open. Fields drop in order: the swapchain before
+/// the device, the device (and its surface) before the window.
+struct Running {
+    presenter: Presenter,
+    raster: Rasterizer,
+    gs: GpuScene,
+    _k: Arc<Kernels>,
+    gpu: Arc<Gpu>,
+    window: Arc<Window>,
+    overlay: Option<crate::overlay::Overlay>,
+    overlay_buf: Buffer,
+    overlay_dirty: bool,
+    last_title: Instant,
+    fps_window: (Instant, u64),
+    /// Frames presented per second over the last title period.
+    fps: Option<f64>,
+    minimised: bool,
+    screenshot_next: bool,
+}
+
+impl App {
+    fn open(&mut self, el: &ActiveEventLoop) -> Result<()> {
+        let attrs = Window::default_attributes()
+            .with_title("instgs-vk")
+            .with_inner_size(winit::dpi::PhysicalSize::new(self.opts.width, self.opts.height));
+        let window = Arc::new(el.create_window(attrs).context("cannot create the window")?);
+        let display = window.display_handle().map_err(|e| anyhow!("no display handle: {e}"))?.as_raw();
+        let handle = window.window_handle().map_err(|e| anyhow!("no window handle: {e}"))?.as_raw();
+        let mut gopts = GpuOptions::from_env(self.opts.device.clone());
+        gopts.window = Some((display, handle));
+        let gpu = Gpu::new(&gopts)?;
+        eprintln!("device: {}", gpu.describe());
+        let k = Kernels::new(&gpu)?;
+        let gs = self.scene.upload(&gpu).with_context(|| self.opts.scene_path.display().to_string())?;
+        let raster = Rasterizer::new(&gpu, &k)?;
+        let presenter = Presenter::new(&gpu, &k, self.opts.vsync)?;
+        let overlay_buf = gpu.storage("overlay", 16)?;
+        let now = Instant::now();
+        self.running = Some(Running {
+            presenter,
+            raster,
+            gs,
+            _k: k,
+            gpu,
+            window,
+            overlay: None,
+            overlay_buf,
+            overlay_dirty: false,
+            last_title: now,
+            fps_window: (now, 0),
+            fps: None,
+            minimised: false,
+            screenshot_next: false,
+        });
+        Ok(())
+    }
+
+    /// Applies held keys over the time since the last frame.
+    fn tick(&mut self) {
+        let now = Instant::now();
+        let dt = self.input.last_tick.map_or(0.0, |t| (now - t).as_secs_f32()).min(0.1);
+        self.input.last_tick = Some(now);
+        let held = |k: KeyCode| self.input.held.contains(&k) as i32 as f32;
+        let speed = 0.8 * dt * if held(KeyCode::ShiftLeft) + held(KeyCode::ShiftRight) > 0.0 { 4.0 } else { 1.0 };
+        let right = held(KeyCode::KeyD) - held(KeyCode::KeyA);
+        let up = held(KeyCode::KeyE) - held(KeyCode::KeyQ);
+        let forward = held(KeyCode::KeyW) - held(KeyCode::KeyS);
+        if right != 0.0 || up != 0.0 || forward != 0.0 {
+            self.view.fly(right * speed, up * speed, forward * speed);
+        }
+    }
+
+    fn key(&mut self, el: &ActiveEventLoop, code: KeyCode, pressed: bool, repeat: bool) -> Result<()> {
+        if !pressed {
+            self.input.held.remove(&code);
+            return Ok(());
+        }
+        self.input.held.insert(code);
+        if repeat {
+            return Ok(());
+        }
+        let Some(run) = self.running.as_mut() else { return Ok(()) };
+        match code {
+            KeyCode::Escape => el.exit(),
+            KeyCode::KeyR => self.view = self.home.clone(),
+            KeyCode::KeyB => self.background = (self.background + 1) % BACKGROUNDS.len(),
+            KeyCode::KeyH => {
+                self.opts.overlay = !self.opts.overlay;
+                run.overlay_dirty = true;
+            }
+            KeyCode::KeyV => {
+                self.opts.vsync = !self.opts.vsync;
+                run.presenter.vsync = self.opts.vsync;
+                run.presenter.stale = true;
+            }
+            KeyCode::KeyP | KeyCode::F12 => run.screenshot_next = true,
+            _ => {}
+        }
+        Ok(())
+    }
+
+    fn mouse_moved(&mut self, x: f64, y: f64) {
+        if let Some((px, py)) = self.input.cursor {
+            let (dx, dy) = ((x - px) as f32 * 0.005, (y - py) as f32 * 0.005);
+            let b = &self.input.buttons;
+            if b.contains(&0) {
+                self.view.orbit(-dx, dy);
+            } else if b.contains(&1) {
+                self.view.look(-dx, dy);
+            } else if b.contains(&2) {
+                self.view.fly(-dx * 0.3, dy * 0.3, 0.0);
+            }
+        }
+        self.input.cursor = Some((x, y));
+    }
+
+    fn redraw(&mut self, el: &ActiveEventLoop) -> Result<()> {
+        self.tick();
+        let background = if self.background == 0 { self.opts.background } else { BACKGROUNDS[self.background] };
+        let Some(run) = self.running.as_mut() else { return Ok(()) };
+        if run.minimised {
+            return Ok(());
+        }
+        if run.presenter.stale || run.presenter.swapchain.is_none() {
+            let size = run.window.inner_size();
+            if !run.presenter.recreate(vk::Extent2D { width: size.width, height: size.height })? {
+                run.minimised = true;
+                return Ok(());
+            }
+        }
+        let extent = run.presenter.swapchain.as_ref().unwrap().extent;
+        let last = self.opts.frames.is_some_and(|n| self.frames + 1 >= n);
+        let screenshot = run.screenshot_next || (last && self.opts.out.is_some());
+        let Some(image) = run.presenter.acquire()? else { return Ok(()) };
+        let stats = run.raster.render_resident(&run.gs, &self.view.camera(extent.width, extent.height), background)?;
+        let gpu_ms: f64 = stats.passes.iter().map(|p| p.1).sum();
+        if run.overlay_dirty || run.overlay.is_none() && self.opts.overlay {
+            run.overlay = self.opts.overlay.then(|| {
+                let fps = run.fps.map_or("-".into(), |f| format!("{f:.1}"));
+                crate::overlay::draw(&[
+                    format!("{fps} FPS | GPU {gpu_ms:.2} MS"),
+                    format!("{} SPLATS | {}X{}", splat_count(self.scene.splats()), extent.width, extent.height),
+                ])
+            });
+            if let Some(o) = &run.overlay {
+                run.overlay_buf = run.gpu.upload("overlay", &o.texels)?;
+            }
+            run.overlay_dirty = false;
+        }
+        let overlay = run.overlay.as_ref().map(|o| (o, &run.overlay_buf));
+        let image_buf = run.raster.image_buffer().ok_or_else(|| anyhow!("the rasterizer has no image"))?;
+        let shot = run.presenter.present(image, image_buf, overlay, screenshot)?;
+        self.frames += 1;
+        self.gpu_ms.push(gpu_ms);
+        run.fps_window.1 += 1;
+        if self.started.is_none() {
+            self.started = Some(Instant::now());
+        }
+        if let Some((w, h, rgba)) = shot {
+            run.screenshot_next = false;
+            let dir = self.opts.out.clone().unwrap_or_else(|| PathBuf::from("."));
+            std::fs::create_dir_all(&dir).with_context(|| format!("{}: cannot create folder", dir.display()))?;
+            let path = dir.join(format!("screenshot_{:03}.png", self.screenshots));
+            save_rgba8(&path, w, h, rgba)?;
+            self.screenshots += 1;
+            eprintln!("screenshot {}", path.display());
+        }
+        if run.last_title.elapsed().as_secs_f64() >= 0.5 {
+            let (t, n) = run.fps_window;
+            let fps = n as f64 / t.elapsed().as_secs_f64();
+            run.fps = Some(fps);
+            let name = self.opts.scene_path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+            run.window.set_title(&format!("instgs-vk — {name} — {fps:.1} FPS, GPU {gpu_ms:.2} ms"));
+            run.last_title = Instant::now();
+            run.fps_window = (Instant::now(), 0);
+            run.overlay_dirty = self.opts.overlay;
+        }
+        if last {
+            el.exit();
+        }
+        Ok(())
+    }
+
+    fn fail(&mut self, el: &ActiveEventLoop, e: anyhow::Error) {
+        if self.error.is_none() {
+            self.error = Some(e);
+        }
+        el.exit();
+    }
+}
+
+/// "1.23M" style splat counts.
+fn splat_count(n: usize) -> String {
+    match n {
+        0..1_000 => n.to_string(),
+        1_000..1_000_000 => format!("{:.1}K", n as f64 / 1e3),
+        _ => format!("{:.2}M", n as f64 / 1e6),
+    }
+}
+
+fn save_rgba8(path: &Path, width: u32, height: u32, rgba: Vec<u8>) -> Result<()> {
+    let img = image::RgbaImage::from_raw(width, height, rgba).ok_or_else(|| anyhow!("screenshot size mismatch"))?;
+    crate::util::write_atomic(path, |f| {
+        img.write_to(&mut std::io::BufWriter::new(f), image::ImageFormat::Png).map_err(std::io::Error::other)
+    })
+}
+
+impl ApplicationHandler for App {
+    fn resumed(&mut self, el: &ActiveEventLoop) {
+        if self.running.is_none() {
+            if let Err(e) = self.open(el) {
+                self.fail(el, e);
+            }
+        }
+    }
+
+    fn window_event(&mut self, el: &ActiveEventLoop, _id: WindowId, event: WindowEvent) {
+        let r = match event {
+            WindowEvent::CloseRequested => {
+                el.exit();
+                Ok(())
+            }
+            WindowEvent::Resized(size) => {
+                if let Some(run) = self.running.as_mut() {
+                    run.minimised = size.width == 0 || size.height == 0;
+                    run.presenter.stale = true;
+                }
+                Ok(())
+            }
+            WindowEvent::KeyboardInput { event, .. } => match event.physical_key {
+                PhysicalKey::Code(code) => self.key(el, code, event.state == ElementState::Pressed, event.repeat),
+                PhysicalKey::Unidentified(_) => Ok(()),
+            },
+            WindowEvent::MouseInput { state, button, .. } => {
+                let b = match button {
+                    MouseButton::Left => 0,
+                    MouseButton::Right => 1,
+                    MouseButton::Middle => 2,
+                    _ => 3,
+                };
+                if state == ElementState::Pressed {
+                    self.input.buttons.insert(b);
+                } else {
+                    self.input.buttons.remove(&b);
+                }
+                Ok(())
+            }
+            WindowEvent::CursorMoved { position, .. } => {
+                self.mouse_moved(position.x, position.y);
+                Ok(())
+            }
+            WindowEvent::MouseWheel { delta, .. } => {
+                let lines = match delta {
+                    MouseScrollDelta::LineDelta(_, y) => y,
+                    MouseScrollDelta::PixelDelta(p) => p.y as f32 / 50.0,
+                };
+                self.view.dolly(0.85f32.powf(lines));
+                Ok(())
+            }
+            WindowEvent::RedrawRequested => self.redraw(el),
+            _ => Ok(()),
+        };
+        if let Err(e) = r {
+            self.fail(el, e);
+        }
+    }
+
+    fn about_to_wait(&mut self, el: &ActiveEventLoop) {
+        match &self.running {
+            Some(run) if !run.minimised => {
+                el.set_control_flow(ControlFlow::Poll);
+                run.window.request_redraw();
+            }
+            _ => el.set_control_flow(ControlFlow::Wait),
+        }
+    }
+}
+
+struct Swapchain {
+    raw: vk::SwapchainKHR,
+    images: Vec<vk::Image>,
+    extent: vk::Extent2D,
+    bgra: bool,
+    srgb: bool,
+    /// The images allow TRANSFER_SRC: screenshots copy the presented image itself.
+    readable: bool,
+    /// Signalled when an image's commands finish; its presentation waits on it.
+    render_done: Vec<vk::Semaphore>,
+}
+
+/// The swapchain and the per-frame present step.
+struct Presenter {
+    gpu: Arc<Gpu>,
+    k: Arc<Kernels>,
+    swapchain: Option<Swapchain>,
+    cmd: CommandBuffer,
+    acquired: vk::Semaphore,
+    texels: Option<Buffer>,
+    screenshot: Option<Buffer>,
+    vsync: bool,
+    /// The swapchain must be recreated (resize, out of date, suboptimal, vsync toggled).
+    stale: bool,
+}
+
+fn surface(gpu: &Gpu) -> Result<&crate::gpu::Surface> {
+    gpu.surface.as_ref().ok_or_else(|| anyhow!("the device was opened without a window surface"))
+}
+
+impl Presenter {
+    fn new(gpu: &Arc<Gpu>, k: &Arc<Kernels>, vsync: bool) -> Result<Presenter> {
+        let acquired = unsafe { gpu.device.create_semaphore(&vk::SemaphoreCreateInfo::default(), None)? };
+        Ok(Presenter {
+            gpu: gpu.clone(),
+            k: k.clone(),
+            swapchain: None,
+            cmd: CommandBuffer::new(gpu)?,
+            acquired,
+            texels: None,
+            screenshot: None,
+            vsync,
+            stale: true,
+        })
+    }
+
+    /// (Re)creates the swapchain for a window of `size`; false while the window has no area.
+    fn recreate(&mut self, size: vk::Extent2D) -> Result<bool> {
+        let gpu = self.gpu.clone();
+        let s = surface(&gpu)?;
+        unsafe { gpu.device.device_wait_idle()? };
+        let caps = unsafe { s.loader.get_physical_device_surface_capabilities(gpu.physical, s.raw)? };
+        let extent = if caps.current_extent.width != u32::MAX {
+            caps.current_extent
+        } else {
+            vk::Extent2D {
+                width: size.width.clamp(caps.min_image_extent.width, caps.max_image_extent.width),
+                height: size.height.clamp(caps.min_image_extent.height, caps.max_image_extent.height),
+            }
+        };
+        if extent.width == 0 || extent.height == 0 {
+            return Ok(false);
+        }
+        if !caps.supported_usage_flags.contains(vk::ImageUsageFlags::TRANSFER_DST) {
+            bail!("the window surface does not accept transfer writes (TRANSFER_DST), which the player needs");
+        }
+        let formats = unsafe { s.loader.get_physical_device_surface_formats(gpu.physical, s.raw)? };
+        let (format, bgra, srgb) = choose_format(&formats)?;
+        let modes = unsafe { s.loader.get_physical_device_surface_present_modes(gpu.physical, s.raw)? };
+        let mode = choose_present_mode(&modes, self.vsync);
+        let mut count = caps.min_image_count + 1;
+        if caps.max_image_count > 0 {
+            count = count.min(caps.max_image_count);
+        }
+        let readable = caps.supported_usage_flags.contains(vk::ImageUsageFlags::TRANSFER_SRC);
+        let mut usage = vk::ImageUsageFlags::TRANSFER_DST;
+        if readable {
+            usage |= vk::ImageUsageFlags::TRANSFER_SRC;
+        }
+        let alpha = [
+            vk::CompositeAlphaFlagsKHR::OPAQUE,
+            vk::CompositeAlphaFlagsKHR::INHERIT,
+            vk::CompositeAlphaFlagsKHR::PRE_MULTIPLIED,
+            vk::CompositeAlphaFlagsKHR::POST_MULTIPLIED,
+        ]
+        .into_iter()
+        .find(|a| caps.supported_composite_alpha.contains(*a))
+        .unwrap_or(vk::CompositeAlphaFlagsKHR::OPAQUE);
+        let old = self.swapchain.take();
+        let ci = vk::SwapchainCreateInfoKHR::default()
+            .surface(s.raw)
+            .min_image_count(count)
+            .image_format(format.format)
+            .image_color_space(format.color_space)
+            .image_extent(extent)
+            .image_array_layers(1)
+            .image_usage(usage)
+            .image_sharing_mode(vk::SharingMode::EXCLUSIVE)
+            .pre_transform(caps.current_transform)
+            .composite_alpha(alpha)
+            .present_mode(mode)
+            .clipped(true)
+            .old_swapchain(old.as_ref().map_or(vk::SwapchainKHR::null(), |o| o.raw));
+        let raw = unsafe { s.swapchain.create_swapchain(&ci, None) }.context("cannot create the swapchain");
+        if let Some(o) = old {
+            self.destroy(o);
+        }
+        let raw = raw?;
+        let images = unsafe { s.swapchain.get_swapchain_images(raw)? };
+        let render_done = images
+            .iter()
+            .map(|_| unsafe { gpu.device.create_semaphore(&vk::SemaphoreCreateInfo::default(), None) })
+            .collect::<std::result::Result<Vec<_>, _>>()?;
+        let pixels = extent.width as u64 * extent.height as u64;
+        self.texels = Some(gpu.storage("present-texels", pixels * 4)?);
+        self.screenshot = Some(gpu.buffer("screenshot", pixels * 4, Default::default(), MemoryLocation::GpuToCpu)?);
+        eprintln!(
+            "swapchain {}x{} {:?} {:?}, {} images",
+            extent.width,
+            extent.height,
+            format.format,
+            mode,
+            images.len()
+        );
+        self.swapchain = Some(Swapchain { raw, images, extent, bgra, srgb, readable, render_done });
+        self.stale = false;
+        Ok(true)
+    }
+
+    fn destroy(&self, sc: Swapchain) {
+        unsafe {
+            for s in sc.render_done {
+                self.gpu.device.destroy_semaphore(s, None);
+            }
+            if let Some(s) = &self.gpu.surface {
+                s.swapchain.destroy_swapchain(sc.raw, None);
+            }
+        }
+    }
+
+    /// The next swapchain image; `None` (and the swapchain marked stale) when it is out of date.
+    fn acquire(&mut self) -> Result<Option<u32>> {
+        let s = surface(&self.gpu)?;
+        let sc = self.swapchain.as_ref().unwrap();
+        match unsafe { s.swapchain.acquire_next_image(sc.raw, u64::MAX, self.acquired, vk::Fence::null()) } {
+            Ok((index, suboptimal)) => {
+                self.stale |= suboptimal;
+                Ok(Some(index))
+            }
+            Err(vk::Result::ERROR_OUT_OF_DATE_KHR) => {
+                self.stale = true;
+                Ok(None)
+            }
+            Err(e) => Err(device_error("acquiring a swapchain image", e)),
+        }
+    }
+
+    /// Packs `image` into swapchain image `index` and presents it; with `screenshot`, also
+    /// returns the presented pixels as RGBA8.
+    fn present(
+        &mut self,
+        index: u32,
+        image: &Buffer,
+        overlay: Option<(&crate::overlay::Overlay, &Buffer)>,
+        screenshot: bool,
+    ) -> Result<Option<(u32, u32, Vec<u8>)>> {
+        let gpu = self.gpu.clone();
+        let s = surface(&gpu)?;
+        let sc = self.swapchain.as_ref().unwrap();
+        let target = sc.images[index as usize];
+        let texels = self.texels.as_ref().unwrap();
+        let shot_buf = self.screenshot.as_ref().unwrap();
+        let ext = sc.extent;
+        let (ow, oh) = overlay.map_or((0, 0), |(o, _)| (o.width.min(ext.width), o.height.min(ext.height)));
+        let args = PresentArgs {
+            width: ext.width,
+            height: ext.height,
+            overlay_width: ow,
+            overlay_height: oh,
+            bgra: sc.bgra as u32,
+            srgb_decode: sc.srgb as u32,
+            ..Default::default()
+        };
+        let overlay_buf = overlay.map_or(texels, |(_, b)| b);
+        let args = if overlay.is_some_and(|(o, _)| o.width > ext.width) {
+            // A window narrower than the overlay: no overlay (its rows would not line up).
+            PresentArgs { overlay_width: 0, overlay_height: 0, ..args }
+        } else {
+            args
+        };
+        let pixels = ext.width * ext.height;
+        let k = &self.k;
+        let read_image = screenshot && sc.readable;
+        self.cmd.record(|rec| {
+            rec.dispatch(
+                &k.present,
+                &[("image", image), ("overlay", overlay_buf), ("texels", texels)],
+                &args,
+                [pixels.div_ceil(WG_SIZE).min(MAX_GROUPS), 1, 1],
+            )?;
+            let d = &gpu.device;
+            let cmd = rec.raw();
+            let range = vk::ImageSubresourceRange::default()
+                .aspect_mask(vk::ImageAspectFlags::COLOR)
+                .level_count(1)
+                .layer_count(1);
+            let to_dst = vk::ImageMemoryBarrier::default()
+                .image(target)
+                .subresource_range(range)
+                .old_layout(vk::ImageLayout::UNDEFINED)
+                .new_layout(vk::ImageLayout::TRANSFER_DST_OPTIMAL)
+                .dst_access_mask(vk::AccessFlags::TRANSFER_WRITE);
+            let region = vk::BufferImageCopy::default()
+                .image_subresource(
+                    vk::ImageSubresourceLayers::default().aspect_mask(vk::ImageAspectFlags::COLOR).layer_count(1),
+                )
+                .image_extent(vk::Extent3D { width: ext.width, height: ext.height, depth: 1 });
+            let last_layout =
+                if read_image { vk::ImageLayout::TRANSFER_SRC_OPTIMAL } else { vk::ImageLayout::TRANSFER_DST_OPTIMAL };
+            let to_present = vk::ImageMemoryBarrier::default()
+                .image(target)
+                .subresource_range(range)
+                .old_layout(last_layout)
+                .new_layout(vk::ImageLayout::PRESENT_SRC_KHR)
+                .src_access_mask(if read_image {
+                    vk::AccessFlags::TRANSFER_READ
+                } else {
+                    vk::AccessFlags::TRANSFER_WRITE
+                });
+            unsafe {
+                d.cmd_pipeline_barrier(
+                    cmd,
+                    vk::PipelineStageFlags::TRANSFER,
+                    vk::PipelineStageFlags::TRANSFER,
+                    vk::DependencyFlags::empty(),
+                    &[],
+                    &[],
+                    &[to_dst],
+                );
+                d.cmd_copy_buffer_to_image(cmd, texels.raw, target, vk::ImageLayout::TRANSFER_DST_OPTIMAL, &[region]);
+                if read_image {
+                    let to_src = vk::ImageMemoryBarrier::default()
+                        .image(target)
+                        .subresource_range(range)
+                        .old_layout(vk::ImageLayout::TRANSFER_DST_OPTIMAL)
+                        .new_layout(vk::ImageLayout::TRANSFER_SRC_OPTIMAL)
+                        .src_access_mask(vk::AccessFlags::TRANSFER_WRITE)
+                        .dst_access_mask(vk::AccessFlags::TRANSFER_READ);
+                    d.cmd_pipeline_barrier(
+                        cmd,
+                        vk::PipelineStageFlags::TRANSFER,
+                        vk::PipelineStageFlags::TRANSFER,
+                        vk::DependencyFlags::empty(),
+                        &[],
+                        &[],
+                        &[to_src],
+                    );
+                    d.cmd_copy_image_to_buffer(
+                        cmd,
+                        target,
+                        vk::ImageLayout::TRANSFER_SRC_OPTIMAL,
+                        shot_buf.raw,
+                        &[region],
+                    );
+                }
+                let host = vk::MemoryBarrier::default()
+                    .src_access_mask(vk::AccessFlags::TRANSFER_WRITE)
+                    .dst_access_mask(vk::AccessFlags::HOST_READ);
+                d.cmd_pipeline_barrier(
+                    cmd,
+                    vk::PipelineStageFlags::TRANSFER,
+                    vk::PipelineStageFlags::BOTTOM_OF_PIPE | vk::PipelineStageFlags::HOST,
+                    vk::DependencyFlags::empty(),
+                    &[host],
+                    &[],
+                    &[to_present],
+                );
+            }
+            if screenshot && !sc.readable {
+                // The surface cannot be read: save the texels that were copied into it.
+                rec.copy(texels, shot_buf, pixels as u64 * 4);
+            }
+            Ok(())
+        })?;
+        let signal = sc.render_done[index as usize];
+        self.cmd
+            .submit_and_wait_sync(&[(self.acquired, vk::PipelineStageFlags::TRANSFER)], &[signal])
+            .map_err(|e| anyhow!("presenting a frame: {e:#}"))?;
+        let swapchains = [sc.raw];
+        let indices = [index];
+        let waits = [signal];
+        let info =
+            vk::PresentInfoKHR::default().wait_semaphores(&waits).swapchains(&swapchains).image_indices(&indices);
+        match gpu.with_queue(|q| unsafe { s.swapchain.queue_present(q, &info) }) {
+            Ok(suboptimal) => self.stale |= suboptimal,
+            Err(vk::Result::ERROR_OUT_OF_DATE_KHR) => self.stale = true,
+            Err(e) => return Err(device_error("presenting", e)),
+        }
+        if !screenshot {
+            return Ok(None);
+        }
+        let texels: Vec<u32> = shot_buf.read_mapped(pixels as usize)?;
+        let rgba = texels
+            .iter()
+            .flat_map(|t| {
+                let [a, b, c, _] = t.to_le_bytes();
+                // Undo the BGRA swap; sRGB swapchain values are the encoded display values.
+                if sc.bgra {
+                    [c, b, a, 255]
+                } else {
+                    [a, b, c, 255]
+                }
+            })
+            .collect();
+        Ok(Some((ext.width, ext.height, rgba)))
+    }
+}
+
+impl Drop for Presenter {
+    fn drop(&mut self) {
+        unsafe {
+            let _ = self.gpu.device.device_wait_idle();
+        }
+        if let Some(sc) = self.swapchain.take() {
+            self.destroy(sc);
+        }
+        unsafe { self.gpu.device.destroy_semaphore(self.acquired, None) };
+    }
+}
+
+fn device_error(what: &str, e: vk::Result) -> anyhow::Error {
+    if e == vk::Result::ERROR_DEVICE_LOST {
+        anyhow!("{what}: the GPU device was lost (driver reset or crash); restart the player")
+    } else if e == vk::Result::ERROR_SURFACE_LOST_KHR {
+        anyhow!("{what}: the window surface was lost")
+    } else {
+        anyhow!("{what}: {e}")
+    }
+}
+
+/// 8-bit UNORM formats first (the image's values are display values); an _SRGB format is
+/// accepted with the values decoded before its encoding write.
+fn choose_format(formats: &[vk::SurfaceFormatKHR]) -> Result<(vk::SurfaceFormatKHR, bool, bool)> {
+    let nonlinear = |f: &&vk::SurfaceFormatKHR| f.color_space == vk::ColorSpaceKHR::SRGB_NONLINEAR;
+    for (want, bgra, srgb) in [
+        (vk::Format::B8G8R8A8_UNORM, true, false),
+        (vk::Format::R8G8B8A8_UNORM, false, false),
+        (vk::Format::B8G8R8A8_SRGB, true, true),
+        (vk::Format::R8G8B8A8_SRGB, false, true),
+    ] {
+        if let Some(f) = formats.iter().filter(nonlinear).find(|f| f.format == want) {
+            return Ok((*f, bgra, srgb));
+        }
+    }
+    bail!("the window surface offers no 8-bit RGBA/BGRA format (offered: {formats:?})")
+}
+
+/// Vsync off: immediate, else mailbox, else FIFO (always available). Vsync on: FIFO.
+fn choose_present_mode(modes: &[vk::PresentModeKHR], vsync: bool) -> vk::PresentModeKHR {
+    if !vsync {
+        for m in [vk::PresentModeKHR::IMMEDIATE, vk::PresentModeKHR::MAILBOX] {
+            if modes.contains(&m) {
+                return m;
+            }
+        }
+    }
+    vk::PresentModeKHR::FIFO
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn view_camera_reproduces_a_level_start_camera() {
+        let cams = crate::camera::Orbit {
+            center: Vec3::new(0.3, -0.2, 0.1),
+            distance: 4.0,
+            up: crate::camera::UpAxis::NegY,
+            elevation_deg: 25.0,
+            fov_x_deg: 50.0,
+        }
+        .cameras(5, 320, 240);
+        for c in &cams {
+            let v = ViewCamera::from_camera(c, Vec3::new(0.3, -0.2, 0.1), -Vec3::Y);
+            let back = v.camera(320, 240);
+            assert!((back.fx - c.fx).abs() < 1e-3 * c.fx);
+            let d = (back.viewmat - c.viewmat).abs().to_cols_array().into_iter().fold(0.0f32, f32::max);
+            assert!(d < 1e-4, "{d}");
+            assert!((v.distance - 4.0).abs() < 1e-4);
+        }
+    }
+
+    #[test]
+    fn orbit_keeps_the_target_and_look_keeps_the_eye() {
+        let c =
+            crate::camera::orbit_around_points(&[[0.0; 3], [1.0, 1.0, 1.0]], 1, crate::camera::UpAxis::PosZ, 64, 48);
+        let mut v = ViewCamera::from_camera(&c[0], Vec3::splat(0.5), Vec3::Z);
+        let t = v.target;
+        v.orbit(0.3, 0.2);
+        assert!((v.target - t).length() < 1e-6 && (v.eye() - t).length() - v.distance < 1e-5);
+        let e2 = v.eye();
+        v.look(-0.5, 0.1);
+        assert!((v.eye() - e2).length() < 1e-4 && (v.target - t).length() > 1e-3);
+        v.orbit(0.0, 10.0);
+        assert!(v.pitch <= MAX_PITCH);
+    }
+
+    #[test]
+    fn present_texel_rounds_blends_and_swaps() {
+        assert_eq!(present_texel([1.0, 0.5, 0.0], None, false, false).to_le_bytes(), [255, 128, 0, 255]);
+        assert_eq!(present_texel([1.0, 0.5, 0.0], None, true, false).to_le_bytes(), [0, 128, 255, 255]);
+        assert_eq!(present_texel([2.0, -1.0, 0.0], None, false, false).to_le_bytes(), [255, 0, 0, 255]);
+        let white = u32::from_le_bytes([255, 255, 255, 255]);
+        assert_eq!(present_texel([0.0; 3], Some(white), false, false).to_le_bytes(), [255, 255, 255, 255]);
+        assert_eq!(present_texel([0.5; 3], None, false, true).to_le_bytes()[0], 55);
+    }
+
+    #[test]
+    fn present_mode_and_format_choice() {
+        use vk::PresentModeKHR as M;
+        assert_eq!(choose_present_mode(&[M::FIFO, M::MAILBOX, M::IMMEDIATE], false), M::IMMEDIATE);
+        assert_eq!(choose_present_mode(&[M::FIFO, M::MAILBOX], false), M::MAILBOX);
+        assert_eq!(choose_present_mode(&[M::FIFO, M::IMMEDIATE], true), M::FIFO);
+        let f = |format| vk::SurfaceFormatKHR { format, color_space: vk::ColorSpaceKHR::SRGB_NONLINEAR };
+        let (c, bgra, srgb) = choose_format(&[f(vk::Format::B8G8R8A8_SRGB), f(vk::Format::R8G8B8A8_UNORM)]).unwrap();
+        assert_eq!((c.format, bgra, srgb), (vk::Format::R8G8B8A8_UNORM, false, false));
+        assert!(choose_format(&[f(vk::Format::R16G16B16A16_SFLOAT)]).is_err());
+        assert_eq!(splat_count(1_234_567), "1.23M");
+        assert_eq!(splat_count(45_600), "45.6K");
+    }
+}

@@ -1,0 +1,152 @@
+//! The player: `present.comp` against its CPU twin, and the window itself under `xvfb-run` on
+//! whatever Vulkan device there is (lavapipe in CI): frames presented, a screenshot taken from
+//! the presented swapchain image, equal to the offscreen (headless) render of the same camera.
+mod common;
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+use common::*;
+use instgs_vk::player::present_texel;
+use instgs_vk::shared::*;
+
+#[test]
+fn present_kernel_matches_cpu_twin() {
+    let (gpu, k) = gpu();
+    let mut rng = Rng::new(7);
+    let (w, h) = (37u32, 23u32);
+    let (ow, oh) = (11u32, 5u32);
+    let image: Vec<[f32; 4]> =
+        (0..w * h).map(|_| [rng.f32() * 1.4 - 0.2, rng.f32(), rng.f32() * 1.2, rng.f32()]).collect();
+    let overlay: Vec<u32> = (0..ow * oh).map(|_| rng.u32()).collect();
+    let image_buf = gpu.upload("image", &image).unwrap();
+    let overlay_buf = gpu.upload("overlay", &overlay).unwrap();
+    let texels = gpu.storage("texels", (w * h * 4) as u64).unwrap();
+    for (bgra, srgb) in [(false, false), (true, false), (true, true)] {
+        gpu.submit_and_wait(|rec| {
+            rec.fill(&texels, 0x7fc0_0bad);
+            let args = PresentArgs {
+                width: w,
+                height: h,
+                overlay_width: ow,
+                overlay_height: oh,
+                bgra: bgra as u32,
+                srgb_decode: srgb as u32,
+                ..Default::default()
+            };
+            rec.dispatch(
+                &k.present,
+                &[("image", &image_buf), ("overlay", &overlay_buf), ("texels", &texels)],
+                &args,
+                [2, 1, 1],
+            )
+        })
+        .unwrap();
+        let got: Vec<u32> = gpu.read(&texels, (w * h) as usize).unwrap();
+        for (i, (&g, p)) in got.iter().zip(&image).enumerate() {
+            let (x, y) = (i as u32 % w, i as u32 / w);
+            let o = (x < ow && y < oh).then(|| overlay[(y * ow + x) as usize]);
+            let want = present_texel([p[0], p[1], p[2]], o, bgra, srgb);
+            let (g, e) = (g.to_le_bytes(), want.to_le_bytes());
+            // One step of rounding: GLSL's round() may round halves either way.
+            assert!(g.iter().zip(&e).all(|(a, b)| a.abs_diff(*b) <= 1), "pixel {i}: {g:?} vs {e:?}");
+            assert_eq!(g[3], 255);
+        }
+    }
+    assert_clean(&gpu);
+}
+
+fn bin() -> &'static str {
+    env!("CARGO_BIN_EXE_instgs-vk")
+}
+
+fn out_dir(name: &str) -> PathBuf {
+    let d = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("player").join(name);
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+fn demo() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("demo/guitar.compressed.ply")
+}
+
+/// Runs the player under a virtual X server with validation on; returns stderr.
+fn windowed(args: &[&str]) -> String {
+    let o = Command::new("xvfb-run")
+        .args(["-a", "-s", "-screen 0 1024x768x24", bin(), "view"])
+        .args(args)
+        .env("INSTGS_VALIDATION", "1")
+        .output()
+        .expect("xvfb-run (Debian package xvfb; tools/install-deps.sh installs it)");
+    let err = String::from_utf8_lossy(&o.stderr).into_owned();
+    assert!(o.status.success(), "player failed: {err}");
+    assert!(!err.contains("vulkan validation"), "{err}");
+    err
+}
+
+fn rgb(path: &Path) -> image::RgbImage {
+    image::open(path).unwrap_or_else(|e| panic!("{}: {e}", path.display())).to_rgb8()
+}
+
+#[test]
+fn window_screenshot_equals_offscreen_render() {
+    let scene = demo();
+    let scene = scene.to_str().unwrap();
+    let win = out_dir("window");
+    let err = windowed(&[
+        scene,
+        "--width",
+        "320",
+        "--height",
+        "240",
+        "--frames",
+        "4",
+        "--no-overlay",
+        "--out",
+        win.to_str().unwrap(),
+    ]);
+    assert!(err.contains("swapchain 320x240"), "{err}");
+    assert!(err.contains("4 frames: GPU"), "{err}");
+    let head = out_dir("headless");
+    let o = Command::new(bin())
+        .args(["view", scene, "--width", "320", "--height", "240", "--headless", "--frames", "1"])
+        .args(["--out", head.to_str().unwrap()])
+        .env("INSTGS_VALIDATION", "1")
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let (shot, frame) = (rgb(&win.join("screenshot_000.png")), rgb(&head.join("frame_000.png")));
+    assert_eq!(shot.dimensions(), frame.dimensions());
+    let worst = shot.as_raw().iter().zip(frame.as_raw()).map(|(a, b)| a.abs_diff(*b)).max().unwrap();
+    assert!(worst <= 1, "screenshot differs from the offscreen render by up to {worst}/255");
+    let lit = frame.as_raw().iter().filter(|&&v| v > 20).count();
+    assert!(lit > 1000, "the frame is nearly empty ({lit} lit values)");
+
+    // With the overlay: its text is white over the top-left corner; the rest is unchanged.
+    let ov = out_dir("overlay");
+    windowed(&[scene, "--width", "320", "--height", "240", "--frames", "2", "--out", ov.to_str().unwrap()]);
+    let shot = rgb(&ov.join("screenshot_000.png"));
+    let white =
+        (0..40).flat_map(|y| (0..200).map(move |x| (x, y))).filter(|&(x, y)| shot.get_pixel(x, y).0 == [255; 3]);
+    assert!(white.count() > 100, "no overlay text");
+    for y in 60..240 {
+        for x in 0..320 {
+            let (a, b) = (shot.get_pixel(x, y).0, frame.get_pixel(x, y).0);
+            assert!(a.iter().zip(&b).all(|(p, q)| p.abs_diff(*q) <= 1), "({x}, {y}): {a:?} vs {b:?}");
+        }
+    }
+}
+
+#[test]
+fn no_display_is_a_clear_error() {
+    let o = Command::new(bin())
+        .args(["view", demo().to_str().unwrap(), "--frames", "1"])
+        .env_remove("DISPLAY")
+        .env_remove("WAYLAND_DISPLAY")
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(err.contains("error: cannot open a window") && err.contains("--headless"), "{err}");
+    assert!(!err.contains("panicked"), "{err}");
+}
