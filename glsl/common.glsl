@@ -31,6 +31,7 @@
 #define COUNT_ISECT 2
 #define COUNT_ISECT_NEEDED 3
 #define COUNT_SORT 4
+#define COUNT_INSTANCES 5
 #define COUNT_SLOTS 8
 
 // Each count slot owns ARGS_PER_SLOT VkDispatchIndirectCommand entries (3 uints each):
@@ -71,24 +72,45 @@ struct FrameParams {
     uint num_groups; // instanced groups in the `groups` buffer (0 for a plain scene)
     uint num_rows; // parameter rows: background Gaussians, then every group's template Gaussians
     uint xform_grads; // 1: preprocess_backward also writes the instance-transform gradient terms
-    uint _pad1;
-    uint _pad2;
+    uint select; // 1: instance_select culled instances and chose their levels this frame; the
+                 // splats after the background are the selected instances' Gaussians, packed
+                 // (see preprocess.comp). 0: every (template Gaussian, instance) pair, fixed order.
+    uint num_instances; // instances of all groups (rows of the `xforms` buffer)
 };
 
 /// One instanced group (paper section 5.3: groups concatenated with start/length tables). Its
 /// splats are [splat_first, splat_first + rows * instances), instance-major: splat
 /// splat_first + k * rows + j is template Gaussian j (parameter row row_first + j) placed by
 /// instance k (transform instance_first + k); its offsets live at pair index
-/// splat - num_background of the offset buffers.
+/// splat - num_background of the offset buffers. Those are level 0, the template itself. A
+/// scene uploaded with level of detail also holds coarser levels l = 1.. of every template:
+/// level_rows[l] Gaussians at parameter rows level_row_first[l].., offsets instance-major at
+/// pair index level_pair_first[l] + k * level_rows[l] + j (after every group's level-0 pairs).
 struct GroupInfo {
     uint splat_first;
     uint row_first;
-    uint rows; // template Gaussians
+    uint rows; // template Gaussians (level 0)
     uint instances; // K
     uint instance_first;
+    uint levels; // levels stored, 1..LOD_LEVELS (1: the template only)
     uint _pad0;
     uint _pad1;
-    uint _pad2;
+    uvec4 level_row_first; // [0] = row_first
+    uvec4 level_rows; // [0] = rows
+    uvec4 level_pair_first; // [0] = splat_first - num_background
+    vec4 bound; // template-space bounding sphere of the Gaussians' 3-sigma extents: centre, radius
+};
+
+// Level-of-detail levels per template at most, the template (level 0) included.
+#define LOD_LEVELS 4
+
+/// Push constants of instance_select.comp.
+struct SelectArgs {
+    uint max_level; // coarsest level allowed (0: exact rendering, culling only)
+    float splats_per_pixel; // the LOD quality knob: a level is used while it keeps at least this
+                            // many Gaussians per pixel of the instance's projected bounding disc
+    float margin_px; // frustum test margin in pixels (the 2D low-pass filter's spill)
+    uint _pad0;
 };
 
 // Transform-gradient terms per (template Gaussian, instance) pair, summed per instance by
@@ -100,7 +122,8 @@ struct GroupInfo {
 struct InstanceXform {
     mat4 transform; // [s R | t], column-major
     vec4 quat; // R as a unit (w, x, y, z) quaternion; Gaussian rotations become quat * q
-    vec4 scale; // s, ln s, 0, 0; Gaussian log-scales gain ln s
+    vec4 scale; // s, ln s, largest |dp| of the instance's offsets (world units), 0; Gaussian
+                // log-scales gain ln s
 };
 
 /// Push constants of the generic scan kernels.
@@ -112,7 +135,7 @@ struct ScanArgs {
     uint capacity; // capacity for clamp_slot
     uint divisor; // scan_blocks: length = ceil(count / divisor) * multiplier
     uint multiplier;
-    uint _pad0;
+    uint out_bias; // added to the total written to out_slot
 };
 
 /// Push constants of the radix sort kernels.

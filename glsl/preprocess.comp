@@ -9,7 +9,12 @@
 // e sqrt(Sigma_yy) in y (the ellipse's bounding box, as brush does). The radii are per axis,
 // ceil(min(R, e sqrt(Sigma_xx))) and ceil(min(R, e sqrt(Sigma_yy))): blend skips alpha < 1/255,
 // so the image is Inria's with fewer empty intersections. Splats with o < 1/255 are culled.
-// Instanced splats are expanded first (instance.glsl); nothing expanded is stored.
+// Instanced splats are expanded first (instance.glsl); nothing expanded is stored. With
+// frame.p.select (rendering), instance_select has culled instances and chosen their levels and
+// inst_offsets holds the exclusive scan of their splat counts: splat num_background + j is
+// Gaussian j - inst_offsets[k] of the level chosen for the instance k whose range holds j.
+// The splat count, counts[COUNT_GAUSSIANS], is then GPU-written and this pass is dispatched
+// indirectly from it.
 #include "common.glsl"
 #include "sh.glsl"
 #include "tiles.glsl"
@@ -28,6 +33,29 @@ layout(std430, binding = 10) writeonly buffer RadiiBuf { uvec2 v[]; } radii;
 layout(std430, binding = 11) writeonly buffer TilesTouchedBuf { uint v[]; } tiles_touched;
 #define INSTANCE_BINDING 12
 #include "instance.glsl"
+layout(std430, binding = 17) readonly buffer CountsBuf { uint v[]; } counts;
+layout(std430, binding = 18) readonly buffer InstOffsetsBuf { uint v[]; } inst_offsets;
+layout(std430, binding = 19) readonly buffer InstLevelBuf { uint v[]; } inst_level;
+
+// splat_ref for frame.p.select: the instance by binary search over the scanned counts (the
+// last instance whose offset is <= j; empty instances before it share its offset).
+SplatRef selected_ref(uint i) {
+    if (i < frame.p.num_background) return SplatRef(i, NO_SLOT, NO_SLOT);
+    uint j = i - frame.p.num_background;
+    uint lo = 0, hi = frame.p.num_instances;
+    while (hi - lo > 1) {
+        uint mid = (lo + hi) / 2;
+        if (inst_offsets.v[mid] <= j) lo = mid; else hi = mid;
+    }
+    uint k = lo;
+    uint g = 0;
+    while (g + 1 < frame.p.num_groups && k >= groups.v[g + 1].instance_first) g++;
+    uint l = inst_level.v[k];
+    uint local = j - inst_offsets.v[k];
+    uint n = groups.v[g].level_rows[l];
+    uint pair = groups.v[g].level_pair_first[l] + (k - groups.v[g].instance_first) * n + local;
+    return SplatRef(groups.v[g].level_row_first[l] + local, pair, k);
+}
 
 // Later passes read nothing else of a culled Gaussian.
 void cull(uint i) {
@@ -36,7 +64,7 @@ void cull(uint i) {
 }
 
 void preprocess(uint i) {
-    SplatRef ref = splat_ref(i);
+    SplatRef ref = frame.p.select != 0 ? selected_ref(i) : splat_ref(i);
     Expanded e = expand(ref);
     vec3 p = e.mean;
     vec3 t = (frame.p.viewmat * vec4(p, 1.0)).xyz;
@@ -118,7 +146,8 @@ void preprocess(uint i) {
 }
 
 void main() {
-    for (uint i = gl_GlobalInvocationID.x; i < frame.p.num_gaussians; i += gl_NumWorkGroups.x * WG_SIZE) {
+    uint n = counts.v[COUNT_GAUSSIANS];
+    for (uint i = gl_GlobalInvocationID.x; i < n; i += gl_NumWorkGroups.x * WG_SIZE) {
         preprocess(i);
     }
 }

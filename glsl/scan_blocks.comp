@@ -30,7 +30,7 @@ void main() {
         carry += total;
     }
     if (gl_LocalInvocationIndex == 0) {
-        if (args.out_slot != NO_SLOT) counts.v[args.out_slot] = carry;
+        if (args.out_slot != NO_SLOT) counts.v[args.out_slot] = carry + args.out_bias;
         if (args.clamp_slot != NO_SLOT) counts.v[args.clamp_slot] = min(carry, args.capacity);
     }
 }

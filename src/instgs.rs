@@ -375,4 +375,17 @@ impl AnyScene {
             AnyScene::Instanced(s) => crate::raster::GpuScene::instanced(gpu, s),
         }
     }
+
+    /// The scene on the device for viewing: an instanced scene with per-frame culling and level
+    /// of detail as `cfg` says (`crate::lod`); a plain scene as [`AnyScene::upload`].
+    pub fn upload_for_rendering(
+        &self,
+        gpu: &std::sync::Arc<crate::gpu::Gpu>,
+        cfg: &crate::lod::RenderConfig,
+    ) -> Result<crate::raster::GpuScene> {
+        match self {
+            AnyScene::Plain(s) => crate::raster::GpuScene::new(gpu, s),
+            AnyScene::Instanced(s) => crate::raster::GpuScene::instanced_for_rendering(gpu, s, cfg),
+        }
+    }
 }

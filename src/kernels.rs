@@ -29,6 +29,7 @@ pub struct Kernels {
     pub adam: Kernel,
     pub seg_accumulate: Kernel,
     pub present: Kernel,
+    pub instance_select: Kernel,
     pub policy: KernelPolicy,
 }
 
@@ -101,6 +102,7 @@ impl Kernels {
             adam: k("adam", spirv::ADAM)?,
             seg_accumulate: k("seg_accumulate", spirv::SEG_ACCUMULATE)?,
             present: k("present", spirv::PRESENT)?,
+            instance_select: k("instance_select", spirv::INSTANCE_SELECT)?,
             policy,
         }))
     }
@@ -158,6 +160,8 @@ pub struct Scan<'a> {
     pub out_slot: u32,
     pub clamp_slot: u32,
     pub capacity: u32,
+    /// Added to the total written to `out_slot`.
+    pub out_bias: u32,
 }
 
 /// Records an exclusive scan of counts[count_slot] items (reduce, scan of block sums, down
@@ -171,7 +175,7 @@ pub fn record_scan(rec: &mut Recorder, k: &Kernels, c: &Counts, s: &Scan) -> Res
         capacity: s.capacity,
         divisor: SCAN_BLOCK,
         multiplier: 1,
-        _pad0: 0,
+        out_bias: s.out_bias,
     };
     let gather = s.gather.unwrap_or(s.input);
     let off = Counts::args_offset(s.count_slot, ARGS_SCAN_BLOCKS);

@@ -17,6 +17,7 @@ pub mod grad;
 pub mod instance;
 pub mod instgs;
 pub mod kernels;
+pub mod lod;
 pub mod optim;
 pub mod overlay;
 pub mod player;

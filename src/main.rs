@@ -60,6 +60,13 @@ enum Cmd {
         /// Also write the results as JSON to this file.
         #[arg(long)]
         json: Option<PathBuf>,
+        #[command(flatten)]
+        render: RenderArgs,
+        /// Render the --compare scene exactly (no level of detail) whatever the render config
+        /// says: with the same file as --compare, this measures level of detail against exact
+        /// rendering (frame time ratios and the PSNR of A's frames against B's).
+        #[arg(long, requires = "compare")]
+        compare_exact: bool,
     },
     /// Train a plain 3DGS scene from a dataset (NeRF-synthetic or COLMAP) on the GPU, or (with
     /// --init) jointly optimise an instanced scene's templates, offsets and background.
@@ -105,6 +112,13 @@ enum Cmd {
         /// Background colour r,g,b in [0, 1] (as in training).
         #[arg(long, default_value = "0,0,0", value_parser = parse_rgb)]
         background: [f32; 3],
+        /// Render as the player does (configs/render.toml: culling and template level of
+        /// detail) instead of exactly, to measure what level of detail costs.
+        #[arg(long)]
+        lod: bool,
+        /// With --lod: a TOML file with keys of configs/render.toml to change.
+        #[arg(long, requires = "lod")]
+        render_config: Option<PathBuf>,
     },
     /// Build an instanced scene (.instgs) from template PLYs and a scene graph.
     Compose {
@@ -247,6 +261,8 @@ enum Cmd {
         /// No window: render --frames N turntable frames offscreen into --out DIR.
         #[arg(long, requires_all = ["frames", "out"])]
         headless: bool,
+        #[command(flatten)]
+        render: RenderArgs,
     },
     /// Time the GPU radix sort against Rust's sort_unstable on the same random keys.
     BenchSort {
@@ -285,6 +301,24 @@ struct DataArgs {
     /// Divide the image resolution by this integer factor.
     #[arg(long, default_value_t = 1)]
     downscale: u32,
+}
+
+/// How instanced scenes are rendered by `view` and `bench` (configs/render.toml).
+#[derive(Args)]
+struct RenderArgs {
+    /// TOML file with keys of configs/render.toml to change (culling, level of detail).
+    #[arg(long)]
+    render_config: Option<PathBuf>,
+    /// Exact rendering: no template level of detail (instances are still culled, losslessly).
+    #[arg(long)]
+    exact: bool,
+}
+
+impl RenderArgs {
+    fn load(&self) -> Result<instgs_vk::lod::RenderConfig> {
+        let cfg = instgs_vk::lod::RenderConfig::load(self.render_config.as_deref())?;
+        Ok(if self.exact { cfg.exact() } else { cfg })
+    }
 }
 
 #[derive(Args)]
@@ -346,8 +380,10 @@ fn run(cli: Cli) -> Result<()> {
     match cli.cmd {
         Cmd::Info { scene, json } => info(&scene, json),
         Cmd::Render { view, out } => render(cli.device, &view, &out),
-        Cmd::Bench { view, frames, warmup, compare, json } => {
-            bench(cli.device, &view, frames, warmup, compare.as_deref(), json.as_deref())
+        Cmd::Bench { view, frames, warmup, compare, json, render, compare_exact } => {
+            let cfg = render.load()?;
+            let b = compare.as_deref().map(|p| (p, if compare_exact { cfg.clone().exact() } else { cfg.clone() }));
+            bench(cli.device, &view, frames, warmup, &cfg, b, json.as_deref())
         }
         Cmd::Compose { templates, scene_graph, background, random_offsets, seed, offset_dtype, out } => compose(
             &templates,
@@ -400,8 +436,10 @@ fn run(cli: Cli) -> Result<()> {
             frames,
             out,
             headless,
+            render,
         } => {
             let opts = instgs_vk::player::PlayerOptions {
+                render: render.load()?,
                 scene_path: scene,
                 device: cli.device,
                 width,
@@ -418,8 +456,9 @@ fn run(cli: Cli) -> Result<()> {
         Cmd::Train { data, out, init, config, iterations, resume, quiet } => {
             train(cli.device, &data, &out, init.as_deref(), config.as_deref(), iterations, resume, quiet)
         }
-        Cmd::Eval { scene, data, split, json, out, background } => {
-            eval(cli.device, &scene, &data, &split, json, out.as_deref(), background)
+        Cmd::Eval { scene, data, split, json, out, background, lod, render_config } => {
+            let render = lod.then(|| instgs_vk::lod::RenderConfig::load(render_config.as_deref())).transpose()?;
+            eval(cli.device, &scene, &data, &split, json, out.as_deref(), background, render.as_ref())
         }
     }
 }
@@ -537,6 +576,7 @@ fn train(
     Ok(())
 }
 
+#[allow(clippy::too_many_arguments)]
 fn eval(
     device: Option<String>,
     scene_path: &Path,
@@ -545,6 +585,7 @@ fn eval(
     json: bool,
     out: Option<&Path>,
     background: [f32; 3],
+    render: Option<&instgs_vk::lod::RenderConfig>,
 ) -> Result<()> {
     let scene = AnyScene::read(scene_path)?;
     let opts = instgs_vk::dataset::LoadOptions { downscale: data.downscale, background };
@@ -554,7 +595,11 @@ fn eval(
         bail!("{}: the {split} split has no views", data.data.display());
     }
     let (gpu, k) = open_device(device)?;
-    let gs = scene.upload(&gpu).with_context(|| scene_path.display().to_string())?;
+    let gs = match render {
+        Some(cfg) => scene.upload_for_rendering(&gpu, cfg),
+        None => scene.upload(&gpu),
+    }
+    .with_context(|| scene_path.display().to_string())?;
     let mut r = Rasterizer::new(&gpu, &k)?;
     if let Some(dir) = out {
         std::fs::create_dir_all(dir).with_context(|| format!("{}: cannot create", dir.display()))?;
@@ -1048,8 +1093,14 @@ struct BenchScene {
 }
 
 impl BenchScene {
-    fn new(gpu: &Arc<Gpu>, k: &Arc<Kernels>, path: &Path, scene: AnyScene) -> Result<BenchScene> {
-        let gs = scene.upload(gpu).with_context(|| path.display().to_string())?;
+    fn new(
+        gpu: &Arc<Gpu>,
+        k: &Arc<Kernels>,
+        path: &Path,
+        scene: AnyScene,
+        cfg: &instgs_vk::lod::RenderConfig,
+    ) -> Result<BenchScene> {
+        let gs = scene.upload_for_rendering(gpu, cfg).with_context(|| path.display().to_string())?;
         let r = Rasterizer::new(gpu, k)?;
         Ok(BenchScene {
             path: path.to_path_buf(),
@@ -1144,16 +1195,17 @@ fn bench(
     view: &ViewArgs,
     frames: usize,
     warmup: usize,
-    compare: Option<&Path>,
+    cfg: &instgs_vk::lod::RenderConfig,
+    compare: Option<(&Path, instgs_vk::lod::RenderConfig)>,
     json: Option<&Path>,
 ) -> Result<()> {
     if frames == 0 {
         bail!("--frames must be at least 1");
     }
     let Setup { gpu, k, scene, cams } = setup(device, view)?;
-    let mut runs = vec![BenchScene::new(&gpu, &k, &view.scene, scene)?];
-    if let Some(b) = compare {
-        runs.push(BenchScene::new(&gpu, &k, b, AnyScene::read(b)?)?);
+    let mut runs = vec![BenchScene::new(&gpu, &k, &view.scene, scene, cfg)?];
+    if let Some((b, bcfg)) = &compare {
+        runs.push(BenchScene::new(&gpu, &k, b, AnyScene::read(b)?, bcfg)?);
     }
     // Interleaved (A B A B …) so that clock and thermal drift hit both scenes alike.
     for cam in &cams {
@@ -1212,7 +1264,21 @@ fn bench(
         );
         v["compare"] = b.clone();
         v["ratios"] = ratios;
+        // Image agreement, outside the timed frames: A's frames against B's.
+        let mut psnrs = Vec::new();
+        if let [a, b] = &mut runs[..] {
+            for cam in &cams {
+                let fa = a.r.render(&a.gs, cam, view.background)?;
+                let fb = b.r.render(&b.gs, cam, view.background)?;
+                psnrs.push(instgs_vk::util::psnr(&fa.image, &fb.image));
+            }
+        }
+        let mean = psnrs.iter().sum::<f64>() / psnrs.len() as f64;
+        let worst = psnrs.iter().copied().fold(f64::INFINITY, f64::min);
+        println!("A against B: PSNR {mean:.2} dB mean, {worst:.2} dB worst view");
+        v["psnr_a_vs_b"] = serde_json::json!({ "mean": mean, "min": worst, "views": psnrs });
     }
+    v["render"] = serde_json::to_value(cfg)?;
     if let Some(path) = json {
         instgs_vk::util::write_atomic(path, |f| {
             use std::io::Write;

@@ -146,6 +146,8 @@ pub struct PlayerOptions {
     pub frames: Option<u64>,
     /// Where screenshots (windowed) or frames (headless) go.
     pub out: Option<PathBuf>,
+    /// Culling and level of detail of instanced scenes.
+    pub render: crate::lod::RenderConfig,
 }
 
 /// Backgrounds the B key cycles through.
@@ -181,7 +183,7 @@ pub fn run_headless(opts: &PlayerOptions, scene: &AnyScene, start: ViewCamera) -
     let gpu = Gpu::new(&GpuOptions::from_env(opts.device.clone()))?;
     eprintln!("device: {}", gpu.describe());
     let k = Kernels::new(&gpu)?;
-    let gs = scene.upload(&gpu).with_context(|| opts.scene_path.display().to_string())?;
+    let gs = scene.upload_for_rendering(&gpu, &opts.render).with_context(|| opts.scene_path.display().to_string())?;
     let mut r = Rasterizer::new(&gpu, &k)?;
     let mut gpu_ms = Vec::new();
     for i in 0..frames {
@@ -296,7 +298,10 @@ impl App {
         let gpu = Gpu::new(&gopts)?;
         eprintln!("device: {}", gpu.describe());
         let k = Kernels::new(&gpu)?;
-        let gs = self.scene.upload(&gpu).with_context(|| self.opts.scene_path.display().to_string())?;
+        let gs = self
+            .scene
+            .upload_for_rendering(&gpu, &self.opts.render)
+            .with_context(|| self.opts.scene_path.display().to_string())?;
         let raster = Rasterizer::new(&gpu, &k)?;
         let presenter = Presenter::new(&gpu, &k, self.opts.vsync)?;
         let overlay_buf = gpu.storage("overlay", 16)?;

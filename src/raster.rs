@@ -53,8 +53,8 @@ pub fn frame_params(
         num_groups: 0,
         num_rows: num_gaussians as u32,
         xform_grads: 0,
-        _pad1: 0,
-        _pad2: 0,
+        select: 0,
+        num_instances: 0,
     }
 }
 
@@ -69,8 +69,15 @@ pub struct GpuInstancing {
     pub d_sh0: Buffer,
     pub d_opacities: Buffer,
     pub num_groups: u32,
+    /// Offset pairs of level 0 (every template Gaussian × its instances); a scene uploaded with
+    /// level of detail holds the coarser levels' pairs after these.
     pub pairs: usize,
     pub instances: usize,
+    /// Largest |Δp| of each instance (bounding spheres for culling).
+    pub max_offsets: Vec<f32>,
+    /// Rendering only: instances are culled and their levels chosen each frame
+    /// (`instance_select.comp`). None: every pair is rendered (training, evaluation).
+    pub select: Option<SelectArgs>,
     /// Backward also computes the instance-transform gradients (`Grads::xforms`).
     pub xform_grads: bool,
 }
@@ -140,34 +147,45 @@ pub fn scene_rows(scene: &InstancedScene) -> Scene {
     rows
 }
 
-/// The GPU group table and transforms of an instanced scene.
-pub fn instancing_tables(scene: &InstancedScene) -> (Vec<GroupInfo>, Vec<InstanceXform>) {
+/// The GPU group table (level 0 only) and transforms of an instanced scene, and the largest
+/// |Δp| of each instance.
+pub fn instancing_tables(scene: &InstancedScene) -> (Vec<GroupInfo>, Vec<InstanceXform>, Vec<f32>) {
     let mut groups = Vec::new();
     let mut xforms = Vec::new();
-    let mut splat = scene.background.len();
-    let mut row = scene.background.len();
+    let mut max_offsets = Vec::new();
+    let nb = scene.background.len();
+    let mut splat = nb;
+    let mut row = nb;
     for g in &scene.groups {
         let (t, k) = (g.template.len(), g.instances.len());
+        let one = |v: usize| [v as u32, 0, 0, 0];
         groups.push(GroupInfo {
             splat_first: splat as u32,
             row_first: row as u32,
             rows: t as u32,
             instances: k as u32,
             instance_first: xforms.len() as u32,
+            levels: 1,
+            level_row_first: one(row),
+            level_rows: one(t),
+            level_pair_first: one(splat - nb),
+            bound: crate::lod::bound(&g.template),
             ..Default::default()
         });
-        xforms.extend(g.instances.iter().map(|i| xform(&i.transform)));
+        let maxo = crate::lod::max_offsets(&g.offsets, t);
+        xforms.extend(g.instances.iter().zip(&maxo).map(|(i, &m)| xform(&i.transform, m)));
+        max_offsets.extend(maxo);
         splat += t * k;
         row += t;
     }
-    (groups, xforms)
+    (groups, xforms, max_offsets)
 }
 
-fn xform(x: &crate::instance::Similarity) -> InstanceXform {
+fn xform(x: &crate::instance::Similarity, max_offset: f32) -> InstanceXform {
     InstanceXform {
         transform: x.render_mat4().to_cols_array_2d(),
         quat: x.quat_wxyz(),
-        scale: [x.scale, x.scale.ln(), 0.0, 0.0],
+        scale: [x.scale, x.scale.ln(), max_offset, 0.0],
     }
 }
 
@@ -183,19 +201,66 @@ fn upload_or_placeholder<T: bytemuck::Pod + Default>(gpu: &Arc<Gpu>, name: &str,
 impl GpuScene {
     /// A plain 3DGS scene.
     pub fn new(gpu: &Arc<Gpu>, scene: &Scene) -> Result<GpuScene> {
-        Self::upload(gpu, scene, scene.len(), &[], &[], &Offsets::default())
+        Self::upload(gpu, scene, scene.len(), scene.len(), &[], &[], &Offsets::default())
     }
 
-    /// An instanced scene; nothing is expanded.
+    /// An instanced scene; nothing is expanded. Every pair is rendered (training, evaluation).
     pub fn instanced(gpu: &Arc<Gpu>, scene: &InstancedScene) -> Result<GpuScene> {
-        let (groups, xforms) = instancing_tables(scene);
-        Self::upload(gpu, &scene_rows(scene), scene.background.len(), &groups, &xforms, &all_offsets(scene))
+        let (groups, xforms, max_offsets) = instancing_tables(scene);
+        let offsets = all_offsets(scene);
+        let splats = scene.splats();
+        let mut gs = Self::upload(gpu, &scene_rows(scene), scene.background.len(), splats, &groups, &xforms, &offsets)?;
+        gs.inst.max_offsets = max_offsets;
+        Ok(gs)
+    }
+
+    /// An instanced scene for viewing: instances culled per frame and, with `cfg.lod.enabled`,
+    /// every template's coarser levels built and uploaded too (`crate::lod`).
+    pub fn instanced_for_rendering(
+        gpu: &Arc<Gpu>,
+        scene: &InstancedScene,
+        cfg: &crate::lod::RenderConfig,
+    ) -> Result<GpuScene> {
+        let (mut groups, xforms, max_offsets) = instancing_tables(scene);
+        let mut rows = scene_rows(scene);
+        let mut offsets = all_offsets(scene);
+        let fractions: &[f32] = if cfg.lod.enabled { &cfg.lod.fractions } else { &[] };
+        for (info, g) in groups.iter_mut().zip(&scene.groups) {
+            let levels = crate::lod::build_levels(&g.template, &g.offsets, g.instances.len(), fractions);
+            for (l, (t, o)) in levels.into_iter().enumerate() {
+                info.level_row_first[l + 1] = rows.len() as u32;
+                info.level_rows[l + 1] = t.len() as u32;
+                info.level_pair_first[l + 1] = offsets.len() as u32;
+                rows.means.extend_from_slice(&t.means);
+                rows.scales.extend_from_slice(&t.scales);
+                rows.quats.extend_from_slice(&t.quats);
+                rows.opacities.extend_from_slice(&t.opacities);
+                rows.sh.extend_from_slice(&t.sh);
+                offsets.d_means.extend_from_slice(&o.d_means);
+                offsets.d_sh0.extend_from_slice(&o.d_sh0);
+                offsets.d_opacities.extend_from_slice(&o.d_opacities);
+                info.levels = l as u32 + 2;
+            }
+        }
+        let mut gs = Self::upload(gpu, &rows, scene.background.len(), scene.splats(), &groups, &xforms, &offsets)?;
+        gs.inst.pairs = scene.splats() - scene.background.len();
+        gs.inst.max_offsets = max_offsets;
+        if !groups.is_empty() && (cfg.cull || cfg.lod.enabled) {
+            gs.inst.select = Some(SelectArgs {
+                max_level: fractions.len() as u32,
+                splats_per_pixel: cfg.lod.splats_per_pixel,
+                margin_px: if cfg.cull { cfg.cull_margin_px } else { f32::NEG_INFINITY },
+                _pad0: 0,
+            });
+        }
+        Ok(gs)
     }
 
     fn upload(
         gpu: &Arc<Gpu>,
         rows: &Scene,
         num_background: usize,
+        splats: usize,
         groups: &[GroupInfo],
         xforms: &[InstanceXform],
         offsets: &Offsets,
@@ -204,7 +269,6 @@ impl GpuScene {
         if n == 0 {
             bail!("the scene has no Gaussians");
         }
-        let splats = num_background + offsets.len();
         check_scene_fits(n, splats, rows.sh_degree, gpu.info.max_storage_buffer_range)?;
         Ok(GpuScene {
             means: gpu.upload("means", &rows.means)?,
@@ -224,6 +288,8 @@ impl GpuScene {
                 num_groups: groups.len() as u32,
                 pairs: offsets.len(),
                 instances: xforms.len(),
+                max_offsets: Vec::new(),
+                select: None,
                 xform_grads: false,
             },
             sh_degree: rows.sh_degree,
@@ -249,6 +315,8 @@ impl GpuScene {
         fp.num_groups = self.inst.num_groups;
         fp.num_rows = self.rows as u32;
         fp.xform_grads = self.inst.xform_grads as u32;
+        fp.select = self.inst.select.is_some() as u32;
+        fp.num_instances = self.inst.instances as u32;
         fp
     }
 
@@ -257,7 +325,8 @@ impl GpuScene {
         if transforms.len() != self.inst.instances {
             bail!("{} transforms for {} instances", transforms.len(), self.inst.instances);
         }
-        gpu.write(&self.inst.xforms, &transforms.iter().map(xform).collect::<Vec<_>>())
+        let maxo = |i: usize| self.inst.max_offsets.get(i).copied().unwrap_or(0.0);
+        gpu.write(&self.inst.xforms, &transforms.iter().enumerate().map(|(i, x)| xform(x, maxo(i))).collect::<Vec<_>>())
     }
 
     /// (name, buffer) bindings of the instancing tables, as instance.glsl names them.
@@ -294,6 +363,15 @@ struct IsectBufs {
     keys: [Buffer; 2],
     ids: [Buffer; 2],
     hist: Buffer,
+    block_sums: Buffer,
+}
+
+/// Per-instance buffers of `instance_select` (capacity `n` instances).
+struct SelectBufs {
+    n: usize,
+    inst_count: Buffer,
+    inst_level: Buffer,
+    inst_offsets: Buffer,
     block_sums: Buffer,
 }
 
@@ -339,6 +417,15 @@ pub struct FrameState {
     pub isect_ids: Vec<u32>,
     pub ranges: Vec<[u32; 2]>,
     pub counts: Vec<u32>,
+    /// With per-frame instance selection: each instance's splat count, level and scanned offset.
+    pub selection: Option<Selection>,
+}
+
+/// What `instance_select` chose for every instance in a frame.
+pub struct Selection {
+    pub inst_count: Vec<u32>,
+    pub inst_level: Vec<u32>,
+    pub inst_offsets: Vec<u32>,
 }
 
 pub struct Rasterizer {
@@ -350,6 +437,9 @@ pub struct Rasterizer {
     gauss: Option<GaussBufs>,
     isect: Option<IsectBufs>,
     image: Option<ImageBufs>,
+    select: Option<SelectBufs>,
+    /// Bound where a kernel's instance-selection buffers are unused (exact rendering).
+    placeholder: Buffer,
     cmd: CommandBuffer,
     timer: Option<Timer>,
     /// (scene buffer handle, N, width, height, capacity, image read back) the command buffer
@@ -389,6 +479,8 @@ impl Rasterizer {
             gauss: None,
             isect: None,
             image: None,
+            select: None,
+            placeholder: gpu.storage("placeholder", 16)?,
             cmd: CommandBuffer::new(gpu)?,
             timer: Timer::new(gpu, 32)?,
             recorded: None,
@@ -414,14 +506,35 @@ impl Rasterizer {
         if let Some(i) = &self.isect {
             b += i.keys.iter().chain(&i.ids).map(|x| x.size).sum::<u64>() + i.hist.size + i.block_sums.size;
         }
+        if let Some(s) = &self.select {
+            b += s.inst_count.size + s.inst_level.size + s.inst_offsets.size + s.block_sums.size;
+        }
         if let Some(im) = &self.image {
             b += im.ranges.size + im.out_image.size + im.last.size + im.readback_image.as_ref().map_or(0, |r| r.size);
         }
         b
     }
 
-    fn ensure_buffers(&mut self, n: usize, width: u32, height: u32, cap: usize, readback: bool) -> Result<()> {
+    fn ensure_buffers(
+        &mut self,
+        n: usize,
+        instances: usize,
+        width: u32,
+        height: u32,
+        cap: usize,
+        readback: bool,
+    ) -> Result<()> {
         let gpu = self.gpu.clone();
+        if instances > 0 && self.select.as_ref().is_none_or(|s| s.n < instances) {
+            let b = instances as u64 * 4;
+            self.select = Some(SelectBufs {
+                n: instances,
+                inst_count: gpu.storage("inst_count", b)?,
+                inst_level: gpu.storage("inst_level", b)?,
+                inst_offsets: gpu.storage("inst_offsets", b)?,
+                block_sums: gpu.storage("inst_block_sums", scan_blocks_for(instances as u64) * 4)?,
+            });
+        }
         let limit = gpu.info.max_storage_buffer_range;
         if (cap as u64) * 4 > limit {
             bail!(
@@ -486,7 +599,8 @@ impl Rasterizer {
         let im = self.image.as_ref().unwrap();
         let c = &self.counts;
         let n = scene.len as u32;
-        let groups = n.div_ceil(WG_SIZE).min(MAX_GROUPS);
+        let select = scene.inst.select.map(|a| (a, self.select.as_ref().unwrap()));
+        let placeholder = &self.placeholder;
         let tile_bits = bits_for(fp.tiles_x * fp.tiles_y);
         let cap = is.cap as u32;
         let frame = &self.frame_ub;
@@ -518,10 +632,53 @@ impl Rasterizer {
             }
             let mut init = [0u32; COUNT_SLOTS as usize];
             init[COUNT_GAUSSIANS as usize] = n;
+            init[COUNT_INSTANCES as usize] = scene.inst.instances as u32;
             rec.update(&c.counts, &init);
             rec.fill(&im.ranges, 0);
             c.record_args(rec, &k, COUNT_GAUSSIANS)?;
             rec.end_pass("setup")?;
+            if let Some((args, sel)) = select {
+                if poison {
+                    for b in [&sel.inst_count, &sel.inst_level, &sel.inst_offsets] {
+                        rec.fill(b, POISON);
+                    }
+                }
+                c.record_args(rec, &k, COUNT_INSTANCES)?;
+                rec.dispatch(
+                    &k.instance_select,
+                    &[
+                        ("frame", frame),
+                        ("groups", &scene.inst.groups),
+                        ("xforms", &scene.inst.xforms),
+                        ("inst_count", &sel.inst_count),
+                        ("inst_level", &sel.inst_level),
+                    ],
+                    &args,
+                    [(scene.inst.instances as u32).div_ceil(WG_SIZE).min(MAX_GROUPS), 1, 1],
+                )?;
+                // The frame's splats: background + the selected instances' Gaussians.
+                record_scan(
+                    rec,
+                    &k,
+                    c,
+                    &Scan {
+                        count_slot: COUNT_INSTANCES,
+                        mode: SCAN_MODE_VALUE,
+                        input: &sel.inst_count,
+                        gather: None,
+                        block_sums: &sel.block_sums,
+                        output: &sel.inst_offsets,
+                        out_slot: COUNT_GAUSSIANS,
+                        clamp_slot: NO_SLOT,
+                        capacity: 0,
+                        out_bias: scene.num_background as u32,
+                    },
+                )?;
+                c.record_args(rec, &k, COUNT_GAUSSIANS)?;
+                rec.end_pass("select")?;
+            }
+            let (inst_offsets, inst_level) =
+                select.map_or((placeholder, placeholder), |(_, s)| (&s.inst_offsets, &s.inst_level));
             let bindings: Vec<(&str, &Buffer)> = [
                 ("frame", frame),
                 ("means", &scene.means),
@@ -538,8 +695,10 @@ impl Rasterizer {
             ]
             .into_iter()
             .chain(scene.instancing_bindings())
+            .chain([("counts", &c.counts), ("inst_offsets", inst_offsets), ("inst_level", inst_level)])
             .collect();
-            rec.dispatch(&k.preprocess, &bindings, &(), [groups, 1, 1])?;
+            let items = Counts::args_offset(COUNT_GAUSSIANS, ARGS_ITEMS);
+            rec.dispatch_indirect(&k.preprocess, &bindings, &(), &c.indirect, items)?;
             rec.end_pass("preprocess")?;
             record_scan(
                 rec,
@@ -555,9 +714,10 @@ impl Rasterizer {
                     out_slot: COUNT_VISIBLE,
                     clamp_slot: NO_SLOT,
                     capacity: 0,
+                    out_bias: 0,
                 },
             )?;
-            rec.dispatch(
+            rec.dispatch_indirect(
                 &k.compact,
                 &[
                     ("counts", &c.counts),
@@ -568,7 +728,8 @@ impl Rasterizer {
                     ("depth_ids", &g.depth_ids[0]),
                 ],
                 &(),
-                [groups, 1, 1],
+                &c.indirect,
+                items,
             )?;
             c.record_args(rec, &k, COUNT_VISIBLE)?;
             rec.end_pass("scan")?;
@@ -595,6 +756,7 @@ impl Rasterizer {
                     out_slot: COUNT_ISECT_NEEDED,
                     clamp_slot: COUNT_ISECT,
                     capacity: cap,
+                    out_bias: 0,
                 },
             )?;
             rec.end_pass("scan")?;
@@ -688,7 +850,7 @@ impl Rasterizer {
         let n = scene.len;
         let mut cap = self.isect.as_ref().map_or(n.max(1 << 16), |i| i.cap);
         loop {
-            self.ensure_buffers(n, cam.width, cam.height, cap, readback)?;
+            self.ensure_buffers(n, scene.inst.instances, cam.width, cam.height, cap, readback)?;
             cap = self.isect.as_ref().unwrap().cap;
             let fp = scene.frame_params(cam, background, cap as u32);
             self.frame_ub.write_mapped(&[fp])?;
@@ -744,6 +906,17 @@ impl Rasterizer {
             isect_keys: gpu.read(&is.keys[self.isect_result], m)?,
             isect_ids: gpu.read(&is.ids[self.isect_result], m)?,
             ranges: gpu.read(&im.ranges, tiles)?,
+            selection: match (&self.select, self.last_params.is_some_and(|p| p.select != 0)) {
+                (Some(s), true) => {
+                    let ni = self.last_params.unwrap().num_instances as usize;
+                    Some(Selection {
+                        inst_count: gpu.read(&s.inst_count, ni)?,
+                        inst_level: gpu.read(&s.inst_level, ni)?,
+                        inst_offsets: gpu.read(&s.inst_offsets, ni)?,
+                    })
+                }
+                _ => None,
+            },
             counts,
         })
     }

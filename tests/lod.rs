@@ -1,0 +1,180 @@
+//! Rendering instanced scenes with per-frame instance selection: `instance_select` against its
+//! CPU twin, the packed expansion of the chosen levels against the plain render of the same
+//! Gaussians expanded on the CPU, lossless culling, and level of detail on real splats.
+//! Validation on, outputs poisoned.
+mod common;
+
+use common::*;
+use glam::Vec3;
+use instgs_vk::camera::Camera;
+use instgs_vk::instance::{Group, InstancedScene, Offsets};
+use instgs_vk::lod::{build_levels, select_instance, RenderConfig};
+use instgs_vk::raster::{GpuScene, Rasterizer};
+use instgs_vk::shared::*;
+use instgs_vk::util::psnr;
+
+/// Instances spread in front of, beside and behind a camera at the origin looking along +z.
+fn spread_scene(rng: &mut Rng) -> InstancedScene {
+    let mut s = random_instanced(rng, 1, 40, &[(300, 9), (200, 7)]);
+    for g in &mut s.groups {
+        for i in &mut g.instances {
+            let t = Vec3::new(rng.range(-9.0, 9.0), rng.range(-4.0, 4.0), rng.range(-6.0, 30.0));
+            i.transform = instgs_vk::instance::Similarity::from_parts(i.transform.rotation, i.transform.scale, t);
+        }
+    }
+    for m in &mut s.background.means {
+        m[2] += 4.0;
+    }
+    s
+}
+
+fn camera() -> Camera {
+    look_at(Vec3::ZERO, Vec3::new(0.0, 0.0, 1.0), Vec3::new(0.0, -1.0, 0.0), 128, 96, 110.0)
+}
+
+/// The frame's splats expanded on the CPU: background, then each selected instance's level.
+fn selected_scene(scene: &InstancedScene, cfg: &RenderConfig, counts: &[u32], levels: &[u32]) -> InstancedScene {
+    let mut out = InstancedScene { sh_degree: scene.sh_degree, background: scene.background.clone(), groups: vec![] };
+    let mut k = 0;
+    for g in &scene.groups {
+        let kk = g.instances.len();
+        let mut all = vec![(g.template.clone(), g.offsets.clone())];
+        all.extend(build_levels(&g.template, &g.offsets, kk, &cfg.lod.fractions));
+        for (ki, inst) in g.instances.iter().enumerate() {
+            if counts[k] > 0 {
+                let (t, o) = &all[levels[k] as usize];
+                let n = t.len();
+                assert_eq!(counts[k] as usize, n);
+                let r = ki * n..(ki + 1) * n;
+                out.groups.push(Group {
+                    name: format!("{}-{ki}", g.name),
+                    template: t.clone(),
+                    instances: vec![inst.clone()],
+                    offsets: Offsets {
+                        d_means: o.d_means[r.clone()].to_vec(),
+                        d_sh0: o.d_sh0[r.clone()].to_vec(),
+                        d_opacities: o.d_opacities[r].to_vec(),
+                    },
+                });
+            }
+            k += 1;
+        }
+    }
+    out
+}
+
+#[test]
+fn selection_matches_cpu_twin_and_renders_the_chosen_levels() {
+    let (gpu, k) = gpu();
+    let mut rng = Rng::new(5);
+    let scene = spread_scene(&mut rng);
+    let mut cfg = RenderConfig::load(None).unwrap();
+    cfg.lod.splats_per_pixel = 0.05;
+    let gs = GpuScene::instanced_for_rendering(&gpu, &scene, &cfg).unwrap();
+    let mut r = Rasterizer::new(&gpu, &k).unwrap();
+    r.poison = true;
+    let cam = camera();
+    let f = r.render(&gs, &cam, [0.0; 3]).unwrap();
+    let st = r.read_state().unwrap();
+    let sel = st.selection.expect("a selection");
+    let fp = r.last_frame_params().unwrap();
+    let groups: Vec<GroupInfo> = gpu.read(&gs.inst.groups, scene.groups.len()).unwrap();
+    let xforms: Vec<InstanceXform> = gpu.read(&gs.inst.xforms, gs.inst.instances).unwrap();
+    let args = gs.inst.select.unwrap();
+    let mut gi = 0;
+    for (i, x) in xforms.iter().enumerate() {
+        while gi + 1 < groups.len() && i as u32 >= groups[gi + 1].instance_first {
+            gi += 1;
+        }
+        let want = select_instance(&groups[gi], x, &fp, &args);
+        assert_eq!((sel.inst_count[i], sel.inst_level[i]), want, "instance {i}");
+    }
+    let culled = sel.inst_count.iter().filter(|&&c| c == 0).count();
+    let coarse = sel.inst_level.iter().zip(&sel.inst_count).filter(|&(&l, &c)| l > 0 && c > 0).count();
+    let fine = sel.inst_level.iter().zip(&sel.inst_count).filter(|&(&l, &c)| l == 0 && c > 0).count();
+    assert!(culled >= 2 && coarse >= 2 && fine >= 1, "culled {culled}, coarse {coarse}, level 0 {fine}");
+    let total: u32 = sel.inst_count.iter().sum();
+    assert_eq!(st.counts[COUNT_GAUSSIANS as usize], scene.background.len() as u32 + total);
+
+    // The packed splats are exactly the chosen levels of the visible instances.
+    let selected = selected_scene(&scene, &cfg, &sel.inst_count, &sel.inst_level);
+    let mut plain_r = Rasterizer::new(&gpu, &k).unwrap();
+    let plain = plain_r.render(&GpuScene::new(&gpu, &selected.expand()).unwrap(), &cam, [0.0; 3]).unwrap();
+    let plain_st = plain_r.read_state().unwrap();
+    let n = st.counts[COUNT_GAUSSIANS as usize] as usize;
+    assert_eq!(st.projected.tiles_touched[..n], plain_st.projected.tiles_touched[..]);
+    assert_eq!(f.visible, plain.visible);
+    let db = psnr(&f.image, &plain.image);
+    assert!(db >= 60.0, "selected vs expanded: {db:.1} dB");
+    assert_clean(&gpu);
+}
+
+#[test]
+fn culling_is_lossless() {
+    let (gpu, k) = gpu();
+    let mut rng = Rng::new(9);
+    let scene = spread_scene(&mut rng);
+    let cfg = RenderConfig::load(None).unwrap().exact();
+    let culled = GpuScene::instanced_for_rendering(&gpu, &scene, &cfg).unwrap();
+    let every = GpuScene::instanced(&gpu, &scene).unwrap();
+    let mut r = Rasterizer::new(&gpu, &k).unwrap();
+    r.poison = true;
+    for turn in 0..4 {
+        let a = std::f32::consts::FRAC_PI_2 * turn as f32;
+        let cam = look_at(Vec3::ZERO, Vec3::new(a.sin(), 0.1, a.cos()), Vec3::new(0.0, -1.0, 0.0), 128, 96, 110.0);
+        let fc = r.render(&culled, &cam, [0.2; 3]).unwrap();
+        let sc = r.read_state().unwrap();
+        let fe = r.render(&every, &cam, [0.2; 3]).unwrap();
+        assert_eq!(fc.visible, fe.visible, "turn {turn}");
+        let db = psnr(&fc.image, &fe.image);
+        assert!(db >= 60.0, "turn {turn}: culled vs every pair {db:.1} dB");
+        let sel = sc.selection.unwrap();
+        assert!(sel.inst_level.iter().all(|&l| l == 0));
+        assert!(sel.inst_count.contains(&0), "turn {turn}: nothing culled");
+    }
+    assert_clean(&gpu);
+}
+
+#[test]
+fn level_of_detail_keeps_distant_guitars() {
+    let (gpu, k) = gpu();
+    let demo = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("demo/guitar.compressed.ply");
+    let guitar = instgs_vk::scene::read_ply(&demo).unwrap();
+    let (lo, hi) = guitar.robust_bounds(0.0);
+    let size = (hi - lo).length();
+    let mut rng = Rng::new(2);
+    let instances: Vec<_> = (0..6)
+        .map(|i| instgs_vk::instance::Instance {
+            id: format!("{i}"),
+            transform: instgs_vk::instance::Similarity::from_parts(
+                glam::Quat::from_rotation_y(rng.range(-0.5, 0.5)),
+                1.0,
+                Vec3::new((i % 3) as f32 - 1.0, (i / 3) as f32 - 0.5, 0.0) * size,
+            ),
+        })
+        .collect();
+    let scene = InstancedScene {
+        sh_degree: guitar.sh_degree,
+        background: instgs_vk::scene::Scene { sh_degree: guitar.sh_degree, ..Default::default() },
+        groups: vec![Group {
+            name: "guitar".into(),
+            offsets: Offsets::zeros(guitar.len() * instances.len()),
+            template: guitar,
+            instances,
+        }],
+    };
+    let cfg = RenderConfig::load(None).unwrap();
+    let lod = GpuScene::instanced_for_rendering(&gpu, &scene, &cfg).unwrap();
+    let exact = GpuScene::instanced_for_rendering(&gpu, &scene, &cfg.clone().exact()).unwrap();
+    let mut r = Rasterizer::new(&gpu, &k).unwrap();
+    let centre = 0.5 * (lo + hi);
+    let cam = look_at(centre + Vec3::new(0.0, 0.0, -2.2 * size), centre, Vec3::new(0.0, -1.0, 0.0), 160, 120, 140.0);
+    let fl = r.render(&lod, &cam, [0.0; 3]).unwrap();
+    let levels = r.read_state().unwrap().selection.unwrap().inst_level;
+    let fe = r.render(&exact, &cam, [0.0; 3]).unwrap();
+    assert!(levels.iter().all(|&l| l > 0), "levels {levels:?}");
+    assert!(fl.intersections * 2 < fe.intersections, "{} vs {}", fl.intersections, fe.intersections);
+    let db = psnr(&fl.image, &fe.image);
+    assert!(db >= 28.0, "level of detail vs exact: {db:.1} dB");
+    assert_clean(&gpu);
+}
