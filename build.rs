@@ -59,8 +59,20 @@ fn bytemuck_words(words: &[u32]) -> Vec<u8> {
     words.iter().flat_map(|w| w.to_le_bytes()).collect()
 }
 
+/// Debug info embeds the sources, and SPIR-V reflection rejects multi-byte characters there.
+fn ascii_only(name: &str, src: &str) -> Result<(), String> {
+    match src.lines().enumerate().find(|(_, l)| !l.is_ascii()) {
+        Some((i, _)) => Err(format!("{name}:{}: non-ASCII character (GLSL sources must be ASCII)", i + 1)),
+        None => Ok(()),
+    }
+}
+
 fn compile(compiler: &shaderc::Compiler, dir: &Path, path: &Path, define: Option<&str>) -> Vec<u32> {
     let src = std::fs::read_to_string(path).unwrap();
+    let file = format!("glsl/{}", path.file_name().unwrap().to_str().unwrap());
+    if let Err(e) = ascii_only(&file, &src) {
+        fail(&e);
+    }
     let mut opts = shaderc::CompileOptions::new().unwrap();
     if let Some(d) = define {
         opts.add_macro_definition(d, None);
@@ -72,9 +84,9 @@ fn compile(compiler: &shaderc::Compiler, dir: &Path, path: &Path, define: Option
     let dir = dir.to_path_buf();
     opts.set_include_callback(move |name, _ty, _from, _depth| {
         let p = dir.join(name);
-        std::fs::read_to_string(&p)
-            .map(|content| shaderc::ResolvedInclude { resolved_name: format!("glsl/{name}"), content })
-            .map_err(|e| format!("cannot include {name}: {e}"))
+        let content = std::fs::read_to_string(&p).map_err(|e| format!("cannot include {name}: {e}"))?;
+        ascii_only(&format!("glsl/{name}"), &content)?;
+        Ok(shaderc::ResolvedInclude { resolved_name: format!("glsl/{name}"), content })
     });
     let name = format!("glsl/{}", path.file_name().unwrap().to_str().unwrap());
     match compiler.compile_into_spirv(&src, shaderc::ShaderKind::Compute, &name, "main", Some(&opts)) {

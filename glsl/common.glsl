@@ -32,6 +32,7 @@
 #define COUNT_ISECT_NEEDED 3
 #define COUNT_SORT 4
 #define COUNT_INSTANCES 5
+#define COUNT_SPLATS_NEEDED 6
 #define COUNT_SLOTS 8
 
 // Each count slot owns ARGS_PER_SLOT VkDispatchIndirectCommand entries (3 uints each):
@@ -76,6 +77,10 @@ struct FrameParams {
                  // splats after the background are the selected instances' Gaussians, packed
                  // (see preprocess.comp). 0: every (template Gaussian, instance) pair, fixed order.
     uint num_instances; // instances of all groups (rows of the `xforms` buffer)
+    uint offset_codes; // 1: offsets are product-quantised (d_codes, codebooks), 0: f32 arrays
+    uint _pad0;
+    uint _pad1;
+    uint _pad2;
 };
 
 /// One instanced group (paper section 5.3: groups concatenated with start/length tables). Its
@@ -135,7 +140,7 @@ struct ScanArgs {
     uint capacity; // capacity for clamp_slot
     uint divisor; // scan_blocks: length = ceil(count / divisor) * multiplier
     uint multiplier;
-    uint out_bias; // added to the total written to out_slot
+    uint out_bias; // added to the total written to out_slot and clamp_slot
 };
 
 /// Push constants of the radix sort kernels.

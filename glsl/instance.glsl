@@ -3,13 +3,19 @@
 //   mean = s R mean_t + t + dp,  log-scales = log-scales_t + ln s,  quat = q_T * q_t,
 //   opacity logit = logit_t + do,  SH DC = dc_t + dc,  higher SH evaluated in template space
 //   at the direction R^T d (view-dependent colour turns with the instance).
+// Offsets are f32 arrays, or with frame.p.offset_codes product-quantised (crate::codes): per
+// pair 16 bits in d_codes (two pairs per word, low half first), the low byte indexing the
+// group's dp codebook (codebooks[group * 512 + code].xyz), the high byte its (d SH DC, d
+// opacity) codebook (codebooks[group * 512 + 256 + code]).
 // The including kernel declares `frame` (FrameBuf) and the parameter buffers means, scales,
-// quats, opacities, and defines INSTANCE_BINDING, the first of the five bindings below.
+// quats, opacities, and defines INSTANCE_BINDING, the first of the seven bindings below.
 layout(std430, binding = INSTANCE_BINDING) readonly buffer GroupsBuf { GroupInfo v[]; } groups;
 layout(std430, binding = INSTANCE_BINDING + 1) readonly buffer XformsBuf { InstanceXform v[]; } xforms;
 layout(std430, binding = INSTANCE_BINDING + 2) readonly buffer DMeansBuf { float v[]; } d_means;
 layout(std430, binding = INSTANCE_BINDING + 3) readonly buffer DSh0Buf { float v[]; } d_sh0;
 layout(std430, binding = INSTANCE_BINDING + 4) readonly buffer DOpacitiesBuf { float v[]; } d_opacities;
+layout(std430, binding = INSTANCE_BINDING + 5) readonly buffer DCodesBuf { uint v[]; } d_codes;
+layout(std430, binding = INSTANCE_BINDING + 6) readonly buffer CodebooksBuf { vec4 v[]; } codebooks;
 
 // Rotation matrix of a unit (w, x, y, z) quaternion.
 mat3 quat_to_mat(vec4 q) {
@@ -25,22 +31,23 @@ vec4 quat_mul(vec4 a, vec4 b) {
                 a.x * b.z - a.y * b.w + a.z * b.x + a.w * b.y, a.x * b.w + a.y * b.z - a.z * b.y + a.w * b.x);
 }
 
-// Where splat i comes from: its parameter row, and for an instanced splat its offset pair index
-// and transform (NO_SLOT for a background Gaussian).
+// Where splat i comes from: its parameter row, and for an instanced splat its offset pair index,
+// transform and group (NO_SLOT for a background Gaussian).
 struct SplatRef {
     uint row;
     uint pair;
     uint xform;
+    uint group;
 };
 
 SplatRef splat_ref(uint i) {
-    if (i < frame.p.num_background) return SplatRef(i, NO_SLOT, NO_SLOT);
+    if (i < frame.p.num_background) return SplatRef(i, NO_SLOT, NO_SLOT, NO_SLOT);
     uint g = 0;
     while (g + 1 < frame.p.num_groups && i >= groups.v[g + 1].splat_first) g++;
     uint local = i - groups.v[g].splat_first;
     uint rows = groups.v[g].rows;
     uint k = local / rows;
-    return SplatRef(groups.v[g].row_first + local - k * rows, i - frame.p.num_background, groups.v[g].instance_first + k);
+    return SplatRef(groups.v[g].row_first + local - k * rows, i - frame.p.num_background, groups.v[g].instance_first + k, g);
 }
 
 // A splat's expanded parameters (the quaternion raw, as stored, not normalised), its SH DC
@@ -66,11 +73,23 @@ Expanded expand(SplatRef r) {
     if (r.pair != NO_SLOT) {
         InstanceXform x = xforms.v[r.xform];
         uint p = r.pair;
-        e.mean = (x.transform * vec4(e.mean, 1.0)).xyz + vec3(d_means.v[3 * p], d_means.v[3 * p + 1], d_means.v[3 * p + 2]);
+        vec3 dp;
+        float dop;
+        if (frame.p.offset_codes != 0) {
+            uint code = (d_codes.v[p >> 1] >> (16 * (p & 1))) & 0xFFFF;
+            dp = codebooks.v[r.group * 512 + (code & 0xFF)].xyz;
+            vec4 c = codebooks.v[r.group * 512 + 256 + (code >> 8)];
+            e.dc = c.xyz;
+            dop = c.w;
+        } else {
+            dp = vec3(d_means.v[3 * p], d_means.v[3 * p + 1], d_means.v[3 * p + 2]);
+            e.dc = vec3(d_sh0.v[3 * p], d_sh0.v[3 * p + 1], d_sh0.v[3 * p + 2]);
+            dop = d_opacities.v[p];
+        }
+        e.mean = (x.transform * vec4(e.mean, 1.0)).xyz + dp;
         e.log_scale += x.scale.y;
         e.quat = quat_mul(x.quat, e.quat);
-        e.logit += d_opacities.v[p];
-        e.dc = vec3(d_sh0.v[3 * p], d_sh0.v[3 * p + 1], d_sh0.v[3 * p + 2]);
+        e.logit += dop;
         e.rot = quat_to_mat(x.quat);
     }
     return e;

@@ -33,14 +33,14 @@ layout(std430, binding = 10) writeonly buffer RadiiBuf { uvec2 v[]; } radii;
 layout(std430, binding = 11) writeonly buffer TilesTouchedBuf { uint v[]; } tiles_touched;
 #define INSTANCE_BINDING 12
 #include "instance.glsl"
-layout(std430, binding = 17) readonly buffer CountsBuf { uint v[]; } counts;
-layout(std430, binding = 18) readonly buffer InstOffsetsBuf { uint v[]; } inst_offsets;
-layout(std430, binding = 19) readonly buffer InstLevelBuf { uint v[]; } inst_level;
+layout(std430, binding = 19) readonly buffer CountsBuf { uint v[]; } counts;
+layout(std430, binding = 20) readonly buffer InstOffsetsBuf { uint v[]; } inst_offsets;
+layout(std430, binding = 21) readonly buffer InstLevelBuf { uint v[]; } inst_level;
 
 // splat_ref for frame.p.select: the instance by binary search over the scanned counts (the
 // last instance whose offset is <= j; empty instances before it share its offset).
 SplatRef selected_ref(uint i) {
-    if (i < frame.p.num_background) return SplatRef(i, NO_SLOT, NO_SLOT);
+    if (i < frame.p.num_background) return SplatRef(i, NO_SLOT, NO_SLOT, NO_SLOT);
     uint j = i - frame.p.num_background;
     uint lo = 0, hi = frame.p.num_instances;
     while (hi - lo > 1) {
@@ -54,7 +54,7 @@ SplatRef selected_ref(uint i) {
     uint local = j - inst_offsets.v[k];
     uint n = groups.v[g].level_rows[l];
     uint pair = groups.v[g].level_pair_first[l] + (k - groups.v[g].instance_first) * n + local;
-    return SplatRef(groups.v[g].level_row_first[l] + local, pair, k);
+    return SplatRef(groups.v[g].level_row_first[l] + local, pair, k, g);
 }
 
 // Later passes read nothing else of a culled Gaussian.

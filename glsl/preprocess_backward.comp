@@ -45,7 +45,7 @@ layout(std430, binding = 19) buffer MaxRadiiBuf { uint v[]; } max_radii;
 layout(std430, binding = 20) writeonly buffer GradDMeansBuf { float v[]; } grad_d_means;
 layout(std430, binding = 21) writeonly buffer GradDSh0Buf { float v[]; } grad_d_sh0;
 layout(std430, binding = 22) writeonly buffer GradDOpacitiesBuf { float v[]; } grad_d_opacities;
-layout(std430, binding = 28) writeonly buffer XformTermsBuf { float v[]; } xform_terms;
+layout(std430, binding = 30) writeonly buffer XformTermsBuf { float v[]; } xform_terms;
 #define INSTANCE_BINDING 23
 #include "instance.glsl"
 

@@ -31,6 +31,6 @@ void main() {
     }
     if (gl_LocalInvocationIndex == 0) {
         if (args.out_slot != NO_SLOT) counts.v[args.out_slot] = carry + args.out_bias;
-        if (args.clamp_slot != NO_SLOT) counts.v[args.clamp_slot] = min(carry, args.capacity);
+        if (args.clamp_slot != NO_SLOT) counts.v[args.clamp_slot] = min(carry + args.out_bias, args.capacity);
     }
 }

@@ -23,12 +23,18 @@ pub const VERSION: u32 = 1;
 /// Headers larger than this are refused (a corrupt length would otherwise allocate gigabytes).
 const MAX_HEADER: usize = 64 << 20;
 
-/// Storage type of the offset sections.
+/// Storage of the offsets (header `offset_dtype`: f32, f16 or pq8) and type of a section
+/// (f32, f16 or u8).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum Dtype {
     F32,
     F16,
+    /// Section type: bytes.
+    U8,
+    /// Offset storage: product-quantised (`crate::codes`): sections `d_codes` (u8, [K, T, 2]),
+    /// `d_codebook_dp` (f32, [256, 3]) and `d_codebook_dc` (f32, [256, 4]).
+    Pq8,
 }
 
 impl Dtype {
@@ -36,9 +42,14 @@ impl Dtype {
         match self {
             Dtype::F32 => 4,
             Dtype::F16 => 2,
+            Dtype::U8 | Dtype::Pq8 => 1,
         }
     }
 }
+
+/// Product-quantised offset sections: name suffix, type, shape tail after [K, T] or [256].
+const CODE_SECTIONS: [(&str, Dtype); 3] =
+    [("d_codes", Dtype::U8), ("d_codebook_dp", Dtype::F32), ("d_codebook_dc", Dtype::F32)];
 
 #[derive(Serialize, Deserialize)]
 struct Header {
@@ -93,6 +104,7 @@ fn f32_bytes(v: &[f32], dtype: Dtype) -> Vec<u8> {
     match dtype {
         Dtype::F32 => v.iter().flat_map(|x| x.to_le_bytes()).collect(),
         Dtype::F16 => v.iter().flat_map(|x| f16::from_f32(*x).to_le_bytes()).collect(),
+        Dtype::U8 | Dtype::Pq8 => v.iter().map(|&x| x as u8).collect(),
     }
 }
 
@@ -122,6 +134,26 @@ pub fn to_bytes(scene: &InstancedScene, offset_dtype: Dtype) -> Vec<u8> {
     }
     for (i, g) in scene.groups.iter().enumerate() {
         let (k, t) = (g.instances.len(), g.template.len());
+        if offset_dtype == Dtype::Pq8 {
+            let c = crate::codes::OffsetCodes::encode(&g.offsets, i as u64);
+            let n = crate::codes::CODES;
+            push(format!("group/{i}/d_codes"), Dtype::U8, vec![k, t, 2], c.codes.concat(), &mut data);
+            push(
+                format!("group/{i}/d_codebook_dp"),
+                Dtype::F32,
+                vec![n, 3],
+                f32_bytes(&c.dp.concat(), Dtype::F32),
+                &mut data,
+            );
+            push(
+                format!("group/{i}/d_codebook_dc"),
+                Dtype::F32,
+                vec![n, 4],
+                f32_bytes(&c.dc.concat(), Dtype::F32),
+                &mut data,
+            );
+            continue;
+        }
         let arrays = [g.offsets.d_means.concat(), g.offsets.d_sh0.concat(), g.offsets.d_opacities.clone()];
         for ((suffix, width), arr) in OFFSET_SECTIONS.into_iter().zip(arrays) {
             let shape = if width == 1 { vec![k, t] } else { vec![k, t, width] };
@@ -231,6 +263,7 @@ impl Sections<'_> {
         Ok(match dtype {
             Dtype::F32 => raw.chunks_exact(4).map(|c| f32::from_le_bytes(c.try_into().unwrap())).collect(),
             Dtype::F16 => raw.chunks_exact(2).map(|c| f16::from_le_bytes(c.try_into().unwrap()).to_f32()).collect(),
+            Dtype::U8 | Dtype::Pq8 => raw.iter().map(|&b| b as f32).collect(),
         })
     }
 
@@ -269,12 +302,31 @@ pub fn from_bytes(bytes: &[u8], what: &str) -> Result<InstancedScene> {
         for (i, g) in h.groups.iter().enumerate() {
             let template = secs.scene(&format!("group/{i}"), g.template_gaussians, h.sh_degree)?;
             let (k, t) = (g.instances.len(), g.template_gaussians);
-            let mut off = Vec::new();
-            for (suffix, width) in OFFSET_SECTIONS {
-                let shape = if width == 1 { vec![k, t] } else { vec![k, t, width] };
-                off.push(secs.get(&format!("group/{i}/{suffix}"), &shape, h.offset_dtype)?);
-            }
             let v3 = |a: &[f32]| a.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect();
+            let offsets = if h.offset_dtype == Dtype::Pq8 {
+                let n = crate::codes::CODES;
+                let shapes = [vec![k, t, 2], vec![n, 3], vec![n, 4]];
+                let mut arrays = Vec::new();
+                for ((suffix, dtype), shape) in CODE_SECTIONS.into_iter().zip(shapes) {
+                    arrays.push(secs.get(&format!("group/{i}/{suffix}"), &shape, dtype)?);
+                }
+                crate::codes::OffsetCodes {
+                    codes: arrays[0].chunks_exact(2).map(|c| [c[0] as u8, c[1] as u8]).collect(),
+                    dp: v3(&arrays[1]),
+                    dc: arrays[2].chunks_exact(4).map(|c| [c[0], c[1], c[2], c[3]]).collect(),
+                }
+                .decode()
+            } else {
+                if ![Dtype::F32, Dtype::F16].contains(&h.offset_dtype) {
+                    bail!("header: offset_dtype {:?} is not an offset storage (f32, f16, pq8)", h.offset_dtype);
+                }
+                let mut off = Vec::new();
+                for (suffix, width) in OFFSET_SECTIONS {
+                    let shape = if width == 1 { vec![k, t] } else { vec![k, t, width] };
+                    off.push(secs.get(&format!("group/{i}/{suffix}"), &shape, h.offset_dtype)?);
+                }
+                Offsets { d_means: v3(&off[0]), d_sh0: v3(&off[1]), d_opacities: std::mem::take(&mut off[2]) }
+            };
             let instances = g
                 .instances
                 .iter()
@@ -286,12 +338,7 @@ pub fn from_bytes(bytes: &[u8], what: &str) -> Result<InstancedScene> {
                     })
                 })
                 .collect::<Result<Vec<_>>>()?;
-            groups.push(Group {
-                name: g.name.clone(),
-                template,
-                instances,
-                offsets: Offsets { d_means: v3(&off[0]), d_sh0: v3(&off[1]), d_opacities: std::mem::take(&mut off[2]) },
-            });
+            groups.push(Group { name: g.name.clone(), template, instances, offsets });
         }
         let scene = InstancedScene { sh_degree: h.sh_degree, background, groups };
         scene.validate("contents")?;

@@ -9,6 +9,7 @@ pub mod shared {
 }
 
 pub mod camera;
+pub mod codes;
 pub mod config;
 pub mod cpu;
 pub mod dataset;

@@ -282,6 +282,8 @@ enum Cmd {
 enum OffsetDtype {
     F32,
     F16,
+    /// Product-quantised: two 8-bit codes per pair into 256-entry codebooks (lossy once).
+    Pq8,
 }
 
 impl From<OffsetDtype> for instgs::Dtype {
@@ -289,6 +291,7 @@ impl From<OffsetDtype> for instgs::Dtype {
         match d {
             OffsetDtype::F32 => instgs::Dtype::F32,
             OffsetDtype::F16 => instgs::Dtype::F16,
+            OffsetDtype::Pq8 => instgs::Dtype::Pq8,
         }
     }
 }

@@ -55,6 +55,10 @@ pub fn frame_params(
         xform_grads: 0,
         select: 0,
         num_instances: 0,
+        offset_codes: 0,
+        _pad0: 0,
+        _pad1: 0,
+        _pad2: 0,
     }
 }
 
@@ -68,6 +72,11 @@ pub struct GpuInstancing {
     pub d_means: Buffer,
     pub d_sh0: Buffer,
     pub d_opacities: Buffer,
+    /// Product-quantised offsets (`crate::codes`; placeholders unless `codes`): 16 bits per
+    /// pair, and per group 512 codebook entries (vec4).
+    pub d_codes: Buffer,
+    pub codebooks: Buffer,
+    pub codes: bool,
     pub num_groups: u32,
     /// Offset pairs of level 0 (every template Gaussian × its instances); a scene uploaded with
     /// level of detail holds the coarser levels' pairs after these.
@@ -201,7 +210,7 @@ fn upload_or_placeholder<T: bytemuck::Pod + Default>(gpu: &Arc<Gpu>, name: &str,
 impl GpuScene {
     /// A plain 3DGS scene.
     pub fn new(gpu: &Arc<Gpu>, scene: &Scene) -> Result<GpuScene> {
-        Self::upload(gpu, scene, scene.len(), scene.len(), &[], &[], &Offsets::default())
+        Self::upload(gpu, scene, scene.len(), scene.len(), &[], &[], &Offsets::default(), true)
     }
 
     /// An instanced scene; nothing is expanded. Every pair is rendered (training, evaluation).
@@ -209,7 +218,8 @@ impl GpuScene {
         let (groups, xforms, max_offsets) = instancing_tables(scene);
         let offsets = all_offsets(scene);
         let splats = scene.splats();
-        let mut gs = Self::upload(gpu, &scene_rows(scene), scene.background.len(), splats, &groups, &xforms, &offsets)?;
+        let mut gs =
+            Self::upload(gpu, &scene_rows(scene), scene.background.len(), splats, &groups, &xforms, &offsets, true)?;
         gs.inst.max_offsets = max_offsets;
         Ok(gs)
     }
@@ -224,10 +234,18 @@ impl GpuScene {
         let (mut groups, xforms, max_offsets) = instancing_tables(scene);
         let mut rows = scene_rows(scene);
         let mut offsets = all_offsets(scene);
+        // Offsets that are product-quantised already (a pq8 file) stay so on the device.
+        let books: Option<Vec<crate::codes::OffsetCodes>> =
+            scene.groups.iter().map(|g| crate::codes::OffsetCodes::exact(&g.offsets)).collect();
+        let mut codes: Vec<[u8; 2]> = books.iter().flatten().flat_map(|b| b.codes.iter().copied()).collect();
         let fractions: &[f32] = if cfg.lod.enabled { &cfg.lod.fractions } else { &[] };
-        for (info, g) in groups.iter_mut().zip(&scene.groups) {
+        for (gi, (info, g)) in groups.iter_mut().zip(&scene.groups).enumerate() {
             let levels = crate::lod::build_levels(&g.template, &g.offsets, g.instances.len(), fractions);
             for (l, (t, o)) in levels.into_iter().enumerate() {
+                if let Some(b) = &books {
+                    // Coarser levels' merged offsets take their nearest codes.
+                    codes.extend(b[gi].assign(&o));
+                }
                 info.level_row_first[l + 1] = rows.len() as u32;
                 info.level_rows[l + 1] = t.len() as u32;
                 info.level_pair_first[l + 1] = offsets.len() as u32;
@@ -242,8 +260,29 @@ impl GpuScene {
                 info.levels = l as u32 + 2;
             }
         }
-        let mut gs = Self::upload(gpu, &rows, scene.background.len(), scene.splats(), &groups, &xforms, &offsets)?;
-        gs.inst.pairs = scene.splats() - scene.background.len();
+        let nb = scene.background.len();
+        let expand_all = groups.is_empty() || !(cfg.cull || cfg.lod.enabled);
+        let mut gs = match &books {
+            Some(b) => {
+                let pairs = offsets.len();
+                let mut gs =
+                    Self::upload(gpu, &rows, nb, scene.splats(), &groups, &xforms, &Offsets::default(), expand_all)?;
+                let mut words = vec![0u32; pairs.div_ceil(2)];
+                for (p, c) in codes.iter().enumerate() {
+                    words[p / 2] |= (c[0] as u32 | (c[1] as u32) << 8) << (16 * (p % 2));
+                }
+                let table: Vec<[f32; 4]> = b
+                    .iter()
+                    .flat_map(|b| b.dp.iter().map(|p| [p[0], p[1], p[2], 0.0]).chain(b.dc.iter().copied()))
+                    .collect();
+                gs.inst.d_codes = upload_or_placeholder(gpu, "d_codes", &words)?;
+                gs.inst.codebooks = upload_or_placeholder(gpu, "codebooks", &table)?;
+                gs.inst.codes = true;
+                gs
+            }
+            None => Self::upload(gpu, &rows, nb, scene.splats(), &groups, &xforms, &offsets, expand_all)?,
+        };
+        gs.inst.pairs = scene.splats() - nb;
         gs.inst.max_offsets = max_offsets;
         if !groups.is_empty() && (cfg.cull || cfg.lod.enabled) {
             gs.inst.select = Some(SelectArgs {
@@ -264,12 +303,16 @@ impl GpuScene {
         groups: &[GroupInfo],
         xforms: &[InstanceXform],
         offsets: &Offsets,
+        frames_expand_all: bool,
     ) -> Result<GpuScene> {
         let n = rows.len();
         if n == 0 {
             bail!("the scene has no Gaussians");
         }
-        check_scene_fits(n, splats, rows.sh_degree, gpu.info.max_storage_buffer_range)?;
+        // Frames of a scene rendered with per-frame selection size their buffers by what they
+        // select (checked per frame), the others by every splat.
+        let frame_splats = if frames_expand_all { splats } else { 0 };
+        check_scene_fits(n, frame_splats, rows.sh_degree, gpu.info.max_storage_buffer_range)?;
         Ok(GpuScene {
             means: gpu.upload("means", &rows.means)?,
             scales: gpu.upload("scales", &rows.scales)?,
@@ -285,6 +328,9 @@ impl GpuScene {
                 d_means: upload_or_placeholder(gpu, "d_means", &offsets.d_means)?,
                 d_sh0: upload_or_placeholder(gpu, "d_sh0", &offsets.d_sh0)?,
                 d_opacities: upload_or_placeholder(gpu, "d_opacities", &offsets.d_opacities)?,
+                d_codes: upload_or_placeholder::<u32>(gpu, "d_codes", &[])?,
+                codebooks: upload_or_placeholder::<[f32; 4]>(gpu, "codebooks", &[])?,
+                codes: false,
                 num_groups: groups.len() as u32,
                 pairs: offsets.len(),
                 instances: xforms.len(),
@@ -302,7 +348,7 @@ impl GpuScene {
         let i = &self.inst;
         [&self.means, &self.scales, &self.quats, &self.opacities, &self.sh]
             .into_iter()
-            .chain([&i.groups, &i.xforms, &i.d_means, &i.d_sh0, &i.d_opacities])
+            .chain([&i.groups, &i.xforms, &i.d_means, &i.d_sh0, &i.d_opacities, &i.d_codes, &i.codebooks])
             .map(|b| b.size)
             .sum()
     }
@@ -317,6 +363,7 @@ impl GpuScene {
         fp.xform_grads = self.inst.xform_grads as u32;
         fp.select = self.inst.select.is_some() as u32;
         fp.num_instances = self.inst.instances as u32;
+        fp.offset_codes = self.inst.codes as u32;
         fp
     }
 
@@ -330,7 +377,7 @@ impl GpuScene {
     }
 
     /// (name, buffer) bindings of the instancing tables, as instance.glsl names them.
-    fn instancing_bindings(&self) -> [(&'static str, &Buffer); 5] {
+    fn instancing_bindings(&self) -> [(&'static str, &Buffer); 7] {
         let i = &self.inst;
         [
             ("groups", &i.groups),
@@ -338,6 +385,8 @@ impl GpuScene {
             ("d_means", &i.d_means),
             ("d_sh0", &i.d_sh0),
             ("d_opacities", &i.d_opacities),
+            ("d_codes", &i.d_codes),
+            ("codebooks", &i.codebooks),
         ]
     }
 }
@@ -541,6 +590,11 @@ impl Rasterizer {
                 "the frame needs {cap} tile intersections, more than one storage buffer can hold on this device (maxStorageBufferRange {limit} bytes); lower the resolution"
             );
         }
+        if n as u64 * 16 > limit {
+            bail!(
+                "the frame needs {n} splats, more than this device's storage buffers hold at 16 bytes each (maxStorageBufferRange {limit} bytes); use level of detail (configs/render.toml) or fewer instances"
+            );
+        }
         let pixels = width as u64 * height as u64;
         if pixels * 16 > limit {
             bail!("image {width}x{height} is too large for one storage buffer on this device (maxStorageBufferRange {limit} bytes)");
@@ -656,7 +710,8 @@ impl Rasterizer {
                     &args,
                     [(scene.inst.instances as u32).div_ceil(WG_SIZE).min(MAX_GROUPS), 1, 1],
                 )?;
-                // The frame's splats: background + the selected instances' Gaussians.
+                // The frame's splats: background + the selected instances' Gaussians, clamped to
+                // the per-splat buffers (the host grows them when more were needed).
                 record_scan(
                     rec,
                     &k,
@@ -668,9 +723,9 @@ impl Rasterizer {
                         gather: None,
                         block_sums: &sel.block_sums,
                         output: &sel.inst_offsets,
-                        out_slot: COUNT_GAUSSIANS,
-                        clamp_slot: NO_SLOT,
-                        capacity: 0,
+                        out_slot: COUNT_SPLATS_NEEDED,
+                        clamp_slot: COUNT_GAUSSIANS,
+                        capacity: g.n as u32,
                         out_bias: scene.num_background as u32,
                     },
                 )?;
@@ -847,10 +902,15 @@ impl Rasterizer {
         readback: bool,
     ) -> Result<FrameStats> {
         cam.validate()?;
-        let n = scene.len;
+        // Per-splat capacity: every splat, or with per-frame selection what frames needed so
+        // far (grown below when a frame needs more).
+        let selecting = scene.inst.select.is_some();
+        let first = (scene.len / 4).max(1024).min(scene.len);
+        let mut n = if selecting { self.gauss.as_ref().map_or(first, |g| g.n) } else { scene.len };
         let mut cap = self.isect.as_ref().map_or(n.max(1 << 16), |i| i.cap);
         loop {
             self.ensure_buffers(n, scene.inst.instances, cam.width, cam.height, cap, readback)?;
+            n = self.gauss.as_ref().unwrap().n;
             cap = self.isect.as_ref().unwrap().cap;
             let fp = scene.frame_params(cam, background, cap as u32);
             self.frame_ub.write_mapped(&[fp])?;
@@ -862,6 +922,11 @@ impl Rasterizer {
             self.cmd.submit_and_wait()?;
             self.last_params = Some(fp);
             let counts: Vec<u32> = self.readback_counts.read_mapped(COUNT_SLOTS as usize)?;
+            let splats = counts[COUNT_SPLATS_NEEDED as usize] as usize;
+            if selecting && splats > n {
+                n = (splats + splats / 4).min(scene.len);
+                continue;
+            }
             let needed = counts[COUNT_ISECT_NEEDED as usize] as usize;
             if needed > cap {
                 // Grow with headroom and render the frame again.

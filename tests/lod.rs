@@ -95,6 +95,8 @@ fn selection_matches_cpu_twin_and_renders_the_chosen_levels() {
     assert!(culled >= 2 && coarse >= 2 && fine >= 1, "culled {culled}, coarse {coarse}, level 0 {fine}");
     let total: u32 = sel.inst_count.iter().sum();
     assert_eq!(st.counts[COUNT_GAUSSIANS as usize], scene.background.len() as u32 + total);
+    // More than the first per-splat capacity (a quarter of all pairs): the buffers grew.
+    assert!(total as usize > scene.splats() / 4, "{total} of {}", scene.splats());
 
     // The packed splats are exactly the chosen levels of the visible instances.
     let selected = selected_scene(&scene, &cfg, &sel.inst_count, &sel.inst_level);
@@ -176,5 +178,42 @@ fn level_of_detail_keeps_distant_guitars() {
     assert!(fl.intersections * 2 < fe.intersections, "{} vs {}", fl.intersections, fe.intersections);
     let db = psnr(&fl.image, &fe.image);
     assert!(db >= 28.0, "level of detail vs exact: {db:.1} dB");
+    assert_clean(&gpu);
+}
+
+#[test]
+fn product_quantised_offsets_render_as_their_decoded_values() {
+    let (gpu, k) = gpu();
+    let mut rng = Rng::new(13);
+    let scene = spread_scene(&mut rng);
+    let bytes = instgs_vk::instgs::to_bytes(&scene, instgs_vk::instgs::Dtype::Pq8);
+    let f32_bytes = instgs_vk::instgs::to_bytes(&scene, instgs_vk::instgs::Dtype::F32);
+    assert!(bytes.len() < f32_bytes.len() / 2, "{} vs {}", bytes.len(), f32_bytes.len());
+    let decoded = instgs_vk::instgs::from_bytes(&bytes, "pq8").unwrap();
+    assert_ne!(decoded.groups[0].offsets, scene.groups[0].offsets, "k-means codes are lossy");
+    let cfg = RenderConfig::load(None).unwrap();
+    let coded = GpuScene::instanced_for_rendering(&gpu, &decoded, &cfg.clone().exact()).unwrap();
+    assert!(coded.inst.codes);
+    let plain = GpuScene::instanced(&gpu, &decoded).unwrap();
+    assert!(!plain.inst.codes);
+    assert!(coded.gpu_bytes() < plain.gpu_bytes());
+    let mut r = Rasterizer::new(&gpu, &k).unwrap();
+    r.poison = true;
+    for turn in 0..2 {
+        let a = std::f32::consts::PI * turn as f32;
+        let cam = look_at(Vec3::ZERO, Vec3::new(a.sin(), 0.0, a.cos()), Vec3::new(0.0, -1.0, 0.0), 128, 96, 110.0);
+        let fc = r.render(&coded, &cam, [0.0; 3]).unwrap();
+        let fp = r.render(&plain, &cam, [0.0; 3]).unwrap();
+        let db = psnr(&fc.image, &fp.image);
+        assert!(db >= 60.0, "coded vs f32 offsets: {db:.1} dB");
+    }
+    // With level of detail the coarser levels' offsets take their nearest codes.
+    let lod_coded = GpuScene::instanced_for_rendering(&gpu, &decoded, &cfg).unwrap();
+    let lod_f32 = GpuScene::instanced_for_rendering(&gpu, &scene, &cfg).unwrap();
+    assert!(lod_coded.inst.codes && !lod_f32.inst.codes);
+    let fc = r.render(&lod_coded, &camera(), [0.0; 3]).unwrap();
+    let ff = r.render(&lod_f32, &camera(), [0.0; 3]).unwrap();
+    let db = psnr(&fc.image, &ff.image);
+    assert!(db >= 30.0, "level of detail, coded vs original offsets: {db:.1} dB");
     assert_clean(&gpu);
 }
