@@ -79,8 +79,8 @@ fn kmeans<const D: usize>(v: &[[f32; D]], seed: u64) -> Vec<[f32; D]> {
         if v.len() <= SAMPLE { v.to_vec() } else { (0..SAMPLE).map(|_| v[rng.random_range(0..v.len())]).collect() };
     let mut book: Vec<[f32; D]> = (0..CODES).map(|_| sample[rng.random_range(0..sample.len())]).collect();
     for _ in 0..ITERATIONS {
-        let mut sum = vec![[0.0f64; D]; CODES];
-        let mut count = vec![0usize; CODES];
+        let mut sum = [[0.0f64; D]; CODES];
+        let mut count = [0usize; CODES];
         for x in &sample {
             let c = nearest(&book, x) as usize;
             count[c] += 1;

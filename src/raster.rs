@@ -295,6 +295,7 @@ impl GpuScene {
         Ok(gs)
     }
 
+    #[allow(clippy::too_many_arguments)]
     fn upload(
         gpu: &Arc<Gpu>,
         rows: &Scene,
