@@ -150,3 +150,28 @@ fn no_display_is_a_clear_error() {
     assert!(err.contains("error: cannot open a window") && err.contains("--headless"), "{err}");
     assert!(!err.contains("panicked"), "{err}");
 }
+
+#[test]
+fn window_resize_recreates_the_swapchain() {
+    let dir = out_dir("resize");
+    // Resize the window (xdotool; no window manager under Xvfb) once the first swapchain
+    // exists; the player goes on at the new size and its last frame has that size.
+    let script = format!(
+        "{bin} view {scene} --width 320 --height 240 --frames 40 --no-overlay --out {out} 2> {out}/err & \
+         for i in $(seq 600); do grep -q 'swapchain 320x240' {out}/err && break; sleep 0.1; done; \
+         xdotool search --sync --name instgs-vk windowsize --sync 200 150; wait $!",
+        bin = bin(),
+        scene = demo().display(),
+        out = dir.display()
+    );
+    let o = Command::new("xvfb-run")
+        .args(["-a", "-s", "-screen 0 1024x768x24", "bash", "-c", &script])
+        .env("INSTGS_VALIDATION", "1")
+        .output()
+        .expect("xvfb-run and xdotool (tools/install-deps.sh installs them)");
+    let err = std::fs::read_to_string(dir.join("err")).unwrap_or_default();
+    assert!(o.status.success(), "{err}\n{}", String::from_utf8_lossy(&o.stderr));
+    assert!(err.contains("swapchain 200x150"), "{err}");
+    assert!(!err.contains("vulkan validation"), "{err}");
+    assert_eq!(rgb(&dir.join("screenshot_000.png")).dimensions(), (200, 150));
+}
