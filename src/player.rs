@@ -5,8 +5,9 @@
 //!
 //! Controls: left drag orbits the target, right drag looks around (fly), middle drag pans, the
 //! wheel dollies, W/A/S/D move, Q/E go down/up (Shift: 4× faster), R resets the camera, B cycles
-//! the background, H hides the overlay, V toggles vsync, P or F12 saves a screenshot (the
-//! presented swapchain image), Esc quits.
+//! the background, L toggles template level of detail (instanced scenes uploaded with it), H
+//! hides the overlay, V toggles vsync, P or F12 saves a screenshot (the presented swapchain
+//! image), Esc quits.
 //!
 //! Cameras are OpenCV (x right, y down, z forward), as everywhere in this crate; the player's
 //! camera has no roll (its horizon stays level with the up axis).
@@ -362,8 +363,19 @@ impl App {
                 self.opts.vsync = !self.opts.vsync;
                 run.presenter.vsync = self.opts.vsync;
                 run.presenter.stale = true;
+                eprintln!("vsync {}", if self.opts.vsync { "on" } else { "off" });
             }
             KeyCode::KeyP | KeyCode::F12 => run.screenshot_next = true,
+            KeyCode::KeyL => {
+                // The coarser levels stay uploaded; only the coarsest level allowed changes.
+                if let Some(a) = run.gs.inst.select.as_mut() {
+                    let levels = self.opts.render.lod.fractions.len() as u32;
+                    let on = self.opts.render.lod.enabled && a.max_level == 0;
+                    a.max_level = if on { levels } else { 0 };
+                    run.overlay_dirty = self.opts.overlay;
+                    eprintln!("level of detail {}", if on { "on" } else { "off" });
+                }
+            }
             _ => {}
         }
         Ok(())
@@ -404,12 +416,17 @@ impl App {
         let Some(image) = run.presenter.acquire()? else { return Ok(()) };
         let stats = run.raster.render_resident(&run.gs, &self.view.camera(extent.width, extent.height), background)?;
         let gpu_ms: f64 = stats.passes.iter().map(|p| p.1).sum();
+        let lod = match run.gs.inst.select {
+            Some(a) if a.max_level > 0 => " | LOD",
+            Some(_) => " | EXACT",
+            None => "",
+        };
         if run.overlay_dirty || run.overlay.is_none() && self.opts.overlay {
             run.overlay = self.opts.overlay.then(|| {
                 let fps = run.fps.map_or("-".into(), |f| format!("{f:.1}"));
                 crate::overlay::draw(&[
                     format!("{fps} FPS | GPU {gpu_ms:.2} MS"),
-                    format!("{} SPLATS | {}X{}", splat_count(self.scene.splats()), extent.width, extent.height),
+                    format!("{} SPLATS | {}X{}{}", splat_count(self.scene.splats()), extent.width, extent.height, lod),
                 ])
             });
             if let Some(o) = &run.overlay {

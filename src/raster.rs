@@ -494,7 +494,7 @@ pub struct Rasterizer {
     timer: Option<Timer>,
     /// (scene buffer handle, N, width, height, capacity, image read back) the command buffer
     /// was recorded for.
-    recorded: Option<(u64, usize, u32, u32, usize, bool)>,
+    recorded: Option<RecordKey>,
     /// Buffer indices holding the sorted depth and tile lists.
     depth_result: usize,
     isect_result: usize,
@@ -504,6 +504,10 @@ pub struct Rasterizer {
     /// kernel fails to write show up.
     pub poison: bool,
 }
+
+/// What a recorded frame depends on: scene buffer handle, per-splat capacity, width, height,
+/// intersection capacity, image read back, instance-selection push constants (as bits).
+type RecordKey = (u64, usize, u32, u32, usize, bool, Option<[u32; 3]>);
 
 /// A quiet-NaN bit pattern that no kernel writes.
 pub const POISON: u32 = 0x7fc0_0bad;
@@ -915,7 +919,8 @@ impl Rasterizer {
             cap = self.isect.as_ref().unwrap().cap;
             let fp = scene.frame_params(cam, background, cap as u32);
             self.frame_ub.write_mapped(&[fp])?;
-            let key = (ash::vk::Handle::as_raw(scene.means.raw), n, cam.width, cam.height, cap, readback);
+            let select = scene.inst.select.map(|a| [a.max_level, a.splats_per_pixel.to_bits(), a.margin_px.to_bits()]);
+            let key = (ash::vk::Handle::as_raw(scene.means.raw), n, cam.width, cam.height, cap, readback, select);
             if self.recorded != Some(key) || self.poison {
                 self.record(scene, &fp, readback)?;
                 self.recorded = Some(key);

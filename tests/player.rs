@@ -175,3 +175,44 @@ fn window_resize_recreates_the_swapchain() {
     assert!(!err.contains("vulkan validation"), "{err}");
     assert_eq!(rgb(&dir.join("screenshot_000.png")).dimensions(), (200, 150));
 }
+
+#[test]
+fn keys_toggle_level_of_detail_and_vsync() {
+    // An instanced scene (level of detail on by default): L turns it off, V turns vsync on
+    // (the swapchain is recreated with FIFO). Keys go to the focused window (xdotool).
+    let dir = out_dir("keys");
+    let scene = dir.join("two.instgs");
+    let graph = dir.join("graph.json");
+    std::fs::write(
+        &graph,
+        r#"[{"template_id": "g", "instances": [
+            {"instance_id": "1", "transform": [[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]},
+            {"instance_id": "2", "transform": [[1,0,0,-3],[0,1,0,0],[0,0,1,0],[0,0,0,1]]}]}]"#,
+    )
+    .unwrap();
+    let o = Command::new(bin())
+        .args(["compose", "--template", &format!("g={}", demo().display()), "--scene-graph"])
+        .args([graph.to_str().unwrap(), "--out", scene.to_str().unwrap()])
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let script = format!(
+        "{bin} view {scene} --width 200 --height 150 --frames 30 --out {out} 2> {out}/err & \
+         for i in $(seq 600); do grep -q 'swapchain 200x150' {out}/err && break; sleep 0.1; done; \
+         w=$(xdotool search --sync --name instgs-vk | head -1); xdotool windowfocus --sync $w; \
+         xdotool key l; sleep 0.5; xdotool key v; wait $!",
+        bin = bin(),
+        scene = scene.display(),
+        out = dir.display()
+    );
+    let o = Command::new("xvfb-run")
+        .args(["-a", "-s", "-screen 0 1024x768x24", "bash", "-c", &script])
+        .env("INSTGS_VALIDATION", "1")
+        .output()
+        .expect("xvfb-run and xdotool (tools/install-deps.sh installs them)");
+    let err = std::fs::read_to_string(dir.join("err")).unwrap_or_default();
+    assert!(o.status.success(), "{err}\n{}", String::from_utf8_lossy(&o.stderr));
+    assert!(err.contains("level of detail off"), "{err}");
+    assert!(err.contains("vsync on") && err.contains("FIFO"), "{err}");
+    assert!(!err.contains("vulkan validation"), "{err}");
+}
