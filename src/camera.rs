@@ -188,35 +188,37 @@ impl Orbit {
     }
 }
 
+/// Two unit axes spanning the plane orthogonal to `up` (unit), with e1 × e2 = up.
+pub fn horizontal_axes(up: Vec3) -> (Vec3, Vec3) {
+    let a = if up.x.abs() < 0.9 { Vec3::X } else { Vec3::Y };
+    let e1 = (a - up * a.dot(up)).normalize();
+    (e1, up.cross(e1))
+}
+
+/// A level camera (no roll about `up`) at `eye` looking along `forward` (unit), square pixels,
+/// centred principal point, horizontal field of view `fov_x` (radians). OpenCV axes: z forward,
+/// x right, y down.
+pub fn level_camera(name: String, eye: Vec3, forward: Vec3, up: Vec3, width: u32, height: u32, fov_x: f32) -> Camera {
+    let z = forward;
+    let x = z.cross(up).normalize();
+    let y = z.cross(x);
+    let c2w = Mat4::from_cols(x.extend(0.0), y.extend(0.0), z.extend(0.0), eye.extend(1.0));
+    let fx = 0.5 * width as f32 / (0.5 * fov_x).tan();
+    Camera { name, width, height, fx, fy: fx, cx: 0.5 * width as f32, cy: 0.5 * height as f32, viewmat: c2w.inverse() }
+}
+
 fn orbit(o: &Orbit, n: usize, width: u32, height: u32) -> Vec<Camera> {
     let Orbit { center, distance, up, elevation_deg, fov_x_deg } = *o;
     let upv = up.vector();
-    // Any two axes orthogonal to up span the horizontal plane.
-    let a = if upv.x.abs() < 0.9 { Vec3::X } else { Vec3::Y };
-    let e1 = (a - upv * a.dot(upv)).normalize();
-    let e2 = upv.cross(e1);
-    let fx = 0.5 * width as f32 / (0.5 * fov_x_deg.to_radians()).tan();
+    let (e1, e2) = horizontal_axes(upv);
     let el = elevation_deg.to_radians();
     (0..n)
         .map(|k| {
             let az = std::f32::consts::TAU * k as f32 / n.max(1) as f32;
             let dir = (e1 * az.cos() + e2 * az.sin()) * el.cos() + upv * el.sin();
             let eye = center + dir * distance;
-            // OpenCV camera axes: z forward, x right, y down.
-            let z = (center - eye).normalize();
-            let x = z.cross(upv).normalize();
-            let y = z.cross(x);
-            let c2w = Mat4::from_cols(x.extend(0.0), y.extend(0.0), z.extend(0.0), eye.extend(1.0));
-            Camera {
-                name: format!("view_{k:03}"),
-                width,
-                height,
-                fx,
-                fy: fx,
-                cx: 0.5 * width as f32,
-                cy: 0.5 * height as f32,
-                viewmat: c2w.inverse(),
-            }
+            let forward = (center - eye).normalize();
+            level_camera(format!("view_{k:03}"), eye, forward, upv, width, height, fov_x_deg.to_radians())
         })
         .collect()
 }

@@ -18,7 +18,7 @@ use std::time::Instant;
 
 use anyhow::{anyhow, bail, Context, Result};
 use ash::vk;
-use glam::{Mat4, Vec3};
+use glam::Vec3;
 use gpu_allocator::MemoryLocation;
 use raw_window_handle::{HasDisplayHandle, HasWindowHandle};
 use winit::application::ApplicationHandler;
@@ -58,9 +58,7 @@ impl ViewCamera {
     /// target where the viewing ray passes closest to `centre`. `up` is the world's up axis.
     pub fn from_camera(start: &Camera, centre: Vec3, up: Vec3) -> ViewCamera {
         let up = up.normalize();
-        let a = if up.x.abs() < 0.9 { Vec3::X } else { Vec3::Y };
-        let e1 = (a - up * a.dot(up)).normalize();
-        let e2 = up.cross(e1);
+        let (e1, e2) = crate::camera::horizontal_axes(up);
         let c2w = start.viewmat.inverse();
         let eye = c2w.w_axis.truncate();
         let forward = c2w.z_axis.truncate().normalize();
@@ -90,22 +88,7 @@ impl ViewCamera {
 
     /// The camera for a `width` × `height` image (square pixels, centred principal point).
     pub fn camera(&self, width: u32, height: u32) -> Camera {
-        let eye = self.eye();
-        let z = -self.eye_dir();
-        let x = z.cross(self.up).normalize();
-        let y = z.cross(x);
-        let c2w = Mat4::from_cols(x.extend(0.0), y.extend(0.0), z.extend(0.0), eye.extend(1.0));
-        let fx = 0.5 * width as f32 / (0.5 * self.fov_x).tan();
-        Camera {
-            name: "view".into(),
-            width,
-            height,
-            fx,
-            fy: fx,
-            cx: 0.5 * width as f32,
-            cy: 0.5 * height as f32,
-            viewmat: c2w.inverse(),
-        }
+        crate::camera::level_camera("view".into(), self.eye(), -self.eye_dir(), self.up, width, height, self.fov_x)
     }
 
     /// Turns the eye around the target.
@@ -792,7 +775,8 @@ impl Presenter {
                 } else {
                     vk::AccessFlags::TRANSFER_WRITE
                 });
-            unsafe {
+            // An image layout transition between transfers.
+            let transition = |b: vk::ImageMemoryBarrier| unsafe {
                 d.cmd_pipeline_barrier(
                     cmd,
                     vk::PipelineStageFlags::TRANSFER,
@@ -800,8 +784,11 @@ impl Presenter {
                     vk::DependencyFlags::empty(),
                     &[],
                     &[],
-                    &[to_dst],
-                );
+                    &[b],
+                )
+            };
+            transition(to_dst);
+            unsafe {
                 d.cmd_copy_buffer_to_image(cmd, texels.raw, target, vk::ImageLayout::TRANSFER_DST_OPTIMAL, &[region]);
                 if read_image {
                     let to_src = vk::ImageMemoryBarrier::default()
@@ -811,15 +798,7 @@ impl Presenter {
                         .new_layout(vk::ImageLayout::TRANSFER_SRC_OPTIMAL)
                         .src_access_mask(vk::AccessFlags::TRANSFER_WRITE)
                         .dst_access_mask(vk::AccessFlags::TRANSFER_READ);
-                    d.cmd_pipeline_barrier(
-                        cmd,
-                        vk::PipelineStageFlags::TRANSFER,
-                        vk::PipelineStageFlags::TRANSFER,
-                        vk::DependencyFlags::empty(),
-                        &[],
-                        &[],
-                        &[to_src],
-                    );
+                    transition(to_src);
                     d.cmd_copy_image_to_buffer(
                         cmd,
                         target,

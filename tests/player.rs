@@ -151,6 +151,21 @@ fn no_display_is_a_clear_error() {
     assert!(!err.contains("panicked"), "{err}");
 }
 
+/// Runs a bash `script` under a virtual X server with validation on; the player's stderr is
+/// redirected by the script to `dir/err`, which is returned after checking success and the
+/// absence of validation messages.
+fn scripted(dir: &Path, script: &str) -> String {
+    let o = Command::new("xvfb-run")
+        .args(["-a", "-s", "-screen 0 1024x768x24", "bash", "-c", script])
+        .env("INSTGS_VALIDATION", "1")
+        .output()
+        .expect("xvfb-run and xdotool (tools/install-deps.sh installs them)");
+    let err = std::fs::read_to_string(dir.join("err")).unwrap_or_default();
+    assert!(o.status.success(), "{err}\n{}", String::from_utf8_lossy(&o.stderr));
+    assert!(!err.contains("vulkan validation"), "{err}");
+    err
+}
+
 #[test]
 fn window_resize_recreates_the_swapchain() {
     let dir = out_dir("resize");
@@ -164,15 +179,8 @@ fn window_resize_recreates_the_swapchain() {
         scene = demo().display(),
         out = dir.display()
     );
-    let o = Command::new("xvfb-run")
-        .args(["-a", "-s", "-screen 0 1024x768x24", "bash", "-c", &script])
-        .env("INSTGS_VALIDATION", "1")
-        .output()
-        .expect("xvfb-run and xdotool (tools/install-deps.sh installs them)");
-    let err = std::fs::read_to_string(dir.join("err")).unwrap_or_default();
-    assert!(o.status.success(), "{err}\n{}", String::from_utf8_lossy(&o.stderr));
+    let err = scripted(&dir, &script);
     assert!(err.contains("swapchain 200x150"), "{err}");
-    assert!(!err.contains("vulkan validation"), "{err}");
     assert_eq!(rgb(&dir.join("screenshot_000.png")).dimensions(), (200, 150));
 }
 
@@ -205,14 +213,7 @@ fn keys_toggle_level_of_detail_and_vsync() {
         scene = scene.display(),
         out = dir.display()
     );
-    let o = Command::new("xvfb-run")
-        .args(["-a", "-s", "-screen 0 1024x768x24", "bash", "-c", &script])
-        .env("INSTGS_VALIDATION", "1")
-        .output()
-        .expect("xvfb-run and xdotool (tools/install-deps.sh installs them)");
-    let err = std::fs::read_to_string(dir.join("err")).unwrap_or_default();
-    assert!(o.status.success(), "{err}\n{}", String::from_utf8_lossy(&o.stderr));
+    let err = scripted(&dir, &script);
     assert!(err.contains("level of detail off"), "{err}");
     assert!(err.contains("vsync on") && err.contains("FIFO"), "{err}");
-    assert!(!err.contains("vulkan validation"), "{err}");
 }
