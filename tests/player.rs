@@ -166,18 +166,31 @@ fn scripted(dir: &Path, script: &str) -> String {
     err
 }
 
+/// A shell function call that waits (up to 120 s) until the player's stderr in `dir/err`
+/// contains its argument. The scripts wait on what the player says, never on frame counts, so
+/// they hold on fast and slow machines alike.
+fn wait_for(dir: &Path) -> String {
+    format!(
+        "w8() {{ for i in $(seq 1200); do grep -q \"$1\" {}/err && return 0; sleep 0.1; done; return 1; }}; w8",
+        dir.display()
+    )
+}
+
 #[test]
 fn window_resize_recreates_the_swapchain() {
     let dir = out_dir("resize");
     // Resize the window (xdotool; no window manager under Xvfb) once the first swapchain
-    // exists; the player goes on at the new size and its last frame has that size.
+    // exists; the player goes on at the new size; P saves a screenshot of that size; Esc quits.
     let script = format!(
-        "{bin} view {scene} --width 320 --height 240 --frames 40 --no-overlay --out {out} 2> {out}/err & \
-         for i in $(seq 600); do grep -q 'swapchain 320x240' {out}/err && break; sleep 0.1; done; \
-         xdotool search --sync --name instgs-vk windowsize --sync 200 150; wait $!",
+        "timeout 300 {bin} view {scene} --width 320 --height 240 --no-overlay --out {out} 2> {out}/err & \
+         {wait_for} 'swapchain 320x240'; \
+         w=$(xdotool search --sync --name instgs-vk | head -1); xdotool windowsize --sync $w 200 150; \
+         {wait_for} 'swapchain 200x150'; xdotool windowfocus --sync $w; xdotool key p; \
+         {wait_for} screenshot; xdotool key Escape; wait $!",
         bin = bin(),
         scene = demo().display(),
-        out = dir.display()
+        out = dir.display(),
+        wait_for = wait_for(&dir),
     );
     let err = scripted(&dir, &script);
     assert!(err.contains("swapchain 200x150"), "{err}");
@@ -205,13 +218,15 @@ fn keys_toggle_level_of_detail_and_vsync() {
         .unwrap();
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let script = format!(
-        "{bin} view {scene} --width 200 --height 150 --frames 30 --out {out} 2> {out}/err & \
-         for i in $(seq 600); do grep -q 'swapchain 200x150' {out}/err && break; sleep 0.1; done; \
+        "timeout 300 {bin} view {scene} --width 200 --height 150 --out {out} 2> {out}/err & \
+         {wait_for} 'swapchain 200x150'; \
          w=$(xdotool search --sync --name instgs-vk | head -1); xdotool windowfocus --sync $w; \
-         xdotool key l; sleep 0.5; xdotool key v; wait $!",
+         xdotool key l; {wait_for} 'level of detail'; xdotool key v; {wait_for} 'vsync'; \
+         {wait_for} FIFO; xdotool key Escape; wait $!",
         bin = bin(),
         scene = scene.display(),
-        out = dir.display()
+        out = dir.display(),
+        wait_for = wait_for(&dir),
     );
     let err = scripted(&dir, &script);
     assert!(err.contains("level of detail off"), "{err}");
