@@ -7,3 +7,4 @@ cargo build --release
 export XDG_RUNTIME_DIR="${XDG_RUNTIME_DIR:-/tmp}"
 ./target/release/instgs-vk render --scene demo/guitar.compressed.ply --orbit 8 --width 640 --height 480 --out out/demo
 echo "pictures: out/demo/view_000.png … view_007.png"
+echo "player: ./target/release/instgs-vk view demo/guitar.compressed.ply   (no display: add --headless --frames 36 --out out/demo/turntable)"
