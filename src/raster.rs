@@ -261,12 +261,12 @@ impl GpuScene {
             }
         }
         let nb = scene.background.len();
-        let expand_all = groups.is_empty() || !(cfg.cull || cfg.lod.enabled);
+        let selecting = !groups.is_empty() && (cfg.cull || cfg.lod.enabled);
         let mut gs = match &books {
             Some(b) => {
                 let pairs = offsets.len();
                 let mut gs =
-                    Self::upload(gpu, &rows, nb, scene.splats(), &groups, &xforms, &Offsets::default(), expand_all)?;
+                    Self::upload(gpu, &rows, nb, scene.splats(), &groups, &xforms, &Offsets::default(), !selecting)?;
                 let mut words = vec![0u32; pairs.div_ceil(2)];
                 for (p, c) in codes.iter().enumerate() {
                     words[p / 2] |= (c[0] as u32 | (c[1] as u32) << 8) << (16 * (p % 2));
@@ -280,11 +280,11 @@ impl GpuScene {
                 gs.inst.codes = true;
                 gs
             }
-            None => Self::upload(gpu, &rows, nb, scene.splats(), &groups, &xforms, &offsets, expand_all)?,
+            None => Self::upload(gpu, &rows, nb, scene.splats(), &groups, &xforms, &offsets, !selecting)?,
         };
         gs.inst.pairs = scene.splats() - nb;
         gs.inst.max_offsets = max_offsets;
-        if !groups.is_empty() && (cfg.cull || cfg.lod.enabled) {
+        if selecting {
             gs.inst.select = Some(SelectArgs {
                 max_level: fractions.len() as u32,
                 splats_per_pixel: cfg.lod.splats_per_pixel,
