@@ -95,6 +95,9 @@ pub struct GpuInstancing {
 /// Gaussians; a plain scene is all background) and the instancing tables. Rendering expands
 /// `len` splats on the fly.
 pub struct GpuScene {
+    /// Unique per upload (process-wide): recorded command buffers are keyed by it, not by a
+    /// buffer handle, which the driver may hand out again once this scene is dropped.
+    id: u64,
     pub means: Buffer,
     pub scales: Buffer,
     pub quats: Buffer,
@@ -314,7 +317,9 @@ impl GpuScene {
         // select (checked per frame), the others by every splat.
         let frame_splats = if frames_expand_all { splats } else { 0 };
         check_scene_fits(n, frame_splats, rows.sh_degree, gpu.info.max_storage_buffer_range)?;
+        static NEXT_ID: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(1);
         Ok(GpuScene {
+            id: NEXT_ID.fetch_add(1, std::sync::atomic::Ordering::Relaxed),
             means: gpu.upload("means", &rows.means)?,
             scales: gpu.upload("scales", &rows.scales)?,
             quats: gpu.upload("quats", &rows.quats)?,
@@ -505,7 +510,7 @@ pub struct Rasterizer {
     pub poison: bool,
 }
 
-/// What a recorded frame depends on: scene buffer handle, per-splat capacity, width, height,
+/// What a recorded frame depends on: scene id, per-splat capacity, width, height,
 /// intersection capacity, image read back, instance-selection push constants (as bits).
 type RecordKey = (u64, usize, u32, u32, usize, bool, Option<[u32; 3]>);
 
@@ -920,7 +925,7 @@ impl Rasterizer {
             let fp = scene.frame_params(cam, background, cap as u32);
             self.frame_ub.write_mapped(&[fp])?;
             let select = scene.inst.select.map(|a| [a.max_level, a.splats_per_pixel.to_bits(), a.margin_px.to_bits()]);
-            let key = (ash::vk::Handle::as_raw(scene.means.raw), n, cam.width, cam.height, cap, readback, select);
+            let key = (scene.id, n, cam.width, cam.height, cap, readback, select);
             if self.recorded != Some(key) || self.poison {
                 self.record(scene, &fp, readback)?;
                 self.recorded = Some(key);

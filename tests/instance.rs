@@ -80,6 +80,38 @@ fn instanced_render_equals_the_expanded_scene() {
     assert_clean(&gpu);
 }
 
+/// One rasterizer rendering scene after scene, each dropped before the next is uploaded (the
+/// driver may hand the freed buffer handles out again): every frame must equal a fresh
+/// rasterizer's. Found by the pipeline's eval stage (plain then instanced scene), where a
+/// command buffer recorded for the dropped plain scene was replayed (a crash in lavapipe).
+#[test]
+fn a_rasterizer_never_replays_a_dropped_scenes_recording() {
+    let (gpu, k) = gpu();
+    let mut rng = Rng::new(33);
+    let cam = camera(64, 48);
+    let mut r = Rasterizer::new(&gpu, &k).unwrap();
+    for round in 0..4 {
+        let inst = random_instanced(&mut rng, 1, 50, &[(30, 3)]);
+        let plain = inst.expand();
+        // Rendered and dropped one after the other, nothing allocated in between.
+        let mut got = Vec::new();
+        for (i, s) in [&random_scene(&mut rng, plain.len(), 1), &plain].into_iter().enumerate() {
+            let gs = GpuScene::new(&gpu, s).unwrap();
+            got.push((i, r.render(&gs, &cam, [0.0; 3]).unwrap().image));
+        }
+        let gs = GpuScene::instanced(&gpu, &inst).unwrap();
+        got.push((2, r.render(&gs, &cam, [0.0; 3]).unwrap().image));
+        drop(gs);
+        let want = Rasterizer::new(&gpu, &k).unwrap().render(&GpuScene::new(&gpu, &plain).unwrap(), &cam, [0.0; 3]);
+        let want = want.unwrap().image;
+        for (i, img) in &got[1..] {
+            let db = psnr(img, &want);
+            assert!(db >= 60.0, "round {round}, scene {i}: {db:.1} dB against a fresh rasterizer's frame");
+        }
+    }
+    assert_clean(&gpu);
+}
+
 /// The instanced scene's GPU gradients for `v_image`: (rows as a gradient scene, offsets,
 /// per-instance transform-gradient terms).
 fn gpu_grads(scene: &InstancedScene, cam: &Camera, v_image: &[[f32; 4]]) -> (Scene, Vec<Offsets>, Vec<f32>) {
@@ -462,8 +494,10 @@ fn joint_optimisation_learns_templates_offsets_and_background() {
     cfg.test_interval = 40;
     cfg.checkpoint_interval = 60;
     let out = tempdir("joint");
-    let opts =
-        instgs_vk::train::RunOptions { out: out.clone(), resume: false, init: Some(init.clone()), progress: false };
+    let opts = instgs_vk::train::RunOptions {
+        init: Some(init.clone()),
+        ..instgs_vk::train::RunOptions::new(out.clone(), false, false)
+    };
     let r = instgs_vk::train::run(&gpu, &k, &ds, &cfg, &opts).unwrap();
     assert_eq!((r.iterations, r.splats), (120, 80 + 240));
     let result = instgs_vk::instgs::read(&out.join("scene.instgs")).unwrap();
@@ -488,7 +522,7 @@ fn joint_optimisation_learns_templates_offsets_and_background() {
     assert_eq!(saved, cfg);
     assert_eq!(st.to_instanced().unwrap().unwrap(), result);
     cfg.iterations = 150;
-    let opts = instgs_vk::train::RunOptions { out: out.clone(), resume: true, init: None, progress: false };
+    let opts = instgs_vk::train::RunOptions::new(out.clone(), true, false);
     let r2 = instgs_vk::train::run(&gpu, &k, &ds, &cfg, &opts).unwrap();
     assert_eq!(r2.iterations, 150);
     assert!(r2.test_psnr.unwrap() > after - 0.5);
@@ -531,8 +565,10 @@ fn refining_transforms_recovers_perturbed_poses() {
         cfg.lr.transform_rotation *= 4.0;
         cfg.lr.transform_scale *= 4.0;
         let out = tempdir(&format!("refine_{refine}"));
-        let opts =
-            instgs_vk::train::RunOptions { out: out.clone(), resume: false, init: Some(init.clone()), progress: false };
+        let opts = instgs_vk::train::RunOptions {
+            init: Some(init.clone()),
+            ..instgs_vk::train::RunOptions::new(out.clone(), false, false)
+        };
         let r = instgs_vk::train::run(&gpu, &k, &ds, &cfg, &opts).unwrap();
         let result = instgs_vk::instgs::read(&out.join("scene.instgs")).unwrap();
         results.push((r.test_psnr.unwrap(), pose_error(&result)));
