@@ -8,6 +8,7 @@ use serde::{Deserialize, Serialize};
 
 pub const DEFAULT_TOML: &str = include_str!("../configs/default.toml");
 pub const INSTANCED_TOML: &str = include_str!("../configs/instanced.toml");
+pub const PIPELINE_TOML: &str = include_str!("../configs/pipeline.toml");
 
 #[derive(Clone, Debug, Deserialize, Serialize, PartialEq)]
 #[serde(deny_unknown_fields)]
@@ -126,6 +127,11 @@ impl Config {
         Ok(serde_json::from_value(base)?)
     }
 
+    /// The joint-optimisation configuration with `text` (TOML) merged over it.
+    pub fn instanced_from_toml(text: &str, what: &str) -> Result<Config> {
+        Self::from_layers(&[(INSTANCED_TOML, "configs/instanced.toml")], text, what)
+    }
+
     pub fn load(path: Option<&Path>) -> Result<Config> {
         Self::load_layers(&[], path)
     }
@@ -180,5 +186,108 @@ impl Config {
         let lr = (self.lr.position_init.ln() * (1.0 - t) + self.lr.position_final.ln() * t).exp();
         let scale = if self.lr.spatial_scale > 0.0 { self.lr.spatial_scale } else { extent as f64 };
         (lr * scale) as f32
+    }
+}
+
+/// `[segment]` of a pipeline configuration (configs/pipeline.toml).
+#[derive(Clone, Debug, Deserialize, Serialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct SegmentStage {
+    pub alpha: f32,
+}
+
+/// `[instance]`: registration and template initialisation.
+#[derive(Clone, Debug, Deserialize, Serialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct InstanceStage {
+    pub init: String,
+    pub rigid: bool,
+    pub colour: bool,
+    pub colour_weight: f64,
+    pub seed: u64,
+    pub offset_dtype: String,
+}
+
+/// `[eval]`.
+#[derive(Clone, Debug, Deserialize, Serialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct EvalStage {
+    pub images: usize,
+}
+
+/// `[bench]`.
+#[derive(Clone, Debug, Deserialize, Serialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct BenchStage {
+    pub frames: usize,
+    pub warmup: usize,
+}
+
+#[derive(Clone, Debug, Deserialize, Serialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+struct PipelineTables {
+    segment: SegmentStage,
+    instance: InstanceStage,
+    eval: EvalStage,
+    bench: BenchStage,
+}
+
+/// Every stage's settings of `instgs-vk train` on a dataset with masks: one file, the plain
+/// stage's keys at the top, `[joint]` for the joint optimisation, `[segment]` `[instance]`
+/// `[eval]` `[bench]` for the others (configs/pipeline.toml).
+#[derive(Clone, Debug, PartialEq)]
+pub struct PipelineConfig {
+    pub plain: Config,
+    pub joint: Config,
+    pub segment: SegmentStage,
+    pub instance: InstanceStage,
+    pub eval: EvalStage,
+    pub bench: BenchStage,
+}
+
+impl PipelineConfig {
+    /// The defaults with `text` merged over them; `what` names the source in errors.
+    pub fn from_toml(text: &str, what: &str) -> Result<PipelineConfig> {
+        let mut user: toml::Table = text.parse().map_err(|e| anyhow!("{what}: not valid TOML: {e}"))?;
+        let mut take = |key: &str| -> Result<toml::Table> {
+            match user.remove(key) {
+                None => Ok(toml::Table::new()),
+                Some(toml::Value::Table(t)) => Ok(t),
+                Some(_) => bail!("{what}: `{key}` must be a table"),
+            }
+        };
+        let joint = take("joint")?;
+        let mut tables = toml::Table::new();
+        for key in ["segment", "instance", "eval", "bench"] {
+            tables.insert(key.into(), toml::Value::Table(take(key)?));
+        }
+        let plain = Config::from_toml(&toml::to_string(&user)?, what)?;
+        let joint = Config::instanced_from_toml(&toml::to_string(&joint)?, &format!("{what} [joint]"))?;
+        let mut base: toml::Table = PIPELINE_TOML.parse().expect("configs/pipeline.toml parses");
+        merge(&mut base, tables, "").map_err(|e| anyhow!("{what}: {e}"))?;
+        let t: PipelineTables = toml::Value::Table(base).try_into().map_err(|e| anyhow!("{what}: {e}"))?;
+        if !matches!(t.instance.init.as_str(), "merge" | "max" | "first") {
+            bail!("{what}: instance.init must be \"merge\", \"max\" or \"first\"");
+        }
+        if !matches!(t.instance.offset_dtype.as_str(), "f32" | "f16" | "pq8") {
+            bail!("{what}: instance.offset_dtype must be \"f32\", \"f16\" or \"pq8\"");
+        }
+        if t.bench.frames == 0 {
+            bail!("{what}: bench.frames must be at least 1");
+        }
+        if !(t.segment.alpha.is_finite() && t.segment.alpha >= 0.0) {
+            bail!("{what}: segment.alpha must be finite and non-negative");
+        }
+        Ok(PipelineConfig { plain, joint, segment: t.segment, instance: t.instance, eval: t.eval, bench: t.bench })
+    }
+
+    pub fn load(path: Option<&Path>) -> Result<PipelineConfig> {
+        match path {
+            None => Self::from_toml("", "configs/pipeline.toml"),
+            Some(p) => {
+                let text = std::fs::read_to_string(p).with_context(|| format!("{}: cannot read", p.display()))?;
+                Self::from_toml(&text, &p.display().to_string())
+            }
+        }
     }
 }

@@ -1,5 +1,5 @@
 //! The `.instgs` file: one instanced scene in one file (format described in
-//! `docs/instgs-format.md`).
+//! `docs/format.md`).
 //!
 //! ```text
 //! 0   8 bytes   magic "INSTGS\0\0"

@@ -12,6 +12,9 @@ use instgs_vk::raster::Rasterizer;
 use instgs_vk::scene::read_ply;
 use instgs_vk::util::save_png;
 
+mod pipeline;
+mod report;
+
 /// Instanced 3D Gaussian Splatting on Vulkan compute.
 #[derive(Parser)]
 #[command(version, about)]
@@ -68,27 +71,39 @@ enum Cmd {
         #[arg(long, requires = "compare")]
         compare_exact: bool,
     },
-    /// Train a plain 3DGS scene from a dataset (NeRF-synthetic or COLMAP) on the GPU, or (with
-    /// --init) jointly optimise an instanced scene's templates, offsets and background.
+    /// The main job. On a dataset with instance masks (DIR/masks/train/): the whole InstGS
+    /// pipeline, plain → segment → instance → joint → eval → bench, into one run folder with a
+    /// report (RUN/report.md); a re-run resumes. Without masks: plain 3DGS training. With
+    /// --init SCENE.instgs: joint optimisation of that instanced scene only.
     Train {
         #[command(flatten)]
         data: DataArgs,
-        /// Run folder: checkpoint.bin, metrics.csv, curves.png and point_cloud.ply (plain) or
-        /// scene.instgs (instanced).
+        /// Run folder. Plain: checkpoint.bin, metrics.csv, curves.png, point_cloud.ply. Pipeline:
+        /// also labels.json, init.instgs, scene.instgs, joint/, eval.json, bench.json, images/,
+        /// pipeline.json and report.md (see the README).
         #[arg(long)]
         out: PathBuf,
-        /// An instanced scene (.instgs) to optimise jointly (configs/instanced.toml applies).
+        /// SCENE.ply: a plain 3DGS scene trained by any 3DGS tool replaces the plain stage.
+        /// SCENE.instgs: optimise this instanced scene jointly (configs/instanced.toml applies).
         #[arg(long)]
         init: Option<PathBuf>,
-        /// Training configuration (TOML; keys not given keep configs/default.toml's values).
+        /// Configuration (TOML, only the keys to change): configs/default.toml's keys for plain
+        /// training; a pipeline adds [joint], [segment], [instance], [eval], [bench]
+        /// (configs/pipeline.toml).
         #[arg(long)]
         config: Option<PathBuf>,
-        /// Iterations (overrides the configuration's).
+        /// Iterations of the (plain) training (overrides the configuration's).
         #[arg(long)]
         iterations: Option<u64>,
-        /// Continue from OUT/checkpoint.bin.
+        /// Continue from OUT/checkpoint.bin (plain or joint-only runs; a pipeline always resumes).
         #[arg(long)]
         resume: bool,
+        /// Pipeline: redo this stage and the ones after it (their earlier results are replaced).
+        #[arg(long, value_enum)]
+        from: Option<pipeline::Stage>,
+        /// Pipeline: stop after this stage.
+        #[arg(long, value_enum)]
+        until: Option<pipeline::Stage>,
         /// Print a line every 10 % instead of a progress bar.
         #[arg(long)]
         quiet: bool,
@@ -424,7 +439,8 @@ fn run(cli: Cli) -> Result<()> {
                 seed,
                 ..Default::default()
             };
-            instance(&scene, &labels, &groups_file, truth, &opts, offset_dtype, report.as_deref(), &out)
+            instance(&scene, &labels, &groups_file, truth, &opts, offset_dtype.into(), report.as_deref(), &out)
+                .map(|_| ())
         }
         Cmd::View {
             scene,
@@ -456,7 +472,39 @@ fn run(cli: Cli) -> Result<()> {
             view(opts, cameras.as_deref(), camera, up, headless)
         }
         Cmd::BenchSort { keys, bits, repeats } => bench_sort(cli.device, keys, bits, repeats),
-        Cmd::Train { data, out, init, config, iterations, resume, quiet } => {
+        Cmd::Train { data, out, init, config, iterations, resume, quiet, from, until } => {
+            let is_instgs = init.as_deref().is_some_and(|p| p.extension().is_some_and(|e| e == "instgs"));
+            let masks = pipeline::has_masks(&data.data);
+            if masks && !is_instgs {
+                let init_ply = init.clone();
+                return pipeline::run(pipeline::PipelineArgs {
+                    data: data.data.clone(),
+                    downscale: data.downscale,
+                    out,
+                    init_ply,
+                    config,
+                    iterations,
+                    from,
+                    until,
+                    progress: !quiet,
+                    device: cli.device,
+                });
+            }
+            if from.is_some() || until.is_some() {
+                bail!(
+                    "--from and --until choose pipeline stages, and {} has no instance masks (masks/train/)",
+                    data.data.display()
+                );
+            }
+            if init.is_some() && !is_instgs {
+                bail!(
+                    "--init with a plain scene starts the InstGS pipeline, which needs instance masks: {} has no masks/train/ (see the README, 'Bringing your own masks')",
+                    data.data.display()
+                );
+            }
+            if init.is_none() {
+                eprintln!("{}: no instance masks (masks/train/): training plain 3DGS only", data.data.display());
+            }
             train(cli.device, &data, &out, init.as_deref(), config.as_deref(), iterations, resume, quiet)
         }
         Cmd::Eval { scene, data, split, json, out, background, lod, render_config } => {
@@ -548,7 +596,7 @@ fn train(
     );
     ctrlc::set_handler(|| train::INTERRUPTED.store(true, std::sync::atomic::Ordering::SeqCst))
         .context("cannot install the Ctrl-C handler")?;
-    let opts = train::RunOptions { out: out.to_path_buf(), resume, init, progress: !quiet };
+    let opts = train::RunOptions { init, ..train::RunOptions::new(out.to_path_buf(), resume, !quiet) };
     let r = train::run(&gpu, &k, &ds, &cfg, &opts)?;
     let test = match (r.test_psnr, r.test_ssim) {
         (Some(p), Some(s)) => format!(", test PSNR {p:.2} dB SSIM {s:.4}"),
@@ -753,22 +801,80 @@ fn segment(
     export_dir: Option<&Path>,
     per_frame_ids: bool,
 ) -> Result<()> {
-    use instgs_vk::segment;
     let is_json = out.extension().and_then(|e| e.to_str()) == Some("json");
     if per_frame_ids && !is_json {
         bail!("{}: with --per-frame-ids the output must be .json (it carries the associated groups)", out.display());
     }
+    if !is_json && out.extension().and_then(|e| e.to_str()) != Some("bin") {
+        bail!("{}: the output must end in .json or .bin", out.display());
+    }
     let scene = read_ply(scene_path)?;
     let opts = instgs_vk::dataset::LoadOptions { downscale: 1, background: [0.0; 3] };
     let ds = instgs_vk::dataset::load(data, &opts)?;
+    let (gpu, k) = open_device(device)?;
+    let seg = segment_scene(&gpu, &k, &scene, data, &ds, split, alpha, per_frame_ids)?;
+    if is_json {
+        write_json(out, &seg.doc, false)?;
+    } else {
+        instgs_vk::util::write_atomic(out, |f| {
+            use std::io::Write;
+            f.write_all(bytemuck::cast_slice(&seg.labels))
+        })?;
+    }
+    if let Some(dir) = export_dir {
+        std::fs::create_dir_all(dir).with_context(|| format!("{}: cannot create", dir.display()))?;
+        for id in seg.ids.iter().copied().chain([0]) {
+            let part = instgs_vk::segment::subset(&scene, &seg.labels, id);
+            let name = if id == 0 { "background.ply".to_string() } else { format!("instance_{id}.ply") };
+            if !part.is_empty() {
+                instgs_vk::scene::write_ply(&part, &dir.join(name))?;
+            }
+        }
+    }
+    Ok(())
+}
+
+/// Writes `v` as JSON, atomically.
+fn write_json(path: &Path, v: &serde_json::Value, pretty: bool) -> Result<()> {
+    let text = if pretty { serde_json::to_string_pretty(v)? } else { serde_json::to_string(v)? };
+    instgs_vk::util::write_atomic(path, |f| {
+        use std::io::Write;
+        f.write_all(text.as_bytes())
+    })
+}
+
+/// A segmentation and what `segment` reports of it.
+struct SegmentOutcome {
+    /// Instance ids in group order.
+    ids: Vec<u32>,
+    labels: Vec<u32>,
+    /// labels.json: {ids, labels} (and, with per-frame ids, the associated groups).
+    doc: serde_json::Value,
+    /// {instances: [{group, id, gaussians, test_iou, test_views}], background}.
+    summary: serde_json::Value,
+}
+
+/// Segments `scene` with the masks of `ds`'s `split` views (`DIR/masks/<split>/`); prints one
+/// line per instance (with the held-out IoU where test masks with global ids exist).
+#[allow(clippy::too_many_arguments)]
+fn segment_scene(
+    gpu: &Arc<Gpu>,
+    k: &Arc<Kernels>,
+    scene: &instgs_vk::scene::Scene,
+    data: &Path,
+    ds: &instgs_vk::dataset::Dataset,
+    split: &str,
+    alpha: f32,
+    per_frame_ids: bool,
+) -> Result<SegmentOutcome> {
+    use instgs_vk::segment;
     let views = ds.split(split)?;
     let mut masks = segment::load_masks(data, split, views)?;
-    let (gpu, k) = open_device(device)?;
     let mut members_json = serde_json::Map::new();
     let groups = if per_frame_ids {
         let cats = segment::load_frame_categories(data, split, views, &masks)?;
         let o = segment::AssociateOptions { alpha, ..Default::default() };
-        let a = segment::associate(&gpu, &k, &scene, views, &masks, &cats, &o)?;
+        let a = segment::associate(gpu, k, scene, views, &masks, &cats, &o)?;
         let total: usize = a.members.values().map(Vec::len).sum::<usize>() + a.dropped.len();
         println!(
             "association: {} masks of {} views → {} instances in {} groups ({} masks in no instance of ≥ {} views)",
@@ -795,7 +901,7 @@ fn segment(
         segment::read_groups(&data.join("instances.json"))?
     };
     let ids: Vec<u32> = groups.iter().flat_map(|g| g.ids.iter().copied()).collect();
-    let seg = segment::segment(&gpu, &k, &scene, views, &masks, &ids, alpha)?;
+    let seg = segment::segment(gpu, k, scene, views, &masks, &ids, alpha)?;
     if !seg.unknown_ids.is_empty() {
         eprintln!(
             "warning: mask ids {:?} are not in {}; their pixels count as background",
@@ -803,64 +909,48 @@ fn segment(
             data.join("instances.json").display()
         );
     }
-    match out.extension().and_then(|e| e.to_str()) {
-        Some("json") => {
-            let mut doc = serde_json::json!({"ids": seg.ids, "labels": seg.labels});
-            if per_frame_ids {
-                // A groups file too (`instance --groups`): groups → instances with their masks.
-                doc["groups"] = groups
+    let mut doc = serde_json::json!({"ids": seg.ids, "labels": seg.labels});
+    if per_frame_ids {
+        // A groups file too (`instance --groups`): groups → instances with their masks.
+        doc["groups"] = groups
+            .iter()
+            .map(|g| {
+                let inst: Vec<serde_json::Value> = g
+                    .ids
                     .iter()
-                    .map(|g| {
-                        let inst: Vec<serde_json::Value> = g
-                            .ids
-                            .iter()
-                            .map(|id| serde_json::json!({"id": id, "masks": members_json[&id.to_string()]}))
-                            .collect();
-                        serde_json::json!({"name": g.name, "instances": inst})
-                    })
+                    .map(|id| serde_json::json!({"id": id, "masks": members_json[&id.to_string()]}))
                     .collect();
-            }
-            let text = serde_json::to_string(&doc)?;
-            instgs_vk::util::write_atomic(out, |f| {
-                use std::io::Write;
-                f.write_all(text.as_bytes())
-            })?;
-        }
-        Some("bin") => instgs_vk::util::write_atomic(out, |f| {
-            use std::io::Write;
-            f.write_all(bytemuck::cast_slice(&seg.labels))
-        })?,
-        _ => bail!("{}: the output must end in .json or .bin", out.display()),
+                serde_json::json!({"name": g.name, "instances": inst})
+            })
+            .collect();
     }
     // Held-out views with masks (ids meaningful across frames): the IoU of every instance's
     // rendered visible region.
     let test_masks =
         if ds.test.is_empty() || per_frame_ids { None } else { segment::load_masks(data, "test", &ds.test).ok() };
+    let mut rows = Vec::new();
     for g in &groups {
         for &id in &g.ids {
             let n = seg.labels.iter().filter(|&&l| l == id).count();
+            let mut row = serde_json::json!({"group": g.name, "id": id, "gaussians": n});
             let iou = match &test_masks {
                 Some(m) if !m.is_empty() => {
-                    let v = segment::instance_iou(&gpu, &k, &scene, &seg.labels, &ds.test, m, id)?;
-                    format!("  test IoU {:.3} ({} views)", v.iter().sum::<f64>() / v.len().max(1) as f64, v.len())
+                    let v = segment::instance_iou(gpu, k, scene, &seg.labels, &ds.test, m, id)?;
+                    let mean = v.iter().sum::<f64>() / v.len().max(1) as f64;
+                    row["test_iou"] = mean.into();
+                    row["test_views"] = v.len().into();
+                    format!("  test IoU {mean:.3} ({} views)", v.len())
                 }
                 _ => String::new(),
             };
             println!("{} {id}: {n} Gaussians{iou}", g.name);
+            rows.push(row);
         }
     }
-    println!("background: {} Gaussians", seg.labels.iter().filter(|&&l| l == 0).count());
-    if let Some(dir) = export_dir {
-        std::fs::create_dir_all(dir).with_context(|| format!("{}: cannot create", dir.display()))?;
-        for id in ids.iter().copied().chain([0]) {
-            let part = segment::subset(&scene, &seg.labels, id);
-            let name = if id == 0 { "background.ply".to_string() } else { format!("instance_{id}.ply") };
-            if !part.is_empty() {
-                instgs_vk::scene::write_ply(&part, &dir.join(name))?;
-            }
-        }
-    }
-    Ok(())
+    let background = seg.labels.iter().filter(|&&l| l == 0).count();
+    println!("background: {background} Gaussians");
+    let summary = serde_json::json!({"instances": rows, "background": background, "alpha": alpha});
+    Ok(SegmentOutcome { ids, labels: seg.labels, doc, summary })
 }
 
 #[allow(clippy::too_many_arguments)]
@@ -870,16 +960,19 @@ fn instance(
     groups_path: &Path,
     truth_path: Option<&Path>,
     opts: &instgs_vk::template::InstanceOptions,
-    dtype: OffsetDtype,
+    dtype: instgs::Dtype,
     report: Option<&Path>,
     out: &Path,
-) -> Result<()> {
+) -> Result<serde_json::Value> {
     use instgs_vk::template;
     let scene = read_ply(scene_path)?;
     let labels = template::read_labels(labels, scene.len())?;
     let groups = instgs_vk::segment::read_groups(groups_path)?;
     let (inst, reports) = template::instantiate(&scene, &labels, &groups, opts, |line| eprintln!("{line}"))?;
-    instgs::write(&inst, out, dtype.into())?;
+    if instgs_vk::train::INTERRUPTED.load(std::sync::atomic::Ordering::SeqCst) {
+        bail!("interrupted before {} was written", out.display());
+    }
+    instgs::write(&inst, out, dtype)?;
     let truth = match truth_path {
         Some(p) => template::read_ground_truth(p)?,
         None => None,
@@ -921,16 +1014,18 @@ fn instance(
         inst.splats(),
         opts.init
     );
+    let v = serde_json::json!({
+        "init": format!("{:?}", opts.init).to_lowercase(),
+        "colour": opts.use_colour,
+        "template_gaussians": inst.groups.iter().map(|g| g.template.len()).sum::<usize>(),
+        "background_gaussians": inst.background.len(),
+        "splats": inst.splats(),
+        "instances": rows,
+    });
     if let Some(path) = report {
-        let text = serde_json::to_string_pretty(
-            &serde_json::json!({"init": format!("{:?}", opts.init).to_lowercase(), "colour": opts.use_colour, "instances": rows}),
-        )?;
-        instgs_vk::util::write_atomic(path, |f| {
-            use std::io::Write;
-            f.write_all(text.as_bytes())
-        })?;
+        write_json(path, &v, true)?;
     }
-    Ok(())
+    Ok(v)
 }
 
 fn compose(
@@ -1211,6 +1306,7 @@ fn percentile(v: &[f64], q: f64) -> f64 {
     v[((v.len() - 1) as f64 * q).round() as usize]
 }
 
+#[allow(clippy::too_many_arguments)]
 fn bench(
     device: Option<String>,
     view: &ViewArgs,
@@ -1224,20 +1320,42 @@ fn bench(
         bail!("--frames must be at least 1");
     }
     let Setup { gpu, k, scene, cams } = setup(device, view)?;
-    let mut runs = vec![BenchScene::new(&gpu, &k, &view.scene, scene, cfg)?];
-    if let Some((b, bcfg)) = &compare {
-        runs.push(BenchScene::new(&gpu, &k, b, AnyScene::read(b)?, bcfg)?);
+    let b = compare.map(|(p, c)| AnyScene::read(p).map(|s| (p, s, c))).transpose()?;
+    let v = bench_scenes(&gpu, &k, (&view.scene, scene, cfg), b, &cams, frames, warmup, view.background)?;
+    if let Some(path) = json {
+        write_json(path, &v, true)?;
+    }
+    Ok(())
+}
+
+/// Renders scene A (and B, interleaved A B A B …) from `cams`, prints the tables and returns
+/// the JSON report (A's numbers; with B also `compare`, `ratios` A over B and image agreement).
+#[allow(clippy::too_many_arguments)]
+fn bench_scenes(
+    gpu: &Arc<Gpu>,
+    k: &Arc<Kernels>,
+    a: (&Path, AnyScene, &instgs_vk::lod::RenderConfig),
+    b: Option<(&Path, AnyScene, instgs_vk::lod::RenderConfig)>,
+    cams: &[Camera],
+    frames: usize,
+    warmup: usize,
+    background: [f32; 3],
+) -> Result<serde_json::Value> {
+    let cfg = a.2;
+    let mut runs = vec![BenchScene::new(gpu, k, a.0, a.1, cfg)?];
+    if let Some((p, scene, bcfg)) = b {
+        runs.push(BenchScene::new(gpu, k, p, scene, &bcfg)?);
     }
     // Interleaved (A B A B …) so that clock and thermal drift hit both scenes alike.
-    for cam in &cams {
+    for cam in cams {
         for _ in 0..warmup {
             for run in runs.iter_mut() {
-                run.frame(cam, view.background, false)?;
+                run.frame(cam, background, false)?;
             }
         }
         for _ in 0..frames {
             for run in runs.iter_mut() {
-                run.frame(cam, view.background, true)?;
+                run.frame(cam, background, true)?;
             }
         }
     }
@@ -1293,10 +1411,10 @@ fn bench(
         let db = |a: &[[f32; 4]], b: &[[f32; 4]]| instgs_vk::util::psnr(a, b).min(100.0);
         let (mut ab, mut a_ref, mut b_ref) = (Vec::new(), Vec::new(), Vec::new());
         if let [a, b] = &mut runs[..] {
-            for cam in &cams {
-                let fa = a.r.render(&a.gs, cam, view.background)?;
-                let fb = b.r.render(&b.gs, cam, view.background)?;
-                let big = b.r.render(&b.gs, &cam.resized(2 * cam.width, 2 * cam.height), view.background)?;
+            for cam in cams {
+                let fa = a.r.render(&a.gs, cam, background)?;
+                let fb = b.r.render(&b.gs, cam, background)?;
+                let big = b.r.render(&b.gs, &cam.resized(2 * cam.width, 2 * cam.height), background)?;
                 let reference = box_down2(&big.image, cam.width as usize, cam.height as usize);
                 ab.push(db(&fa.image, &fb.image));
                 a_ref.push(db(&fa.image, &reference));
@@ -1316,13 +1434,7 @@ fn bench(
         v["psnr_vs_reference"] = serde_json::json!({ "a": mean(&a_ref), "b": mean(&b_ref) });
     }
     v["render"] = serde_json::to_value(cfg)?;
-    if let Some(path) = json {
-        instgs_vk::util::write_atomic(path, |f| {
-            use std::io::Write;
-            f.write_all(serde_json::to_string_pretty(&v).map_err(std::io::Error::other)?.as_bytes())
-        })?;
-    }
-    Ok(())
+    Ok(v)
 }
 
 /// Median milliseconds of Rust's sort_unstable on (key, value) pairs, by key.

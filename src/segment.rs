@@ -71,6 +71,8 @@ pub fn read_groups(path: &Path) -> Result<Vec<InstanceGroup>> {
 }
 
 /// Reads one mask (8- or 16-bit grey PNG of instance ids, 0 = background) of `width`×`height`.
+/// A mask an integer factor f larger in both dimensions (the image was loaded with
+/// `--downscale f`) is subsampled at each f×f block's centre pixel, so ids stay ids.
 pub fn read_mask(path: &Path, width: u32, height: u32) -> Result<Vec<u16>> {
     let what = path.display();
     let img = image::open(path).with_context(|| format!("{what}: cannot read mask"))?;
@@ -80,10 +82,18 @@ pub fn read_mask(path: &Path, width: u32, height: u32) -> Result<Vec<u16>> {
         image::DynamicImage::ImageLuma16(m) => m.pixels().map(|p| p.0[0]).collect(),
         other => bail!("{what}: a mask must be 8- or 16-bit greyscale, not {:?}", other.color()),
     };
-    if (w, h) != (width, height) {
-        bail!("{what}: mask is {w}x{h}, its image {width}x{height}");
+    if (w, h) == (width, height) {
+        return Ok(img);
     }
-    Ok(img)
+    let f = w / width.max(1);
+    if f > 1 && (w, h) == (f * width, f * height) {
+        let c = f / 2;
+        return Ok((0..height)
+            .flat_map(|y| (0..width).map(move |x| ((y * f + c) * w + x * f + c) as usize))
+            .map(|i| img[i])
+            .collect());
+    }
+    bail!("{what}: mask is {w}x{h}, its image {width}x{height}");
 }
 
 /// The masks of `views` (`masks/<split>/<image name>.png` under `data`), resized views refused.

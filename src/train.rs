@@ -880,6 +880,18 @@ pub struct RunOptions {
     pub init: Option<InstancedScene>,
     /// Show a progress bar (else a line every 10 %).
     pub progress: bool,
+    /// Written before the progress bar and the progress lines (the pipeline's stage).
+    pub label: String,
+    /// Stop as Ctrl-C would once this many iterations of this session are done (tests of
+    /// interrupting and resuming).
+    pub stop_after: Option<u64>,
+}
+
+impl RunOptions {
+    /// Plain training into `out` (no init, no label, no forced stop).
+    pub fn new(out: PathBuf, resume: bool, progress: bool) -> RunOptions {
+        RunOptions { out, resume, init: None, progress, label: String::new(), stop_after: None }
+    }
 }
 
 /// One row of `metrics.csv`.
@@ -1007,7 +1019,10 @@ pub fn run(gpu: &Arc<Gpu>, k: &Arc<Kernels>, ds: &Dataset, cfg: &Config, opts: &
     let t0 = Instant::now();
     let bar = if opts.progress {
         let b = indicatif::ProgressBar::new(cfg.iterations);
-        b.set_style(indicatif::ProgressStyle::with_template("{bar:30} {pos}/{len} {msg} {per_sec} ETA {eta}").unwrap());
+        b.set_style(
+            indicatif::ProgressStyle::with_template("{prefix}{bar:30} {pos}/{len} {msg} {per_sec} ETA {eta}").unwrap(),
+        );
+        b.set_prefix(opts.label.clone());
         b.set_position(start_it);
         Some(b)
     } else {
@@ -1017,7 +1032,7 @@ pub fn run(gpu: &Arc<Gpu>, k: &Arc<Kernels>, ds: &Dataset, cfg: &Config, opts: &
     let mut interrupted = false;
     let mut pass_times: Vec<(String, Vec<f64>)> = Vec::new();
     for it in start_it + 1..=cfg.iterations {
-        if INTERRUPTED.load(Ordering::SeqCst) {
+        if INTERRUPTED.load(Ordering::SeqCst) || opts.stop_after.is_some_and(|n| it > start_it + n) {
             interrupted = true;
             break;
         }
@@ -1121,7 +1136,7 @@ pub fn run(gpu: &Arc<Gpu>, k: &Arc<Kernels>, ds: &Dataset, cfg: &Config, opts: &
             }
             None => {
                 if it % (cfg.iterations / 10).max(1) == 0 {
-                    eprintln!("iteration {it}/{}: {msg}", cfg.iterations);
+                    eprintln!("{}iteration {it}/{}: {msg}", opts.label, cfg.iterations);
                 }
             }
         }

@@ -1,0 +1,604 @@
+//! `instgs-vk train` on a dataset with instance masks: the whole InstGS pipeline in one run
+//! folder, stage by stage, each resumable.
+//!
+//! | stage | reads | writes (in RUN) |
+//! |---|---|---|
+//! | plain | the dataset (or `--init SCENE.ply`) | `point_cloud.ply`, `checkpoint.bin`, `metrics.csv`, `curves.png` |
+//! | segment | `point_cloud.ply`, `masks/train/` | `labels.json`, `segment.json` |
+//! | instance | `point_cloud.ply`, `labels.json` | `init.instgs`, `instance.json` |
+//! | joint | `init.instgs` | `scene.instgs`, `joint/{checkpoint.bin, metrics.csv, curves.png}` |
+//! | eval | `point_cloud.ply`, `scene.instgs` | `eval.json`, `images/<view>.png` |
+//! | bench | `point_cloud.ply`, `scene.instgs` | `bench.json` |
+//!
+//! `RUN/pipeline.json` records each stage's settings, time and whether it finished;
+//! `RUN/report.md` is rewritten after every stage. A re-run skips finished stages, continues
+//! the training stages from their checkpoints and redoes an unfinished other stage from its start
+//! (they write their results atomically, so a result file is always whole).
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::Ordering;
+use std::sync::Arc;
+use std::time::Instant;
+
+use anyhow::{anyhow, bail, Context, Result};
+use instgs_vk::config::PipelineConfig;
+use instgs_vk::dataset::Dataset;
+use instgs_vk::gpu::Gpu;
+use instgs_vk::instgs::AnyScene;
+use instgs_vk::kernels::Kernels;
+use instgs_vk::train::{self, INTERRUPTED};
+use serde::{Deserialize, Serialize};
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, clap::ValueEnum)]
+pub enum Stage {
+    /// Plain 3DGS training (or the --init PLY).
+    Plain,
+    /// Gradient-driven instance segmentation.
+    Segment,
+    /// Registration and template initialisation.
+    Instance,
+    /// Joint optimisation of templates, offsets and background.
+    Joint,
+    /// Held-out PSNR/SSIM of plain and InstGS, side-by-side images.
+    Eval,
+    /// Frame times and memory, InstGS against plain.
+    Bench,
+}
+
+pub const STAGES: [Stage; 6] = [Stage::Plain, Stage::Segment, Stage::Instance, Stage::Joint, Stage::Eval, Stage::Bench];
+
+impl Stage {
+    pub fn name(self) -> &'static str {
+        match self {
+            Stage::Plain => "plain",
+            Stage::Segment => "segment",
+            Stage::Instance => "instance",
+            Stage::Joint => "joint",
+            Stage::Eval => "eval",
+            Stage::Bench => "bench",
+        }
+    }
+
+    fn number(self) -> usize {
+        STAGES.iter().position(|&s| s == self).unwrap_or(0) + 1
+    }
+
+    fn label(self) -> String {
+        format!("[{}/{} {}] ", self.number(), STAGES.len(), self.name())
+    }
+}
+
+/// Whether `data` has instance masks (`masks/train/`): the pipeline runs, else plain training.
+pub fn has_masks(data: &Path) -> bool {
+    data.join("masks").join("train").is_dir()
+}
+
+/// How the masks' ids are meant.
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum MaskIds {
+    /// Ids shared by all views, grouped by `DIR/instances.json`.
+    Global,
+    /// Ids that mean nothing across frames, with `masks/train/<stem>.json` categories.
+    PerFrame,
+}
+
+/// Checks the masks against the training views before any long work: every view has its
+/// mask, of its size (or an integer multiple with --downscale), and every instance of
+/// `instances.json` shows in some mask.
+fn check_masks(data: &Path, ds: &Dataset) -> Result<MaskIds> {
+    let dir = data.join("masks").join("train");
+    let groups_file = data.join("instances.json");
+    let first_stem = ds.train.first().and_then(|v| v.path.file_stem()).map(|s| s.to_string_lossy().into_owned());
+    let ids = if groups_file.exists() {
+        MaskIds::Global
+    } else if first_stem.is_some_and(|s| dir.join(format!("{s}.json")).exists()) {
+        MaskIds::PerFrame
+    } else {
+        bail!(
+            "{}: there are masks but neither {} (instance ids shared by all views) nor {} (per-frame ids with categories); see the README, 'Bringing your own masks'",
+            data.display(),
+            groups_file.display(),
+            dir.join("<image>.json").display()
+        );
+    };
+    let missing: Vec<String> = ds
+        .train
+        .iter()
+        .filter_map(|v| {
+            let name = v.path.file_name()?.to_string_lossy().into_owned();
+            (!dir.join(&name).exists()).then_some(name)
+        })
+        .collect();
+    if !missing.is_empty() {
+        bail!(
+            "{}: {} of {} training views have no mask (first: {}); masks/train/ must hold one PNG per training image, with the image's name",
+            dir.display(),
+            missing.len(),
+            ds.train.len(),
+            missing[..missing.len().min(3)].join(", ")
+        );
+    }
+    let masks = instgs_vk::segment::load_masks(data, "train", &ds.train)?;
+    if ids == MaskIds::Global {
+        let groups = instgs_vk::segment::read_groups(&groups_file)?;
+        let mut seen = std::collections::BTreeSet::new();
+        for m in &masks {
+            seen.extend(m.iter().copied());
+        }
+        for g in &groups {
+            for &id in &g.ids {
+                if id > u16::MAX as u32 || !seen.contains(&(id as u16)) {
+                    bail!(
+                        "{}: instance {id} ({}) appears in no training mask of {}",
+                        groups_file.display(),
+                        g.name,
+                        dir.display()
+                    );
+                }
+            }
+        }
+        if groups.iter().all(|g| g.ids.len() < 2) {
+            eprintln!(
+                "warning: {}: no group has two instances; every template will have a single instance",
+                groups_file.display()
+            );
+        }
+    }
+    Ok(ids)
+}
+
+#[derive(Clone, Debug, Default, Serialize, Deserialize)]
+struct StageRecord {
+    /// The settings the stage ran with (its result is reused only with the same).
+    settings: serde_json::Value,
+    done: bool,
+    /// Wall seconds over all attempts (a killed attempt's time is lost).
+    seconds: f64,
+    attempts: u32,
+}
+
+#[derive(Clone, Debug, Default, Serialize, Deserialize)]
+struct State {
+    stages: BTreeMap<String, StageRecord>,
+}
+
+impl State {
+    fn path(run: &Path) -> PathBuf {
+        run.join("pipeline.json")
+    }
+
+    fn read(run: &Path) -> Result<State> {
+        let p = State::path(run);
+        if !p.exists() {
+            return Ok(State::default());
+        }
+        let text = std::fs::read_to_string(&p).with_context(|| format!("{}: cannot read", p.display()))?;
+        serde_json::from_str(&text)
+            .with_context(|| format!("{}: damaged pipeline state (remove it to start the run afresh)", p.display()))
+    }
+
+    fn write(&self, run: &Path) -> Result<()> {
+        crate::write_json(&State::path(run), &serde_json::to_value(self)?, true)
+    }
+
+    fn done(&self, s: Stage) -> bool {
+        self.stages.get(s.name()).is_some_and(|r| r.done)
+    }
+}
+
+pub struct PipelineArgs {
+    pub data: PathBuf,
+    pub downscale: u32,
+    pub out: PathBuf,
+    /// A plain scene trained elsewhere: the plain stage copies it instead of training.
+    pub init_ply: Option<PathBuf>,
+    pub config: Option<PathBuf>,
+    pub iterations: Option<u64>,
+    pub from: Option<Stage>,
+    pub until: Option<Stage>,
+    pub progress: bool,
+    pub device: Option<String>,
+}
+
+/// `INSTGS_INTERRUPT_IN=<stage>` (tests): the run behaves as if Ctrl-C arrived in that stage —
+/// a training stage after half of this session's iterations, any other stage during its work.
+fn interrupt_hook() -> Option<String> {
+    std::env::var("INSTGS_INTERRUPT_IN").ok()
+}
+
+fn interrupted() -> bool {
+    INTERRUPTED.load(Ordering::SeqCst)
+}
+
+/// What a stage's result depends on besides earlier stages.
+fn settings(s: Stage, a: &PipelineArgs, cfg: &PipelineConfig) -> Result<serde_json::Value> {
+    let data = std::fs::canonicalize(&a.data).unwrap_or_else(|_| a.data.clone());
+    let mut v = serde_json::json!({"data": data.display().to_string(), "downscale": a.downscale});
+    let own = match s {
+        Stage::Plain => match &a.init_ply {
+            Some(p) => serde_json::json!({"init": std::fs::canonicalize(p).unwrap_or_else(|_| p.clone())}),
+            None => serde_json::to_value(&cfg.plain)?,
+        },
+        Stage::Segment => serde_json::to_value(&cfg.segment)?,
+        Stage::Instance => serde_json::to_value(&cfg.instance)?,
+        Stage::Joint => serde_json::to_value(&cfg.joint)?,
+        Stage::Eval => serde_json::to_value(&cfg.eval)?,
+        Stage::Bench => serde_json::to_value(&cfg.bench)?,
+    };
+    v[s.name()] = own;
+    Ok(v)
+}
+
+/// Files a stage starts from that `--from` must remove (training checkpoints).
+fn stage_checkpoint(run: &Path, s: Stage) -> Option<PathBuf> {
+    match s {
+        Stage::Plain => Some(train::checkpoint_path(run)),
+        Stage::Joint => Some(train::checkpoint_path(&run.join("joint"))),
+        _ => None,
+    }
+}
+
+pub fn run(a: PipelineArgs) -> Result<()> {
+    let mut cfg = PipelineConfig::load(a.config.as_deref())?;
+    if let Some(n) = a.iterations {
+        cfg.plain.iterations = n;
+    }
+    if let (Some(f), Some(u)) = (a.from, a.until) {
+        if f > u {
+            bail!("--from {} comes after --until {}", f.name(), u.name());
+        }
+    }
+    let until = a.until.unwrap_or(Stage::Bench);
+    let load = instgs_vk::dataset::LoadOptions { downscale: a.downscale, background: cfg.plain.background };
+    let ds = instgs_vk::dataset::load(&a.data, &load)?;
+    let mask_ids = check_masks(&a.data, &ds)?;
+    if let Some(p) = &a.init_ply {
+        // Read now: a bad file is refused before anything runs.
+        instgs_vk::scene::read_ply(p)?;
+    }
+    std::fs::create_dir_all(&a.out).with_context(|| format!("{}: cannot create", a.out.display()))?;
+    let run = a.out.as_path();
+    let mut state = State::read(run)?;
+    if let Some(from) = a.from {
+        for s in STAGES.iter().copied().filter(|&s| s >= from) {
+            state.stages.remove(s.name());
+            if let Some(c) = stage_checkpoint(run, s) {
+                if c.exists() {
+                    std::fs::remove_file(&c).with_context(|| format!("{}: cannot remove", c.display()))?;
+                }
+            }
+        }
+        state.write(run)?;
+    }
+    // A stage already run (or begun) with other settings is not silently reused.
+    for s in STAGES.iter().copied().filter(|&s| s <= until) {
+        if let Some(r) = state.stages.get(s.name()) {
+            if r.settings != settings(s, &a, &cfg)? {
+                bail!(
+                    "{}: stage {} was run with other settings (data, --downscale, --init or its configuration); redo it and what follows with --from {}, or choose another --out",
+                    State::path(run).display(),
+                    s.name(),
+                    s.name()
+                );
+            }
+        }
+    }
+    let (gpu, k) = crate::open_device(a.device.clone())?;
+    eprintln!(
+        "{}: {} dataset, {} training / {} test views at {}x{}, instance masks ({}); {}",
+        a.data.display(),
+        ds.kind,
+        ds.train.len(),
+        ds.test.len(),
+        ds.train[0].camera.width,
+        ds.train[0].camera.height,
+        match mask_ids {
+            MaskIds::Global => "ids grouped by instances.json",
+            MaskIds::PerFrame => "per-frame ids",
+        },
+        gpu.describe()
+    );
+    ctrlc::set_handler(|| INTERRUPTED.store(true, Ordering::SeqCst)).context("cannot install the Ctrl-C handler")?;
+    let hook = interrupt_hook();
+    let ctx = Ctx { a: &a, cfg: &cfg, ds: &ds, gpu: &gpu, k: &k, mask_ids };
+    for s in STAGES.iter().copied().filter(|&s| s <= until) {
+        if state.done(s) {
+            eprintln!("{}done earlier", s.label());
+            continue;
+        }
+        eprintln!("{}started", s.label());
+        let rec = state.stages.entry(s.name().into()).or_default();
+        rec.settings = settings(s, &a, &cfg)?;
+        rec.attempts += 1;
+        state.write(run)?;
+        let hooked = hook.as_deref() == Some(s.name());
+        let t0 = Instant::now();
+        let result = ctx.stage(s, hooked);
+        let rec = state.stages.entry(s.name().into()).or_default();
+        rec.seconds += t0.elapsed().as_secs_f64();
+        match result {
+            Ok(true) => {
+                rec.done = true;
+                state.write(run)?;
+                eprintln!("{}finished in {:.1} s", s.label(), t0.elapsed().as_secs_f64());
+                crate::report::write(run, &a, &State::read(run)?.summary())?;
+            }
+            Ok(false) => {
+                state.write(run)?;
+                crate::report::write(run, &a, &state.summary())?;
+                bail!(
+                    "interrupted in stage {} (results of earlier stages and training checkpoints are kept); run the same command again to resume",
+                    s.name()
+                );
+            }
+            Err(e) => {
+                state.write(run)?;
+                if interrupted() {
+                    bail!("interrupted in stage {} ({e:#}); run the same command again to resume", s.name());
+                }
+                return Err(e.context(format!("stage {}", s.name())));
+            }
+        }
+    }
+    let m = gpu.take_validation_messages();
+    if !m.is_empty() {
+        bail!("{} Vulkan validation message(s), first: {}", m.len(), m[0]);
+    }
+    if until == Stage::Bench {
+        eprintln!("report: {}", run.join("report.md").display());
+        eprintln!("open the result in the player: instgs-vk view {}", run.join("scene.instgs").display());
+    } else {
+        eprintln!("stopped after stage {} (--until); run without --until to go on", until.name());
+    }
+    Ok(())
+}
+
+impl State {
+    /// Per stage (in order): done, seconds.
+    fn summary(&self) -> Vec<(Stage, bool, f64)> {
+        STAGES.iter().filter_map(|&s| self.stages.get(s.name()).map(|r| (s, r.done, r.seconds))).collect()
+    }
+}
+
+struct Ctx<'a> {
+    a: &'a PipelineArgs,
+    cfg: &'a PipelineConfig,
+    ds: &'a Dataset,
+    gpu: &'a Arc<Gpu>,
+    k: &'a Arc<Kernels>,
+    mask_ids: MaskIds,
+}
+
+impl Ctx<'_> {
+    fn run_dir(&self) -> &Path {
+        &self.a.out
+    }
+
+    /// Runs one stage: Ok(true) finished, Ok(false) interrupted (nothing half-written).
+    fn stage(&self, s: Stage, hooked: bool) -> Result<bool> {
+        if hooked && !matches!(s, Stage::Plain | Stage::Joint) {
+            INTERRUPTED.store(true, Ordering::SeqCst);
+        }
+        let run = self.run_dir();
+        match s {
+            Stage::Plain => {
+                if let Some(p) = &self.a.init_ply {
+                    let bytes = std::fs::read(p).with_context(|| format!("{}: cannot read", p.display()))?;
+                    instgs_vk::util::write_atomic(&run.join("point_cloud.ply"), |f| {
+                        use std::io::Write;
+                        f.write_all(&bytes)
+                    })?;
+                    eprintln!("{}: plain scene from {}", run.join("point_cloud.ply").display(), p.display());
+                    return Ok(!interrupted());
+                }
+                self.train(run, None, &self.cfg.plain, s, hooked)
+            }
+            Stage::Segment => {
+                let scene = instgs_vk::scene::read_ply(&run.join("point_cloud.ply"))?;
+                let per_frame = self.mask_ids == MaskIds::PerFrame;
+                let seg = crate::segment_scene(
+                    self.gpu,
+                    self.k,
+                    &scene,
+                    &self.a.data,
+                    self.ds,
+                    "train",
+                    self.cfg.segment.alpha,
+                    per_frame,
+                )?;
+                if interrupted() {
+                    return Ok(false);
+                }
+                crate::write_json(&run.join("segment.json"), &seg.summary, true)?;
+                crate::write_json(&run.join("labels.json"), &seg.doc, false)?;
+                Ok(true)
+            }
+            Stage::Instance => {
+                let c = &self.cfg.instance;
+                let opts = instgs_vk::template::InstanceOptions {
+                    init: clap::ValueEnum::from_str(&c.init, true).map_err(|e| anyhow!("instance.init: {e}"))?,
+                    with_scale: !c.rigid,
+                    use_colour: c.colour,
+                    colour_weight: c.colour_weight,
+                    seed: c.seed,
+                    ..Default::default()
+                };
+                let dtype = match c.offset_dtype.as_str() {
+                    "f16" => instgs_vk::instgs::Dtype::F16,
+                    "pq8" => instgs_vk::instgs::Dtype::Pq8,
+                    _ => instgs_vk::instgs::Dtype::F32,
+                };
+                let (groups, truth) = match self.mask_ids {
+                    MaskIds::Global => {
+                        let g = self.a.data.join("instances.json");
+                        (g.clone(), Some(g))
+                    }
+                    MaskIds::PerFrame => (run.join("labels.json"), None),
+                };
+                let r = crate::instance(
+                    &run.join("point_cloud.ply"),
+                    &run.join("labels.json"),
+                    &groups,
+                    truth.as_deref(),
+                    &opts,
+                    dtype,
+                    None,
+                    &run.join("init.instgs"),
+                );
+                match r {
+                    Ok(v) => {
+                        crate::write_json(&run.join("instance.json"), &v, true)?;
+                        Ok(true)
+                    }
+                    Err(_) if interrupted() => Ok(false),
+                    Err(e) => Err(e),
+                }
+            }
+            Stage::Joint => {
+                let init = instgs_vk::instgs::read(&run.join("init.instgs"))?;
+                let dir = run.join("joint");
+                if !self.train(&dir, Some(init), &self.cfg.joint, s, hooked)? {
+                    return Ok(false);
+                }
+                std::fs::rename(dir.join("scene.instgs"), run.join("scene.instgs"))
+                    .with_context(|| format!("{}: cannot move the result", dir.join("scene.instgs").display()))?;
+                Ok(true)
+            }
+            Stage::Eval => self.eval(),
+            Stage::Bench => {
+                let cams: Vec<_> = self.views().iter().map(|v| v.camera.clone()).collect();
+                let render = instgs_vk::lod::RenderConfig::load(None)?;
+                let a = run.join("scene.instgs");
+                let b = run.join("point_cloud.ply");
+                let v = crate::bench_scenes(
+                    self.gpu,
+                    self.k,
+                    (&a, AnyScene::read(&a)?, &render),
+                    Some((&b, AnyScene::read(&b)?, render.clone())),
+                    &cams,
+                    self.cfg.bench.frames,
+                    self.cfg.bench.warmup,
+                    self.cfg.plain.background,
+                )?;
+                if interrupted() {
+                    return Ok(false);
+                }
+                crate::write_json(&run.join("bench.json"), &v, true)?;
+                Ok(true)
+            }
+        }
+    }
+
+    /// The held-out views (the training views when the dataset holds none out).
+    fn views(&self) -> &[instgs_vk::dataset::View] {
+        if self.ds.test.is_empty() {
+            &self.ds.train
+        } else {
+            &self.ds.test
+        }
+    }
+
+    fn train(
+        &self,
+        out: &Path,
+        init: Option<instgs_vk::instance::InstancedScene>,
+        cfg: &instgs_vk::config::Config,
+        s: Stage,
+        hooked: bool,
+    ) -> Result<bool> {
+        let resume = train::checkpoint_path(out).exists();
+        let opts = train::RunOptions {
+            init,
+            label: s.label(),
+            stop_after: hooked.then_some((cfg.iterations / 2).max(1)),
+            ..train::RunOptions::new(out.to_path_buf(), resume, self.a.progress)
+        };
+        let r = train::run(self.gpu, self.k, self.ds, cfg, &opts)?;
+        let test = r.test_psnr.map(|p| format!(", test PSNR {p:.2} dB")).unwrap_or_default();
+        eprintln!(
+            "{}{} iterations, {} splats{test}, {:.2} it/s",
+            s.label(),
+            r.iterations,
+            r.splats,
+            r.iterations_per_second
+        );
+        Ok(!r.interrupted)
+    }
+
+    fn eval(&self) -> Result<bool> {
+        let run = self.run_dir();
+        let bg = self.cfg.plain.background;
+        let views = self.views();
+        let split = if self.ds.test.is_empty() { "train" } else { "test" };
+        let mut r = instgs_vk::raster::Rasterizer::new(self.gpu, self.k)?;
+        let n_images = self.cfg.eval.images.min(views.len());
+        // Evenly spread views for the pictures.
+        let pick: Vec<usize> = (0..n_images).map(|i| i * views.len() / n_images.max(1)).collect();
+        let mut plain_frames: BTreeMap<usize, Vec<[f32; 4]>> = BTreeMap::new();
+        let mut results = Vec::new();
+        for (name, file) in [("plain", "point_cloud.ply"), ("instgs", "scene.instgs")] {
+            let path = run.join(file);
+            let scene = AnyScene::read(&path)?;
+            let gs = scene.upload(self.gpu).with_context(|| path.display().to_string())?;
+            let mut index = 0usize;
+            let mut pictures = Vec::new();
+            let e = train::evaluate(&mut r, &gs, views, bg, |v, f| {
+                if interrupted() {
+                    bail!("interrupted");
+                }
+                if pick.contains(&index) {
+                    if name == "plain" {
+                        plain_frames.insert(index, f.image.clone());
+                    } else {
+                        pictures.push((index, v.camera.name.clone(), f.image.clone()));
+                    }
+                }
+                index += 1;
+                Ok(())
+            });
+            let e = match e {
+                Err(_) if interrupted() => return Ok(false),
+                other => other?,
+            };
+            eprintln!("{name}: {split} PSNR {:.3} dB, SSIM {:.4} ({} views)", e.psnr, e.ssim, e.views.len());
+            if name == "instgs" {
+                let dir = run.join("images");
+                std::fs::create_dir_all(&dir).with_context(|| format!("{}: cannot create", dir.display()))?;
+                for (i, view_name, img) in &pictures {
+                    let v = &views[*i];
+                    let plain = plain_frames.get(i).ok_or_else(|| anyhow!("missing plain render"))?;
+                    let (w, h) = (v.camera.width as usize, v.camera.height as usize);
+                    let mut strip = vec![[0.0f32; 4]; 4 * w * h];
+                    for y in 0..h {
+                        for x in 0..w {
+                            let (g, p, q) = (v.image[y * w + x], plain[y * w + x], img[y * w + x]);
+                            let err = [0, 1, 2].map(|c| ((q[c] - g[c]).abs() * 4.0).min(1.0));
+                            strip[y * 4 * w + x] = g;
+                            strip[y * 4 * w + w + x] = p;
+                            strip[y * 4 * w + 2 * w + x] = q;
+                            strip[y * 4 * w + 3 * w + x] = [err[0], err[1], err[2], 1.0];
+                        }
+                    }
+                    crate::save_png(&dir.join(format!("{view_name}.png")), 4 * w as u32, h as u32, &strip)?;
+                }
+            }
+            let per: Vec<_> =
+                e.views.iter().map(|v| serde_json::json!({"name": v.name, "psnr": v.psnr, "ssim": v.ssim})).collect();
+            results.push((
+                name,
+                serde_json::json!({
+                    "scene": path.display().to_string(), "splats": scene.splats(),
+                    "psnr_mean": e.psnr, "ssim_mean": e.ssim, "views": per,
+                }),
+            ));
+        }
+        let mut v =
+            serde_json::json!({"split": split, "width": views[0].camera.width, "height": views[0].camera.height});
+        for (name, r) in results {
+            v[name] = r;
+        }
+        v["images"] = pick.iter().map(|&i| format!("images/{}.png", views[i].camera.name)).collect();
+        crate::write_json(&run.join("eval.json"), &v, true)?;
+        Ok(true)
+    }
+}

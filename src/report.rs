@@ -1,0 +1,174 @@
+//! `RUN/report.md`: what a pipeline run produced, from the stages' JSON files (rewritten after
+//! every stage, so an unfinished run reports what it has).
+use std::fmt::Write as _;
+use std::path::Path;
+
+use anyhow::Result;
+
+use crate::pipeline::{PipelineArgs, Stage, STAGES};
+
+fn read(run: &Path, file: &str) -> Option<serde_json::Value> {
+    serde_json::from_str(&std::fs::read_to_string(run.join(file)).ok()?).ok()
+}
+
+fn num(v: &serde_json::Value, key: &str) -> Option<f64> {
+    key.split('.').try_fold(v, |v, k| v.get(k))?.as_f64()
+}
+
+fn mb(bytes: f64) -> String {
+    format!("{:.2}", bytes / 1e6)
+}
+
+pub fn write(run: &Path, a: &PipelineArgs, stages: &[(Stage, bool, f64)]) -> Result<()> {
+    let mut md = String::new();
+    let _ = writeln!(md, "# InstGS run: `{}`\n", a.data.display());
+    let _ = writeln!(
+        md,
+        "Written by `instgs-vk train` (version {}). Files are in this folder; `pipeline.json` holds \
+         every stage's settings.\n",
+        env!("CARGO_PKG_VERSION")
+    );
+    let _ = writeln!(md, "## Stages\n\n| stage | status | time (s) |\n|---|---|---|");
+    let mut total = 0.0;
+    for s in STAGES {
+        let (status, secs) = match stages.iter().find(|r| r.0 == s) {
+            Some((_, true, t)) => ("finished", Some(*t)),
+            Some((_, false, t)) => ("interrupted or running", Some(*t)),
+            None => ("not run", None),
+        };
+        total += secs.unwrap_or(0.0);
+        let t = secs.map(|t| format!("{t:.1}")).unwrap_or_else(|| "—".into());
+        let _ = writeln!(md, "| {} | {status} | {t} |", s.name());
+    }
+    let _ = writeln!(md, "| total | | {total:.1} |\n");
+
+    let eval = read(run, "eval.json");
+    let bench = read(run, "bench.json");
+    if eval.is_some() || bench.is_some() {
+        let _ = writeln!(md, "## Plain 3DGS against InstGS\n");
+        if let Some(e) = &eval {
+            let _ = writeln!(
+                md,
+                "Quality on the {} views ({}×{}, {} views), rendered exactly.",
+                e["split"].as_str().unwrap_or("?"),
+                e["width"],
+                e["height"],
+                e["plain"]["views"].as_array().map_or(0, |v| v.len())
+            );
+        }
+        if let Some(b) = &bench {
+            let _ = writeln!(
+                md,
+                "Speed and memory from one `bench` run on {} ({} cameras, {} frames each, plain and InstGS \
+                 interleaved; InstGS rendered as the player does, `configs/render.toml`). FPS ratio: median over \
+                 paired frames.",
+                b["device"].as_str().unwrap_or("?"),
+                b["views"],
+                b["frames"]
+            );
+        }
+        let _ = writeln!(md, "\n| | plain 3DGS | InstGS | InstGS / plain |\n|---|---|---|---|");
+        let row = |md: &mut String,
+                   name: &str,
+                   p: Option<f64>,
+                   i: Option<f64>,
+                   fmt: &dyn Fn(f64) -> String,
+                   ratio: Option<String>| {
+            let f = |v: Option<f64>| v.map(fmt).unwrap_or_else(|| "—".into());
+            let _ = writeln!(md, "| {name} | {} | {} | {} |", f(p), f(i), ratio.unwrap_or_else(|| "—".into()));
+        };
+        if let Some(e) = &eval {
+            let (p, i) = (num(e, "plain.psnr_mean"), num(e, "instgs.psnr_mean"));
+            let d = p.zip(i).map(|(p, i)| format!("{:+.2} dB", i - p));
+            row(&mut md, "PSNR (dB)", p, i, &|v| format!("{v:.2}"), d);
+            let (p, i) = (num(e, "plain.ssim_mean"), num(e, "instgs.ssim_mean"));
+            let d = p.zip(i).map(|(p, i)| format!("{:+.4}", i - p));
+            row(&mut md, "SSIM", p, i, &|v| format!("{v:.4}"), d);
+        }
+        if let Some(b) = &bench {
+            let pair = |key: &str| (num(b, &format!("compare.{key}")), num(b, key));
+            let ratio = |key: &str| num(b, &format!("ratios.{key}")).map(|r| format!("{r:.3}×"));
+            let (p, i) = pair("splats");
+            let r = p.zip(i).map(|(p, i)| format!("{:.3}×", i / p));
+            row(&mut md, "splats rendered", p, i, &|v| format!("{v:.0}"), r);
+            let (p, i) = pair("scene_gpu_bytes");
+            row(&mut md, "scene memory on the GPU (MB)", p, i, &|v| mb(v), ratio("scene_gpu_bytes"));
+            let (p, i) = pair("file_bytes");
+            row(&mut md, "file size (MB)", p, i, &|v| mb(v), ratio("file_bytes"));
+            let (p, i) = pair("frame_ms_median");
+            row(&mut md, "frame time, median (ms)", p, i, &|v| format!("{v:.2}"), ratio("frame_ms"));
+            let (p, i) = pair("fps_median");
+            row(&mut md, "FPS (median)", p, i, &|v| format!("{v:.1}"), ratio("fps"));
+        }
+        md.push('\n');
+    }
+
+    if let Some(s) = read(run, "segment.json") {
+        let _ = writeln!(
+            md,
+            "## Segmentation (gradient-driven, α = {:.2})\n\n| group | instance | Gaussians | held-out IoU |\n|---|---|---|---|",
+            s["alpha"]
+        );
+        for r in s["instances"].as_array().into_iter().flatten() {
+            let iou = num(r, "test_iou").map(|v| format!("{v:.3} ({} views)", r["test_views"])).unwrap_or("—".into());
+            let _ =
+                writeln!(md, "| {} | {} | {} | {iou} |", r["group"].as_str().unwrap_or("?"), r["id"], r["gaussians"]);
+        }
+        let _ = writeln!(md, "| background | | {} | |\n", s["background"]);
+    }
+    if let Some(s) = read(run, "instance.json") {
+        let _ = writeln!(
+            md,
+            "## Registration and templates (init `{}`)\n\n{} template Gaussians, {} background Gaussians, {} splats.\n",
+            s["init"].as_str().unwrap_or("?"),
+            s["template_gaussians"],
+            s["background_gaussians"],
+            s["splats"]
+        );
+        let _ = writeln!(
+            md,
+            "| group | instance | Gaussians | fitness | RMSE | scale | rotation error (°) | translation error (% of size) | scale error (%) |\n|---|---|---|---|---|---|---|---|---|"
+        );
+        let f = |r: &serde_json::Value, k: &str, m: f64, d: usize| {
+            num(r, k).map(|v| format!("{:.*}", d, v * m)).unwrap_or_else(|| "—".into())
+        };
+        for r in s["instances"].as_array().into_iter().flatten() {
+            let _ = writeln!(
+                md,
+                "| {} | {} | {} | {} | {} | {} | {} | {} | {} |",
+                r["group"].as_str().unwrap_or("?"),
+                r["id"],
+                r["gaussians"],
+                f(r, "fitness", 1.0, 3),
+                f(r, "rmse", 1.0, 4),
+                f(r, "scale", 1.0, 4),
+                f(r, "rotation_error_deg", 1.0, 2),
+                f(r, "translation_error_fraction", 100.0, 2),
+                f(r, "scale_error_fraction", 100.0, 2)
+            );
+        }
+        md.push('\n');
+    }
+    if let Some(e) = &eval {
+        let _ = writeln!(md, "## Held-out views\n\nGround truth | plain 3DGS | InstGS | InstGS error × 4\n");
+        for img in e["images"].as_array().into_iter().flatten() {
+            if let Some(p) = img.as_str() {
+                let _ = writeln!(md, "![{p}]({p})\n");
+            }
+        }
+    }
+    let curves: Vec<(&str, &str)> = [("plain 3DGS", "curves.png"), ("joint optimisation", "joint/curves.png")]
+        .into_iter()
+        .filter(|(_, p)| run.join(p).exists())
+        .collect();
+    if !curves.is_empty() {
+        let _ = writeln!(md, "## Training curves\n");
+        for (name, p) in curves {
+            let _ = writeln!(md, "{name}:\n\n![{name}]({p})\n");
+        }
+    }
+    instgs_vk::util::write_atomic(&run.join("report.md"), |f| {
+        use std::io::Write;
+        f.write_all(md.as_bytes())
+    })
+}

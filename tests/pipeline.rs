@@ -1,0 +1,271 @@
+//! The main job through the binary (`instgs-vk train` on a dataset with instance masks), on the
+//! bundled demo scene at 80×60 with a tiny schedule: a run interrupted in every stage resumes
+//! and finishes with the result of an uninterrupted run; a dataset without masks trains plain 3DGS and
+//! says so; masks that do not fit the images are refused before any training. Validation on.
+use std::io::BufRead;
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
+
+const STAGES: [&str; 6] = ["plain", "segment", "instance", "joint", "eval", "bench"];
+
+/// A tiny schedule: short plain training with densification, short joint optimisation.
+const TINY: &str = "iterations = 60\ntest_interval = 30\ncheckpoint_interval = 20\n\
+[densify]\nfrom_iter = 10\nuntil_iter = 50\ninterval = 10\nopacity_reset_interval = 0\n\
+[joint]\niterations = 20\ntest_interval = 10\ncheckpoint_interval = 5\n\
+[eval]\nimages = 2\n[bench]\nframes = 1\nwarmup = 0\n";
+
+struct Out {
+    ok: bool,
+    stderr: String,
+}
+
+fn run(args: &[&str], env: &[(&str, &str)]) -> Out {
+    let mut c = Command::new(env!("CARGO_BIN_EXE_instgs-vk"));
+    c.args(args).env("INSTGS_VALIDATION", "1").stdout(Stdio::null()).stderr(Stdio::piped());
+    for (k, v) in env {
+        c.env(k, v);
+    }
+    let mut child = c.spawn().unwrap();
+    let stderr = child.stderr.take().unwrap();
+    let reader = std::thread::spawn(move || {
+        std::io::BufReader::new(stderr).lines().map(|l| l.unwrap_or_default() + "\n").collect::<String>()
+    });
+    let start = Instant::now();
+    while child.try_wait().unwrap().is_none() {
+        if start.elapsed() > Duration::from_secs(900) {
+            child.kill().unwrap();
+            panic!("instgs-vk {args:?} hung");
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    let ok = child.wait().unwrap().success();
+    let stderr = reader.join().unwrap();
+    assert!(!stderr.contains("panicked"), "instgs-vk {args:?} panicked:\n{stderr}");
+    Out { ok, stderr }
+}
+
+fn tmp(name: &str) -> PathBuf {
+    let d = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("pipeline").join(name);
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+fn demo() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("demo/ducks6-mini")
+}
+
+/// A copy of the demo scene, then `damage` applied to it.
+fn demo_copy(name: &str, damage: impl Fn(&Path)) -> PathBuf {
+    fn copy(src: &Path, dst: &Path) {
+        std::fs::create_dir_all(dst).unwrap();
+        for e in std::fs::read_dir(src).unwrap() {
+            let e = e.unwrap();
+            if e.file_type().unwrap().is_dir() {
+                copy(&e.path(), &dst.join(e.file_name()));
+            } else {
+                std::fs::copy(e.path(), dst.join(e.file_name())).unwrap();
+            }
+        }
+    }
+    let d = tmp(name).join("data");
+    copy(&demo(), &d);
+    damage(&d);
+    d
+}
+
+fn args<'a>(data: &'a str, out: &'a str, cfg: &'a str) -> Vec<&'a str> {
+    vec!["train", "--data", data, "--downscale", "2", "--out", out, "--config", cfg, "--quiet"]
+}
+
+fn stage_done(run: &Path, stage: &str) -> bool {
+    let text = std::fs::read_to_string(run.join("pipeline.json")).unwrap();
+    let v: serde_json::Value = serde_json::from_str(&text).unwrap();
+    v["stages"][stage]["done"].as_bool() == Some(true)
+}
+
+#[test]
+fn a_run_interrupted_in_every_stage_resumes_and_finishes() {
+    let base = tmp("resume");
+    let cfg = base.join("tiny.toml");
+    std::fs::write(&cfg, TINY).unwrap();
+    let data = demo();
+    let (d, c) = (data.to_str().unwrap(), cfg.to_str().unwrap());
+
+    let whole = base.join("whole");
+    let o = run(&args(d, whole.to_str().unwrap(), c), &[]);
+    assert!(o.ok, "{}", o.stderr);
+    for s in STAGES {
+        assert!(o.stderr.contains(&format!("{s}] finished")), "{s} did not finish:\n{}", o.stderr);
+    }
+
+    let parts = base.join("parts");
+    let p = parts.to_str().unwrap();
+    for (i, s) in STAGES.iter().enumerate() {
+        let o = run(&args(d, p, c), &[("INSTGS_INTERRUPT_IN", s)]);
+        assert!(!o.ok && o.stderr.contains(&format!("interrupted in stage {s}")), "{s}:\n{}", o.stderr);
+        assert!(o.stderr.contains("run the same command again to resume"), "{}", o.stderr);
+        for (j, t) in STAGES.iter().enumerate() {
+            assert_eq!(stage_done(&parts, t), j < i, "after interrupting {s}: stage {t}");
+        }
+        let report = std::fs::read_to_string(parts.join("report.md")).unwrap();
+        assert!(report.contains(&format!("| {s} | interrupted or running |")), "{report}");
+    }
+    // The training stages stopped half-way with a checkpoint and went on from it.
+    let o = run(&args(d, p, c), &[]);
+    assert!(o.ok, "{}", o.stderr);
+    for s in STAGES {
+        assert!(stage_done(&parts, s), "{s}");
+    }
+    for (dir, n) in [(parts.clone(), 60), (parts.join("joint"), 20)] {
+        let text = std::fs::read_to_string(dir.join("metrics.csv")).unwrap();
+        let its: Vec<u64> = text.lines().skip(1).map(|l| l.split(',').next().unwrap().parse().unwrap()).collect();
+        assert_eq!(its, (1..=n).collect::<Vec<u64>>(), "{}: every iteration once", dir.display());
+    }
+    // Float atomics make lavapipe training differ from run to run in the last bits (two
+    // uninterrupted runs differ too), and densification can amplify that: the results agree
+    // within a tolerance, not bit for bit.
+    let psnr = |run: &Path| {
+        let v: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(run.join("eval.json")).unwrap()).unwrap();
+        (v["plain"]["psnr_mean"].as_f64().unwrap(), v["instgs"]["psnr_mean"].as_f64().unwrap())
+    };
+    let ((p0, i0), (p1, i1)) = (psnr(&whole), psnr(&parts));
+    assert!(
+        (p0 - p1).abs() < 1.0 && (i0 - i1).abs() < 1.0,
+        "uninterrupted {p0:.2}/{i0:.2} dB, resumed {p1:.2}/{i1:.2}"
+    );
+    assert!(p1 > 18.0 && i1 > 18.0, "plain {p1:.2} dB, InstGS {i1:.2} dB");
+    let report = std::fs::read_to_string(parts.join("report.md")).unwrap();
+    for needle in ["## Plain 3DGS against InstGS", "PSNR (dB)", "FPS (median)", "held-out IoU", "rotation error"] {
+        assert!(report.contains(needle), "report lacks {needle}:\n{report}");
+    }
+    let images: Vec<_> = std::fs::read_dir(parts.join("images")).unwrap().collect();
+    assert_eq!(images.len(), 2);
+
+    // A re-run of a finished run does nothing; --from redoes a stage and what follows.
+    let o = run(&args(d, p, c), &[]);
+    assert!(o.ok && o.stderr.matches("done earlier").count() == 6, "{}", o.stderr);
+    let o = run(&[args(d, p, c), vec!["--from", "eval", "--until", "eval"]].concat(), &[]);
+    assert!(o.ok && o.stderr.contains("[5/6 eval] finished"), "{}", o.stderr);
+    assert!(!stage_done(&parts, "bench"));
+    // Changed settings are not silently mixed with earlier results.
+    std::fs::write(&cfg, format!("{TINY}\n[segment]\nalpha = 0.5\n")).unwrap();
+    let o = run(&args(d, p, c), &[]);
+    assert!(!o.ok && o.stderr.contains("stage segment was run with other settings"), "{}", o.stderr);
+    assert!(o.stderr.contains("--from segment"), "{}", o.stderr);
+}
+
+#[test]
+fn a_dataset_without_masks_trains_plain_3dgs_and_says_so() {
+    let data = demo_copy("no-masks", |d| {
+        std::fs::remove_dir_all(d.join("masks")).unwrap();
+        std::fs::remove_file(d.join("instances.json")).unwrap();
+    });
+    let out = data.parent().unwrap().join("run");
+    let o = run(
+        &["train", "--data", data.to_str().unwrap(), "--out", out.to_str().unwrap(), "--iterations", "5", "--quiet"],
+        &[],
+    );
+    assert!(o.ok, "{}", o.stderr);
+    assert!(o.stderr.contains("no instance masks") && o.stderr.contains("plain 3DGS only"), "{}", o.stderr);
+    assert!(out.join("point_cloud.ply").exists() && !out.join("pipeline.json").exists());
+    // Pipeline options on such a dataset are refused with the reason.
+    let o =
+        run(&["train", "--data", data.to_str().unwrap(), "--out", out.to_str().unwrap(), "--until", "segment"], &[]);
+    assert!(!o.ok && o.stderr.contains("no instance masks"), "{}", o.stderr);
+}
+
+/// One `error:` line containing every needle, and no training started (no checkpoint).
+fn assert_refused(o: &Out, out: &Path, needles: &[&str]) {
+    assert!(!o.ok, "accepted:\n{}", o.stderr);
+    let last = o.stderr.lines().last().unwrap_or_default();
+    assert!(last.starts_with("error: "), "{}", o.stderr);
+    for n in needles {
+        assert!(last.contains(n), "'{last}' lacks '{n}'");
+    }
+    assert!(!out.join("checkpoint.bin").exists(), "training started");
+    assert!(!o.stderr.contains("[1/6 plain] started"), "{}", o.stderr);
+}
+
+#[test]
+fn masks_that_do_not_match_the_images_are_refused_before_training() {
+    type Case<'a> = (&'a str, &'a dyn Fn(&Path), &'a [&'a str]);
+    let cases: [Case; 4] = [
+        (
+            "missing",
+            &|d| std::fs::remove_file(d.join("masks/train/r_004.png")).unwrap(),
+            &["masks/train", "r_004.png", "no mask"],
+        ),
+        (
+            "wrong-size",
+            &|d| image::GrayImage::new(100, 50).save(d.join("masks/train/r_002.png")).unwrap(),
+            &["r_002.png", "100x50", "160x120"],
+        ),
+        (
+            "unknown-instance",
+            &|d| {
+                let p = d.join("instances.json");
+                let mut v: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&p).unwrap()).unwrap();
+                v["groups"][0]["instances"].as_array_mut().unwrap().push(serde_json::json!({"id": 42}));
+                std::fs::write(&p, v.to_string()).unwrap();
+            },
+            &["instances.json", "instance 42", "no training mask"],
+        ),
+        (
+            "no-groups",
+            &|d| std::fs::remove_file(d.join("instances.json")).unwrap(),
+            &["instances.json", "Bringing your own masks"],
+        ),
+    ];
+    for (name, damage, needles) in cases {
+        let data = demo_copy(name, damage);
+        let out = data.parent().unwrap().join("run");
+        let o = run(&["train", "--data", data.to_str().unwrap(), "--out", out.to_str().unwrap(), "--quiet"], &[]);
+        assert_refused(&o, &out, needles);
+    }
+}
+
+#[test]
+fn per_frame_masks_from_a_2d_segmenter_are_associated_then_instanced() {
+    // A 2D segmenter's output: ids renumbered independently in every frame, a category per id,
+    // no instances.json.
+    let data = demo_copy("per-frame", |d| {
+        std::fs::remove_file(d.join("instances.json")).unwrap();
+        std::fs::remove_dir_all(d.join("masks/test")).unwrap();
+        for (f, e) in std::fs::read_dir(d.join("masks/train")).unwrap().enumerate() {
+            let path = e.unwrap().path();
+            let mut m = image::open(&path).unwrap().to_luma16();
+            // A different permutation of 1..=6 per frame.
+            let perm: Vec<u16> = (0..6).map(|i| ((i + f) * 5 % 6 + 1) as u16).collect();
+            for p in m.pixels_mut() {
+                if p.0[0] != 0 {
+                    p.0[0] = perm[p.0[0] as usize - 1];
+                }
+            }
+            m.save(&path).unwrap();
+            let cats: serde_json::Map<String, serde_json::Value> =
+                (1..=6).map(|i| (i.to_string(), "duck".into())).collect();
+            std::fs::write(path.with_extension("json"), serde_json::Value::Object(cats).to_string()).unwrap();
+        }
+    });
+    let base = data.parent().unwrap().to_path_buf();
+    let cfg = base.join("tiny.toml");
+    std::fs::write(&cfg, TINY).unwrap();
+    let out = base.join("run");
+    let o = run(
+        &[args(data.to_str().unwrap(), out.to_str().unwrap(), cfg.to_str().unwrap()), vec!["--until", "instance"]]
+            .concat(),
+        &[],
+    );
+    assert!(o.ok, "{}", o.stderr);
+    assert!(o.stderr.contains("per-frame ids"), "{}", o.stderr);
+    let labels: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("labels.json")).unwrap()).unwrap();
+    let groups = labels["groups"].as_array().unwrap();
+    assert_eq!(groups.len(), 1, "one category, one group: {groups:?}");
+    let found = groups[0]["instances"].as_array().unwrap().len();
+    assert!((4..=6).contains(&found), "{found} ducks associated");
+    assert!(out.join("init.instgs").exists());
+}
