@@ -206,6 +206,7 @@ pub struct InstanceStage {
     pub colour_weight: f64,
     pub seed: u64,
     pub offset_dtype: String,
+    pub background_keep: f64,
 }
 
 /// `[eval]`.
@@ -271,6 +272,9 @@ impl PipelineConfig {
         }
         if !matches!(t.instance.offset_dtype.as_str(), "f32" | "f16" | "pq8") {
             bail!("{what}: instance.offset_dtype must be \"f32\", \"f16\" or \"pq8\"");
+        }
+        if !(t.instance.background_keep > 0.0 && t.instance.background_keep <= 1.0) {
+            bail!("{what}: instance.background_keep must be in (0, 1]");
         }
         if t.bench.frames == 0 {
             bail!("{what}: bench.frames must be at least 1");

@@ -439,7 +439,7 @@ fn run(cli: Cli) -> Result<()> {
                 seed,
                 ..Default::default()
             };
-            instance(&scene, &labels, &groups_file, truth, &opts, offset_dtype.into(), report.as_deref(), &out)
+            instance(&scene, &labels, &groups_file, truth, &opts, offset_dtype.into(), None, report.as_deref(), &out)
                 .map(|_| ())
         }
         Cmd::View {
@@ -852,6 +852,8 @@ struct SegmentOutcome {
     doc: serde_json::Value,
     /// {instances: [{group, id, gaussians, test_iou, test_views}], background}.
     summary: serde_json::Value,
+    /// Per Gaussian: blending weight summed over the views (`Segmentation::weight`).
+    significance: Vec<f32>,
 }
 
 /// Segments `scene` with the masks of `ds`'s `split` views (`DIR/masks/<split>/`); prints one
@@ -950,7 +952,7 @@ fn segment_scene(
     let background = seg.labels.iter().filter(|&&l| l == 0).count();
     println!("background: {background} Gaussians");
     let summary = serde_json::json!({"instances": rows, "background": background, "alpha": alpha});
-    Ok(SegmentOutcome { ids, labels: seg.labels, doc, summary })
+    Ok(SegmentOutcome { ids, labels: seg.labels, doc, summary, significance: seg.weight })
 }
 
 #[allow(clippy::too_many_arguments)]
@@ -961,6 +963,7 @@ fn instance(
     truth_path: Option<&Path>,
     opts: &instgs_vk::template::InstanceOptions,
     dtype: instgs::Dtype,
+    prune: Option<(&Path, f64)>,
     report: Option<&Path>,
     out: &Path,
 ) -> Result<serde_json::Value> {
@@ -968,6 +971,27 @@ fn instance(
     let scene = read_ply(scene_path)?;
     let labels = template::read_labels(labels, scene.len())?;
     let groups = instgs_vk::segment::read_groups(groups_path)?;
+    // Background pruning (pipeline `instance.background_keep` < 1): the most significant
+    // background Gaussians stay, by significance.bin (f32 per Gaussian, written by `segment`).
+    let mut pruned = serde_json::Value::Null;
+    let (scene, labels) = match prune {
+        Some((sig_path, keep)) if keep < 1.0 => {
+            let bytes = std::fs::read(sig_path).with_context(|| format!("{}: cannot read", sig_path.display()))?;
+            if bytes.len() != 4 * scene.len() {
+                bail!("{}: {} bytes, expected 4 per Gaussian ({})", sig_path.display(), bytes.len(), scene.len());
+            }
+            let sig: Vec<f32> = bytes.chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect();
+            let before = labels.iter().filter(|&&l| l == 0).count();
+            let (s, l, dropped) = template::prune_background(&scene, &labels, &sig, keep)?;
+            eprintln!(
+                "background: kept the {} most significant of {before} Gaussians (background_keep {keep})",
+                before - dropped
+            );
+            pruned = serde_json::json!({"keep": keep, "before": before, "dropped": dropped});
+            (s, l)
+        }
+        _ => (scene, labels),
+    };
     let (inst, reports) = template::instantiate(&scene, &labels, &groups, opts, |line| eprintln!("{line}"))?;
     if instgs_vk::train::INTERRUPTED.load(std::sync::atomic::Ordering::SeqCst) {
         bail!("interrupted before {} was written", out.display());
@@ -1020,6 +1044,7 @@ fn instance(
         "template_gaussians": inst.groups.iter().map(|g| g.template.len()).sum::<usize>(),
         "background_gaussians": inst.background.len(),
         "splats": inst.splats(),
+        "background_pruning": pruned,
         "instances": rows,
     });
     if let Some(path) = report {

@@ -4,8 +4,8 @@
 //! | stage | reads | writes (in RUN) |
 //! |---|---|---|
 //! | plain | the dataset (or `--init SCENE.ply`) | `point_cloud.ply`, `checkpoint.bin`, `metrics.csv`, `curves.png` |
-//! | segment | `point_cloud.ply`, `masks/train/` | `labels.json`, `segment.json` |
-//! | instance | `point_cloud.ply`, `labels.json` | `init.instgs`, `instance.json` |
+//! | segment | `point_cloud.ply`, `masks/train/` | `labels.json`, `segment.json`, `significance.bin` |
+//! | instance | `point_cloud.ply`, `labels.json`, `significance.bin` | `init.instgs`, `instance.json` |
 //! | joint | `init.instgs` | `scene.instgs`, `joint/{checkpoint.bin, metrics.csv, curves.png}` |
 //! | eval | `point_cloud.ply`, `scene.instgs` | `eval.json`, `images/<view>.png` |
 //! | bench | `point_cloud.ply`, `scene.instgs` | `bench.json` |
@@ -410,6 +410,10 @@ impl Ctx<'_> {
                     return Ok(false);
                 }
                 crate::write_json(&run.join("segment.json"), &seg.summary, true)?;
+                instgs_vk::util::write_atomic(&run.join("significance.bin"), |f| {
+                    use std::io::Write;
+                    f.write_all(bytemuck::cast_slice(&seg.significance))
+                })?;
                 crate::write_json(&run.join("labels.json"), &seg.doc, false)?;
                 Ok(true)
             }
@@ -442,6 +446,7 @@ impl Ctx<'_> {
                     truth.as_deref(),
                     &opts,
                     dtype,
+                    Some((&run.join("significance.bin"), c.background_keep)),
                     None,
                     &run.join("init.instgs"),
                 );

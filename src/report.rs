@@ -101,6 +101,36 @@ pub fn write(run: &Path, a: &PipelineArgs, stages: &[(Stage, bool, f64)]) -> Res
             row(&mut md, "FPS (median)", p, i, &|v| format!("{v:.1}"), ratio("fps"));
         }
         md.push('\n');
+        if let Some(seg) = read(run, "segment.json") {
+            let bg = num(&seg, "background").unwrap_or(0.0);
+            let objects: f64 =
+                seg["instances"].as_array().into_iter().flatten().filter_map(|r| num(r, "gaussians")).sum();
+            let pruning = read(run, "instance.json").map(|v| v["background_pruning"].clone()).unwrap_or_default();
+            if let (Some(keep), Some(dropped)) = (num(&pruning, "keep"), num(&pruning, "dropped")) {
+                let _ = writeln!(
+                    md,
+                    "Of the plain scene's {:.0} Gaussians, {:.0} ({:.1} %) belong to instances; of its {:.0} background \
+                     Gaussians InstGS keeps the {:.0} most significant (`instance.background_keep` = {keep}).\n",
+                    bg + objects,
+                    objects,
+                    100.0 * objects / (bg + objects),
+                    bg,
+                    bg - dropped
+                );
+            } else if bg + objects > 0.0 {
+                let _ = writeln!(
+                    md,
+                    "Of the plain scene's {:.0} Gaussians, {:.0} ({:.1} %) belong to instances; the {:.0} background \
+                     Gaussians stay plain in InstGS, so its memory cannot fall below {:.3}× of the plain scene's \
+                     without touching the background.\n",
+                    bg + objects,
+                    objects,
+                    100.0 * objects / (bg + objects),
+                    bg,
+                    bg / (bg + objects)
+                );
+            }
+        }
     }
 
     if let Some(s) = read(run, "segment.json") {

@@ -115,6 +115,10 @@ pub struct Segmentation {
     pub unknown_ids: Vec<u32>,
     /// g for each of `ids`, per Gaussian: `g[k][i]`.
     pub g: Vec<Vec<f32>>,
+    /// GSeg(1) per Gaussian: its blending weight T·α summed over every pixel of every view —
+    /// how much it contributes to the pictures (LightGaussian's global significance without
+    /// the volume term). Background pruning keeps the most significant.
+    pub weight: Vec<f32>,
 }
 
 /// Segments `scene` with `masks` (one per view, ids as `ids`); `alpha` weighs the background
@@ -175,7 +179,7 @@ pub fn segment(
             );
         }
     }
-    Ok(Segmentation { ids: ids.to_vec(), labels, g, unknown_ids: unknown.into_iter().collect() })
+    Ok(Segmentation { ids: ids.to_vec(), labels, g, weight: all.to_vec(), unknown_ids: unknown.into_iter().collect() })
 }
 
 /// Per-Gaussian GSeg sums on the GPU: slot j < ids.len() for mask id ids[j], the last slot for

@@ -142,6 +142,33 @@ fn transform_gaussians(part: &Scene, x: &Similarity) -> Scene {
     out
 }
 
+/// Drops background Gaussians (label 0) of little significance: keeps every instance Gaussian
+/// and the ⌈keep × background⌉ background Gaussians of the largest `significance` (e.g.
+/// [`crate::segment::Segmentation::weight`]), in their order. Returns the scene, its labels and
+/// how many background Gaussians were dropped.
+pub fn prune_background(
+    scene: &Scene,
+    labels: &[u32],
+    significance: &[f32],
+    keep: f64,
+) -> Result<(Scene, Vec<u32>, usize)> {
+    if labels.len() != scene.len() || significance.len() != scene.len() {
+        bail!("{} labels and {} significances for {} Gaussians", labels.len(), significance.len(), scene.len());
+    }
+    if !(keep > 0.0 && keep <= 1.0) {
+        bail!("the kept background fraction must be in (0, 1], not {keep}");
+    }
+    let mut bg: Vec<usize> = (0..scene.len()).filter(|&i| labels[i] == 0).collect();
+    let n_keep = ((keep * bg.len() as f64).ceil() as usize).min(bg.len());
+    bg.sort_by(|&a, &b| significance[b].total_cmp(&significance[a]).then(a.cmp(&b)));
+    let mut kept = vec![false; scene.len()];
+    for &i in &bg[..n_keep] {
+        kept[i] = true;
+    }
+    let idx: Vec<usize> = (0..scene.len()).filter(|&i| labels[i] != 0 || kept[i]).collect();
+    Ok((scene.select(&idx), idx.iter().map(|&i| labels[i]).collect(), bg.len() - n_keep))
+}
+
 /// Registers every group's instances, builds templates and offsets; Gaussians of no group's
 /// instance stay background. `progress` receives one line per step.
 pub fn instantiate(

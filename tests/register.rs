@@ -306,3 +306,28 @@ fn a_ball_is_flagged_shape_ambiguous_and_colours_are_checked() {
     let e = instgs_vk::register::register_coloured(&source, &source_rgb[1..], &target, &target_rgb, &o).unwrap_err();
     assert!(format!("{e:#}").contains("colours for"), "{e:#}");
 }
+
+#[test]
+fn background_pruning_keeps_instances_and_the_most_significant_background() {
+    let mut rng = Rng::new(8);
+    let scene = random_scene(&mut rng, 40, 1);
+    let labels: Vec<u32> = (0..40).map(|i| if i % 4 == 0 { 1 + (i % 3) as u32 } else { 0 }).collect();
+    let significance: Vec<f32> = (0..40).map(|i| ((i * 17) % 40) as f32).collect();
+    let (pruned, kept_labels, dropped) =
+        instgs_vk::template::prune_background(&scene, &labels, &significance, 0.25).unwrap();
+    let bg: Vec<usize> = (0..40).filter(|&i| labels[i] == 0).collect();
+    assert_eq!(bg.len(), 30);
+    assert_eq!(dropped, 30 - 8, "⌈0.25 × 30⌉ = 8 background Gaussians stay");
+    let mut by_sig = bg.clone();
+    by_sig.sort_by(|&a, &b| significance[b].total_cmp(&significance[a]));
+    let mut want: Vec<usize> = (0..40).filter(|&i| labels[i] != 0).chain(by_sig[..8].iter().copied()).collect();
+    want.sort();
+    assert_eq!(pruned.len(), want.len());
+    for (j, &i) in want.iter().enumerate() {
+        assert_eq!(pruned.means[j], scene.means[i], "order kept");
+        assert_eq!(kept_labels[j], labels[i]);
+    }
+    let (all, _, none) = instgs_vk::template::prune_background(&scene, &labels, &significance, 1.0).unwrap();
+    assert_eq!((all.len(), none), (40, 0));
+    assert!(instgs_vk::template::prune_background(&scene, &labels, &significance, 0.0).is_err());
+}
