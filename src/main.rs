@@ -903,7 +903,11 @@ fn segment_scene(
         segment::read_groups(&data.join("instances.json"))?
     };
     let ids: Vec<u32> = groups.iter().flat_map(|g| g.ids.iter().copied()).collect();
-    let seg = segment::segment(gpu, k, scene, views, &masks, &ids, alpha)?;
+    let bar = indicatif::ProgressBar::new(views.len() as u64);
+    bar.set_style(indicatif::ProgressStyle::with_template("segmentation {bar:30} {pos}/{len} views ETA {eta}")?);
+    let seg =
+        segment::segment_with_progress(gpu, k, scene, views, &masks, &ids, alpha, |i, _| bar.set_position(i as u64))?;
+    bar.finish_and_clear();
     if !seg.unknown_ids.is_empty() {
         eprintln!(
             "warning: mask ids {:?} are not in {}; their pixels count as background",

@@ -132,6 +132,21 @@ pub fn segment(
     ids: &[u32],
     alpha: f32,
 ) -> Result<Segmentation> {
+    segment_with_progress(gpu, k, scene, views, masks, ids, alpha, |_, _| {})
+}
+
+/// [`segment`], calling `progress(views done, views)` after each view.
+#[allow(clippy::too_many_arguments)]
+pub fn segment_with_progress(
+    gpu: &Arc<Gpu>,
+    k: &Arc<Kernels>,
+    scene: &Scene,
+    views: &[View],
+    masks: &[Vec<u16>],
+    ids: &[u32],
+    alpha: f32,
+    mut progress: impl FnMut(usize, usize),
+) -> Result<Segmentation> {
     if views.len() != masks.len() {
         bail!("{} views but {} masks", views.len(), masks.len());
     }
@@ -152,8 +167,9 @@ pub fn segment(
     }
     let n = scene.len();
     let mut scorer = Scorer::new(gpu, k, scene, ids.len() + 1)?;
-    for (view, mask) in views.iter().zip(masks) {
+    for (i, (view, mask)) in views.iter().zip(masks).enumerate() {
         scorer.add_view(view, mask, ids)?;
+        progress(i + 1, views.len());
     }
     let s = scorer.read()?;
     let all = &s[ids.len() * n..];
