@@ -137,7 +137,7 @@ pub fn write(run: &Path, a: &PipelineArgs, stages: &[(Stage, bool, f64)]) -> Res
         let _ = writeln!(
             md,
             "## Segmentation (gradient-driven, α = {:.2})\n\n| group | instance | Gaussians | held-out IoU |\n|---|---|---|---|",
-            s["alpha"]
+            num(&s, "alpha").unwrap_or(f64::NAN)
         );
         for r in s["instances"].as_array().into_iter().flatten() {
             let iou = num(r, "test_iou").map(|v| format!("{v:.3} ({} views)", r["test_views"])).unwrap_or("—".into());
