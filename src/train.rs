@@ -149,7 +149,9 @@ impl TrainState {
         let ozeros = || [vec![0.0f32; 3 * pairs], vec![0.0f32; 3 * pairs], vec![0.0f32; pairs]];
         TrainState {
             iteration: 0,
-            active_sh_degree: 0,
+            // A trained scene is fine-tuned at its full SH degree from the first iteration (Inria's
+            // load_ply sets the active degree to the maximum; the InstGS prototype fine-tunes so).
+            active_sh_degree: rows.sh_degree,
             exp_avg: [zeros(0), zeros(1), zeros(2), zeros(3), zeros(4)],
             exp_avg_sq: [zeros(0), zeros(1), zeros(2), zeros(3), zeros(4)],
             grad2d_accum: Vec::new(),
