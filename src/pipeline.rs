@@ -229,6 +229,23 @@ fn settings(s: Stage, a: &PipelineArgs, cfg: &PipelineConfig) -> Result<serde_js
     Ok(v)
 }
 
+/// `over`'s values replace `base`'s, recursively through objects; keys only in `base` stay.
+fn overlay(base: &mut serde_json::Value, over: &serde_json::Value) {
+    match (base, over) {
+        (serde_json::Value::Object(b), serde_json::Value::Object(o)) => {
+            for (k, v) in o {
+                match b.get_mut(k) {
+                    Some(slot) => overlay(slot, v),
+                    None => {
+                        b.insert(k.clone(), v.clone());
+                    }
+                }
+            }
+        }
+        (slot, v) => *slot = v.clone(),
+    }
+}
+
 /// Files a stage starts from that `--from` must remove (training checkpoints).
 fn stage_checkpoint(run: &Path, s: Stage) -> Option<PathBuf> {
     match s {
@@ -270,10 +287,14 @@ pub fn run(a: PipelineArgs) -> Result<()> {
         }
         state.write(run)?;
     }
-    // A stage already run (or begun) with other settings is not silently reused.
+    // A stage already run (or begun) with other settings is not silently reused. Keys added to
+    // the configuration since it ran count as their defaults.
+    let defaults = PipelineConfig::load(None)?;
     for s in STAGES.iter().copied().filter(|&s| s <= until) {
         if let Some(r) = state.stages.get(s.name()) {
-            if r.settings != settings(s, &a, &cfg)? {
+            let mut recorded = settings(s, &a, &defaults)?;
+            overlay(&mut recorded, &r.settings);
+            if recorded != settings(s, &a, &cfg)? {
                 bail!(
                     "{}: stage {} was run with other settings (data, --downscale, --init or its configuration); redo it and what follows with --from {}, or choose another --out",
                     State::path(run).display(),

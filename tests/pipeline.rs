@@ -142,7 +142,12 @@ fn a_run_interrupted_in_every_stage_resumes_and_finishes() {
     let images: Vec<_> = std::fs::read_dir(parts.join("images")).unwrap().collect();
     assert_eq!(images.len(), 2);
 
-    // A re-run of a finished run does nothing; --from redoes a stage and what follows.
+    // A re-run of a finished run does nothing, also when the run predates a configuration key
+    // (it counts as its default); --from redoes a stage and what follows.
+    let state = parts.join("pipeline.json");
+    let mut v: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&state).unwrap()).unwrap();
+    v["stages"]["instance"]["settings"]["instance"].as_object_mut().unwrap().remove("background_keep").unwrap();
+    std::fs::write(&state, v.to_string()).unwrap();
     let o = run(&args(d, p, c), &[]);
     assert!(o.ok && o.stderr.matches("done earlier").count() == 6, "{}", o.stderr);
     let o = run(&[args(d, p, c), vec!["--from", "eval", "--until", "eval"]].concat(), &[]);
