@@ -583,6 +583,9 @@ fn train(
     }
     let opts = instgs_vk::dataset::LoadOptions { downscale: data.downscale, background: cfg.background };
     let ds = instgs_vk::dataset::load(&data.data, &opts)?;
+    if ds.train.is_empty() {
+        bail!("{}: the dataset has no training views", data.data.display());
+    }
     let (gpu, k) = open_device(device)?;
     eprintln!(
         "{}: {} dataset, {} training / {} test views at {}x{}; {}",

@@ -268,6 +268,9 @@ pub fn run(a: PipelineArgs) -> Result<()> {
     let until = a.until.unwrap_or(Stage::Bench);
     let load = instgs_vk::dataset::LoadOptions { downscale: a.downscale, background: cfg.plain.background };
     let ds = instgs_vk::dataset::load(&a.data, &load)?;
+    if ds.train.is_empty() {
+        bail!("{}: the dataset has no training views", a.data.display());
+    }
     let mask_ids = check_masks(&a.data, &ds)?;
     if let Some(p) = &a.init_ply {
         // Read now: a bad file is refused before anything runs.
