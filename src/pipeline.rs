@@ -279,21 +279,11 @@ pub fn run(a: PipelineArgs) -> Result<()> {
     std::fs::create_dir_all(&a.out).with_context(|| format!("{}: cannot create", a.out.display()))?;
     let run = a.out.as_path();
     let mut state = State::read(run)?;
-    if let Some(from) = a.from {
-        for s in STAGES.iter().copied().filter(|&s| s >= from) {
-            state.stages.remove(s.name());
-            if let Some(c) = stage_checkpoint(run, s) {
-                if c.exists() {
-                    std::fs::remove_file(&c).with_context(|| format!("{}: cannot remove", c.display()))?;
-                }
-            }
-        }
-        state.write(run)?;
-    }
     // A stage already run (or begun) with other settings is not silently reused. Keys added to
     // the configuration since it ran count as their defaults.
     let defaults = PipelineConfig::load(None)?;
-    for s in STAGES.iter().copied().filter(|&s| s <= until) {
+    // Checked before --from changes anything; the stages --from redoes are not checked.
+    for s in STAGES.iter().copied().filter(|&s| s <= until && a.from.is_none_or(|f| s < f)) {
         if let Some(r) = state.stages.get(s.name()) {
             let mut recorded = settings(s, &a, &defaults)?;
             overlay(&mut recorded, &r.settings);
@@ -306,6 +296,17 @@ pub fn run(a: PipelineArgs) -> Result<()> {
                 );
             }
         }
+    }
+    if let Some(from) = a.from {
+        for s in STAGES.iter().copied().filter(|&s| s >= from) {
+            state.stages.remove(s.name());
+            if let Some(c) = stage_checkpoint(run, s) {
+                if c.exists() {
+                    std::fs::remove_file(&c).with_context(|| format!("{}: cannot remove", c.display()))?;
+                }
+            }
+        }
+        state.write(run)?;
     }
     let (gpu, k) = crate::open_device(a.device.clone())?;
     eprintln!(

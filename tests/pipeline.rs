@@ -158,6 +158,10 @@ fn a_run_interrupted_in_every_stage_resumes_and_finishes() {
     let o = run(&args(d, p, c), &[]);
     assert!(!o.ok && o.stderr.contains("stage segment was run with other settings"), "{}", o.stderr);
     assert!(o.stderr.contains("--from segment"), "{}", o.stderr);
+    // A refused run changes nothing, not even with --from.
+    let o = run(&[args(d, p, c), vec!["--from", "joint"]].concat(), &[]);
+    assert!(!o.ok && o.stderr.contains("stage segment was run with other settings"), "{}", o.stderr);
+    assert!(stage_done(&parts, "joint") && parts.join("joint/checkpoint.bin").exists());
 }
 
 #[test]
