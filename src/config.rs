@@ -107,23 +107,8 @@ impl Config {
     /// A configuration saved as JSON (checkpoints) over today's defaults: keys added since it was
     /// written take their default values.
     pub fn from_saved(saved: serde_json::Value) -> Result<Config> {
-        fn overlay(base: &mut serde_json::Value, over: serde_json::Value) {
-            match (base, over) {
-                (serde_json::Value::Object(b), serde_json::Value::Object(o)) => {
-                    for (k, v) in o {
-                        match b.get_mut(&k) {
-                            Some(slot) => overlay(slot, v),
-                            None => {
-                                b.insert(k, v);
-                            }
-                        }
-                    }
-                }
-                (slot, v) => *slot = v,
-            }
-        }
         let mut base = serde_json::to_value(Config::from_toml("", "configs/default.toml")?)?;
-        overlay(&mut base, saved);
+        crate::util::json_overlay(&mut base, &saved);
         Ok(serde_json::from_value(base)?)
     }
 

@@ -60,6 +60,20 @@ impl Dataset {
         1.1 * d.max(1e-3)
     }
 
+    /// "nerf-synthetic dataset, 48 training / 12 test views at 320x240"; training views required
+    /// (`dir` names the dataset in the error).
+    pub fn describe(&self, dir: &Path) -> Result<String> {
+        let Some(first) = self.train.first() else { bail!("{}: the dataset has no training views", dir.display()) };
+        Ok(format!(
+            "{} dataset, {} training / {} test views at {}x{}",
+            self.kind,
+            self.train.len(),
+            self.test.len(),
+            first.camera.width,
+            first.camera.height
+        ))
+    }
+
     pub fn split(&self, name: &str) -> Result<&[View]> {
         match name {
             "train" => Ok(&self.train),

@@ -583,20 +583,9 @@ fn train(
     }
     let opts = instgs_vk::dataset::LoadOptions { downscale: data.downscale, background: cfg.background };
     let ds = instgs_vk::dataset::load(&data.data, &opts)?;
-    if ds.train.is_empty() {
-        bail!("{}: the dataset has no training views", data.data.display());
-    }
+    let what = ds.describe(&data.data)?;
     let (gpu, k) = open_device(device)?;
-    eprintln!(
-        "{}: {} dataset, {} training / {} test views at {}x{}; {}",
-        data.data.display(),
-        ds.kind,
-        ds.train.len(),
-        ds.test.len(),
-        ds.train[0].camera.width,
-        ds.train[0].camera.height,
-        gpu.describe()
-    );
+    eprintln!("{}: {what}; {}", data.data.display(), gpu.describe());
     ctrlc::set_handler(|| train::INTERRUPTED.store(true, std::sync::atomic::Ordering::SeqCst))
         .context("cannot install the Ctrl-C handler")?;
     let opts = train::RunOptions { init, ..train::RunOptions::new(out.to_path_buf(), resume, !quiet) };
@@ -660,18 +649,9 @@ fn eval(
     }
     let e = instgs_vk::train::evaluate(&mut r, &gs, views, background, |v, f| {
         let Some(dir) = out else { return Ok(()) };
-        let (w, h) = (f.width as usize, f.height as usize);
         save_png(&dir.join(format!("{}.png", v.camera.name)), f.width, f.height, &f.image)?;
-        let mut cmp = vec![[0.0f32; 4]; 3 * w * h];
-        for y in 0..h {
-            for x in 0..w {
-                let (g, p) = (v.image[y * w + x], f.image[y * w + x]);
-                let err = [0, 1, 2].map(|c| ((p[c] - g[c]).abs() * 4.0).min(1.0));
-                cmp[y * 3 * w + x] = g;
-                cmp[y * 3 * w + w + x] = p;
-                cmp[y * 3 * w + 2 * w + x] = [err[0], err[1], err[2], 1.0];
-            }
-        }
+        let err = instgs_vk::util::error_image(&f.image, &v.image);
+        let cmp = instgs_vk::util::side_by_side(&[&v.image, &f.image, &err], f.width as usize, f.height as usize);
         save_png(&dir.join(format!("{}_compare.png", v.camera.name)), 3 * f.width, f.height, &cmp)
     })?;
     if json {

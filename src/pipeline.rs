@@ -229,23 +229,6 @@ fn settings(s: Stage, a: &PipelineArgs, cfg: &PipelineConfig) -> Result<serde_js
     Ok(v)
 }
 
-/// `over`'s values replace `base`'s, recursively through objects; keys only in `base` stay.
-fn overlay(base: &mut serde_json::Value, over: &serde_json::Value) {
-    match (base, over) {
-        (serde_json::Value::Object(b), serde_json::Value::Object(o)) => {
-            for (k, v) in o {
-                match b.get_mut(k) {
-                    Some(slot) => overlay(slot, v),
-                    None => {
-                        b.insert(k.clone(), v.clone());
-                    }
-                }
-            }
-        }
-        (slot, v) => *slot = v.clone(),
-    }
-}
-
 /// Files a stage starts from that `--from` must remove (training checkpoints).
 fn stage_checkpoint(run: &Path, s: Stage) -> Option<PathBuf> {
     match s {
@@ -268,9 +251,7 @@ pub fn run(a: PipelineArgs) -> Result<()> {
     let until = a.until.unwrap_or(Stage::Bench);
     let load = instgs_vk::dataset::LoadOptions { downscale: a.downscale, background: cfg.plain.background };
     let ds = instgs_vk::dataset::load(&a.data, &load)?;
-    if ds.train.is_empty() {
-        bail!("{}: the dataset has no training views", a.data.display());
-    }
+    let what = ds.describe(&a.data)?;
     let mask_ids = check_masks(&a.data, &ds)?;
     if let Some(p) = &a.init_ply {
         // Read now: a bad file is refused before anything runs.
@@ -286,7 +267,7 @@ pub fn run(a: PipelineArgs) -> Result<()> {
     for s in STAGES.iter().copied().filter(|&s| s <= until && a.from.is_none_or(|f| s < f)) {
         if let Some(r) = state.stages.get(s.name()) {
             let mut recorded = settings(s, &a, &defaults)?;
-            overlay(&mut recorded, &r.settings);
+            instgs_vk::util::json_overlay(&mut recorded, &r.settings);
             if recorded != settings(s, &a, &cfg)? {
                 bail!(
                     "{}: stage {} was run with other settings (data, --downscale, --init or its configuration); redo it and what follows with --from {}, or choose another --out",
@@ -310,13 +291,8 @@ pub fn run(a: PipelineArgs) -> Result<()> {
     }
     let (gpu, k) = crate::open_device(a.device.clone())?;
     eprintln!(
-        "{}: {} dataset, {} training / {} test views at {}x{}, instance masks ({}); {}",
+        "{}: {what}, instance masks ({}); {}",
         a.data.display(),
-        ds.kind,
-        ds.train.len(),
-        ds.test.len(),
-        ds.train[0].camera.width,
-        ds.train[0].camera.height,
         match mask_ids {
             MaskIds::Global => "ids grouped by instances.json",
             MaskIds::PerFrame => "per-frame ids",
@@ -598,17 +574,8 @@ impl Ctx<'_> {
                     let v = &views[*i];
                     let plain = plain_frames.get(i).ok_or_else(|| anyhow!("missing plain render"))?;
                     let (w, h) = (v.camera.width as usize, v.camera.height as usize);
-                    let mut strip = vec![[0.0f32; 4]; 4 * w * h];
-                    for y in 0..h {
-                        for x in 0..w {
-                            let (g, p, q) = (v.image[y * w + x], plain[y * w + x], img[y * w + x]);
-                            let err = [0, 1, 2].map(|c| ((q[c] - g[c]).abs() * 4.0).min(1.0));
-                            strip[y * 4 * w + x] = g;
-                            strip[y * 4 * w + w + x] = p;
-                            strip[y * 4 * w + 2 * w + x] = q;
-                            strip[y * 4 * w + 3 * w + x] = [err[0], err[1], err[2], 1.0];
-                        }
-                    }
+                    let err = instgs_vk::util::error_image(img, &v.image);
+                    let strip = instgs_vk::util::side_by_side(&[&v.image, plain, img, &err], w, h);
                     crate::save_png(&dir.join(format!("{view_name}.png")), 4 * w as u32, h as u32, &strip)?;
                 }
             }

@@ -55,3 +55,45 @@ pub fn psnr(a: &[[f32; 4]], b: &[[f32; 4]]) -> f64 {
         -10.0 * mse.log10()
     }
 }
+
+/// `over`'s values replace `base`'s, recursively through JSON objects; keys only in `base` stay
+/// (saved configurations and settings read over today's defaults).
+pub fn json_overlay(base: &mut serde_json::Value, over: &serde_json::Value) {
+    match (base, over) {
+        (serde_json::Value::Object(b), serde_json::Value::Object(o)) => {
+            for (k, v) in o {
+                match b.get_mut(k) {
+                    Some(slot) => json_overlay(slot, v),
+                    None => {
+                        b.insert(k.clone(), v.clone());
+                    }
+                }
+            }
+        }
+        (slot, v) => *slot = v.clone(),
+    }
+}
+
+/// |a − b| × 4 per channel, clamped to 1, opaque: the error panel of comparison pictures.
+pub fn error_image(a: &[[f32; 4]], b: &[[f32; 4]]) -> Vec<[f32; 4]> {
+    a.iter()
+        .zip(b)
+        .map(|(p, q)| {
+            let e = [0, 1, 2].map(|c| ((p[c] - q[c]).abs() * 4.0).min(1.0));
+            [e[0], e[1], e[2], 1.0]
+        })
+        .collect()
+}
+
+/// Images of `width`×`height` placed left to right in one picture (`panels.len()`·width wide).
+pub fn side_by_side(panels: &[&[[f32; 4]]], width: usize, height: usize) -> Vec<[f32; 4]> {
+    let n = panels.len();
+    let mut out = vec![[0.0f32; 4]; n * width * height];
+    for y in 0..height {
+        for (i, p) in panels.iter().enumerate() {
+            out[y * n * width + i * width..y * n * width + (i + 1) * width]
+                .copy_from_slice(&p[y * width..(y + 1) * width]);
+        }
+    }
+    out
+}

@@ -1,11 +1,11 @@
 //! The main job through the binary (`instgs-vk train` on a dataset with instance masks), on the
 //! bundled demo scene at 80×60 with a tiny schedule: a run interrupted in every stage resumes
-//! and finishes with the result of an uninterrupted run; a dataset without masks trains plain 3DGS and
+//! and finishes (plain results within a tolerance of an uninterrupted run's); a dataset without masks trains plain 3DGS and
 //! says so; masks that do not fit the images are refused before any training. Validation on.
-use std::io::BufRead;
 use std::path::{Path, PathBuf};
-use std::process::{Command, Stdio};
-use std::time::{Duration, Instant};
+
+mod common;
+use common::*;
 
 const STAGES: [&str; 6] = ["plain", "segment", "instance", "joint", "eval", "bench"];
 
@@ -14,36 +14,6 @@ const TINY: &str = "iterations = 60\ntest_interval = 30\ncheckpoint_interval = 2
 [densify]\nfrom_iter = 10\nuntil_iter = 50\ninterval = 10\nopacity_reset_interval = 0\n\
 [joint]\niterations = 20\ntest_interval = 10\ncheckpoint_interval = 5\n\
 [eval]\nimages = 2\n[bench]\nframes = 1\nwarmup = 0\n";
-
-struct Out {
-    ok: bool,
-    stderr: String,
-}
-
-fn run(args: &[&str], env: &[(&str, &str)]) -> Out {
-    let mut c = Command::new(env!("CARGO_BIN_EXE_instgs-vk"));
-    c.args(args).env("INSTGS_VALIDATION", "1").stdout(Stdio::null()).stderr(Stdio::piped());
-    for (k, v) in env {
-        c.env(k, v);
-    }
-    let mut child = c.spawn().unwrap();
-    let stderr = child.stderr.take().unwrap();
-    let reader = std::thread::spawn(move || {
-        std::io::BufReader::new(stderr).lines().map(|l| l.unwrap_or_default() + "\n").collect::<String>()
-    });
-    let start = Instant::now();
-    while child.try_wait().unwrap().is_none() {
-        if start.elapsed() > Duration::from_secs(900) {
-            child.kill().unwrap();
-            panic!("instgs-vk {args:?} hung");
-        }
-        std::thread::sleep(Duration::from_millis(50));
-    }
-    let ok = child.wait().unwrap().success();
-    let stderr = reader.join().unwrap();
-    assert!(!stderr.contains("panicked"), "instgs-vk {args:?} panicked:\n{stderr}");
-    Out { ok, stderr }
-}
 
 fn tmp(name: &str) -> PathBuf {
     let d = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("pipeline").join(name);
@@ -94,7 +64,7 @@ fn a_run_interrupted_in_every_stage_resumes_and_finishes() {
     let (d, c) = (data.to_str().unwrap(), cfg.to_str().unwrap());
 
     let whole = base.join("whole");
-    let o = run(&args(d, whole.to_str().unwrap(), c), &[]);
+    let o = run_bin(&args(d, whole.to_str().unwrap(), c), &[]);
     assert!(o.ok, "{}", o.stderr);
     for s in STAGES {
         assert!(o.stderr.contains(&format!("{s}] finished")), "{s} did not finish:\n{}", o.stderr);
@@ -103,7 +73,7 @@ fn a_run_interrupted_in_every_stage_resumes_and_finishes() {
     let parts = base.join("parts");
     let p = parts.to_str().unwrap();
     for (i, s) in STAGES.iter().enumerate() {
-        let o = run(&args(d, p, c), &[("INSTGS_INTERRUPT_IN", s)]);
+        let o = run_bin(&args(d, p, c), &[("INSTGS_INTERRUPT_IN", s)]);
         assert!(!o.ok && o.stderr.contains(&format!("interrupted in stage {s}")), "{s}:\n{}", o.stderr);
         assert!(o.stderr.contains("run the same command again to resume"), "{}", o.stderr);
         for (j, t) in STAGES.iter().enumerate() {
@@ -113,7 +83,7 @@ fn a_run_interrupted_in_every_stage_resumes_and_finishes() {
         assert!(report.contains(&format!("| {s} | interrupted or running |")), "{report}");
     }
     // The training stages stopped half-way with a checkpoint and went on from it.
-    let o = run(&args(d, p, c), &[]);
+    let o = run_bin(&args(d, p, c), &[]);
     assert!(o.ok, "{}", o.stderr);
     for s in STAGES {
         assert!(stage_done(&parts, s), "{s}");
@@ -148,18 +118,18 @@ fn a_run_interrupted_in_every_stage_resumes_and_finishes() {
     let mut v: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&state).unwrap()).unwrap();
     v["stages"]["instance"]["settings"]["instance"].as_object_mut().unwrap().remove("background_keep").unwrap();
     std::fs::write(&state, v.to_string()).unwrap();
-    let o = run(&args(d, p, c), &[]);
+    let o = run_bin(&args(d, p, c), &[]);
     assert!(o.ok && o.stderr.matches("done earlier").count() == 6, "{}", o.stderr);
-    let o = run(&[args(d, p, c), vec!["--from", "eval", "--until", "eval"]].concat(), &[]);
+    let o = run_bin(&[args(d, p, c), vec!["--from", "eval", "--until", "eval"]].concat(), &[]);
     assert!(o.ok && o.stderr.contains("[5/6 eval] finished"), "{}", o.stderr);
     assert!(!stage_done(&parts, "bench"));
     // Changed settings are not silently mixed with earlier results.
     std::fs::write(&cfg, format!("{TINY}\n[segment]\nalpha = 0.5\n")).unwrap();
-    let o = run(&args(d, p, c), &[]);
+    let o = run_bin(&args(d, p, c), &[]);
     assert!(!o.ok && o.stderr.contains("stage segment was run with other settings"), "{}", o.stderr);
     assert!(o.stderr.contains("--from segment"), "{}", o.stderr);
     // A refused run changes nothing, not even with --from.
-    let o = run(&[args(d, p, c), vec!["--from", "joint"]].concat(), &[]);
+    let o = run_bin(&[args(d, p, c), vec!["--from", "joint"]].concat(), &[]);
     assert!(!o.ok && o.stderr.contains("stage segment was run with other settings"), "{}", o.stderr);
     assert!(stage_done(&parts, "joint") && parts.join("joint/checkpoint.bin").exists());
 }
@@ -171,7 +141,7 @@ fn a_dataset_without_masks_trains_plain_3dgs_and_says_so() {
         std::fs::remove_file(d.join("instances.json")).unwrap();
     });
     let out = data.parent().unwrap().join("run");
-    let o = run(
+    let o = run_bin(
         &["train", "--data", data.to_str().unwrap(), "--out", out.to_str().unwrap(), "--iterations", "5", "--quiet"],
         &[],
     );
@@ -179,13 +149,15 @@ fn a_dataset_without_masks_trains_plain_3dgs_and_says_so() {
     assert!(o.stderr.contains("no instance masks") && o.stderr.contains("plain 3DGS only"), "{}", o.stderr);
     assert!(out.join("point_cloud.ply").exists() && !out.join("pipeline.json").exists());
     // Pipeline options on such a dataset are refused with the reason.
-    let o =
-        run(&["train", "--data", data.to_str().unwrap(), "--out", out.to_str().unwrap(), "--until", "segment"], &[]);
+    let o = run_bin(
+        &["train", "--data", data.to_str().unwrap(), "--out", out.to_str().unwrap(), "--until", "segment"],
+        &[],
+    );
     assert!(!o.ok && o.stderr.contains("no instance masks"), "{}", o.stderr);
 }
 
 /// One `error:` line containing every needle, and no training started (no checkpoint).
-fn assert_refused(o: &Out, out: &Path, needles: &[&str]) {
+fn assert_refused(o: &BinOut, out: &Path, needles: &[&str]) {
     assert!(!o.ok, "accepted:\n{}", o.stderr);
     let last = o.stderr.lines().last().unwrap_or_default();
     assert!(last.starts_with("error: "), "{}", o.stderr);
@@ -229,7 +201,7 @@ fn masks_that_do_not_match_the_images_are_refused_before_training() {
     for (name, damage, needles) in cases {
         let data = demo_copy(name, damage);
         let out = data.parent().unwrap().join("run");
-        let o = run(&["train", "--data", data.to_str().unwrap(), "--out", out.to_str().unwrap(), "--quiet"], &[]);
+        let o = run_bin(&["train", "--data", data.to_str().unwrap(), "--out", out.to_str().unwrap(), "--quiet"], &[]);
         assert_refused(&o, &out, needles);
     }
 }
@@ -262,7 +234,7 @@ fn per_frame_masks_from_a_2d_segmenter_are_associated_then_instanced() {
     // Also background pruning: half of the background stays.
     std::fs::write(&cfg, format!("{TINY}[instance]\nbackground_keep = 0.5\n")).unwrap();
     let out = base.join("run");
-    let o = run(
+    let o = run_bin(
         &[args(data.to_str().unwrap(), out.to_str().unwrap(), cfg.to_str().unwrap()), vec!["--until", "instance"]]
             .concat(),
         &[],

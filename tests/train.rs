@@ -3,9 +3,9 @@
 //! parameters as an uninterrupted run, divergence that keeps the last good checkpoint, and bad
 //! datasets that end in one clear error. Validation layers on in every run.
 mod common;
-use std::io::{BufRead, Write};
+use std::io::Write;
 use std::path::{Path, PathBuf};
-use std::process::{Command, Stdio};
+use std::process::Command;
 use std::time::{Duration, Instant};
 
 use common::*;
@@ -20,48 +20,6 @@ fn tmp(name: &str) -> PathBuf {
     let _ = std::fs::remove_dir_all(&d);
     std::fs::create_dir_all(&d).unwrap();
     d
-}
-
-struct Out {
-    ok: bool,
-    stderr: String,
-}
-
-fn spawn(args: &[&str], env: &[(&str, &str)]) -> std::process::Child {
-    let mut c = Command::new(env!("CARGO_BIN_EXE_instgs-vk"));
-    c.args(args).env("INSTGS_VALIDATION", "1").stdout(Stdio::null()).stderr(Stdio::piped());
-    for (k, v) in env {
-        c.env(k, v);
-    }
-    c.spawn().unwrap()
-}
-
-fn finish(mut child: std::process::Child, what: &str) -> Out {
-    let stderr = child.stderr.take().unwrap();
-    let reader = std::thread::spawn(move || {
-        let mut s = String::new();
-        for l in std::io::BufReader::new(stderr).lines() {
-            s.push_str(&l.unwrap_or_default());
-            s.push('\n');
-        }
-        s
-    });
-    let start = Instant::now();
-    while child.try_wait().unwrap().is_none() {
-        if start.elapsed() > Duration::from_secs(900) {
-            child.kill().unwrap();
-            panic!("{what} hung");
-        }
-        std::thread::sleep(Duration::from_millis(50));
-    }
-    let status = child.wait().unwrap();
-    let stderr = reader.join().unwrap();
-    assert!(!stderr.contains("panicked"), "{what} panicked:\n{stderr}");
-    Out { ok: status.success(), stderr }
-}
-
-fn run(args: &[&str], env: &[(&str, &str)]) -> Out {
-    finish(spawn(args, env), &format!("instgs-vk {args:?}"))
 }
 
 fn config_file(dir: &Path, text: &str) -> PathBuf {
@@ -220,7 +178,7 @@ fn bad_datasets_give_clear_errors() {
 
     // Through the binary: one error line, exit code 1.
     let out = tmp("out-missing");
-    let o = run(&["train", "--data", missing.to_str().unwrap(), "--out", out.to_str().unwrap()], &[]);
+    let o = run_bin(&["train", "--data", missing.to_str().unwrap(), "--out", out.to_str().unwrap()], &[]);
     assert!(!o.ok && o.stderr.contains("error:") && o.stderr.contains("r_003.png"), "{}", o.stderr);
 }
 
@@ -238,7 +196,7 @@ fn short_training_run_learns() {
         "iterations = 200\ntest_interval = 25\ncheckpoint_interval = 100\nsh_increase_interval = 50\n[densify]\nfrom_iter = 40\ninterval = 40\nopacity_reset_interval = 120\n",
     );
     let run_dir = out.join("run");
-    let o = run(
+    let o = run_bin(
         &[
             "train",
             "--data",
@@ -297,16 +255,18 @@ fn interrupted_and_resumed_runs_match_an_uninterrupted_one() {
     // lavapipe with one thread: float atomics add in a fixed order, so runs are bit-exact.
     let env = [("LP_NUM_THREADS", "1")];
     let straight = base.join("straight");
-    let o = run(&train_args(d, straight.to_str().unwrap(), c, "90"), &env);
+    let o = run_bin(&train_args(d, straight.to_str().unwrap(), c, "90"), &env);
     assert!(o.ok, "{}", o.stderr);
     let (want, _) = read_checkpoint(&straight.join("checkpoint.bin")).unwrap();
     assert_eq!(want.iteration, 90);
 
     // Stopped by --iterations, then resumed.
     let split = base.join("split");
-    assert!(run(&train_args(d, split.to_str().unwrap(), c, "37"), &env).ok);
-    let o =
-        run(&train_args(d, split.to_str().unwrap(), c, "90").into_iter().chain(["--resume"]).collect::<Vec<_>>(), &env);
+    assert!(run_bin(&train_args(d, split.to_str().unwrap(), c, "37"), &env).ok);
+    let o = run_bin(
+        &train_args(d, split.to_str().unwrap(), c, "90").into_iter().chain(["--resume"]).collect::<Vec<_>>(),
+        &env,
+    );
     assert!(o.ok, "{}", o.stderr);
     let (got, _) = read_checkpoint(&split.join("checkpoint.bin")).unwrap();
     assert!(got == want, "resumed run differs from the uninterrupted one");
@@ -316,7 +276,7 @@ fn interrupted_and_resumed_runs_match_an_uninterrupted_one() {
 
     // Ctrl-C: a checkpoint is written at once, and --resume finishes the run.
     let sig = base.join("sigint");
-    let child = spawn(&train_args(d, sig.to_str().unwrap(), c, "90"), &env);
+    let child = spawn_bin(&train_args(d, sig.to_str().unwrap(), c, "90"), &env);
     let start = Instant::now();
     while !sig.join("checkpoint.bin").exists() {
         assert!(start.elapsed() < Duration::from_secs(600), "no checkpoint appeared");
@@ -324,7 +284,7 @@ fn interrupted_and_resumed_runs_match_an_uninterrupted_one() {
     }
     let pid = child.id().to_string();
     assert!(Command::new("kill").args(["-INT", &pid]).status().unwrap().success());
-    let o = finish(child, "interrupted run");
+    let o = finish_bin(child, "interrupted run");
     let (stopped, _) = read_checkpoint(&sig.join("checkpoint.bin")).unwrap();
     if stopped.iteration < 90 {
         assert!(
@@ -332,7 +292,7 @@ fn interrupted_and_resumed_runs_match_an_uninterrupted_one() {
             "{}",
             o.stderr
         );
-        let o = run(
+        let o = run_bin(
             &train_args(d, sig.to_str().unwrap(), c, "90").into_iter().chain(["--resume"]).collect::<Vec<_>>(),
             &env,
         );
@@ -343,7 +303,7 @@ fn interrupted_and_resumed_runs_match_an_uninterrupted_one() {
 
     // Resuming with another configuration is refused; starting over an existing run too.
     let other = config_file(&base.join("split"), "checkpoint_interval = 5\n");
-    let o = run(
+    let o = run_bin(
         &train_args(d, split.to_str().unwrap(), other.to_str().unwrap(), "95")
             .into_iter()
             .chain(["--resume"])
@@ -351,7 +311,7 @@ fn interrupted_and_resumed_runs_match_an_uninterrupted_one() {
         &env,
     );
     assert!(!o.ok && o.stderr.contains("another configuration"), "{}", o.stderr);
-    let o = run(&train_args(d, split.to_str().unwrap(), c, "95"), &env);
+    let o = run_bin(&train_args(d, split.to_str().unwrap(), c, "95"), &env);
     assert!(!o.ok && o.stderr.contains("--resume"), "{}", o.stderr);
 }
 
@@ -361,7 +321,7 @@ fn divergence_keeps_the_last_good_checkpoint() {
     let base = tmp("nan-out");
     let cfg = config_file(&base, "checkpoint_interval = 10\ntest_interval = 0\n");
     let out = base.join("run");
-    let o = run(
+    let o = run_bin(
         &train_args(data.to_str().unwrap(), out.to_str().unwrap(), cfg.to_str().unwrap(), "40"),
         &[("INSTGS_FAULT_NAN_AT", "23")],
     );

@@ -173,3 +173,49 @@ pub fn random_instanced(
         .collect();
     instgs_vk::instance::InstancedScene { sh_degree: deg, background: bg, groups }
 }
+
+/// What a run of the binary left: its exit status and standard error.
+pub struct BinOut {
+    pub ok: bool,
+    pub stderr: String,
+}
+
+/// Starts `instgs-vk` with validation layers on (stdout discarded, stderr piped).
+pub fn spawn_bin(args: &[&str], env: &[(&str, &str)]) -> std::process::Child {
+    let mut c = std::process::Command::new(env!("CARGO_BIN_EXE_instgs-vk"));
+    c.args(args).env("INSTGS_VALIDATION", "1").stdout(std::process::Stdio::null()).stderr(std::process::Stdio::piped());
+    for (k, v) in env {
+        c.env(k, v);
+    }
+    c.spawn().unwrap()
+}
+
+/// Waits for a spawned binary (900 s guard), collects stderr, and fails on a panic.
+pub fn finish_bin(mut child: std::process::Child, what: &str) -> BinOut {
+    let stderr = child.stderr.take().unwrap();
+    let reader = std::thread::spawn(move || {
+        let mut s = String::new();
+        for l in std::io::BufRead::lines(std::io::BufReader::new(stderr)) {
+            s.push_str(&l.unwrap_or_default());
+            s.push('\n');
+        }
+        s
+    });
+    let start = std::time::Instant::now();
+    while child.try_wait().unwrap().is_none() {
+        if start.elapsed() > std::time::Duration::from_secs(900) {
+            child.kill().unwrap();
+            panic!("{what} hung");
+        }
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    }
+    let status = child.wait().unwrap();
+    let stderr = reader.join().unwrap();
+    assert!(!stderr.contains("panicked"), "{what} panicked:\n{stderr}");
+    BinOut { ok: status.success(), stderr }
+}
+
+/// Runs `instgs-vk` to the end.
+pub fn run_bin(args: &[&str], env: &[(&str, &str)]) -> BinOut {
+    finish_bin(spawn_bin(args, env), &format!("instgs-vk {args:?}"))
+}
