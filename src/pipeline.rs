@@ -541,6 +541,9 @@ impl Ctx<'_> {
         // Evenly spread views for the pictures.
         let pick: Vec<usize> = (0..n_images).map(|i| i * views.len() / n_images.max(1)).collect();
         let mut plain_frames: BTreeMap<usize, Vec<[f32; 4]>> = BTreeMap::new();
+        // The split's masks, where it has them: PSNR over instance pixels (any id but 0) and
+        // background pixels separately, to see where the two scenes differ.
+        let masks = instgs_vk::segment::load_masks(&self.a.data, split, views).ok();
         let mut results = Vec::new();
         for (name, file) in [("plain", "point_cloud.ply"), ("instgs", "scene.instgs")] {
             let path = run.join(file);
@@ -548,9 +551,19 @@ impl Ctx<'_> {
             let gs = scene.upload(self.gpu).with_context(|| path.display().to_string())?;
             let mut index = 0usize;
             let mut pictures = Vec::new();
+            let mut regions = [(0.0, 0usize), (0.0, 0usize)];
             let e = train::evaluate(&mut r, &gs, views, bg, |v, f| {
                 if interrupted() {
                     bail!("interrupted");
+                }
+                if let Some(m) = &masks {
+                    let m = &m[index];
+                    for (k, object) in [true, false].into_iter().enumerate() {
+                        if let Some(db) = instgs_vk::util::psnr_where(&f.image, &v.image, |i| (m[i] != 0) == object) {
+                            regions[k].0 += db;
+                            regions[k].1 += 1;
+                        }
+                    }
                 }
                 if pick.contains(&index) {
                     if name == "plain" {
@@ -581,13 +594,16 @@ impl Ctx<'_> {
             }
             let per: Vec<_> =
                 e.views.iter().map(|v| serde_json::json!({"name": v.name, "psnr": v.psnr, "ssim": v.ssim})).collect();
-            results.push((
-                name,
-                serde_json::json!({
-                    "scene": path.display().to_string(), "splats": scene.splats(),
-                    "psnr_mean": e.psnr, "ssim_mean": e.ssim, "views": per,
-                }),
-            ));
+            let mut out = serde_json::json!({
+                "scene": path.display().to_string(), "splats": scene.splats(),
+                "psnr_mean": e.psnr, "ssim_mean": e.ssim, "views": per,
+            });
+            for ((sum, n), key) in regions.into_iter().zip(["psnr_instances_mean", "psnr_background_mean"]) {
+                if n > 0 {
+                    out[key] = (sum / n as f64).into();
+                }
+            }
+            results.push((name, out));
         }
         let mut v =
             serde_json::json!({"split": split, "width": views[0].camera.width, "height": views[0].camera.height});

@@ -55,6 +55,13 @@ pub fn write(run: &Path, a: &PipelineArgs, stages: &[(Stage, bool, f64)]) -> Res
                 e["height"],
                 e["plain"]["views"].as_array().map_or(0, |v| v.len())
             );
+            if e["plain"].get("psnr_instances_mean").is_some() {
+                let _ = writeln!(
+                    md,
+                    "Instance and background pixels are those of the views' masks (id ≠ 0 and id = 0); their PSNR \
+                     is each view's over those pixels, averaged."
+                );
+            }
         }
         if let Some(b) = &bench {
             let _ = writeln!(
@@ -81,6 +88,16 @@ pub fn write(run: &Path, a: &PipelineArgs, stages: &[(Stage, bool, f64)]) -> Res
             let (p, i) = (num(e, "plain.psnr_mean"), num(e, "instgs.psnr_mean"));
             let d = p.zip(i).map(|(p, i)| format!("{:+.2} dB", i - p));
             row(&mut md, "PSNR (dB)", p, i, &|v| format!("{v:.2}"), d);
+            for (key, name) in [
+                ("psnr_instances_mean", "PSNR on instance pixels (dB)"),
+                ("psnr_background_mean", "PSNR on background pixels (dB)"),
+            ] {
+                let (p, i) = (num(e, &format!("plain.{key}")), num(e, &format!("instgs.{key}")));
+                if p.is_some() || i.is_some() {
+                    let d = p.zip(i).map(|(p, i)| format!("{:+.2} dB", i - p));
+                    row(&mut md, name, p, i, &|v| format!("{v:.2}"), d);
+                }
+            }
             let (p, i) = (num(e, "plain.ssim_mean"), num(e, "instgs.ssim_mean"));
             let d = p.zip(i).map(|(p, i)| format!("{:+.4}", i - p));
             row(&mut md, "SSIM", p, i, &|v| format!("{v:.4}"), d);

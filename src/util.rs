@@ -41,19 +41,24 @@ use image::ImageEncoder as _;
 
 /// PSNR in dB between two RGB images given as RGBA floats (alpha ignored), values in [0, 1].
 pub fn psnr(a: &[[f32; 4]], b: &[[f32; 4]]) -> f64 {
-    let mut se = 0.0f64;
-    for (p, q) in a.iter().zip(b) {
+    psnr_where(a, b, |_| true).unwrap_or(f64::INFINITY)
+}
+
+/// PSNR in dB over the pixels `keep` selects (by index); None when it selects none.
+pub fn psnr_where(a: &[[f32; 4]], b: &[[f32; 4]], keep: impl Fn(usize) -> bool) -> Option<f64> {
+    let (mut se, mut n) = (0.0f64, 0usize);
+    for (_, (p, q)) in a.iter().zip(b).enumerate().filter(|(i, _)| keep(*i)) {
         for c in 0..3 {
             let d = (p[c].clamp(0.0, 1.0) - q[c].clamp(0.0, 1.0)) as f64;
             se += d * d;
         }
+        n += 1;
     }
-    let mse = se / (a.len().max(1) * 3) as f64;
-    if mse == 0.0 {
-        f64::INFINITY
-    } else {
-        -10.0 * mse.log10()
+    if n == 0 {
+        return None;
     }
+    let mse = se / (n * 3) as f64;
+    Some(if mse == 0.0 { f64::INFINITY } else { -10.0 * mse.log10() })
 }
 
 /// `over`'s values replace `base`'s, recursively through JSON objects; keys only in `base` stay
@@ -96,4 +101,21 @@ pub fn side_by_side(panels: &[&[[f32; 4]]], width: usize, height: usize) -> Vec<
         }
     }
     out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn psnr_over_a_region_counts_only_its_pixels() {
+        let a = [[0.5f32, 0.5, 0.5, 1.0]; 4];
+        let mut b = a;
+        b[0] = [0.6, 0.6, 0.6, 1.0];
+        // Pixel 0 alone: MSE 0.01, 20 dB; the other pixels are exact; all four: MSE 0.0025.
+        assert!((psnr_where(&a, &b, |i| i == 0).unwrap() - 20.0).abs() < 1e-4);
+        assert_eq!(psnr_where(&a, &b, |i| i != 0), Some(f64::INFINITY));
+        assert_eq!(psnr_where(&a, &b, |_| false), None);
+        assert!((psnr(&a, &b) - 10.0 * 400f64.log10()).abs() < 1e-4);
+    }
 }
