@@ -350,3 +350,24 @@ fn configurations_saved_before_new_keys_take_their_defaults() {
     assert_eq!(back.iterations, 1234);
     assert_eq!(instgs_vk::config::Config { iterations: today.iterations, ..back }, today);
 }
+
+#[test]
+fn every_shipped_configuration_loads() {
+    // configs/render.toml configures the player and bench; every other file is a `train --config`
+    // (a pipeline configuration, of which a plain training one is a part).
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("configs");
+    let mut n = 0;
+    for entry in std::fs::read_dir(&dir).unwrap() {
+        let path = entry.unwrap().path();
+        if path.extension().is_some_and(|e| e == "toml") {
+            if path.file_name().is_some_and(|f| f == "render.toml") {
+                instgs_vk::lod::RenderConfig::load(Some(&path)).unwrap();
+            } else {
+                let c = instgs_vk::config::PipelineConfig::load(Some(&path));
+                assert!(c.is_ok(), "{}: {:#}", path.display(), c.err().unwrap());
+            }
+            n += 1;
+        }
+    }
+    assert!(n >= 8, "{n} configurations");
+}
