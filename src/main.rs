@@ -212,8 +212,9 @@ enum Cmd {
         /// `segment --per-frame-ids`, which carries the associated groups); no ground truth then.
         #[arg(long)]
         groups: Option<PathBuf>,
-        /// Template initialisation: merge (paper), max or first (ablations).
-        #[arg(long, value_enum, default_value = "merge")]
+        /// Template initialisation: max (the largest instance kept whole; measured best), merge
+        /// (the paper's merge-and-sample) or first.
+        #[arg(long, value_enum, default_value = "max")]
         init: instgs_vk::template::TemplateInit,
         /// Rigid registration (no per-instance scale).
         #[arg(long)]
