@@ -543,7 +543,13 @@ impl Ctx<'_> {
         let mut plain_frames: BTreeMap<usize, Vec<[f32; 4]>> = BTreeMap::new();
         // The split's masks, where it has them: PSNR over instance pixels (any id but 0) and
         // background pixels separately, to see where the two scenes differ.
-        let masks = instgs_vk::segment::load_masks(&self.a.data, split, views).ok();
+        let masks = if self.a.data.join("masks").join(split).is_dir() {
+            instgs_vk::segment::load_masks(&self.a.data, split, views)
+                .map_err(|e| eprintln!("warning: {e:#}; PSNR over instance and background pixels left out"))
+                .ok()
+        } else {
+            None
+        };
         let mut results = Vec::new();
         for (name, file) in [("plain", "point_cloud.ply"), ("instgs", "scene.instgs")] {
             let path = run.join(file);
