@@ -47,7 +47,7 @@ pub fn psnr(a: &[[f32; 4]], b: &[[f32; 4]]) -> f64 {
 /// PSNR in dB over the pixels `keep` selects (by index); None when it selects none.
 pub fn psnr_where(a: &[[f32; 4]], b: &[[f32; 4]], keep: impl Fn(usize) -> bool) -> Option<f64> {
     let (mut se, mut n) = (0.0f64, 0usize);
-    for (_, (p, q)) in a.iter().zip(b).enumerate().filter(|(i, _)| keep(*i)) {
+    for (p, q) in a.iter().zip(b).enumerate().filter(|(i, _)| keep(*i)).map(|(_, pq)| pq) {
         for c in 0..3 {
             let d = (p[c].clamp(0.0, 1.0) - q[c].clamp(0.0, 1.0)) as f64;
             se += d * d;
