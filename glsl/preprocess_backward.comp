@@ -38,7 +38,7 @@ layout(std430, binding = 12) writeonly buffer GradMeansBuf { float v[]; } grad_m
 layout(std430, binding = 13) writeonly buffer GradScalesBuf { float v[]; } grad_scales;
 layout(std430, binding = 14) writeonly buffer GradQuatsBuf { vec4 v[]; } grad_quats;
 layout(std430, binding = 15) writeonly buffer GradOpacitiesBuf { float v[]; } grad_opacities;
-layout(std430, binding = 16) buffer GradShBuf { float v[]; } grad_sh;
+layout(std430, binding = 16) writeonly buffer GradShBuf { float v[]; } grad_sh;
 layout(std430, binding = 17) buffer Grad2dAccumBuf { float v[]; } grad2d_accum;
 layout(std430, binding = 18) buffer Grad2dCountBuf { uint v[]; } grad2d_count;
 layout(std430, binding = 19) buffer MaxRadiiBuf { uint v[]; } max_radii;
@@ -49,8 +49,12 @@ layout(std430, binding = 30) writeonly buffer XformTermsBuf { float v[]; } xform
 #define INSTANCE_BINDING 23
 #include "instance.glsl"
 
+// dL/dSH of the row being processed, summed over its splats in registers and written once
+// (lavapipe stores lane by lane).
+vec3 acc_sh[16];
+
 // Gradient of one expanded splat i (row, expansion e) with respect to its expanded parameters;
-// dL/dSH (every evaluated coefficient) is added to the row's grad_sh. Returns false when culled.
+// dL/dSH (every evaluated coefficient) is added to acc_sh. Returns false when culled.
 bool splat_backward(uint i, uint row, Expanded e, out vec3 v_p, out vec3 v_ls, out vec4 v_q, out float v_logit,
                     out vec3 v_dc, out vec3 dir, out vec3 v_dir_t) {
     if (tiles_touched.v[i] == 0) return false;
@@ -141,21 +145,19 @@ bool splat_backward(uint i, uint row, Expanded e, out vec3 v_p, out vec3 v_ls, o
     sh_basis(dir_t, frame.p.sh_degree, basis);
     sh_basis_grad(dir_t, frame.p.sh_degree, dbasis);
     uint nb = (frame.p.sh_degree + 1) * (frame.p.sh_degree + 1);
+    vec3 coef[16];
     vec3 rgb = basis[0] * e.dc;
     for (uint k = 0; k < nb; k++) {
-        rgb += basis[k] * vec3(sh.v[off + 3 * k], sh.v[off + 3 * k + 1], sh.v[off + 3 * k + 2]);
+        coef[k] = vec3(sh.v[off + 3 * k], sh.v[off + 3 * k + 1], sh.v[off + 3 * k + 2]);
+        rgb += basis[k] * coef[k];
     }
     rgb += 0.5;
     vec3 v_rgb = vec3(v_colors.v[3 * i], v_colors.v[3 * i + 1], v_colors.v[3 * i + 2]);
     v_rgb *= vec3(greaterThan(rgb, vec3(0.0)));
     v_dir_t = vec3(0.0);
     for (uint k = 0; k < nb; k++) {
-        vec3 g = basis[k] * v_rgb;
-        grad_sh.v[off + 3 * k] += g.x;
-        grad_sh.v[off + 3 * k + 1] += g.y;
-        grad_sh.v[off + 3 * k + 2] += g.z;
-        vec3 c_k = vec3(sh.v[off + 3 * k], sh.v[off + 3 * k + 1], sh.v[off + 3 * k + 2]);
-        v_dir_t += dot(c_k, v_rgb) * dbasis[k];
+        acc_sh[k] += basis[k] * v_rgb;
+        v_dir_t += dot(coef[k], v_rgb) * dbasis[k];
     }
     vec3 v_dir = e.rot * v_dir_t;
     v_p = transpose(W) * v_t + (v_dir - dir * dot(dir, v_dir)) / dv_len;
@@ -174,7 +176,7 @@ bool splat_backward(uint i, uint row, Expanded e, out vec3 v_p, out vec3 v_ls, o
 // Row r: a background Gaussian (one splat) or a template Gaussian (K splats).
 void backward(uint r) {
     uint coeffs = frame.p.sh_coeffs;
-    for (uint k = 0; k < 3 * coeffs; k++) grad_sh.v[r * coeffs * 3 + k] = 0.0;
+    for (uint k = 0; k < 16; k++) acc_sh[k] = vec3(0.0);
     vec3 gm = vec3(0.0), gs = vec3(0.0);
     vec4 gq = vec4(0.0);
     float go = 0.0;
@@ -252,6 +254,12 @@ void backward(uint r) {
     grad_scales.v[3 * r + 2] = gs.z;
     grad_quats.v[r] = gq;
     grad_opacities.v[r] = go;
+    for (uint k = 0; k < coeffs; k++) {
+        uint o = (r * coeffs + k) * 3;
+        grad_sh.v[o] = acc_sh[k].x;
+        grad_sh.v[o + 1] = acc_sh[k].y;
+        grad_sh.v[o + 2] = acc_sh[k].z;
+    }
 }
 
 void main() {
