@@ -4,14 +4,25 @@
 // below 1e-4, and out = C + T * background. The alpha channel of out_image holds the final T and
 // `last` the number of the tile's splats up to and including the pixel's last blended one (where
 // the backward pass starts).
-// Splats reach the pixels in shared-memory batches of 256; the tile stops early once every
-// pixel is saturated.
 // Each invocation blends PIXELS_PER_THREAD pixels of one tile column (specialization constant
 // 1; the workgroup is TILE_SIZE x TILE_SIZE / PIXELS_PER_THREAD, constant 2). GPUs use 1. On CPU
 // devices every load costs far more than arithmetic (lavapipe loads per lane), so one load of a
-// splat serves many pixels there.
+// splat serves many pixels there, and each invocation visits only the rows a splat reaches
+// (splat_reach), none where it misses the subgroup's columns, by the bounds of a loop: lavapipe
+// (Mesa 22.3) skips work only by leaving loops; an `if`, uniform or not, merely masks lanes.
+// Specialization constant 3 (CROWDED_TILES) picks the tiles: 0 those with at most
+// LOOP_MAX_SPLATS splats, 1 the rest, without that loop (see common.glsl); the rasterizer
+// dispatches both.
+// Splats reach the pixels in shared-memory batches of 256; the tile stops early once every
+// pixel is saturated.
 #include "common.glsl"
+#include "tiles.glsl"
+#extension GL_KHR_shader_subgroup_arithmetic : require
 layout(constant_id = 1) const uint PIXELS_PER_THREAD = 1;
+layout(constant_id = 3) const uint CROWDED_TILES = 0;
+// At most PIXELS_PER_THREAD + 1 loop iterations per splat and ~20 per batch of 256 (see
+// common.glsl): tiles with more splats than this go to the CROWDED_TILES pipeline.
+const uint LOOP_MAX_SPLATS = BLEND_LOOP_ITERATIONS / (PIXELS_PER_THREAD + 2);
 layout(local_size_x = TILE_SIZE, local_size_y_id = 2) in;
 layout(std430, binding = 0) readonly buffer FrameBuf { FrameParams p; } frame;
 layout(std430, binding = 1) readonly buffer RangesBuf { uvec2 v[]; } ranges;
@@ -44,26 +55,64 @@ bool blend_splat(vec2 xy, vec4 co, vec3 rgb, vec2 pixf, uint n, inout float T, i
     return !saturated;
 }
 
+// This invocation's pixels (rows py0 + r of column px) and their blending state.
+uint px, py0;
+float T[PIXELS_PER_THREAD];
+vec3 C[PIXELS_PER_THREAD];
+uint n_last[PIXELS_PER_THREAD];
+uint done_rows; // bit r: row r is saturated or outside the image
+uint n_done; // rows of this invocation that are done
+// The subgroup's pixel-centre columns [box_x.x, box_x.y].
+vec2 box_x;
+
+// Blends splat number n (1-based in the tile) into row r of this invocation unless it is done.
+void blend_row(int r, uint n, vec2 xy, vec4 co, vec3 rgb) {
+    if ((done_rows & (1u << r)) == 0 && !blend_splat(xy, co, rgb, vec2(px, py0 + r) + 0.5, n, T[r], C[r], n_last[r])) {
+        done_rows |= 1u << r;
+        n_done++;
+    }
+}
+
+// Blends splat number n (1-based in the tile) into this invocation's pixels that it reaches.
+void blend_rows(uint n, vec2 xy, vec4 co, vec3 rgb, vec2 reach) {
+    float row0 = float(py0) + 0.5;
+    int r_lo = int(clamp(ceil(xy.y - reach.y - row0), 0.0, float(PIXELS_PER_THREAD)));
+    int r_hi = int(clamp(floor(xy.y + reach.y - row0), -1.0, float(PIXELS_PER_THREAD) - 1.0));
+    if (xy.x + reach.x < box_x.x || xy.x - reach.x > box_x.y) r_hi = -1;
+    if (CROWDED_TILES == 0) {
+        int r = r_lo;
+        do { // max(1, rows) bodies; a `for` would run one more, masked, for its failing test
+            if (r <= r_hi) blend_row(min(r, int(PIXELS_PER_THREAD) - 1), n, xy, co, rgb);
+        } while (++r <= r_hi);
+    } else {
+        for (int r = 0; r < int(PIXELS_PER_THREAD); r++) {
+            if (r >= r_lo && r <= r_hi) blend_row(r, n, xy, co, rgb);
+        }
+    }
+}
+
 void main() {
     uint threads = gl_WorkGroupSize.x * gl_WorkGroupSize.y;
     uint tile = gl_WorkGroupID.y * frame.p.tiles_x + gl_WorkGroupID.x;
-    uint px = gl_WorkGroupID.x * TILE_SIZE + gl_LocalInvocationID.x;
-    uint py0 = gl_WorkGroupID.y * TILE_SIZE + gl_LocalInvocationID.y * PIXELS_PER_THREAD;
-    float T[PIXELS_PER_THREAD];
-    vec3 C[PIXELS_PER_THREAD];
-    uint n_last[PIXELS_PER_THREAD];
-    bool done[PIXELS_PER_THREAD];
-    bool thread_done = true;
+    px = gl_WorkGroupID.x * TILE_SIZE + gl_LocalInvocationID.x;
+    py0 = gl_WorkGroupID.y * TILE_SIZE + gl_LocalInvocationID.y * PIXELS_PER_THREAD;
+    n_done = 0;
+    done_rows = 0;
     for (uint r = 0; r < PIXELS_PER_THREAD; r++) {
         T[r] = 1.0;
         C[r] = vec3(0.0);
         n_last[r] = 0;
-        done[r] = px >= frame.p.width || py0 + r >= frame.p.height;
-        thread_done = thread_done && done[r];
+        if (px >= frame.p.width || py0 + r >= frame.p.height) {
+            done_rows |= 1u << r;
+            n_done++;
+        }
     }
+    box_x = vec2(subgroupMin(px), subgroupMax(px)) + 0.5;
     uvec2 range = ranges.v[tile];
+    bool mine = (CROWDED_TILES != 0) == (range.y - range.x > LOOP_MAX_SPLATS);
+    if (!mine) range.y = range.x;
+    bool thread_done = n_done == PIXELS_PER_THREAD;
     uint t = gl_LocalInvocationIndex;
-    float row0 = float(PIXELS_PER_THREAD == TILE_SIZE ? gl_WorkGroupID.y * TILE_SIZE : py0) + 0.5;
     for (uint start = range.x; start < range.y; start += BATCH) {
         if (t == 0) s_done = 0;
         barrier();
@@ -79,26 +128,14 @@ void main() {
         barrier();
         uint count = min(BATCH, range.y - start);
         for (uint j = 0; !thread_done && j < count; j++) {
-            vec2 xy = s_xy[j];
             vec4 co = s_conic[j];
-            vec3 rgb = s_rgb[j];
-            // Rows the splat's alpha >= 1/255 ellipse can reach (|dy| <= sqrt(2 ln(255 o)
-            // Sigma_yy), plus a pixel): a workgroup-uniform test on CPU devices, where lavapipe
-            // then really skips the other rows (a per-lane test would not: lanes run in lock step).
-            float ry = sqrt(max(2.0 * log(255.0 * co.w), 0.0) * co.x / max(co.x * co.z - co.y * co.y, 1e-30)) + 1.0;
-            thread_done = true;
-            for (uint r = 0; r < PIXELS_PER_THREAD; r++) {
-                if (!done[r] && abs(row0 + float(r) - xy.y) <= ry) {
-                    vec2 pixf = vec2(px, py0 + r) + 0.5;
-                    done[r] = !blend_splat(xy, co, rgb, pixf, start - range.x + j + 1, T[r], C[r], n_last[r]);
-                }
-                thread_done = thread_done && done[r];
-            }
+            blend_rows(start - range.x + j + 1, s_xy[j], co, s_rgb[j], splat_reach(co));
+            thread_done = n_done == PIXELS_PER_THREAD;
         }
         barrier();
     }
     for (uint r = 0; r < PIXELS_PER_THREAD; r++) {
-        if (px < frame.p.width && py0 + r < frame.p.height) {
+        if (mine && px < frame.p.width && py0 + r < frame.p.height) {
             uint pix = (py0 + r) * frame.p.width + px;
             out_image.v[pix] = vec4(C[r] + T[r] * frame.p.background.rgb, T[r]);
             last.v[pix] = n_last[r];

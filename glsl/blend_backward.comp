@@ -11,12 +11,22 @@
 // power = -(a dx^2 + c dy^2) / 2 - b dx dy), v_colors and v_opacities (the activated opacity).
 // Each invocation sums its pixels, the subgroup sums its invocations, and one lane adds the total
 // to the outputs with float atomics (or the CAS fallback, see atomic_add.glsl).
+// Each invocation visits only the rows a splat reaches (splat_reach), none where the splat
+// misses the subgroup's columns, by the bounds of a loop: lavapipe (Mesa 22.3) skips work only
+// by leaving loops; an `if`, uniform or not, merely masks lanes. Specialization constant 3
+// (CROWDED_TILES) picks the tiles as in blend: 0 those with at most LOOP_MAX_SPLATS
+// splats, 1 the rest, without that loop (see common.glsl); the rasterizer dispatches both.
 #include "common.glsl"
+#include "tiles.glsl"
 #include "atomic_add.glsl"
 #extension GL_KHR_shader_subgroup_basic : require
 #extension GL_KHR_shader_subgroup_arithmetic : require
 #extension GL_KHR_shader_subgroup_vote : require
 layout(constant_id = 1) const uint PIXELS_PER_THREAD = 1;
+layout(constant_id = 3) const uint CROWDED_TILES = 0;
+// At most PIXELS_PER_THREAD + 1 loop iterations per splat and ~20 per batch of 256 (see
+// common.glsl): tiles with more splats than this go to the CROWDED_TILES pipeline.
+const uint LOOP_MAX_SPLATS = BLEND_LOOP_ITERATIONS / (PIXELS_PER_THREAD + 2);
 layout(local_size_x = TILE_SIZE, local_size_y_id = 2) in;
 layout(std430, binding = 0) readonly buffer FrameBuf { FrameParams p; } frame;
 layout(std430, binding = 1) readonly buffer RangesBuf { uvec2 v[]; } ranges;
@@ -39,18 +49,100 @@ shared vec3 s_rgb[BATCH];
 shared uint s_id[BATCH];
 shared uint s_max_last;
 
+// This invocation's pixels (rows py0 + r of column px) and their backward state.
+uint px, py0;
+float T[PIXELS_PER_THREAD];
+float T_final[PIXELS_PER_THREAD];
+uint n_last[PIXELS_PER_THREAD];
+vec3 v_pix[PIXELS_PER_THREAD];
+vec3 behind[PIXELS_PER_THREAD];
+vec3 prev_rgb[PIXELS_PER_THREAD];
+float prev_alpha[PIXELS_PER_THREAD];
+// The subgroup's pixel-centre columns [box_x.x, box_x.y].
+vec2 box_x;
+
+// The gradient sums of the splat being processed over this invocation's pixels.
+vec2 g_xy;
+vec3 g_conic;
+vec3 g_rgb;
+float g_op;
+bool hit;
+
+// Splat number n (1-based in the tile) at row r of this invocation: its gradient added to the
+// sums. min_power = ln(1 / (255 o)).
+void row_backward(int r, uint n, vec2 xy, vec4 co, vec3 rgb, float min_power) {
+    vec2 d = xy - (vec2(px, py0 + r) + 0.5);
+    float power = -0.5 * (co.x * d.x * d.x + co.z * d.y * d.y) - co.y * d.x * d.y;
+    // alpha >= 1/255 <=> power >= min_power (unless clamped, which needs more): most pixels of a
+    // small splat fail this test before the exponential.
+    if (n > n_last[r] || power > 0.0 || power < min_power - 1e-4) return;
+    float G = exp(power);
+    float alpha = min(0.99, co.w * G);
+    if (alpha < 1.0 / 255.0) return;
+    hit = true;
+    T[r] /= 1.0 - alpha;
+    g_rgb += alpha * T[r] * v_pix[r];
+    behind[r] = prev_alpha[r] * prev_rgb[r] + (1.0 - prev_alpha[r]) * behind[r];
+    prev_alpha[r] = alpha;
+    prev_rgb[r] = rgb;
+    vec3 bg = frame.p.background.rgb;
+    float v_alpha = T[r] * dot(rgb - behind[r], v_pix[r]) - T_final[r] / (1.0 - alpha) * dot(bg, v_pix[r]);
+    if (co.w * G <= 0.99) {
+        float v_G = co.w * v_alpha;
+        float gdx = G * d.x, gdy = G * d.y;
+        g_xy += v_G * vec2(-gdx * co.x - gdy * co.y, -gdy * co.z - gdx * co.y);
+        g_conic += v_G * vec3(-0.5 * gdx * d.x, -gdx * d.y, -0.5 * gdy * d.y);
+        g_op += G * v_alpha;
+    }
+}
+
+// Splat number n (1-based in the tile) of Gaussian g: its gradient over this subgroup's pixels,
+// added to the outputs. Workgroup-uniform arguments; call in uniform control flow.
+void splat_backward(uint n, uint g, vec2 xy, vec4 co, vec3 rgb) {
+    vec2 reach = splat_reach(co);
+    float min_power = log(1.0 / (255.0 * co.w));
+    g_xy = vec2(0.0);
+    g_conic = vec3(0.0);
+    g_rgb = vec3(0.0);
+    g_op = 0.0;
+    hit = false;
+    float row0 = float(py0) + 0.5;
+    int r_lo = int(clamp(ceil(xy.y - reach.y - row0), 0.0, float(PIXELS_PER_THREAD)));
+    int r_hi = int(clamp(floor(xy.y + reach.y - row0), -1.0, float(PIXELS_PER_THREAD) - 1.0));
+    if (xy.x + reach.x < box_x.x || xy.x - reach.x > box_x.y) r_hi = -1;
+    if (CROWDED_TILES == 0) {
+        int r = r_lo;
+        do { // max(1, rows) bodies; a `for` would run one more, masked, for its failing test
+            if (r <= r_hi) row_backward(min(r, int(PIXELS_PER_THREAD) - 1), n, xy, co, rgb, min_power);
+        } while (++r <= r_hi);
+    } else {
+        for (int r = 0; r < int(PIXELS_PER_THREAD); r++) {
+            if (r >= r_lo && r <= r_hi) row_backward(r, n, xy, co, rgb, min_power);
+        }
+    }
+    if (subgroupAny(hit)) {
+        g_xy = subgroupAdd(g_xy);
+        g_conic = subgroupAdd(g_conic);
+        g_rgb = subgroupAdd(g_rgb);
+        g_op = subgroupAdd(g_op);
+        if (subgroupElect()) {
+            ATOMIC_ADD_F(v_xys.v, 2 * g, g_xy.x);
+            ATOMIC_ADD_F(v_xys.v, 2 * g + 1, g_xy.y);
+            ATOMIC_ADD_F(v_conics.v, 3 * g, g_conic.x);
+            ATOMIC_ADD_F(v_conics.v, 3 * g + 1, g_conic.y);
+            ATOMIC_ADD_F(v_conics.v, 3 * g + 2, g_conic.z);
+            ATOMIC_ADD_F(v_colors.v, 3 * g, g_rgb.x);
+            ATOMIC_ADD_F(v_colors.v, 3 * g + 1, g_rgb.y);
+            ATOMIC_ADD_F(v_colors.v, 3 * g + 2, g_rgb.z);
+            ATOMIC_ADD_F(v_opacities.v, g, g_op);
+        }
+    }
+}
+
 void main() {
     uint tile = gl_WorkGroupID.y * frame.p.tiles_x + gl_WorkGroupID.x;
-    uint px = gl_WorkGroupID.x * TILE_SIZE + gl_LocalInvocationID.x;
-    uint py0 = gl_WorkGroupID.y * TILE_SIZE + gl_LocalInvocationID.y * PIXELS_PER_THREAD;
-    vec3 bg = frame.p.background.rgb;
-    float T[PIXELS_PER_THREAD];
-    float T_final[PIXELS_PER_THREAD];
-    uint n_last[PIXELS_PER_THREAD];
-    vec3 v_pix[PIXELS_PER_THREAD];
-    vec3 behind[PIXELS_PER_THREAD];
-    vec3 prev_rgb[PIXELS_PER_THREAD];
-    float prev_alpha[PIXELS_PER_THREAD];
+    px = gl_WorkGroupID.x * TILE_SIZE + gl_LocalInvocationID.x;
+    py0 = gl_WorkGroupID.y * TILE_SIZE + gl_LocalInvocationID.y * PIXELS_PER_THREAD;
     uint thread_last = 0;
     for (uint r = 0; r < PIXELS_PER_THREAD; r++) {
         bool inside = px < frame.p.width && py0 + r < frame.p.height;
@@ -64,12 +156,14 @@ void main() {
         prev_alpha[r] = 0.0;
         thread_last = max(thread_last, n_last[r]);
     }
+    box_x = vec2(subgroupMin(px), subgroupMax(px)) + 0.5;
+    uvec2 range = ranges.v[tile];
+    bool mine = (CROWDED_TILES != 0) == (range.y - range.x > LOOP_MAX_SPLATS);
     if (gl_LocalInvocationIndex == 0) s_max_last = 0;
     barrier();
     atomicMax(s_max_last, thread_last);
     barrier();
-    uvec2 range = ranges.v[tile];
-    uint end = range.x + s_max_last;
+    uint end = range.x + (mine ? s_max_last : 0);
     uint t = gl_LocalInvocationIndex;
     uint threads = gl_WorkGroupSize.x * gl_WorkGroupSize.y;
     for (uint batch_end = end; batch_end > range.x; batch_end -= min(BATCH, batch_end - range.x)) {
@@ -86,65 +180,7 @@ void main() {
         barrier();
         for (uint jj = count; jj > 0; jj--) {
             uint j = jj - 1;
-            uint n = batch_start - range.x + j + 1;
-            vec2 xy = s_xy[j];
-            vec4 co = s_conic[j];
-            vec3 rgb = s_rgb[j];
-            // alpha >= 1/255 <=> power >= ln(1 / (255 o)) (unless clamped, which needs more):
-            // most pixels of a small splat fail this test before the exponential.
-            float min_power = log(1.0 / (255.0 * co.w));
-            // Rows of this invocation's column that the splat's alpha >= 1/255 ellipse can reach:
-            // |dy| <= sqrt(2 ln(255 o) Sigma_yy), Sigma_yy = a / (a c - b^2) for conic (a, b, c).
-            // The bound is the same for every invocation, so the row test below is a uniform
-            // branch that skips work for real (lavapipe runs divergent code for all lanes).
-            float ry = sqrt(max(-2.0 * min_power, 0.0) * co.x / max(co.x * co.z - co.y * co.y, 1e-30)) + 1.0;
-            float row0 = float(PIXELS_PER_THREAD == TILE_SIZE ? gl_WorkGroupID.y * TILE_SIZE : py0) + 0.5;
-            vec2 g_xy = vec2(0.0);
-            vec3 g_conic = vec3(0.0);
-            vec3 g_rgb = vec3(0.0);
-            float g_op = 0.0;
-            bool hit = false;
-            for (uint r = 0; r < PIXELS_PER_THREAD; r++) {
-                if (abs(row0 + float(r) - xy.y) > ry) continue;
-                vec2 d = xy - (vec2(px, py0 + r) + 0.5);
-                float power = -0.5 * (co.x * d.x * d.x + co.z * d.y * d.y) - co.y * d.x * d.y;
-                if (n > n_last[r] || power > 0.0 || power < min_power - 1e-4) continue;
-                float G = exp(power);
-                float alpha = min(0.99, co.w * G);
-                if (alpha < 1.0 / 255.0) continue;
-                hit = true;
-                T[r] /= 1.0 - alpha;
-                g_rgb += alpha * T[r] * v_pix[r];
-                behind[r] = prev_alpha[r] * prev_rgb[r] + (1.0 - prev_alpha[r]) * behind[r];
-                prev_alpha[r] = alpha;
-                prev_rgb[r] = rgb;
-                float v_alpha = T[r] * dot(rgb - behind[r], v_pix[r]) - T_final[r] / (1.0 - alpha) * dot(bg, v_pix[r]);
-                if (co.w * G <= 0.99) {
-                    float v_G = co.w * v_alpha;
-                    float gdx = G * d.x, gdy = G * d.y;
-                    g_xy += v_G * vec2(-gdx * co.x - gdy * co.y, -gdy * co.z - gdx * co.y);
-                    g_conic += v_G * vec3(-0.5 * gdx * d.x, -gdx * d.y, -0.5 * gdy * d.y);
-                    g_op += G * v_alpha;
-                }
-            }
-            if (subgroupAny(hit)) {
-                g_xy = subgroupAdd(g_xy);
-                g_conic = subgroupAdd(g_conic);
-                g_rgb = subgroupAdd(g_rgb);
-                g_op = subgroupAdd(g_op);
-                if (subgroupElect()) {
-                    uint g = s_id[j];
-                    ATOMIC_ADD_F(v_xys.v, 2 * g, g_xy.x);
-                    ATOMIC_ADD_F(v_xys.v, 2 * g + 1, g_xy.y);
-                    ATOMIC_ADD_F(v_conics.v, 3 * g, g_conic.x);
-                    ATOMIC_ADD_F(v_conics.v, 3 * g + 1, g_conic.y);
-                    ATOMIC_ADD_F(v_conics.v, 3 * g + 2, g_conic.z);
-                    ATOMIC_ADD_F(v_colors.v, 3 * g, g_rgb.x);
-                    ATOMIC_ADD_F(v_colors.v, 3 * g + 1, g_rgb.y);
-                    ATOMIC_ADD_F(v_colors.v, 3 * g + 2, g_rgb.z);
-                    ATOMIC_ADD_F(v_opacities.v, g, g_op);
-                }
-            }
+            splat_backward(batch_start - range.x + j + 1, s_id[j], s_xy[j], s_conic[j], s_rgb[j]);
         }
     }
 }

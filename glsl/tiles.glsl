@@ -10,4 +10,14 @@ void tile_rect(vec2 xy, uvec2 radius, uvec2 grid, out ivec2 lo, out ivec2 hi) {
     lo = ivec2(clamp(floor((xy - r - 0.5) / float(TILE_SIZE)), vec2(0.0), g));
     hi = ivec2(clamp(floor((xy + r - 0.5) / float(TILE_SIZE)) + 1.0, vec2(0.0), g));
 }
+
+// Half extents in pixels (x, y) of the region where a splat's alpha = o exp(power) reaches
+// 1/255, for co = (conic a, b, c, opacity o), power = -(a dx^2 + c dy^2) / 2 - b dx dy:
+// |dx| <= sqrt(2 ln(255 o) Sigma_xx), |dy| <= sqrt(2 ln(255 o) Sigma_yy) with
+// Sigma = [[c, -b], [-b, a]] / (a c - b^2) (the largest power along a row or column). Exact up
+// to a 0.1 % + 0.001 px margin for rounding: blend and blend_backward skip what lies beyond.
+vec2 splat_reach(vec4 co) {
+    float k = max(2.0 * log(255.0 * co.w), 0.0) / max(co.x * co.z - co.y * co.y, 1e-30);
+    return sqrt(k * co.zx) * 1.001 + 0.001;
+}
 #endif

@@ -12,14 +12,17 @@ pub struct Kernels {
     pub compact: Kernel,
     pub emit: Kernel,
     pub ranges: Kernel,
-    pub blend: Kernel,
+    /// For the tiles with few enough splats for its row loops (see BLEND_LOOP_ITERATIONS), then the rest
+    /// (specialization constant CROWDED_TILES 0 and 1); dispatch both, in any order.
+    pub blend: [Kernel; 2],
     pub dispatch_args: Kernel,
     pub scan_reduce: Kernel,
     pub scan_blocks: Kernel,
     pub scan_down: Kernel,
     pub sort_count: Kernel,
     pub sort_scatter: Kernel,
-    pub blend_backward: Kernel,
+    /// As `blend`: both dispatched.
+    pub blend_backward: [Kernel; 2],
     pub preprocess_backward: Kernel,
     pub xform_grad_reduce: Kernel,
     pub loss_moments_h: Kernel,
@@ -74,25 +77,37 @@ impl Kernels {
         let k = |name: &str, spv: &[u8]| Kernel::new(gpu, name, spv);
         let atomics = |f: &'static [u8], cas: &'static [u8]| if policy.float_atomics { f } else { cas };
         let sort_items = policy.sort_items;
-        let blend_spec = [policy.blend_pixels_per_thread, TILE_SIZE / policy.blend_pixels_per_thread];
+        let blend_spec =
+            |crowded: u32| [policy.blend_pixels_per_thread, TILE_SIZE / policy.blend_pixels_per_thread, crowded];
         Ok(Arc::new(Kernels {
             preprocess: k("preprocess", spirv::PREPROCESS)?,
             compact: k("compact", spirv::COMPACT)?,
             emit: k("emit", spirv::EMIT)?,
             ranges: k("ranges", spirv::RANGES)?,
-            blend: Kernel::with_spec(gpu, "blend", spirv::BLEND, &blend_spec)?,
+            blend: [
+                Kernel::with_spec(gpu, "blend", spirv::BLEND, &blend_spec(0))?,
+                Kernel::with_spec(gpu, "blend (crowded tiles)", spirv::BLEND, &blend_spec(1))?,
+            ],
             dispatch_args: k("dispatch_args", spirv::DISPATCH_ARGS)?,
             scan_reduce: k("scan_reduce", spirv::SCAN_REDUCE)?,
             scan_blocks: k("scan_blocks", spirv::SCAN_BLOCKS)?,
             scan_down: k("scan_down", spirv::SCAN_DOWN)?,
             sort_count: Kernel::with_spec(gpu, "sort_count", spirv::SORT_COUNT, &[sort_items])?,
             sort_scatter: Kernel::with_spec(gpu, "sort_scatter", spirv::SORT_SCATTER, &[sort_items])?,
-            blend_backward: Kernel::with_spec(
-                gpu,
-                "blend_backward",
-                atomics(spirv::BLEND_BACKWARD, spirv::BLEND_BACKWARD_CAS),
-                &blend_spec,
-            )?,
+            blend_backward: [
+                Kernel::with_spec(
+                    gpu,
+                    "blend_backward",
+                    atomics(spirv::BLEND_BACKWARD, spirv::BLEND_BACKWARD_CAS),
+                    &blend_spec(0),
+                )?,
+                Kernel::with_spec(
+                    gpu,
+                    "blend_backward (crowded tiles)",
+                    atomics(spirv::BLEND_BACKWARD, spirv::BLEND_BACKWARD_CAS),
+                    &blend_spec(1),
+                )?,
+            ],
             preprocess_backward: k("preprocess_backward", spirv::PREPROCESS_BACKWARD)?,
             xform_grad_reduce: k("xform_grad_reduce", spirv::XFORM_GRAD_REDUCE)?,
             loss_moments_h: k("loss_moments_h", spirv::LOSS_MOMENTS_H)?,

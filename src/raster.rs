@@ -855,21 +855,23 @@ impl Rasterizer {
                 Counts::args_offset(COUNT_ISECT, ARGS_ITEMS),
             )?;
             rec.end_pass("ranges")?;
-            rec.dispatch(
-                &k.blend,
-                &[
-                    ("frame", frame),
-                    ("ranges", &im.ranges),
-                    ("isect_ids", &is.ids[isect_result]),
-                    ("xys", &g.xys),
-                    ("conics", &g.conics),
-                    ("colors", &g.colors),
-                    ("out_image", &im.out_image),
-                    ("last", &im.last),
-                ],
-                &(),
-                [fp.tiles_x, fp.tiles_y, 1],
-            )?;
+            for blend in &k.blend {
+                rec.dispatch(
+                    blend,
+                    &[
+                        ("frame", frame),
+                        ("ranges", &im.ranges),
+                        ("isect_ids", &is.ids[isect_result]),
+                        ("xys", &g.xys),
+                        ("conics", &g.conics),
+                        ("colors", &g.colors),
+                        ("out_image", &im.out_image),
+                        ("last", &im.last),
+                    ],
+                    &(),
+                    [fp.tiles_x, fp.tiles_y, 1],
+                )?;
+            }
             rec.end_pass("blend")?;
             if readback {
                 rec.copy(&im.out_image, im.readback_image.as_ref().unwrap(), im.out_image.size);
@@ -1127,26 +1129,28 @@ impl Rasterizer {
         for b in [&g.v_xys, &g.v_conics, &g.v_colors, &g.v_opacities] {
             rec.fill(b, 0);
         }
-        rec.dispatch(
-            &self.k.blend_backward,
-            &[
-                ("frame", &self.frame_ub),
-                ("ranges", &im.ranges),
-                ("isect_ids", &is.ids[self.isect_result]),
-                ("xys", &gb.xys),
-                ("conics", &gb.conics),
-                ("colors", &gb.colors),
-                ("out_image", &im.out_image),
-                ("last", &im.last),
-                ("v_image", v_image),
-                ("v_xys", &g.v_xys),
-                ("v_conics", &g.v_conics),
-                ("v_colors", &g.v_colors),
-                ("v_opacities", &g.v_opacities),
-            ],
-            &(),
-            [fp.tiles_x, fp.tiles_y, 1],
-        )?;
+        for blend_backward in &self.k.blend_backward {
+            rec.dispatch(
+                blend_backward,
+                &[
+                    ("frame", &self.frame_ub),
+                    ("ranges", &im.ranges),
+                    ("isect_ids", &is.ids[self.isect_result]),
+                    ("xys", &gb.xys),
+                    ("conics", &gb.conics),
+                    ("colors", &gb.colors),
+                    ("out_image", &im.out_image),
+                    ("last", &im.last),
+                    ("v_image", v_image),
+                    ("v_xys", &g.v_xys),
+                    ("v_conics", &g.v_conics),
+                    ("v_colors", &g.v_colors),
+                    ("v_opacities", &g.v_opacities),
+                ],
+                &(),
+                [fp.tiles_x, fp.tiles_y, 1],
+            )?;
+        }
         rec.end_pass("blend_backward")
     }
 

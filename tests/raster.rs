@@ -125,6 +125,15 @@ fn passes_match_cpu_twin_on_a_real_splat() {
 }
 
 #[test]
+fn crowded_tiles_match() {
+    // More splats in a tile than the row-loop pipeline of the CPU policy takes (see
+    // crowded_scene): blend's CROWDED_TILES pipeline against the CPU twin.
+    let (scene, cam) = crowded_scene(&mut Rng::new(4), 9000);
+    let p = check_passes(&scene, &cam, [0.2, 0.4, 0.6]);
+    assert!(p >= 50.0, "PSNR {p:.1} dB");
+}
+
+#[test]
 fn camera_inside_the_scene_culls_and_matches() {
     // Gaussians behind, beside and in front of the camera, some closer than the near plane.
     let mut rng = Rng::new(12);
