@@ -10,8 +10,8 @@
 // splat serves many pixels there, and each invocation visits only the rows a splat reaches
 // (splat_reach), none where it misses the subgroup's columns, by the bounds of a loop: lavapipe
 // (Mesa 22.3) skips work only by leaving loops; an `if`, uniform or not, merely masks lanes.
-// Specialization constant 3 (CROWDED_TILES) picks the tiles: 0 those with at most
-// LOOP_MAX_SPLATS splats, 1 the rest, without that loop (see common.glsl); the rasterizer
+// Specialization constant 3 (CROWDED_TILES) picks the tiles: 0 those whose splats fit the loop
+// budget by emit's tile_costs, 1 the rest, without that loop (see common.glsl); the rasterizer
 // dispatches both.
 // Splats reach the pixels in shared-memory batches of 256; the tile stops early once every
 // pixel is saturated.
@@ -20,9 +20,6 @@
 #extension GL_KHR_shader_subgroup_arithmetic : require
 layout(constant_id = 1) const uint PIXELS_PER_THREAD = 1;
 layout(constant_id = 3) const uint CROWDED_TILES = 0;
-// At most PIXELS_PER_THREAD + 1 loop iterations per splat and ~20 per batch of 256 (see
-// common.glsl): tiles with more splats than this go to the CROWDED_TILES pipeline.
-const uint LOOP_MAX_SPLATS = BLEND_LOOP_ITERATIONS / (PIXELS_PER_THREAD + 2);
 layout(local_size_x = TILE_SIZE, local_size_y_id = 2) in;
 layout(std430, binding = 0) readonly buffer FrameBuf { FrameParams p; } frame;
 layout(std430, binding = 1) readonly buffer RangesBuf { uvec2 v[]; } ranges;
@@ -32,6 +29,12 @@ layout(std430, binding = 4) readonly buffer ConicsBuf { vec4 v[]; } conics;
 layout(std430, binding = 5) readonly buffer ColorsBuf { vec4 v[]; } colors;
 layout(std430, binding = 6) writeonly buffer OutImageBuf { vec4 v[]; } out_image;
 layout(std430, binding = 7) writeonly buffer LastBuf { uint v[]; } last;
+layout(std430, binding = 8) readonly buffer TileCostsBuf { uint v[]; } tile_costs;
+
+// Whether the tile's splats could exceed lavapipe's loop budget in the row loops.
+bool crowded(uint tile, uint splats) {
+    return tile_costs.v[tile] + BLEND_BATCH_ITERATIONS * (splats / 256 + 2) > BLEND_LOOP_ITERATIONS;
+}
 
 const uint BATCH = TILE_SIZE * TILE_SIZE;
 shared vec2 s_xy[BATCH];
@@ -109,7 +112,7 @@ void main() {
     }
     box_x = vec2(subgroupMin(px), subgroupMax(px)) + 0.5;
     uvec2 range = ranges.v[tile];
-    bool mine = (CROWDED_TILES != 0) == (range.y - range.x > LOOP_MAX_SPLATS);
+    bool mine = (CROWDED_TILES != 0) == crowded(tile, range.y - range.x);
     if (!mine) range.y = range.x;
     bool thread_done = n_done == PIXELS_PER_THREAD;
     uint t = gl_LocalInvocationIndex;

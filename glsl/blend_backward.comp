@@ -14,8 +14,8 @@
 // Each invocation visits only the rows a splat reaches (splat_reach), none where the splat
 // misses the subgroup's columns, by the bounds of a loop: lavapipe (Mesa 22.3) skips work only
 // by leaving loops; an `if`, uniform or not, merely masks lanes. Specialization constant 3
-// (CROWDED_TILES) picks the tiles as in blend: 0 those with at most LOOP_MAX_SPLATS
-// splats, 1 the rest, without that loop (see common.glsl); the rasterizer dispatches both.
+// (CROWDED_TILES) picks the tiles as in blend: 0 those whose splats fit the loop budget by emit's
+// tile_costs, 1 the rest, without that loop (see common.glsl); the rasterizer dispatches both.
 #include "common.glsl"
 #include "tiles.glsl"
 #include "atomic_add.glsl"
@@ -24,9 +24,6 @@
 #extension GL_KHR_shader_subgroup_vote : require
 layout(constant_id = 1) const uint PIXELS_PER_THREAD = 1;
 layout(constant_id = 3) const uint CROWDED_TILES = 0;
-// At most PIXELS_PER_THREAD + 1 loop iterations per splat and ~20 per batch of 256 (see
-// common.glsl): tiles with more splats than this go to the CROWDED_TILES pipeline.
-const uint LOOP_MAX_SPLATS = BLEND_LOOP_ITERATIONS / (PIXELS_PER_THREAD + 2);
 layout(local_size_x = TILE_SIZE, local_size_y_id = 2) in;
 layout(std430, binding = 0) readonly buffer FrameBuf { FrameParams p; } frame;
 layout(std430, binding = 1) readonly buffer RangesBuf { uvec2 v[]; } ranges;
@@ -41,6 +38,12 @@ layout(std430, binding = 9) buffer VXysBuf { GRAD_T v[]; } v_xys;
 layout(std430, binding = 10) buffer VConicsBuf { GRAD_T v[]; } v_conics;
 layout(std430, binding = 11) buffer VColorsBuf { GRAD_T v[]; } v_colors;
 layout(std430, binding = 12) buffer VOpacitiesBuf { GRAD_T v[]; } v_opacities;
+layout(std430, binding = 13) readonly buffer TileCostsBuf { uint v[]; } tile_costs;
+
+// Whether the tile's splats could exceed lavapipe's loop budget in the row loops.
+bool crowded(uint tile, uint splats) {
+    return tile_costs.v[tile] + BLEND_BATCH_ITERATIONS * (splats / 256 + 2) > BLEND_LOOP_ITERATIONS;
+}
 
 const uint BATCH = TILE_SIZE * TILE_SIZE;
 shared vec2 s_xy[BATCH];
@@ -158,7 +161,7 @@ void main() {
     }
     box_x = vec2(subgroupMin(px), subgroupMax(px)) + 0.5;
     uvec2 range = ranges.v[tile];
-    bool mine = (CROWDED_TILES != 0) == (range.y - range.x > LOOP_MAX_SPLATS);
+    bool mine = (CROWDED_TILES != 0) == crowded(tile, range.y - range.x);
     if (gl_LocalInvocationIndex == 0) s_max_last = 0;
     barrier();
     atomicMax(s_max_last, thread_last);

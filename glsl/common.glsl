@@ -25,12 +25,14 @@
 // blend and blend_backward visit the rows a splat reaches with a loop, which on lavapipe skips
 // work for real (its `if` only masks lanes). But lavapipe (Mesa 22.3) ends every loop of a
 // shader invocation after 65535 iterations of all its loops together
-// (LP_MAX_TGSI_LOOP_ITERATIONS), so a tile whose splats could need more than
-// BLEND_LOOP_ITERATIONS (at most one per row of an invocation, one more per splat, ~20 per batch)
-// goes to a second pipeline (specialization constant 3, CROWDED_TILES) that evaluates every row
-// per splat without a loop: one iteration per splat, exact up to ~60 000 splats in a tile on
-// lavapipe and without limit elsewhere.
+// (LP_MAX_TGSI_LOOP_ITERATIONS). So emit adds up, per tile, the most loop iterations each of its
+// splats can cost an invocation (max(1, rows it reaches in the tile, at most
+// PIXELS_PER_THREAD) + 1) and a tile whose sum plus BLEND_BATCH_ITERATIONS per batch of 256
+// exceeds BLEND_LOOP_ITERATIONS goes to a second pipeline (specialization constant 3,
+// CROWDED_TILES) that evaluates every row per splat without a loop, one iteration per splat:
+// exact up to ~60 000 splats in a tile on lavapipe and without limit elsewhere.
 #define BLEND_LOOP_ITERATIONS 60000
+#define BLEND_BATCH_ITERATIONS 20
 // Indirect dispatches are clamped to this many workgroups; kernels loop grid-stride.
 #define MAX_GROUPS 65535
 

@@ -2,8 +2,11 @@
 // One invocation per visible Gaussian, in depth order: writes (tile id, Gaussian id) for every
 // tile of its rectangle at its scanned offset. Writes past isect_capacity are dropped; the host
 // sees COUNT_ISECT_NEEDED > capacity, grows the buffers and renders again.
+// Adds each intersection's blend_cost to its tile's tile_costs (zeroed by the host), with
+// blend's PIXELS_PER_THREAD as specialization constant 1.
 #include "common.glsl"
 #include "tiles.glsl"
+layout(constant_id = 1) const uint PIXELS_PER_THREAD = 1;
 layout(local_size_x = WG_SIZE) in;
 layout(std430, binding = 0) readonly buffer FrameBuf { FrameParams p; } frame;
 layout(std430, binding = 1) readonly buffer CountsBuf { uint v[]; } counts;
@@ -13,20 +16,27 @@ layout(std430, binding = 4) readonly buffer XysBuf { vec2 v[]; } xys;
 layout(std430, binding = 5) readonly buffer RadiiBuf { uvec2 v[]; } radii;
 layout(std430, binding = 6) writeonly buffer IsectKeysBuf { uint v[]; } isect_keys;
 layout(std430, binding = 7) writeonly buffer IsectIdsBuf { uint v[]; } isect_ids;
+layout(std430, binding = 8) readonly buffer ConicsBuf { vec4 v[]; } conics;
+layout(std430, binding = 9) buffer TileCostsBuf { uint v[]; } tile_costs;
 
 void main() {
     uint n = counts.v[COUNT_VISIBLE];
     for (uint j = gl_GlobalInvocationID.x; j < n; j += gl_NumWorkGroups.x * WG_SIZE) {
         uint i = depth_ids.v[j];
+        vec2 xy = xys.v[i];
+        vec4 co = conics.v[i];
         ivec2 rmin, rmax;
-        tile_rect(xys.v[i], radii.v[i], uvec2(frame.p.tiles_x, frame.p.tiles_y), rmin, rmax);
+        tile_rect(xy, radii.v[i], uvec2(frame.p.tiles_x, frame.p.tiles_y), rmin, rmax);
         uint o = isect_offsets.v[j];
         for (int y = rmin.y; y < rmax.y; y++) {
+            uint cost = blend_cost(xy, co, uint(y), PIXELS_PER_THREAD);
             for (int x = rmin.x; x < rmax.x; x++) {
+                uint tile = uint(y) * frame.p.tiles_x + uint(x);
                 if (o < frame.p.isect_capacity) {
-                    isect_keys.v[o] = uint(y) * frame.p.tiles_x + uint(x);
+                    isect_keys.v[o] = tile;
                     isect_ids.v[o] = i;
                 }
+                atomicAdd(tile_costs.v[tile], cost);
                 o++;
             }
         }

@@ -20,4 +20,15 @@ vec2 splat_reach(vec4 co) {
     float k = max(2.0 * log(255.0 * co.w), 0.0) / max(co.x * co.z - co.y * co.y, 1e-30);
     return sqrt(k * co.zx) * 1.001 + 0.001;
 }
+
+// The most loop iterations splat (xy, co) can cost one blend invocation of tile row `ty`
+// holding `rows` (PIXELS_PER_THREAD) pixel rows: max(1, rows of the tile it reaches, at most
+// `rows`) + 1 (see BLEND_LOOP_ITERATIONS).
+uint blend_cost(vec2 xy, vec4 co, uint ty, uint rows) {
+    float reach = splat_reach(co).y;
+    float row0 = float(ty * TILE_SIZE) + 0.5;
+    float lo = clamp(ceil(xy.y - reach - row0), 0.0, float(TILE_SIZE));
+    float hi = clamp(floor(xy.y + reach - row0), -1.0, float(TILE_SIZE) - 1.0);
+    return uint(clamp(hi - lo + 1.0, 1.0, float(rows))) + 1;
+}
 #endif

@@ -218,6 +218,39 @@ pub fn emit(fp: &FrameParams, p: &Projected, depth_ids: &[u32]) -> (Vec<u32>, Ve
     (keys, ids)
 }
 
+/// `splat_reach` (tiles.glsl): half extents in pixels of a splat's alpha >= 1/255 region.
+pub fn splat_reach(co: [f32; 4]) -> [f32; 2] {
+    let k = (2.0 * (255.0 * co[3]).ln()).max(0.0) / (co[0] * co[2] - co[1] * co[1]).max(1e-30);
+    [(k * co[2]).sqrt() * 1.001 + 0.001, (k * co[0]).sqrt() * 1.001 + 0.001]
+}
+
+/// `blend_cost` (tiles.glsl): the most loop iterations a splat can cost one blend invocation of
+/// tile row `ty` that holds `rows` pixel rows.
+pub fn blend_cost(xy: [f32; 2], co: [f32; 4], ty: u32, rows: u32) -> u32 {
+    let reach = splat_reach(co)[1];
+    let row0 = (ty * TILE_SIZE) as f32 + 0.5;
+    let lo = (xy[1] - reach - row0).ceil().clamp(0.0, TILE_SIZE as f32);
+    let hi = (xy[1] + reach - row0).floor().clamp(-1.0, TILE_SIZE as f32 - 1.0);
+    (hi - lo + 1.0).clamp(1.0, rows as f32) as u32 + 1
+}
+
+/// Pass `emit`'s tile costs: per tile, the sum of `blend_cost` over its intersections, with blend
+/// invocations of `rows` pixel rows.
+pub fn tile_costs(fp: &FrameParams, p: &Projected, depth_ids: &[u32], rows: u32) -> Vec<u32> {
+    let mut costs = vec![0u32; (fp.tiles_x * fp.tiles_y) as usize];
+    for &i in depth_ids {
+        let i = i as usize;
+        let (lo, hi) = tile_rect(fp, p.xys[i], p.radii[i]);
+        for y in lo[1]..hi[1] {
+            let cost = blend_cost(p.xys[i], p.conics[i], y as u32, rows);
+            for x in lo[0]..hi[0] {
+                costs[(y as u32 * fp.tiles_x + x as u32) as usize] += cost;
+            }
+        }
+    }
+    costs
+}
+
 /// Pass `ranges`: [start, end) of every tile in the tile-sorted intersection keys.
 pub fn tile_ranges(keys: &[u32], num_tiles: usize) -> Vec<[u32; 2]> {
     let mut r = vec![[0u32; 2]; num_tiles];

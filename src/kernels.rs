@@ -12,8 +12,8 @@ pub struct Kernels {
     pub compact: Kernel,
     pub emit: Kernel,
     pub ranges: Kernel,
-    /// For the tiles with few enough splats for its row loops (see BLEND_LOOP_ITERATIONS), then the rest
-    /// (specialization constant CROWDED_TILES 0 and 1); dispatch both, in any order.
+    /// For the tiles whose splats fit its row loops (emit's tile costs, see BLEND_LOOP_ITERATIONS),
+    /// then the rest (specialization constant CROWDED_TILES 0 and 1); dispatch both, in any order.
     pub blend: [Kernel; 2],
     pub dispatch_args: Kernel,
     pub scan_reduce: Kernel,
@@ -82,7 +82,7 @@ impl Kernels {
         Ok(Arc::new(Kernels {
             preprocess: k("preprocess", spirv::PREPROCESS)?,
             compact: k("compact", spirv::COMPACT)?,
-            emit: k("emit", spirv::EMIT)?,
+            emit: Kernel::with_spec(gpu, "emit", spirv::EMIT, &[policy.blend_pixels_per_thread])?,
             ranges: k("ranges", spirv::RANGES)?,
             blend: [
                 Kernel::with_spec(gpu, "blend", spirv::BLEND, &blend_spec(0))?,

@@ -434,6 +434,8 @@ struct ImageBufs {
     width: u32,
     height: u32,
     ranges: Buffer,
+    /// Per tile: the most loop iterations its splats can cost a blend invocation (emit).
+    tile_costs: Buffer,
     out_image: Buffer,
     last: Buffer,
     /// Allocated on the first frame that reads its image back.
@@ -471,6 +473,8 @@ pub struct FrameState {
     pub isect_keys: Vec<u32>,
     pub isect_ids: Vec<u32>,
     pub ranges: Vec<[u32; 2]>,
+    /// emit's per-tile blend loop costs.
+    pub tile_costs: Vec<u32>,
     pub counts: Vec<u32>,
     /// With per-frame instance selection: each instance's splat count, level and scanned offset.
     pub selection: Option<Selection>,
@@ -643,6 +647,7 @@ impl Rasterizer {
                 width,
                 height,
                 ranges: gpu.storage("ranges", tiles * 8)?,
+                tile_costs: gpu.storage("tile_costs", tiles * 4)?,
                 out_image: gpu.storage("out_image", pixels * 16)?,
                 last: gpu.storage("last", pixels * 4)?,
                 readback_image: None,
@@ -699,6 +704,7 @@ impl Rasterizer {
             init[COUNT_INSTANCES as usize] = scene.inst.instances as u32;
             rec.update(&c.counts, &init);
             rec.fill(&im.ranges, 0);
+            rec.fill(&im.tile_costs, 0);
             c.record_args(rec, &k, COUNT_GAUSSIANS)?;
             rec.end_pass("setup")?;
             if let Some((args, sel)) = select {
@@ -836,6 +842,8 @@ impl Rasterizer {
                     ("radii", &g.radii),
                     ("isect_keys", &is.keys[0]),
                     ("isect_ids", &is.ids[0]),
+                    ("conics", &g.conics),
+                    ("tile_costs", &im.tile_costs),
                 ],
                 &(),
                 &c.indirect,
@@ -867,6 +875,7 @@ impl Rasterizer {
                         ("colors", &g.colors),
                         ("out_image", &im.out_image),
                         ("last", &im.last),
+                        ("tile_costs", &im.tile_costs),
                     ],
                     &(),
                     [fp.tiles_x, fp.tiles_y, 1],
@@ -984,6 +993,7 @@ impl Rasterizer {
             isect_keys: gpu.read(&is.keys[self.isect_result], m)?,
             isect_ids: gpu.read(&is.ids[self.isect_result], m)?,
             ranges: gpu.read(&im.ranges, tiles)?,
+            tile_costs: gpu.read(&im.tile_costs, tiles)?,
             selection: match (&self.select, self.last_params.is_some_and(|p| p.select != 0)) {
                 (Some(s), true) => {
                     let ni = self.last_params.unwrap().num_instances as usize;
@@ -1146,6 +1156,7 @@ impl Rasterizer {
                     ("v_conics", &g.v_conics),
                     ("v_colors", &g.v_colors),
                     ("v_opacities", &g.v_opacities),
+                    ("tile_costs", &im.tile_costs),
                 ],
                 &(),
                 [fp.tiles_x, fp.tiles_y, 1],

@@ -111,16 +111,16 @@ pub fn random_scene(rng: &mut Rng, n: usize, sh_degree: u32) -> Scene {
     s
 }
 
-/// `n` small splats crowded into the few tiles around the centre of the returned 64 x 48 view:
-/// more per tile than the row-loop pipelines of blend and blend_backward take with the CPU
-/// policy (BLEND_LOOP_ITERATIONS / (TILE_SIZE + 2)), fewer than with the GPU policy, so with
-/// both policies both the crowded-tile and the row-loop pipelines run.
+/// `n` splats a few pixels wide crowded into the tiles around the centre of the returned 64 x 48
+/// view: with a whole tile column per invocation (the CPU policy) their loop costs exceed
+/// BLEND_LOOP_ITERATIONS, with one pixel per invocation (the GPU policy) they do not, so the two
+/// policies run both the crowded-tile and the row-loop pipelines of blend and blend_backward.
 #[allow(dead_code)]
 pub fn crowded_scene(rng: &mut Rng, n: usize) -> (Scene, Camera) {
     let mut s = random_scene(rng, n, 1);
     for i in 0..n {
         s.means[i] = [rng.range(-0.1, 0.1), rng.range(-0.1, 0.1), rng.range(-0.5, 0.5)];
-        s.scales[i] = [rng.range(-4.5, -3.5), rng.range(-4.5, -3.5), rng.range(-4.5, -3.5)];
+        s.scales[i] = [rng.range(-2.8, -2.2), rng.range(-2.8, -2.2), rng.range(-2.8, -2.2)];
         s.opacities[i] = rng.range(-6.0, -2.0);
     }
     (s, look_at(Vec3::new(0.0, 0.0, -5.0), Vec3::ZERO, -Vec3::Y, 64, 48, 60.0))
