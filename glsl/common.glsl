@@ -89,7 +89,8 @@ struct FrameParams {
                  // (see preprocess.comp). 0: every (template Gaussian, instance) pair, fixed order.
     uint num_instances; // instances of all groups (rows of the `xforms` buffer)
     uint offset_codes; // 1: offsets are product-quantised (d_codes, codebooks), 0: f32 arrays
-    uint _pad0;
+    uint num_visible; // visible Gaussians: copied on the GPU from counts before the backward
+                      // pass of a plain scene (preprocess_backward's VISIBLE_ROWS); 0 otherwise
     uint _pad1;
     uint _pad2;
 };

@@ -734,7 +734,12 @@ impl Recorder<'_> {
     }
 
     pub fn copy(&mut self, src: &Buffer, dst: &Buffer, bytes: u64) {
-        let region = [vk::BufferCopy::default().size(bytes)];
+        self.copy_region(src, 0, dst, 0, bytes);
+    }
+
+    /// Copies `bytes` from `src` at byte `src_offset` to `dst` at byte `dst_offset`.
+    pub fn copy_region(&mut self, src: &Buffer, src_offset: u64, dst: &Buffer, dst_offset: u64, bytes: u64) {
+        let region = [vk::BufferCopy::default().src_offset(src_offset).dst_offset(dst_offset).size(bytes)];
         unsafe { self.gpu.device.cmd_copy_buffer(self.cmd, src.raw, dst.raw, &region) };
         self.barrier();
     }

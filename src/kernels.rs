@@ -23,7 +23,9 @@ pub struct Kernels {
     pub sort_scatter: Kernel,
     /// As `blend`: both dispatched.
     pub blend_backward: [Kernel; 2],
-    pub preprocess_backward: Kernel,
+    /// Over every parameter row, then (plain scenes) over the frame's visible Gaussians only
+    /// (specialization constant VISIBLE_ROWS 0 and 1).
+    pub preprocess_backward: [Kernel; 2],
     pub xform_grad_reduce: Kernel,
     pub loss_moments_h: Kernel,
     pub loss_ssim_v: Kernel,
@@ -108,7 +110,10 @@ impl Kernels {
                     &blend_spec(1),
                 )?,
             ],
-            preprocess_backward: k("preprocess_backward", spirv::PREPROCESS_BACKWARD)?,
+            preprocess_backward: [
+                Kernel::with_spec(gpu, "preprocess_backward", spirv::PREPROCESS_BACKWARD, &[0])?,
+                Kernel::with_spec(gpu, "preprocess_backward (visible rows)", spirv::PREPROCESS_BACKWARD, &[1])?,
+            ],
             xform_grad_reduce: k("xform_grad_reduce", spirv::XFORM_GRAD_REDUCE)?,
             loss_moments_h: k("loss_moments_h", spirv::LOSS_MOMENTS_H)?,
             loss_ssim_v: k("loss_ssim_v", atomics(spirv::LOSS_SSIM_V, spirv::LOSS_SSIM_V_CAS))?,

@@ -56,7 +56,7 @@ pub fn frame_params(
         select: 0,
         num_instances: 0,
         offset_codes: 0,
-        _pad0: 0,
+        num_visible: 0,
         _pad1: 0,
         _pad2: 0,
     }
@@ -1192,16 +1192,33 @@ impl Rasterizer {
             ("grad_d_sh0", &g.d_sh0),
             ("grad_d_opacities", &g.d_opacities),
             ("xform_terms", &g.xform_terms),
+            ("visible_ids", &gb.depth_ids[self.depth_result]),
         ]
         .into_iter()
         .chain(scene.instancing_bindings())
         .collect();
-        rec.dispatch(
-            &self.k.preprocess_backward,
-            &bindings,
-            &(),
-            [(scene.rows as u32).div_ceil(WG_SIZE).min(MAX_GROUPS), 1, 1],
-        )?;
+        if scene.inst.instances == 0 {
+            // Plain: only the visible Gaussians' rows; the culled ones' gradients are zero.
+            for b in [&g.means, &g.scales, &g.quats, &g.opacities, &g.sh] {
+                rec.fill(b, 0);
+            }
+            let num_visible = std::mem::offset_of!(FrameParams, num_visible) as u64;
+            rec.copy_region(&self.counts.counts, COUNT_VISIBLE as u64 * 4, &self.frame_ub, num_visible, 4);
+            rec.dispatch_indirect(
+                &self.k.preprocess_backward[1],
+                &bindings,
+                &(),
+                &self.counts.indirect,
+                Counts::args_offset(COUNT_VISIBLE, ARGS_ITEMS),
+            )?;
+        } else {
+            rec.dispatch(
+                &self.k.preprocess_backward[0],
+                &bindings,
+                &(),
+                [(scene.rows as u32).div_ceil(WG_SIZE).min(MAX_GROUPS), 1, 1],
+            )?;
+        }
         rec.end_pass("preprocess_backward")?;
         if scene.inst.xform_grads && scene.inst.instances > 0 {
             if g.xform_terms.size < (scene.inst.pairs * XFORM_GRAD_TERMS as usize * 4) as u64 {
