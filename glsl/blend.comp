@@ -31,11 +31,6 @@ layout(std430, binding = 6) writeonly buffer OutImageBuf { vec4 v[]; } out_image
 layout(std430, binding = 7) writeonly buffer LastBuf { uint v[]; } last;
 layout(std430, binding = 8) readonly buffer TileCostsBuf { uint v[]; } tile_costs;
 
-// Whether the tile's splats could exceed lavapipe's loop budget in the row loops.
-bool crowded(uint tile, uint splats) {
-    return tile_costs.v[tile] + BLEND_BATCH_ITERATIONS * (splats / 256 + 2) > BLEND_LOOP_ITERATIONS;
-}
-
 const uint BATCH = TILE_SIZE * TILE_SIZE;
 shared vec2 s_xy[BATCH];
 shared vec4 s_conic[BATCH];
@@ -78,10 +73,9 @@ void blend_row(int r, uint n, vec2 xy, vec4 co, vec3 rgb) {
 
 // Blends splat number n (1-based in the tile) into this invocation's pixels that it reaches.
 void blend_rows(uint n, vec2 xy, vec4 co, vec3 rgb, vec2 reach) {
-    float row0 = float(py0) + 0.5;
-    int r_lo = int(clamp(ceil(xy.y - reach.y - row0), 0.0, float(PIXELS_PER_THREAD)));
-    int r_hi = int(clamp(floor(xy.y + reach.y - row0), -1.0, float(PIXELS_PER_THREAD) - 1.0));
-    if (xy.x + reach.x < box_x.x || xy.x - reach.x > box_x.y) r_hi = -1;
+    ivec2 rows = splat_rows(xy.y, reach.y, float(py0) + 0.5, PIXELS_PER_THREAD);
+    int r_lo = rows.x;
+    int r_hi = xy.x + reach.x < box_x.x || xy.x - reach.x > box_x.y ? -1 : rows.y;
     if (CROWDED_TILES == 0) {
         int r = r_lo;
         do { // max(1, rows) bodies; a `for` would run one more, masked, for its failing test
@@ -112,7 +106,7 @@ void main() {
     }
     box_x = vec2(subgroupMin(px), subgroupMax(px)) + 0.5;
     uvec2 range = ranges.v[tile];
-    bool mine = (CROWDED_TILES != 0) == crowded(tile, range.y - range.x);
+    bool mine = (CROWDED_TILES != 0) == blend_tile_crowded(tile_costs.v[tile], range.y - range.x);
     if (!mine) range.y = range.x;
     bool thread_done = n_done == PIXELS_PER_THREAD;
     uint t = gl_LocalInvocationIndex;

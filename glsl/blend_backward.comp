@@ -40,11 +40,6 @@ layout(std430, binding = 11) buffer VColorsBuf { GRAD_T v[]; } v_colors;
 layout(std430, binding = 12) buffer VOpacitiesBuf { GRAD_T v[]; } v_opacities;
 layout(std430, binding = 13) readonly buffer TileCostsBuf { uint v[]; } tile_costs;
 
-// Whether the tile's splats could exceed lavapipe's loop budget in the row loops.
-bool crowded(uint tile, uint splats) {
-    return tile_costs.v[tile] + BLEND_BATCH_ITERATIONS * (splats / 256 + 2) > BLEND_LOOP_ITERATIONS;
-}
-
 const uint BATCH = TILE_SIZE * TILE_SIZE;
 shared vec2 s_xy[BATCH];
 shared vec4 s_conic[BATCH];
@@ -109,10 +104,9 @@ void splat_backward(uint n, uint g, vec2 xy, vec4 co, vec3 rgb) {
     g_rgb = vec3(0.0);
     g_op = 0.0;
     hit = false;
-    float row0 = float(py0) + 0.5;
-    int r_lo = int(clamp(ceil(xy.y - reach.y - row0), 0.0, float(PIXELS_PER_THREAD)));
-    int r_hi = int(clamp(floor(xy.y + reach.y - row0), -1.0, float(PIXELS_PER_THREAD) - 1.0));
-    if (xy.x + reach.x < box_x.x || xy.x - reach.x > box_x.y) r_hi = -1;
+    ivec2 rows = splat_rows(xy.y, reach.y, float(py0) + 0.5, PIXELS_PER_THREAD);
+    int r_lo = rows.x;
+    int r_hi = xy.x + reach.x < box_x.x || xy.x - reach.x > box_x.y ? -1 : rows.y;
     if (CROWDED_TILES == 0) {
         int r = r_lo;
         do { // max(1, rows) bodies; a `for` would run one more, masked, for its failing test
@@ -161,7 +155,7 @@ void main() {
     }
     box_x = vec2(subgroupMin(px), subgroupMax(px)) + 0.5;
     uvec2 range = ranges.v[tile];
-    bool mine = (CROWDED_TILES != 0) == crowded(tile, range.y - range.x);
+    bool mine = (CROWDED_TILES != 0) == blend_tile_crowded(tile_costs.v[tile], range.y - range.x);
     if (gl_LocalInvocationIndex == 0) s_max_last = 0;
     barrier();
     atomicMax(s_max_last, thread_last);

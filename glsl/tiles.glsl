@@ -21,14 +21,24 @@ vec2 splat_reach(vec4 co) {
     return sqrt(k * co.zx) * 1.001 + 0.001;
 }
 
+// The first and last of `rows` pixel rows (centres row0, row0 + 1, ...) within reach_y of a
+// splat centred at height y; last < first where it reaches none.
+ivec2 splat_rows(float y, float reach_y, float row0, uint rows) {
+    return ivec2(clamp(ceil(y - reach_y - row0), 0.0, float(rows)),
+                 clamp(floor(y + reach_y - row0), -1.0, float(rows) - 1.0));
+}
+
 // The most loop iterations splat (xy, co) can cost one blend invocation of tile row `ty`
 // holding `rows` (PIXELS_PER_THREAD) pixel rows: max(1, rows of the tile it reaches, at most
 // `rows`) + 1 (see BLEND_LOOP_ITERATIONS).
 uint blend_cost(vec2 xy, vec4 co, uint ty, uint rows) {
-    float reach = splat_reach(co).y;
-    float row0 = float(ty * TILE_SIZE) + 0.5;
-    float lo = clamp(ceil(xy.y - reach - row0), 0.0, float(TILE_SIZE));
-    float hi = clamp(floor(xy.y + reach - row0), -1.0, float(TILE_SIZE) - 1.0);
-    return uint(clamp(hi - lo + 1.0, 1.0, float(rows))) + 1;
+    ivec2 r = splat_rows(xy.y, splat_reach(co).y, float(ty * TILE_SIZE) + 0.5, TILE_SIZE);
+    return uint(clamp(r.y - r.x + 1, 1, int(rows))) + 1;
+}
+
+// Whether a tile of `splats` splats whose blend_cost sum is `cost` could exceed lavapipe's loop
+// budget in blend's row loops (BLEND_LOOP_ITERATIONS).
+bool blend_tile_crowded(uint cost, uint splats) {
+    return cost + BLEND_BATCH_ITERATIONS * (splats / 256 + 2) > BLEND_LOOP_ITERATIONS;
 }
 #endif
