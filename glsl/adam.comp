@@ -2,8 +2,10 @@
 // One Adam step over a parameter buffer, exactly torch.optim.Adam's (non-fused) update:
 //   m = m + (1 - beta1)(g - m);  v = beta2 v + (1 - beta2) g^2
 //   param -= lr / (1 - beta1^t) * m / (sqrt(v) / sqrt(1 - beta2^t) + eps)
-// with lr_head for the first `head` of every `stride` parameters and lr_tail for the rest. One
-// invocation per Gaussian (a row of `stride` parameters): no integer modulo per element.
+// with lr_head for the first `head` of every `stride` parameters and lr_tail for the rest, over
+// the `count` parameters from `first` on. One invocation per row of `stride` parameters (no
+// integer modulo per element). adam_vec4.comp is the same step four parameters at a time; this
+// kernel takes the rows that are not whole vec4s and the last few parameters of a buffer.
 #include "common.glsl"
 layout(local_size_x = WG_SIZE) in;
 layout(push_constant) uniform Push { AdamArgs a; } push;
@@ -16,7 +18,7 @@ void main() {
     uint rows = push.a.count / push.a.stride;
     for (uint g = gl_GlobalInvocationID.x; g < rows; g += gl_NumWorkGroups.x * WG_SIZE) {
         for (uint k = 0; k < push.a.stride; k++) {
-            uint i = g * push.a.stride + k;
+            uint i = push.a.first + g * push.a.stride + k;
             float grad = grads.v[i];
             float m = exp_avg.v[i];
             m += (grad - m) * (1.0 - push.a.beta1);

@@ -179,12 +179,12 @@ struct LossArgs {
     float inv_count; // 1 / (3 width height): both terms are means over pixels and channels
 };
 
-/// Push constants of the Adam step (adam.comp), torch.optim.Adam's update with the bias
-/// corrections precomputed on the host.
+/// Push constants of the Adam step (adam.comp over floats, adam_vec4.comp over vec4s),
+/// torch.optim.Adam's update with the bias corrections precomputed on the host.
 struct AdamArgs {
-    uint count; // parameters in the buffer
-    uint stride; // parameters per Gaussian
-    uint head; // the first `head` of every `stride` use lr_head, the rest lr_tail (SH dc / rest)
+    uint count; // elements updated (floats or vec4s), from `first` on
+    uint stride; // elements per row (the rows of a parameter group's Gaussians, or 1)
+    uint head; // the first `head` parameters (floats) of every row use lr_head, the rest lr_tail
     float lr_head;
     float lr_tail;
     float beta1;
@@ -192,8 +192,8 @@ struct AdamArgs {
     float eps;
     float inv_bias1; // 1 / (1 - beta1^step)
     float inv_sqrt_bias2; // 1 / sqrt(1 - beta2^step)
+    uint first; // adam.comp: the first float updated; adam_vec4.comp always starts at 0
     uint _pad0;
-    uint _pad1;
 };
 
 /// Push constants of seg_accumulate (gradient-driven segmentation, InstGS Eq. 3).

@@ -179,6 +179,36 @@ pub const BETA1: f64 = 0.9;
 pub const BETA2: f64 = 0.999;
 pub const EPS: f32 = 1e-15;
 
+/// One Adam dispatch over part of a parameter group (fields as [`AdamArgs`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct AdamPart {
+    /// adam_vec4.comp (counts in vec4s) rather than adam.comp (counts in floats).
+    pub vec4: bool,
+    pub first: u32,
+    pub count: u32,
+    pub stride: u32,
+    pub head: u32,
+}
+
+/// How a group of `total` floats in rows of `stride`, the first `head` of each row at lr_head,
+/// is split between the kernels: rows of whole vec4s go to adam_vec4.comp; a group with one
+/// learning rate (head >= stride) is one run of vec4s plus at most 3 floats for adam.comp; other
+/// rows (SH degree 2's 27 coefficients) go to adam.comp whole.
+pub fn adam_parts(total: u32, stride: u32, head: u32) -> Vec<AdamPart> {
+    let part = |vec4, first, count, stride, head| AdamPart { vec4, first, count, stride, head };
+    if head >= stride {
+        let quads = total / 4;
+        [part(true, 0, quads, 1, 4), part(false, 4 * quads, total % 4, 1, 1)]
+            .into_iter()
+            .filter(|p| p.count > 0)
+            .collect()
+    } else if stride % 4 == 0 {
+        vec![part(true, 0, total / 4, stride / 4, head)]
+    } else {
+        vec![part(false, 0, total, stride, head)]
+    }
+}
+
 /// Records one Adam step (`step` counted from 1) over every parameter buffer and, for an
 /// instanced scene, every offset buffer (Δp at the position rate, Δc at sh0's, Δo at opacity's).
 pub fn record_adam(
@@ -216,26 +246,26 @@ pub fn record_adam(
         jobs.push((pairs, stride, stride, lr, lr, bufs));
     }
     for (n, stride, head, lr_head, lr_tail, (param, grad, m, v)) in jobs {
-        let count = n * stride;
-        let args = AdamArgs {
-            count,
-            stride,
-            head,
-            lr_head,
-            lr_tail,
-            beta1: BETA1 as f32,
-            beta2: BETA2 as f32,
-            eps: EPS,
-            inv_bias1,
-            inv_sqrt_bias2,
-            ..Default::default()
-        };
-        rec.dispatch(
-            &k.adam,
-            &[("params", param), ("grads", grad), ("exp_avg", m), ("exp_avg_sq", v)],
-            &args,
-            [n.div_ceil(WG_SIZE).min(MAX_GROUPS), 1, 1],
-        )?;
+        for part in adam_parts(n * stride, stride, head) {
+            let args = AdamArgs {
+                count: part.count,
+                stride: part.stride,
+                head: part.head,
+                lr_head,
+                lr_tail,
+                beta1: BETA1 as f32,
+                beta2: BETA2 as f32,
+                eps: EPS,
+                inv_bias1,
+                inv_sqrt_bias2,
+                first: part.first,
+                ..Default::default()
+            };
+            let kernel = if part.vec4 { &k.adam_vec4 } else { &k.adam };
+            let rows = part.count / part.stride;
+            let binds = [("params", param), ("grads", grad), ("exp_avg", m), ("exp_avg_sq", v)];
+            rec.dispatch(kernel, &binds, &args, [rows.div_ceil(WG_SIZE).min(MAX_GROUPS), 1, 1])?;
+        }
     }
     rec.end_pass("adam")
 }
