@@ -169,9 +169,9 @@ fn gpu_adam_matches_cpu_twin() {
 
 fn adam_case(gpu: &Arc<Gpu>, k: &Kernels, rng: &mut Rng, n: usize, degree: u32) {
     let scene = random_scene(rng, n, degree);
-    let gs = GpuScene::new(&gpu, &scene).unwrap();
-    let grads = Grads::new(&gpu, &gs).unwrap();
-    let st = AdamState::new(&gpu, &gs).unwrap();
+    let gs = GpuScene::new(gpu, &scene).unwrap();
+    let grads = Grads::new(gpu, &gs).unwrap();
+    let st = AdamState::new(gpu, &gs).unwrap();
     let lr =
         LearningRates { means: 1.6e-4, scales: 5e-3, quats: 1e-3, opacities: 0.025, sh0: 2.5e-3, sh_rest: 1.25e-4 };
     assert_eq!(scene.len(), n);
