@@ -24,7 +24,7 @@ layout(std430, binding = 1) readonly buffer MeansBuf { float v[]; } means;
 layout(std430, binding = 2) readonly buffer ScalesBuf { float v[]; } scales;
 layout(std430, binding = 3) readonly buffer QuatsBuf { vec4 v[]; } quats;
 layout(std430, binding = 4) readonly buffer OpacitiesBuf { float v[]; } opacities;
-layout(std430, binding = 5) readonly buffer ShBuf { float v[]; } sh;
+layout(std430, binding = 5) readonly buffer ShBuf { vec4 v[]; } sh;
 layout(std430, binding = 6) writeonly buffer XysBuf { vec2 v[]; } xys;
 layout(std430, binding = 7) writeonly buffer ConicsBuf { vec4 v[]; } conics;
 layout(std430, binding = 8) writeonly buffer ColorsBuf { vec4 v[]; } colors;
@@ -131,9 +131,20 @@ void preprocess(uint i) {
     sh_basis(dir, frame.p.sh_degree, basis);
     uint nb = (frame.p.sh_degree + 1) * (frame.p.sh_degree + 1);
     vec3 rgb = basis[0] * e.dc;
+    // The row's evaluated coefficients in whole vec4s (see sh.glsl): raw[shift + 3k + c].
     uint off = ref.row * frame.p.sh_coeffs * 3;
+    uint shift = off & 3;
+    float raw[SH_RAW_FLOATS];
+    for (uint q = 0; q < (shift + 3 * nb + 3) / 4; q++) {
+        vec4 x = sh.v[off / 4 + q];
+        raw[4 * q] = x.x;
+        raw[4 * q + 1] = x.y;
+        raw[4 * q + 2] = x.z;
+        raw[4 * q + 3] = x.w;
+    }
     for (uint k = 0; k < nb; k++) {
-        rgb += basis[k] * vec3(sh.v[off + 3 * k], sh.v[off + 3 * k + 1], sh.v[off + 3 * k + 2]);
+        uint j = shift + 3 * k;
+        rgb += basis[k] * vec3(raw[j], raw[j + 1], raw[j + 2]);
     }
     rgb = max(rgb + 0.5, vec3(0.0));
 

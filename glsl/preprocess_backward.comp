@@ -31,7 +31,7 @@ layout(std430, binding = 1) readonly buffer MeansBuf { float v[]; } means;
 layout(std430, binding = 2) readonly buffer ScalesBuf { float v[]; } scales;
 layout(std430, binding = 3) readonly buffer QuatsBuf { vec4 v[]; } quats;
 layout(std430, binding = 4) readonly buffer OpacitiesBuf { float v[]; } opacities;
-layout(std430, binding = 5) readonly buffer ShBuf { float v[]; } sh;
+layout(std430, binding = 5) readonly buffer ShBuf { vec4 v[]; } sh;
 layout(std430, binding = 6) readonly buffer RadiiBuf { uvec2 v[]; } radii;
 layout(std430, binding = 7) readonly buffer TilesTouchedBuf { uint v[]; } tiles_touched;
 layout(std430, binding = 8) readonly buffer VXysBuf { vec2 v[]; } v_xys;
@@ -42,7 +42,7 @@ layout(std430, binding = 12) writeonly buffer GradMeansBuf { float v[]; } grad_m
 layout(std430, binding = 13) writeonly buffer GradScalesBuf { float v[]; } grad_scales;
 layout(std430, binding = 14) writeonly buffer GradQuatsBuf { vec4 v[]; } grad_quats;
 layout(std430, binding = 15) writeonly buffer GradOpacitiesBuf { float v[]; } grad_opacities;
-layout(std430, binding = 16) writeonly buffer GradShBuf { float v[]; } grad_sh;
+layout(std430, binding = 16) writeonly buffer GradShBuf { vec4 v[]; } grad_sh;
 layout(std430, binding = 17) buffer Grad2dAccumBuf { float v[]; } grad2d_accum;
 layout(std430, binding = 18) buffer Grad2dCountBuf { uint v[]; } grad2d_count;
 layout(std430, binding = 19) buffer MaxRadiiBuf { uint v[]; } max_radii;
@@ -55,17 +55,15 @@ layout(constant_id = 1) const uint VISIBLE_ROWS = 0;
 #define INSTANCE_BINDING 23
 #include "instance.glsl"
 
-// dL/dSH of the row being processed, summed over its splats in registers and written once
-// (lavapipe stores lane by lane).
-vec3 acc_sh[16];
+// dL/dSH of the row being processed, (coefficient, channel) at 3k + c, summed over its splats
+// in registers and written once (lavapipe stores lane by lane).
+float acc_sh[48];
 
 // Gradient of one expanded splat i (row, expansion e) with respect to its expanded parameters;
 // dL/dSH (every evaluated coefficient) is added to acc_sh. Returns false when culled.
 bool splat_backward(uint i, uint row, Expanded e, out vec3 v_p, out vec3 v_ls, out vec4 v_q, out float v_logit,
                     out vec3 v_dc, out vec3 dir, out vec3 v_dir_t) {
     if (tiles_touched.v[i] == 0) return false;
-    uint coeffs = frame.p.sh_coeffs;
-    uint off = row * coeffs * 3;
     vec3 p = e.mean;
     mat3 W = mat3(frame.p.viewmat);
     vec3 t = (frame.p.viewmat * vec4(p, 1.0)).xyz;
@@ -151,10 +149,22 @@ bool splat_backward(uint i, uint row, Expanded e, out vec3 v_p, out vec3 v_ls, o
     sh_basis(dir_t, frame.p.sh_degree, basis);
     sh_basis_grad(dir_t, frame.p.sh_degree, dbasis);
     uint nb = (frame.p.sh_degree + 1) * (frame.p.sh_degree + 1);
+    // The row's evaluated coefficients in whole vec4s (see sh.glsl): raw[shift + 3k + c].
+    uint off = row * frame.p.sh_coeffs * 3;
+    uint shift = off & 3;
+    float raw[SH_RAW_FLOATS];
+    for (uint q = 0; q < (shift + 3 * nb + 3) / 4; q++) {
+        vec4 x = sh.v[off / 4 + q];
+        raw[4 * q] = x.x;
+        raw[4 * q + 1] = x.y;
+        raw[4 * q + 2] = x.z;
+        raw[4 * q + 3] = x.w;
+    }
     vec3 coef[16];
     vec3 rgb = basis[0] * e.dc;
     for (uint k = 0; k < nb; k++) {
-        coef[k] = vec3(sh.v[off + 3 * k], sh.v[off + 3 * k + 1], sh.v[off + 3 * k + 2]);
+        uint j = shift + 3 * k;
+        coef[k] = vec3(raw[j], raw[j + 1], raw[j + 2]);
         rgb += basis[k] * coef[k];
     }
     rgb += 0.5;
@@ -162,7 +172,9 @@ bool splat_backward(uint i, uint row, Expanded e, out vec3 v_p, out vec3 v_ls, o
     v_rgb *= vec3(greaterThan(rgb, vec3(0.0)));
     v_dir_t = vec3(0.0);
     for (uint k = 0; k < nb; k++) {
-        acc_sh[k] += basis[k] * v_rgb;
+        acc_sh[3 * k] += basis[k] * v_rgb.x;
+        acc_sh[3 * k + 1] += basis[k] * v_rgb.y;
+        acc_sh[3 * k + 2] += basis[k] * v_rgb.z;
         v_dir_t += dot(coef[k], v_rgb) * dbasis[k];
     }
     vec3 v_dir = e.rot * v_dir_t;
@@ -181,8 +193,7 @@ bool splat_backward(uint i, uint row, Expanded e, out vec3 v_p, out vec3 v_ls, o
 
 // Row r: a background Gaussian (one splat) or a template Gaussian (K splats).
 void backward(uint r) {
-    uint coeffs = frame.p.sh_coeffs;
-    for (uint k = 0; k < 16; k++) acc_sh[k] = vec3(0.0);
+    for (uint k = 0; k < 48; k++) acc_sh[k] = 0.0;
     vec3 gm = vec3(0.0), gs = vec3(0.0);
     vec4 gq = vec4(0.0);
     float go = 0.0;
@@ -260,12 +271,18 @@ void backward(uint r) {
     grad_scales.v[3 * r + 2] = gs.z;
     grad_quats.v[r] = gq;
     grad_opacities.v[r] = go;
-    for (uint k = 0; k < coeffs; k++) {
-        uint o = (r * coeffs + k) * 3;
-        grad_sh.v[o] = acc_sh[k].x;
-        grad_sh.v[o + 1] = acc_sh[k].y;
-        grad_sh.v[o + 2] = acc_sh[k].z;
+    // Every stored coefficient of the row (zero above the evaluated degree): the whole vec4s,
+    // and before and after them the floats of vec4s shared with the neighbouring rows.
+    uint n = frame.p.sh_coeffs * 3;
+    uint off = r * n;
+    uint head = min((4 - (off & 3)) & 3, n);
+    uint quads = (n - head) / 4;
+    for (uint j = 0; j < head; j++) grad_sh.v[(off + j) / 4][(off + j) & 3] = acc_sh[j];
+    for (uint q = 0; q < quads; q++) {
+        uint j = head + 4 * q;
+        grad_sh.v[(off + j) / 4] = vec4(acc_sh[j], acc_sh[j + 1], acc_sh[j + 2], acc_sh[j + 3]);
     }
+    for (uint j = head + 4 * quads; j < n; j++) grad_sh.v[(off + j) / 4][(off + j) & 3] = acc_sh[j];
 }
 
 void main() {

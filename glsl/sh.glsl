@@ -1,7 +1,14 @@
 // Real spherical harmonics up to degree 3, constants and sign convention as the Inria 3DGS code
 // (forward.cu computeColorFromSH). Coefficients of Gaussian i are sh[(i * coeffs + k) * 3 + c].
+// Kernels access the coefficients as vec4s (lavapipe pays per access, not per byte): a row of
+// 3 * coeffs floats starts at float off, so its vec4s start at off / 4 and its first float is
+// component off % 4 (nonzero for degrees 0 and 2). Reads may take up to 3 floats beyond either
+// end of a row (the host allocates SH buffers in whole vec4s); writes store the partial vec4s
+// at a row's ends component by component.
 #ifndef INSTGS_SH_GLSL
 #define INSTGS_SH_GLSL
+// Floats of a degree-3 row plus up to 3 before and after it: 13 vec4s.
+#define SH_RAW_FLOATS 52
 const float SH_C0 = 0.28209479177387814;
 const float SH_C1 = 0.4886025119029199;
 const float SH_C2[5] = float[5](1.0925484305920792, -1.0925484305920792, 0.31539156525252005,

@@ -201,6 +201,14 @@ fn xform(x: &crate::instance::Similarity, max_offset: f32) -> InstanceXform {
     }
 }
 
+/// A storage buffer holding `data` in whole vec4s (size rounded up to 16 bytes, the padding
+/// undefined): kernels read SH rows as vec4s, up to 3 floats past a row's end (glsl/sh.glsl).
+fn upload_whole_vec4s(gpu: &Arc<Gpu>, name: &str, data: &[f32]) -> Result<Buffer> {
+    let buf = gpu.storage(name, (std::mem::size_of_val(data) as u64).next_multiple_of(16))?;
+    gpu.write(&buf, data)?;
+    Ok(buf)
+}
+
 /// Uploads `data`, or one zero element where it is empty (placeholder binding).
 fn upload_or_placeholder<T: bytemuck::Pod + Default>(gpu: &Arc<Gpu>, name: &str, data: &[T]) -> Result<Buffer> {
     if data.is_empty() {
@@ -324,7 +332,7 @@ impl GpuScene {
             scales: gpu.upload("scales", &rows.scales)?,
             quats: gpu.upload("quats", &rows.quats)?,
             opacities: gpu.upload("opacities", &rows.opacities)?,
-            sh: gpu.upload("sh", &rows.sh)?,
+            sh: upload_whole_vec4s(gpu, "sh", &rows.sh)?,
             rows: n,
             len: splats,
             num_background,
