@@ -1,6 +1,7 @@
 #version 450
 // One invocation per visible Gaussian, in depth order: writes (tile id, Gaussian id) for every
-// tile of its rectangle at its scanned offset. Writes past isect_capacity are dropped; the host
+// tile of its rectangle that it reaches (splat_hits_tile, as preprocess counted) at its scanned
+// offset. Writes past isect_capacity are dropped; the host
 // sees COUNT_ISECT_NEEDED > capacity, grows the buffers and renders again.
 // Adds each intersection's blend_cost to its tile's tile_costs (zeroed by the host), with
 // blend's PIXELS_PER_THREAD as specialization constant 1.
@@ -31,6 +32,7 @@ void main() {
         for (int y = rmin.y; y < rmax.y; y++) {
             uint cost = blend_cost(xy, co, uint(y), PIXELS_PER_THREAD);
             for (int x = rmin.x; x < rmax.x; x++) {
+                if (!splat_hits_tile(xy, co, ivec2(x, y))) continue;
                 uint tile = uint(y) * frame.p.tiles_x + uint(x);
                 if (o < frame.p.isect_capacity) {
                     isect_keys.v[o] = tile;

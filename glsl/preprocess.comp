@@ -117,9 +117,14 @@ void preprocess(uint i) {
     uvec2 radius = uvec2(ceil(min(vec2(min(3.0 * sqrt(lambda), 1e7)), extent * sqrt(vec2(a, c)))));
     vec2 xy = vec2(fx * t.x * rz + cx, fy * t.y * rz + cy);
 
+    // The tiles of the bounding rectangle that the ellipse reaches (emit lists the same).
     ivec2 rmin, rmax;
     tile_rect(xy, radius, uvec2(frame.p.tiles_x, frame.p.tiles_y), rmin, rmax);
-    uint touched = uint((rmax.x - rmin.x) * (rmax.y - rmin.y));
+    vec4 co = vec4(conic, opacity);
+    uint touched = 0;
+    for (int ty = rmin.y; ty < rmax.y; ty++) {
+        for (int tx = rmin.x; tx < rmax.x; tx++) touched += splat_hits_tile(xy, co, ivec2(tx, ty)) ? 1 : 0;
+    }
     if (touched == 0) {
         cull(i);
         return;
@@ -149,7 +154,7 @@ void preprocess(uint i) {
     rgb = max(rgb + 0.5, vec3(0.0));
 
     xys.v[i] = xy;
-    conics.v[i] = vec4(conic, opacity);
+    conics.v[i] = co;
     colors.v[i] = vec4(rgb, 0.0);
     depths.v[i] = t.z;
     radii.v[i] = radius;

@@ -21,6 +21,33 @@ vec2 splat_reach(vec4 co) {
     return sqrt(k * co.zx) * 1.001 + 0.001;
 }
 
+// Whether splat (xy, co) can reach alpha >= 1/255 at a pixel centre of tile `tile`: the least
+// q(d) = a dx^2 + 2 b dx dy + c dy^2 (= -2 power) over the rectangle of the tile's pixel
+// centres against 2 ln(255 o), with a margin (0.1 % + 0.001) above blend's own cut (q <=
+// 2 ln(255 o) + 2e-4). Zero where the rectangle holds the mean; else the least q lies on an
+// edge, where q is a parabola minimised in closed form. The tile rectangle keeps the tiles of
+// the ellipse's bounding box; this drops those of the box's corners that an oblique ellipse
+// misses (Speedy-Splat's AccuTile, Hanson et al. 2025, here exact). `precise` (no fused
+// multiply-adds): preprocess counts and emit lists the same tiles. CPU twin: cpu::splat_hits_tile.
+bool splat_hits_tile(vec2 xy, vec4 co, ivec2 tile) {
+    precise vec2 lo = vec2(tile * int(TILE_SIZE)) + 0.5 - xy;
+    precise vec2 hi = lo + float(TILE_SIZE - 1);
+    precise float q = 0.0;
+    if (lo.x > 0.0 || hi.x < 0.0 || lo.y > 0.0 || hi.y < 0.0) {
+        q = 3.0e38;
+        for (int e = 0; e < 2; e++) {
+            precise float x = e == 0 ? lo.x : hi.x;
+            precise float dy = clamp(-co.y * x / co.z, lo.y, hi.y);
+            q = min(q, co.x * x * x + 2.0 * co.y * x * dy + co.z * dy * dy);
+            precise float y = e == 0 ? lo.y : hi.y;
+            precise float dx = clamp(-co.y * y / co.x, lo.x, hi.x);
+            q = min(q, co.x * dx * dx + 2.0 * co.y * dx * y + co.z * y * y);
+        }
+    }
+    precise float lim = max(2.0 * log(255.0 * co.w), 0.0) * 1.001 + 0.001;
+    return q <= lim;
+}
+
 // The first and last of `rows` pixel rows (centres row0, row0 + 1, ...) within reach_y of a
 // splat centred at height y; last < first where it reaches none.
 ivec2 splat_rows(float y, float reach_y, float row0, uint rows) {

@@ -85,6 +85,34 @@ pub fn tile_rect(fp: &FrameParams, xy: [f32; 2], radius: [u32; 2]) -> ([i32; 2],
     (lo, hi)
 }
 
+/// The tiles (x, y) of a tile rectangle [lo, hi), row by row.
+pub fn rect_tiles(lo: [i32; 2], hi: [i32; 2]) -> impl Iterator<Item = [i32; 2]> {
+    (lo[1]..hi[1]).flat_map(move |y| (lo[0]..hi[0]).map(move |x| [x, y]))
+}
+
+/// `splat_hits_tile` (tiles.glsl): whether splat (xy, co) can reach alpha >= 1/255 at a pixel
+/// centre of tile `tile`, by the least q = a dx^2 + 2 b dx dy + c dy^2 over the rectangle of
+/// the tile's pixel centres (same f32 operations in the same order, no fused multiply-adds).
+pub fn splat_hits_tile(xy: [f32; 2], co: [f32; 4], tile: [i32; 2]) -> bool {
+    let t = TILE_SIZE as i32;
+    let lo = [(tile[0] * t) as f32 + 0.5 - xy[0], (tile[1] * t) as f32 + 0.5 - xy[1]];
+    let hi = [lo[0] + (TILE_SIZE - 1) as f32, lo[1] + (TILE_SIZE - 1) as f32];
+    let mut q = 0.0f32;
+    if lo[0] > 0.0 || hi[0] < 0.0 || lo[1] > 0.0 || hi[1] < 0.0 {
+        q = 3.0e38;
+        for e in 0..2 {
+            let x = if e == 0 { lo[0] } else { hi[0] };
+            let dy = (-co[1] * x / co[2]).clamp(lo[1], hi[1]);
+            q = q.min(co[0] * x * x + 2.0 * co[1] * x * dy + co[2] * dy * dy);
+            let y = if e == 0 { lo[1] } else { hi[1] };
+            let dx = (-co[1] * y / co[0]).clamp(lo[0], hi[0]);
+            q = q.min(co[0] * dx * dx + 2.0 * co[1] * dx * y + co[2] * y * y);
+        }
+    }
+    let lim = (2.0 * (255.0 * co[3]).ln()).max(0.0) * 1.001 + 0.001;
+    q <= lim
+}
+
 /// Pass `preprocess`: cull, project, conic, radii, tiles touched, SH colour, depth. The radii
 /// are per axis: Inria's 3σ square clipped to the bounding box of the ellipse where alpha can
 /// still reach 1/255 (same image, fewer empty intersections).
@@ -144,7 +172,8 @@ pub fn preprocess(scene: &Scene, fp: &FrameParams) -> Projected {
         let radius = [square.min(extent * a.sqrt()).ceil() as u32, square.min(extent * c.sqrt()).ceil() as u32];
         let xy = [fx * t.x * rz + cx, fy * t.y * rz + cy];
         let (lo, hi) = tile_rect(fp, xy, radius);
-        let touched = ((hi[0] - lo[0]) * (hi[1] - lo[1])) as u32;
+        let co = [c * inv_det, -b * inv_det, a * inv_det, opacity];
+        let touched = rect_tiles(lo, hi).filter(|&t| splat_hits_tile(xy, co, t)).count() as u32;
         if touched == 0 {
             continue;
         }
@@ -158,7 +187,7 @@ pub fn preprocess(scene: &Scene, fp: &FrameParams) -> Projected {
         }
         let rgb = (rgb + 0.5).max(Vec3::ZERO);
         p.xys[i] = xy;
-        p.conics[i] = [c * inv_det, -b * inv_det, a * inv_det, opacity];
+        p.conics[i] = co;
         p.colors[i] = [rgb.x, rgb.y, rgb.z, 0.0];
         p.depths[i] = t.z;
         p.radii[i] = radius;
@@ -202,17 +231,17 @@ pub fn depth_order(p: &Projected) -> (Vec<u32>, Vec<u32>) {
     stable_sort(&keys, &ids)
 }
 
-/// Pass `emit`: (tile, Gaussian) pairs of every visible Gaussian in depth order.
+/// Pass `emit`: (tile, Gaussian) pairs of every visible Gaussian in depth order, for the tiles of
+/// its rectangle that it reaches (`splat_hits_tile`).
 pub fn emit(fp: &FrameParams, p: &Projected, depth_ids: &[u32]) -> (Vec<u32>, Vec<u32>) {
     let mut keys = Vec::new();
     let mut ids = Vec::new();
     for &i in depth_ids {
-        let (lo, hi) = tile_rect(fp, p.xys[i as usize], p.radii[i as usize]);
-        for y in lo[1]..hi[1] {
-            for x in lo[0]..hi[0] {
-                keys.push(y as u32 * fp.tiles_x + x as u32);
-                ids.push(i);
-            }
+        let (xy, co) = (p.xys[i as usize], p.conics[i as usize]);
+        let (lo, hi) = tile_rect(fp, xy, p.radii[i as usize]);
+        for [x, y] in rect_tiles(lo, hi).filter(|&t| splat_hits_tile(xy, co, t)) {
+            keys.push(y as u32 * fp.tiles_x + x as u32);
+            ids.push(i);
         }
     }
     (keys, ids)
@@ -240,12 +269,10 @@ pub fn tile_costs(fp: &FrameParams, p: &Projected, depth_ids: &[u32], rows: u32)
     let mut costs = vec![0u32; (fp.tiles_x * fp.tiles_y) as usize];
     for &i in depth_ids {
         let i = i as usize;
-        let (lo, hi) = tile_rect(fp, p.xys[i], p.radii[i]);
-        for y in lo[1]..hi[1] {
-            let cost = blend_cost(p.xys[i], p.conics[i], y as u32, rows);
-            for x in lo[0]..hi[0] {
-                costs[(y as u32 * fp.tiles_x + x as u32) as usize] += cost;
-            }
+        let (xy, co) = (p.xys[i], p.conics[i]);
+        let (lo, hi) = tile_rect(fp, xy, p.radii[i]);
+        for [x, y] in rect_tiles(lo, hi).filter(|&t| splat_hits_tile(xy, co, t)) {
+            costs[(y as u32 * fp.tiles_x + x as u32) as usize] += blend_cost(xy, co, y as u32, rows);
         }
     }
     costs

@@ -276,3 +276,72 @@ fn extreme_splats_are_culled_cleanly() {
     let p = check_passes(&scene, &cam, [0.1, 0.2, 0.3]);
     assert!(p >= 50.0, "PSNR {p:.1} dB");
 }
+
+/// splat_hits_tile against every pixel centre of the tile: a tile where some pixel centre has
+/// alpha >= 1/255 is always kept, and a kept tile is within the margin of one (random oblique
+/// ellipses around and inside tiles).
+#[test]
+fn tile_test_keeps_every_tile_a_splat_reaches() {
+    let mut rng = Rng::new(17);
+    let (mut kept, mut dropped) = (0, 0);
+    for _ in 0..20000 {
+        let (sx, sy) = (rng.range(0.5, 30.0), rng.range(0.5, 30.0));
+        let th = rng.range(0.0, std::f32::consts::PI);
+        let (c, s) = (th.cos(), th.sin());
+        // Conic = R diag(1/sx^2, 1/sy^2) R^T.
+        let (ia, ib) = (1.0 / (sx * sx), 1.0 / (sy * sy));
+        let co = [c * c * ia + s * s * ib, c * s * (ia - ib), s * s * ia + c * c * ib, rng.range(0.004, 1.0)];
+        let xy = [rng.range(-40.0, 56.0), rng.range(-40.0, 56.0)];
+        let lim = 2.0 * (255.0 * co[3] as f64).ln();
+        let mut least = f64::MAX;
+        for py in 0..TILE_SIZE {
+            for px in 0..TILE_SIZE {
+                let (dx, dy) = (px as f64 + 0.5 - xy[0] as f64, py as f64 + 0.5 - xy[1] as f64);
+                let (a, b, c) = (co[0] as f64, co[1] as f64, co[2] as f64);
+                least = least.min(a * dx * dx + 2.0 * b * dx * dy + c * dy * dy);
+            }
+        }
+        let hit = cpu::splat_hits_tile(xy, co, [0, 0]);
+        assert!(hit || least > lim, "dropped a tile with q = {least} <= {lim}: xy {xy:?}, co {co:?}");
+        // A pixel centre lies within half a pixel per axis of the least q's point, where q grows
+        // by at most 2 sqrt(l q) |d| + l |d|^2, |d|^2 <= 1/2 (l >= the largest eigenvalue).
+        let (cut, l) = (lim * 1.001 + 0.001, (co[0] + co[2]) as f64);
+        assert!(!hit || least <= cut + (2.0 * l * cut).sqrt() + l / 2.0, "kept a tile with q = {least} > {lim}");
+        if hit {
+            kept += 1;
+        } else {
+            dropped += 1;
+        }
+    }
+    assert!(kept > 1000 && dropped > 1000, "kept {kept}, dropped {dropped}");
+}
+
+/// The tiles of a splat's rectangle that it misses carry no pixel: the image from emit's
+/// intersections equals the one from whole rectangles, with fewer intersections.
+#[test]
+fn tile_culling_drops_intersections_not_pixels() {
+    let mut rng = Rng::new(5);
+    let random = random_scene(&mut rng, 3000, 1);
+    let biker = read_ply(&shared_data("splats/biker.ply")).unwrap();
+    for scene in [&random, &biker] {
+        let cam = &orbit_around(scene, 2, UpAxis::NegY, 320, 240)[0];
+        let fp = frame_params(scene.len(), scene.sh_degree, cam, [0.3, 0.3, 0.3], 0);
+        let p = cpu::preprocess(scene, &fp);
+        let (_, order) = cpu::depth_order(&p);
+        let culled = cpu::emit(&fp, &p, &order);
+        let mut whole = (Vec::new(), Vec::new());
+        for &i in &order {
+            let (lo, hi) = cpu::tile_rect(&fp, p.xys[i as usize], p.radii[i as usize]);
+            for [x, y] in cpu::rect_tiles(lo, hi) {
+                whole.0.push(y as u32 * fp.tiles_x + x as u32);
+                whole.1.push(i);
+            }
+        }
+        assert!(culled.0.len() < whole.0.len() * 19 / 20, "{} of {} intersections", culled.0.len(), whole.0.len());
+        let render = |(keys, ids): &(Vec<u32>, Vec<u32>)| {
+            let (keys, ids) = cpu::stable_sort(keys, ids);
+            cpu::blend(&fp, &cpu::tile_ranges(&keys, (fp.tiles_x * fp.tiles_y) as usize), &ids, &p)
+        };
+        assert!(render(&culled) == render(&whole), "culling changed the image");
+    }
+}
