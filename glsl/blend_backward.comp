@@ -136,6 +136,15 @@ void splat_backward(uint n, uint g, vec2 xy, vec4 co, vec3 rgb) {
     }
 }
 
+// The q-th splat from the back of the batch (of `count`; none past them), whose tile number is
+// first + j + 1 for j = count - 1 - q. Workgroup-uniform arguments.
+void backward_batch_splat(uint first, uint q, uint count) {
+    if (q < count) {
+        uint j = count - 1 - min(q, count - 1);
+        splat_backward(first + j + 1, s_id[j], s_xy[j], s_conic[j], s_rgb[j]);
+    }
+}
+
 void main() {
     uint tile = gl_WorkGroupID.y * frame.p.tiles_x + gl_WorkGroupID.x;
     px = gl_WorkGroupID.x * TILE_SIZE + gl_LocalInvocationID.x;
@@ -175,9 +184,20 @@ void main() {
             s_rgb[k] = colors.v[g].rgb;
         }
         barrier();
-        for (uint jj = count; jj > 0; jj--) {
-            uint j = jj - 1;
-            splat_backward(batch_start - range.x + j + 1, s_id[j], s_xy[j], s_conic[j], s_rgb[j]);
+        if (CROWDED_TILES == 0) {
+            for (uint jj = count; jj > 0; jj--) {
+                uint j = jj - 1;
+                splat_backward(batch_start - range.x + j + 1, s_id[j], s_xy[j], s_conic[j], s_rgb[j]);
+            }
+        } else {
+            // Four splats per iteration, written out: a quarter of the loop iterations that
+            // lavapipe counts (see CROWDED_TILES in common.glsl).
+            for (uint q = 0; q < count; q += 4) {
+                backward_batch_splat(batch_start - range.x, q, count);
+                backward_batch_splat(batch_start - range.x, q + 1, count);
+                backward_batch_splat(batch_start - range.x, q + 2, count);
+                backward_batch_splat(batch_start - range.x, q + 3, count);
+            }
         }
     }
 }

@@ -29,8 +29,9 @@
 // splats can cost an invocation (max(1, rows it reaches in the tile, at most
 // PIXELS_PER_THREAD) + 1) and a tile whose sum plus BLEND_BATCH_ITERATIONS per batch of 256
 // exceeds BLEND_LOOP_ITERATIONS goes to a second pipeline (specialization constant 3,
-// CROWDED_TILES) that evaluates every row per splat without a loop, one iteration per splat:
-// exact up to ~60 000 splats in a tile on lavapipe and without limit elsewhere.
+// CROWDED_TILES) that evaluates every row per splat without a loop, four splats per iteration:
+// exact up to ~200 000 splats in a tile on lavapipe (each 256-splat batch also costs the loop
+// that loads it) and without limit elsewhere.
 #define BLEND_LOOP_ITERATIONS 60000
 #define BLEND_BATCH_ITERATIONS 20
 // Indirect dispatches are clamped to this many workgroups; kernels loop grid-stride.

@@ -270,6 +270,15 @@ fn crowded_tiles_match_cpu_twins() {
 }
 
 #[test]
+fn a_tile_past_lavapipes_loop_limit_matches_cpu_twins() {
+    // 72 000 splats in one tile: blend_backward's CROWDED_TILES pipeline past 65 535 splats.
+    let (scene, cam) = overfull_tile_scene(&mut Rng::new(6), 70000);
+    for k in both_policies() {
+        check_backward(&k, &scene, &cam, 4);
+    }
+}
+
+#[test]
 fn backward_kernels_match_cpu_twins() {
     let (gpu, _) = gpu();
     let mut rng = Rng::new(99);

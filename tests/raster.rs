@@ -139,6 +139,14 @@ fn crowded_tiles_match() {
 }
 
 #[test]
+fn a_tile_past_lavapipes_loop_limit_matches() {
+    // 70 000 splats in one tile: blend's CROWDED_TILES pipeline past 65 535 splats.
+    let (scene, cam) = overfull_tile_scene(&mut Rng::new(8), 70000);
+    let p = check_passes(&scene, &cam, [0.2, 0.4, 0.6]);
+    assert!(p >= 50.0, "PSNR {p:.1} dB");
+}
+
+#[test]
 fn camera_inside_the_scene_culls_and_matches() {
     // Gaussians behind, beside and in front of the camera, some closer than the near plane.
     let mut rng = Rng::new(12);

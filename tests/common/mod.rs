@@ -126,6 +126,27 @@ pub fn crowded_scene(rng: &mut Rng, n: usize) -> (Scene, Camera) {
     (s, look_at(Vec3::new(0.0, 0.0, -5.0), Vec3::ZERO, -Vec3::Y, 64, 48, 60.0))
 }
 
+/// One 16 x 16 tile holding more splats than lavapipe's 65 535 loop iterations per invocation:
+/// `near` sub-pixel splats over columns 0-1 (depth 3.5-4.5) in front of 2 000 over columns
+/// 13-15 (depth 6), so the right columns' invocations pass every near splat before they reach
+/// the ones they blend (and blend_backward, back to front, the other way round).
+#[allow(dead_code)]
+pub fn overfull_tile_scene(rng: &mut Rng, near: usize) -> (Scene, Camera) {
+    let cam = look_at(Vec3::new(0.0, 0.0, -5.0), Vec3::ZERO, -Vec3::Y, 16, 16, 20.0);
+    let to_world = cam.viewmat.inverse();
+    let mut s = random_scene(rng, near + 2000, 0);
+    for i in 0..s.len() {
+        let (u, z) = if i < near { (rng.range(0.3, 1.7), rng.range(3.5, 4.5)) } else { (rng.range(13.0, 15.7), 6.0) };
+        let v = rng.range(0.3, 15.7);
+        let c = Vec3::new((u - cam.cx) * z / cam.fx, (v - cam.cy) * z / cam.fy, z);
+        s.means[i] = to_world.transform_point3(c).to_array();
+        let sigma = (0.35 * z / cam.fx).ln();
+        s.scales[i] = [sigma; 3];
+        s.opacities[i] = rng.range(-1.0, 1.0);
+    }
+    (s, cam)
+}
+
 /// A fresh folder under cargo's per-test temporary directory.
 #[allow(dead_code)]
 pub fn tempdir(name: &str) -> PathBuf {
