@@ -210,6 +210,14 @@ pub fn random_instanced(
     instgs_vk::instance::InstancedScene { sh_degree: deg, background: bg, groups }
 }
 
+/// Environment that pins a spawned `instgs-vk` to lavapipe with one thread, where the machine
+/// has lavapipe: its float atomics then add in a fixed order and runs repeat bit for bit. None on
+/// a machine without it (a GPU's float atomics add in whatever order the threads arrive).
+pub fn lavapipe_one_thread_env() -> Option<[(&'static str, &'static str); 2]> {
+    let opts = GpuOptions { device: Some("llvmpipe".into()), validation: false, echo_messages: false, window: None };
+    Gpu::new(&opts).ok().map(|_| [("INSTGS_DEVICE", "llvmpipe"), ("LP_NUM_THREADS", "1")])
+}
+
 /// What a run of the binary left: its exit status and standard error.
 pub struct BinOut {
     pub ok: bool,
