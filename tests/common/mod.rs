@@ -9,11 +9,12 @@ use instgs_vk::gpu::{Gpu, GpuOptions};
 use instgs_vk::kernels::{KernelPolicy, Kernels};
 use instgs_vk::scene::Scene;
 
-/// The device with validation layers (synchronization validation included) on.
+/// The device with validation layers (synchronization validation included) on: `INSTGS_DEVICE`
+/// where set (as the CLI), else the default choice (a real GPU over a CPU device).
 pub fn gpu() -> (Arc<Gpu>, Arc<Kernels>) {
     static G: OnceLock<(Arc<Gpu>, Arc<Kernels>)> = OnceLock::new();
     G.get_or_init(|| {
-        let opts = GpuOptions { device: None, validation: true, echo_messages: true, window: None };
+        let opts = GpuOptions { validation: true, ..GpuOptions::from_env(None) };
         let gpu = Gpu::new(&opts).expect("a Vulkan device with validation layers");
         let k = Kernels::new(&gpu).expect("kernels");
         (gpu, k)
