@@ -5,7 +5,9 @@
 //! (lavapipe). `INSTGS_DEVICE` or `--device NAME|INDEX` overrides (a name matches by
 //! case-insensitive substring). `INSTGS_VALIDATION=1` enables `VK_LAYER_KHRONOS_validation`
 //! with synchronization validation; its warnings and errors are collected (see
-//! [`Gpu::take_validation_messages`]) and echoed to stderr.
+//! [`Gpu::take_validation_messages`]) and echoed to stderr. `INSTGS_POISON=1` fills every new
+//! device-local storage buffer with 0xffffffff (a NaN as f32, the largest u32), so a run that
+//! reads memory nothing wrote differs from one without it (tests compare the two).
 use std::collections::BTreeMap;
 use std::ffi::{c_void, CStr, CString};
 use std::mem::ManuallyDrop;
@@ -28,14 +30,18 @@ pub struct GpuOptions {
     /// A window to present to: enables the surface and swapchain extensions, creates its
     /// surface ([`Gpu::surface`]) and requires a queue family that can present to it.
     pub window: Option<(raw_window_handle::RawDisplayHandle, raw_window_handle::RawWindowHandle)>,
+    /// Fill every new device-local storage buffer with 0xffffffff (see the module docs).
+    pub poison: bool,
 }
 
 impl GpuOptions {
-    /// Options from the environment: `INSTGS_DEVICE`, `INSTGS_VALIDATION=1`. An explicit
-    /// `device` wins over the variable.
+    /// Options from the environment: `INSTGS_DEVICE`, `INSTGS_VALIDATION=1`, `INSTGS_POISON=1`.
+    /// An explicit `device` wins over the variable.
     pub fn from_env(device: Option<String>) -> Self {
-        let validation = std::env::var("INSTGS_VALIDATION").is_ok_and(|v| v != "0" && !v.is_empty());
+        let flag = |name: &str| std::env::var(name).is_ok_and(|v| v != "0" && !v.is_empty());
+        let validation = flag("INSTGS_VALIDATION");
         GpuOptions {
+            poison: flag("INSTGS_POISON"),
             device: device.or_else(|| std::env::var("INSTGS_DEVICE").ok().filter(|s| !s.is_empty())),
             validation,
             echo_messages: true,
@@ -86,6 +92,7 @@ pub struct Gpu {
     pub physical: vk::PhysicalDevice,
     pub surface: Option<Surface>,
     pub info: DeviceInfo,
+    poison: bool,
 }
 
 unsafe extern "system" fn debug_callback(
@@ -325,6 +332,7 @@ impl Gpu {
             physical,
             surface,
             info,
+            poison: opts.poison,
         }))
     }
 
@@ -375,14 +383,21 @@ impl Gpu {
         Ok(Buffer { gpu: self.clone(), raw, alloc: Some(alloc), size, name: name.to_string() })
     }
 
-    /// A device-local storage buffer.
+    /// A device-local storage buffer (filled with 0xffffffff with [`GpuOptions::poison`]).
     pub fn storage(self: &Arc<Self>, name: &str, size: u64) -> Result<Buffer> {
-        self.buffer(
+        let b = self.buffer(
             name,
             size,
             vk::BufferUsageFlags::STORAGE_BUFFER | vk::BufferUsageFlags::INDIRECT_BUFFER,
             MemoryLocation::GpuOnly,
-        )
+        )?;
+        if self.poison {
+            self.submit_and_wait(|rec| {
+                rec.fill(&b, 0xffff_ffff);
+                Ok(())
+            })?;
+        }
+        Ok(b)
     }
 
     /// A device-local storage buffer holding `data` (uploaded through a staging buffer).
