@@ -7,7 +7,7 @@ use instgs_vk::gpu::{Gpu, GpuOptions};
 #[test]
 fn validation_layer_reports_misuse() {
     // A separate instance so this deliberate error cannot leak into other tests.
-    let opts = GpuOptions { device: None, validation: true, echo_messages: false, window: None, poison: false };
+    let opts = GpuOptions { validation: true, ..Default::default() };
     let gpu = Gpu::new(&opts).unwrap();
     let info = vk::BufferCreateInfo::default().size(0).usage(vk::BufferUsageFlags::STORAGE_BUFFER);
     // Size 0 violates VUID-VkBufferCreateInfo-size-00912.
@@ -22,14 +22,9 @@ fn validation_layer_reports_misuse() {
 fn device_selection() {
     let (gpu, _) = gpu();
     assert!(gpu.info.subgroup_size >= 1 && gpu.info.min_subgroup_size <= gpu.info.subgroup_size);
-    let by_index = Gpu::new(&GpuOptions {
-        device: Some("0".into()),
-        validation: true,
-        echo_messages: true,
-        window: None,
-        poison: false,
-    })
-    .unwrap();
+    let by_index =
+        Gpu::new(&GpuOptions { device: Some("0".into()), validation: true, echo_messages: true, ..Default::default() })
+            .unwrap();
     assert!(!by_index.info.name.is_empty());
     let e = Gpu::new(&GpuOptions { device: Some("no-such-device".into()), ..Default::default() }).err().unwrap();
     assert!(e.to_string().contains("no Vulkan device matches 'no-such-device'"), "{e}");

@@ -171,7 +171,9 @@ fn poisoned_device_memory_changes_no_result() {
             let cols = |t: &[u8]| -> Vec<String> {
                 let text = String::from_utf8_lossy(t);
                 text.lines()
-                    .map(|l| l.split(',').enumerate().filter(|(i, _)| *i != 6).map(|(_, c)| c).collect())
+                    .map(|l| {
+                        l.split(',').enumerate().filter(|(i, _)| *i != 6).map(|(_, c)| c).collect::<Vec<_>>().join(",")
+                    })
                     .collect()
             };
             assert_eq!(cols(&a), cols(&b), "{f} differs with poisoned memory");

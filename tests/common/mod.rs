@@ -215,13 +215,7 @@ pub fn random_instanced(
 /// has lavapipe: its float atomics then add in a fixed order and runs repeat bit for bit. None on
 /// a machine without it (a GPU's float atomics add in whatever order the threads arrive).
 pub fn lavapipe_one_thread_env() -> Option<[(&'static str, &'static str); 2]> {
-    let opts = GpuOptions {
-        device: Some("llvmpipe".into()),
-        validation: false,
-        echo_messages: false,
-        window: None,
-        poison: false,
-    };
+    let opts = GpuOptions { device: Some("llvmpipe".into()), ..Default::default() };
     Gpu::new(&opts).ok().map(|_| [("INSTGS_DEVICE", "llvmpipe"), ("LP_NUM_THREADS", "1")])
 }
 
