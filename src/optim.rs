@@ -3,6 +3,8 @@
 use std::sync::Arc;
 
 use anyhow::{bail, Result};
+use ash::vk;
+use gpu_allocator::MemoryLocation;
 
 use crate::gpu::{Buffer, Gpu, Recorder};
 use crate::kernels::Kernels;
@@ -25,6 +27,11 @@ pub struct LossBufs {
     pub v_image: Buffer,
     /// LOSS_SLOTS floats: sums of |x − y| and of SSIM over pixels and channels.
     pub sums: Buffer,
+    /// Host-visible: the next target, copied into `target` inside the training step's own
+    /// submission ([`LossBufs::record_target_upload`]).
+    pub target_upload: Buffer,
+    /// Host-visible: `sums` copied back inside the same submission ([`LossBufs::record_sums_readback`]).
+    pub sums_readback: Buffer,
 }
 
 impl LossBufs {
@@ -43,7 +50,31 @@ impl LossBufs {
             filtered: gpu.storage("loss_filtered", (SSIM_COTANGENTS * 3) as u64 * px * 4)?,
             v_image: gpu.storage("v_image", px * 16)?,
             sums: gpu.storage("loss_sums", LOSS_SLOTS as u64 * 4)?,
+            target_upload: gpu.buffer(
+                "loss_target_upload",
+                px * 16,
+                vk::BufferUsageFlags::empty(),
+                MemoryLocation::CpuToGpu,
+            )?,
+            sums_readback: gpu.buffer(
+                "loss_sums_readback",
+                LOSS_SLOTS as u64 * 4,
+                vk::BufferUsageFlags::empty(),
+                MemoryLocation::GpuToCpu,
+            )?,
         })
+    }
+
+    /// Records the copy of `target_upload` (written with `write_mapped`) into `target`.
+    pub fn record_target_upload(&self, rec: &mut Recorder) -> Result<()> {
+        rec.copy(&self.target_upload, &self.target, self.target.size.min(self.target_upload.size));
+        rec.end_pass("setup")
+    }
+
+    /// Records the copy of `sums` into `sums_readback` (read with `read_mapped` after the wait).
+    pub fn record_sums_readback(&self, rec: &mut Recorder) -> Result<()> {
+        rec.copy(&self.sums, &self.sums_readback, LOSS_SLOTS as u64 * 4);
+        rec.end_pass("readback")
     }
 
     /// (mean L1, mean SSIM) from the read-back sums.

@@ -624,17 +624,20 @@ impl Trainer {
                 self.losses.len() - 1
             }
         };
+        // One submission: target upload, loss, backward, Adam, loss sums back.
+        self.losses[li].target_upload.write_mapped(&view.image)?;
         let lb = &self.losses[li];
-        self.gpu.write(&lb.target, &view.image)?;
         let image = self.raster.image_buffer().unwrap();
         let (k, scene, grads, adam, raster) = (&self.k, &self.scene, &self.grads, &self.adam, &self.raster);
         self.cmd.record_timed(self.timer.as_mut(), |rec| {
+            lb.record_target_upload(rec)?;
             record_loss(rec, k, image, lb, cfg.ssim_weight)?;
             raster.record_backward(rec, scene, &lb.v_image, grads)?;
-            record_adam(rec, k, scene, grads, adam, lr, step)
+            record_adam(rec, k, scene, grads, adam, lr, step)?;
+            lb.record_sums_readback(rec)
         })?;
         self.cmd.submit_and_wait()?;
-        let sums: Vec<f32> = self.gpu.read(&lb.sums, crate::shared::LOSS_SLOTS as usize)?;
+        let sums: Vec<f32> = lb.sums_readback.read_mapped(crate::shared::LOSS_SLOTS as usize)?;
         let (l1, ssim) = lb.means(&sums);
         if self.refine && self.layout.is_some() {
             self.step_transforms(&cfg.lr, step)?;
