@@ -119,6 +119,11 @@ fn parse_int(s: &str) -> Option<u64> {
     }
 }
 
+/// A GLSL comment as Rust doc text: brackets (array indices there) escaped, not links.
+fn doc_text(s: &str) -> String {
+    s.replace('[', "\\[").replace(']', "\\]")
+}
+
 fn gen_structs(src: &str, out: &mut String) {
     let mut lines = src.lines().peekable();
     let mut doc = Vec::new();
@@ -134,7 +139,7 @@ fn gen_structs(src: &str, out: &mut String) {
         };
         let name = rest.trim_end_matches('{').trim();
         for d in doc.drain(..) {
-            writeln!(out, "/// {d}").unwrap();
+            writeln!(out, "/// {}", doc_text(&d)).unwrap();
         }
         writeln!(out, "#[repr(C)]\n#[derive(Clone, Copy, Debug, Default, bytemuck::Pod, bytemuck::Zeroable)]\npub struct {name} {{").unwrap();
         let mut offset = 0usize;
@@ -169,7 +174,7 @@ fn gen_structs(src: &str, out: &mut String) {
                 ));
             }
             if let Some(c) = comment {
-                writeln!(out, "    /// {c}").unwrap();
+                writeln!(out, "    /// {}", doc_text(c)).unwrap();
             }
             writeln!(out, "    pub {field}: {rty},").unwrap();
             offset += size;

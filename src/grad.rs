@@ -509,7 +509,7 @@ fn filter_axis(src: &[f64], w: usize, h: usize, horizontal: bool) -> Vec<f64> {
 }
 
 /// The SSIM map of one channel plane pair and the three cotangent maps dS/dμx (total),
-/// dS/dE[x²], dS/dE[xy] (for the gradient).
+/// dS/dE(x²), dS/dE(xy) (for the gradient).
 pub fn ssim_plane(x: &[f64], y: &[f64], w: usize, h: usize) -> (Vec<f64>, [Vec<f64>; 3]) {
     const C1: f64 = 0.0001;
     const C2: f64 = 0.0009;

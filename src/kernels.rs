@@ -186,7 +186,7 @@ pub struct Scan<'a> {
     pub out_bias: u32,
 }
 
-/// Records an exclusive scan of counts[count_slot] items (reduce, scan of block sums, down
+/// Records an exclusive scan of `counts[count_slot]` items (reduce, scan of block sums, down
 /// sweep). The indirect arguments of `count_slot` must be written already.
 pub fn record_scan(rec: &mut Recorder, k: &Kernels, c: &Counts, s: &Scan) -> Result<()> {
     let args = ScanArgs {
@@ -232,7 +232,7 @@ pub struct SortBuffers<'a> {
     pub hist: &'a Buffer,
 }
 
-/// Records a stable LSD radix sort of counts[slot] (key, value) pairs on the low `bits` key
+/// Records a stable LSD radix sort of `counts[slot]` (key, value) pairs on the low `bits` key
 /// bits. Returns the index (0 or 1) of the key/value pair holding the result. The indirect
 /// arguments of `slot` must be written.
 pub fn record_sort(

@@ -400,7 +400,7 @@ fn count_and(a: &Bits, b: &Bits) -> usize {
 }
 
 /// Associates per-frame masks across views (view consensus, after MaskClustering, the InstGS
-/// paper's reference [53]): each mask is lifted to the Gaussians it claims in its view (g > 0
+/// paper's reference \[53\]): each mask is lifted to the Gaussians it claims in its view (g > 0
 /// of Eq. 5 over that view alone); for two masks a, b of different views and one category the
 /// consensus rate is min(|A∩B| / |A ∩ seen(b's view)|, |A∩B| / |B ∩ seen(a's view)|) — of the
 /// Gaussians one mask claims that the other view sees, the share the other mask claims too.

@@ -10,6 +10,7 @@ cd "$(dirname "$0")/.."
 bash tools/install-deps.sh
 export XDG_RUNTIME_DIR="${XDG_RUNTIME_DIR:-/tmp}"
 cargo test --release
+RUSTDOCFLAGS="-D warnings" cargo doc --no-deps --quiet   # the public docs build without a broken link
 kernel_tests=(--test gpu --test sort --test raster --test grad --test loss --test instgs --test segment --test lod)
 for width in 128 512; do
     echo "== kernel tests again, lavapipe vector width $width bits (subgroup size $((width / 32)))"
