@@ -67,7 +67,7 @@ impl LossBufs {
 
     /// Records the copy of `target_upload` (written with `write_mapped`) into `target`.
     pub fn record_target_upload(&self, rec: &mut Recorder) -> Result<()> {
-        rec.copy(&self.target_upload, &self.target, self.target.size.min(self.target_upload.size));
+        rec.copy(&self.target_upload, &self.target, self.target.size);
         rec.end_pass("setup")
     }
 
