@@ -958,7 +958,10 @@ pub struct RunSummary {
     pub splats: usize,
     pub test_psnr: Option<f64>,
     pub test_ssim: Option<f64>,
+    /// Wall time of the run, resumed parts and the final writes included.
     pub seconds: f64,
+    /// This invocation's iterations over their own wall time (held-out evaluations,
+    /// densification and checkpoints included; startup and the final writes not).
     pub iterations_per_second: f64,
     pub interrupted: bool,
     /// Median GPU milliseconds per pass over this session's iterations.
@@ -1146,6 +1149,8 @@ pub fn run(gpu: &Arc<Gpu>, k: &Arc<Kernels>, ds: &Dataset, cfg: &Config, opts: &
             }
         }
     }
+    // The iterations' own time (held-out evaluations included), not the run's end below.
+    let loop_secs = t0.elapsed().as_secs_f64();
     if let Some(b) = &bar {
         b.finish_and_clear();
     }
@@ -1167,7 +1172,7 @@ pub fn run(gpu: &Arc<Gpu>, k: &Arc<Kernels>, ds: &Dataset, cfg: &Config, opts: &
         test_psnr: test.map(|t| t.0),
         test_ssim: test.map(|t| t.1),
         seconds: elapsed0 + secs,
-        iterations_per_second: (done - start_it) as f64 / secs.max(1e-9),
+        iterations_per_second: (done - start_it) as f64 / loop_secs.max(1e-9),
         interrupted,
         pass_medians: pass_times
             .into_iter()
