@@ -191,7 +191,27 @@ pub struct InstanceStage {
     pub colour_weight: f64,
     pub seed: u64,
     pub offset_dtype: String,
-    pub background_keep: f64,
+    /// "auto" (the quality budget, crate::compact) or a fixed fraction in (0, 1].
+    pub background_keep: BackgroundKeep,
+    /// The budget: training-view PSNR (dB) the pruned plain scene may lose before the joint
+    /// optimisation.
+    pub background_budget_db: f64,
+    /// Background Gaussians within this fraction of an instance's size rank first.
+    pub outline_fraction: f64,
+    /// Acceptance of registered poses (crate::template::Acceptance).
+    pub min_fitness: f64,
+    pub scale_tolerance: f64,
+    pub render_check: bool,
+    pub min_render_iou: f64,
+    pub min_render_psnr: f64,
+}
+
+/// `[instance] background_keep`: "auto" or a fraction.
+#[derive(Clone, Debug, Deserialize, Serialize, PartialEq)]
+#[serde(untagged)]
+pub enum BackgroundKeep {
+    Fraction(f64),
+    Auto(String),
 }
 
 /// `[eval]`.
@@ -258,8 +278,23 @@ impl PipelineConfig {
         if !matches!(t.instance.offset_dtype.as_str(), "f32" | "f16" | "pq8") {
             bail!("{what}: instance.offset_dtype must be \"f32\", \"f16\" or \"pq8\"");
         }
-        if !(t.instance.background_keep > 0.0 && t.instance.background_keep <= 1.0) {
-            bail!("{what}: instance.background_keep must be in (0, 1]");
+        match &t.instance.background_keep {
+            BackgroundKeep::Fraction(f) if *f > 0.0 && *f <= 1.0 => {}
+            BackgroundKeep::Auto(a) if a == "auto" => {}
+            _ => bail!("{what}: instance.background_keep must be \"auto\" or a fraction in (0, 1]"),
+        }
+        let i = &t.instance;
+        for (key, v, lo, hi) in [
+            ("min_fitness", i.min_fitness, 0.0, 1.0),
+            ("scale_tolerance", i.scale_tolerance, 0.0, 10.0),
+            ("min_render_iou", i.min_render_iou, 0.0, 1.0),
+            ("min_render_psnr", i.min_render_psnr, 0.0, 100.0),
+            ("background_budget_db", i.background_budget_db, 0.0, 100.0),
+            ("outline_fraction", i.outline_fraction, 0.0, 10.0),
+        ] {
+            if !(v >= lo && v <= hi) {
+                bail!("{what}: instance.{key} must be in [{lo}, {hi}], not {v}");
+            }
         }
         if t.bench.frames == 0 {
             bail!("{what}: bench.frames must be at least 1");

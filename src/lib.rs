@@ -10,6 +10,7 @@ pub mod shared {
 
 pub mod camera;
 pub mod codes;
+pub mod compact;
 pub mod config;
 pub mod cpu;
 pub mod dataset;
@@ -31,3 +32,4 @@ pub mod sort;
 pub mod template;
 pub mod train;
 pub mod util;
+pub mod verify;

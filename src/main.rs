@@ -10,7 +10,7 @@ use instgs_vk::instgs::{self, AnyScene};
 use instgs_vk::kernels::Kernels;
 use instgs_vk::raster::Rasterizer;
 use instgs_vk::scene::read_ply;
-use instgs_vk::util::save_png;
+use instgs_vk::util::{median, percentile, save_png};
 
 mod pipeline;
 mod report;
@@ -235,6 +235,24 @@ enum Cmd {
         /// Also write a JSON report (per instance: registration and, with ground truth, errors).
         #[arg(long)]
         report: Option<PathBuf>,
+        /// Downscale factor of the dataset's training images for the render check.
+        #[arg(long, default_value_t = 1)]
+        downscale: u32,
+        /// Skip the render check (poses are then checked by geometry alone).
+        #[arg(long)]
+        no_render_check: bool,
+        /// Acceptance: both fitnesses at least this.
+        #[arg(long, default_value_t = instgs_vk::template::Acceptance::default().min_fitness)]
+        min_fitness: f64,
+        /// Acceptance: scale within this relative distance of the clouds' size ratio.
+        #[arg(long, default_value_t = instgs_vk::template::Acceptance::default().scale_tolerance)]
+        scale_tolerance: f64,
+        /// Acceptance: the render check's median silhouette IoU at least this.
+        #[arg(long, default_value_t = instgs_vk::template::Acceptance::default().min_render_iou)]
+        min_render_iou: f64,
+        /// Acceptance: the render check's PSNR (dB) at least this.
+        #[arg(long, default_value_t = instgs_vk::template::Acceptance::default().min_render_psnr)]
+        min_render_psnr: f64,
         #[arg(long)]
         out: PathBuf,
     },
@@ -428,20 +446,69 @@ fn run(cli: Cli) -> Result<()> {
             seed,
             offset_dtype,
             report,
+            downscale,
+            no_render_check,
+            min_fitness,
+            scale_tolerance,
+            min_render_iou,
+            min_render_psnr,
             out,
         } => {
             let groups_file = groups.clone().unwrap_or_else(|| data.join("instances.json"));
             let truth = groups.is_none().then_some(groups_file.as_path());
+            let accept = instgs_vk::template::Acceptance {
+                min_fitness,
+                scale_tolerance,
+                min_render_iou,
+                min_render_psnr,
+                ..Default::default()
+            };
             let opts = instgs_vk::template::InstanceOptions {
                 init,
                 with_scale: !rigid,
                 use_colour: !geometry_only,
                 colour_weight,
                 seed,
+                accept,
                 ..Default::default()
             };
-            instance(&scene, &labels, &groups_file, truth, &opts, offset_dtype.into(), None, report.as_deref(), &out)
-                .map(|_| ())
+            let has_views = data.join("transforms_train.json").exists() || data.join("sparse").is_dir();
+            let mut check = if no_render_check || !has_views {
+                None
+            } else {
+                let load = instgs_vk::dataset::LoadOptions { downscale, background: [0.0; 3] };
+                let ds = instgs_vk::dataset::load(&data, &load)?;
+                let masks = match groups {
+                    None if data.join("masks").join("train").is_dir() => {
+                        Some(instgs_vk::segment::load_masks(&data, "train", &ds.train)?)
+                    }
+                    _ => None,
+                };
+                let (gpu, k) = open_device(cli.device.clone())?;
+                let cams = ds.train.iter().map(|v| v.camera.clone()).collect();
+                Some(instgs_vk::verify::ImageCheck::new(&gpu, &k, cams, masks)?)
+            };
+            let check = check.as_mut().map(|c| c as &mut dyn instgs_vk::template::RenderCheck);
+            instance(
+                &scene,
+                &labels,
+                &groups_file,
+                truth,
+                &opts,
+                offset_dtype.into(),
+                None,
+                check,
+                report.as_deref(),
+                &out,
+            )
+            .map(|_| {
+                if !no_render_check && !has_views {
+                    eprintln!(
+                        "note: {} holds no training views (transforms_train.json or sparse/): the poses were checked by geometry alone",
+                        data.display()
+                    );
+                }
+            })
         }
         Cmd::View {
             scene,
@@ -943,6 +1010,11 @@ fn segment_scene(
     Ok(SegmentOutcome { ids, labels: seg.labels, doc, summary, significance: seg.weight })
 }
 
+/// Chooses the kept background fraction: (scene, labels, significance) → (fraction, ranking
+/// per Gaussian, what was decided as JSON).
+type KeepRule<'a> =
+    dyn FnMut(&instgs_vk::scene::Scene, &[u32], &[f32]) -> Result<(f64, Vec<f32>, serde_json::Value)> + 'a;
+
 #[allow(clippy::too_many_arguments)]
 fn instance(
     scene_path: &Path,
@@ -951,7 +1023,8 @@ fn instance(
     truth_path: Option<&Path>,
     opts: &instgs_vk::template::InstanceOptions,
     dtype: instgs::Dtype,
-    prune: Option<(&Path, f64)>,
+    prune: Option<(&Path, &mut KeepRule)>,
+    check: Option<&mut dyn instgs_vk::template::RenderCheck>,
     report: Option<&Path>,
     out: &Path,
 ) -> Result<serde_json::Value> {
@@ -959,28 +1032,27 @@ fn instance(
     let scene = read_ply(scene_path)?;
     let labels = template::read_labels(labels, scene.len())?;
     let groups = instgs_vk::segment::read_groups(groups_path)?;
-    // Background pruning (pipeline `instance.background_keep` < 1): the most significant
-    // background Gaussians stay, by significance.bin (f32 per Gaussian, written by `segment`).
+    // Background pruning (the pipeline's `instance.background_keep`): the background Gaussians
+    // ranked by `rule` from significance.bin (f32 per Gaussian, written by `segment`) stay.
     let mut pruned = serde_json::Value::Null;
     let (scene, labels) = match prune {
-        Some((sig_path, keep)) if keep < 1.0 => {
+        Some((sig_path, rule)) => {
             let bytes = std::fs::read(sig_path).with_context(|| format!("{}: cannot read", sig_path.display()))?;
             if bytes.len() != 4 * scene.len() {
                 bail!("{}: {} bytes, expected 4 per Gaussian ({})", sig_path.display(), bytes.len(), scene.len());
             }
             let sig: Vec<f32> = bytes.chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect();
             let before = labels.iter().filter(|&&l| l == 0).count();
-            let (s, l, dropped) = template::prune_background(&scene, &labels, &sig, keep)?;
-            eprintln!(
-                "background: kept the {} most significant of {before} Gaussians (background_keep {keep})",
-                before - dropped
-            );
-            pruned = serde_json::json!({"keep": keep, "before": before, "dropped": dropped});
+            let (keep, ranking, how) = rule(&scene, &labels, &sig)?;
+            let (s, l, dropped) = template::prune_background(&scene, &labels, &ranking, keep)?;
+            eprintln!("background: kept {} of {before} Gaussians ({:.1} %)", before - dropped, 100.0 * keep);
+            pruned = serde_json::json!({"keep": keep, "before": before, "dropped": dropped, "rule": how});
             (s, l)
         }
-        _ => (scene, labels),
+        None => (scene, labels),
     };
-    let (inst, reports) = template::instantiate(&scene, &labels, &groups, opts, |line| eprintln!("{line}"))?;
+    let check_ran = check.is_some();
+    let (inst, reports) = template::instantiate(&scene, &labels, &groups, opts, check, |line| eprintln!("{line}"))?;
     if instgs_vk::train::INTERRUPTED.load(std::sync::atomic::Ordering::SeqCst) {
         bail!("interrupted before {} was written", out.display());
     }
@@ -992,16 +1064,30 @@ fn instance(
     let mut rows = Vec::new();
     for r in &reports {
         let mut row = serde_json::json!({
-            "group": r.group, "id": r.id, "gaussians": r.gaussians, "fitness": r.fitness, "rmse": r.rmse,
-            "scale": r.relative.scale, "shape_ambiguous": r.shape_ambiguous,
+            "group": r.group, "id": r.id, "reference": r.reference, "gaussians": r.gaussians,
+            "status": r.status.name(), "reason": r.status.reason(),
+            "fitness": r.check.fitness, "fitness_reverse": r.check.fitness_reverse,
+            "scale": r.relative.scale, "scale_ratio": r.check.scale_ratio,
+            "poses_tried": r.tried, "shape_ambiguous": r.shape_ambiguous,
         });
         let mut line = format!(
-            "{} {}: {} Gaussians, fitness {:.3}, RMSE {:.4}, scale {:.4}",
-            r.group, r.id, r.gaussians, r.fitness, r.rmse, r.relative.scale
+            "{} {} ({}): {} Gaussians, fitness {:.2} / {:.2}, scale {:.4}",
+            r.group,
+            r.id,
+            r.status.name(),
+            r.gaussians,
+            r.check.fitness,
+            r.check.fitness_reverse,
+            r.relative.scale
         );
-        let first = groups.iter().find(|g| g.name == r.group).map(|g| g.ids[0]);
-        if let (Some(t), Some(first)) = (&truth, first) {
-            if let (Some(a), Some(b)) = (t.get(&first), t.get(&r.id)) {
+        if let Some(s) = &r.render {
+            row["render_iou"] = s.iou.into();
+            row["render_psnr"] = s.psnr.into();
+            row["render_views"] = s.views.into();
+            line += &format!(", render IoU {:.2} PSNR {:.1} dB ({} views)", s.iou, s.psnr, s.views);
+        }
+        if let Some(t) = &truth {
+            if let (Some(a), Some(b)) = (t.get(&r.reference), t.get(&r.id)) {
                 let (rot, trans, scale) = template::pose_error(&r.relative, a, b);
                 line += &format!(
                     "; against {}: rotation {rot:.3}°, translation {:.3} % of the size, scale {:+.3} %",
@@ -1013,6 +1099,9 @@ fn instance(
                 row["translation_error_fraction"] = trans.into();
                 row["scale_error_fraction"] = scale.into();
             }
+        }
+        if let Some(why) = r.status.reason() {
+            line += &format!("\n    {}: {why}", r.status.name());
         }
         println!("{line}");
         rows.push(row);
@@ -1029,6 +1118,8 @@ fn instance(
     let v = serde_json::json!({
         "init": format!("{:?}", opts.init).to_lowercase(),
         "colour": opts.use_colour,
+        "acceptance": serde_json::to_value(&opts.accept)?,
+        "render_check": check_ran,
         "template_gaussians": inst.groups.iter().map(|g| g.template.len()).sum::<usize>(),
         "background_gaussians": inst.background.len(),
         "splats": inst.splats(),
@@ -1171,15 +1262,6 @@ fn collect(acc: &mut Vec<(String, Vec<f64>)>, passes: &[(String, f64)]) {
     }
 }
 
-fn median(v: &[f64]) -> f64 {
-    let mut v = v.to_vec();
-    v.sort_by(f64::total_cmp);
-    if v.is_empty() {
-        return f64::NAN;
-    }
-    v[v.len() / 2]
-}
-
 fn print_passes(per_pass: &[(String, Vec<f64>)]) {
     if per_pass.is_empty() {
         println!("(the device has no timestamps on its compute queue)");
@@ -1308,15 +1390,6 @@ fn cpu_rss_bytes() -> Option<u64> {
     let line = status.lines().find(|l| l.starts_with("VmRSS:"))?;
     let kb: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
     Some(kb * 1024)
-}
-
-fn percentile(v: &[f64], q: f64) -> f64 {
-    let mut v = v.to_vec();
-    v.sort_by(f64::total_cmp);
-    if v.is_empty() {
-        return f64::NAN;
-    }
-    v[((v.len() - 1) as f64 * q).round() as usize]
 }
 
 #[allow(clippy::too_many_arguments)]

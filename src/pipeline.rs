@@ -21,7 +21,7 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use anyhow::{anyhow, bail, Context, Result};
-use instgs_vk::config::PipelineConfig;
+use instgs_vk::config::{BackgroundKeep, PipelineConfig};
 use instgs_vk::dataset::Dataset;
 use instgs_vk::gpu::Gpu;
 use instgs_vk::instgs::AnyScene;
@@ -426,6 +426,13 @@ impl Ctx<'_> {
                     use_colour: c.colour,
                     colour_weight: c.colour_weight,
                     seed: c.seed,
+                    accept: instgs_vk::template::Acceptance {
+                        min_fitness: c.min_fitness,
+                        scale_tolerance: c.scale_tolerance,
+                        min_render_iou: c.min_render_iou,
+                        min_render_psnr: c.min_render_psnr,
+                        ..Default::default()
+                    },
                     ..Default::default()
                 };
                 let dtype = match c.offset_dtype.as_str() {
@@ -440,6 +447,48 @@ impl Ctx<'_> {
                     }
                     MaskIds::PerFrame => (run.join("labels.json"), None),
                 };
+                let mut check = if c.render_check {
+                    // Masks select the views only where their ids are the labels' ids.
+                    let masks = match self.mask_ids {
+                        MaskIds::Global => Some(instgs_vk::segment::load_masks(&self.a.data, "train", &self.ds.train)?),
+                        MaskIds::PerFrame => None,
+                    };
+                    let cams = self.ds.train.iter().map(|v| v.camera.clone()).collect();
+                    Some(instgs_vk::verify::ImageCheck::new(self.gpu, self.k, cams, masks)?)
+                } else {
+                    None
+                };
+                let views = &self.ds.train;
+                let bg = self.cfg.plain.background;
+                let (gpu, k) = (self.gpu, self.k);
+                let mut rule = |scene: &instgs_vk::scene::Scene, labels: &[u32], sig: &[f32]| {
+                    let (ranking, protected) =
+                        instgs_vk::compact::protect_outlines(scene, labels, sig, c.outline_fraction);
+                    match c.background_keep {
+                        BackgroundKeep::Fraction(f) => Ok((
+                            f,
+                            ranking,
+                            serde_json::json!({"fixed": f, "outline_fraction": c.outline_fraction, "protected": protected}),
+                        )),
+                        BackgroundKeep::Auto(_) => {
+                            let b = instgs_vk::compact::background_budget(
+                                gpu,
+                                k,
+                                scene,
+                                labels,
+                                &ranking,
+                                protected,
+                                views,
+                                bg,
+                                c.background_budget_db,
+                                |l| eprintln!("{l}"),
+                            )?;
+                            let mut how = serde_json::to_value(&b)?;
+                            how["outline_fraction"] = c.outline_fraction.into();
+                            Ok((b.keep, ranking, how))
+                        }
+                    }
+                };
                 let r = crate::instance(
                     &run.join("point_cloud.ply"),
                     &run.join("labels.json"),
@@ -447,7 +496,8 @@ impl Ctx<'_> {
                     truth.as_deref(),
                     &opts,
                     dtype,
-                    Some((&run.join("significance.bin"), c.background_keep)),
+                    Some((&run.join("significance.bin"), &mut rule)),
+                    check.as_mut().map(|c| c as &mut dyn instgs_vk::template::RenderCheck),
                     None,
                     &run.join("init.instgs"),
                 );

@@ -103,6 +103,21 @@ pub fn umeyama(src: &[[f64; 3]], dst: &[[f64; 3]], with_scale: bool) -> Option<S
     Some(Sim3 { rotation, scale, translation: md - rotation * ms * scale })
 }
 
+/// [`umeyama`] with the scale held inside `range` (`None`: rigid). The rotation of a
+/// similarity fit does not depend on its scale, so a clamped scale only moves the translation
+/// (to the least-squares one for that scale).
+pub fn umeyama_bounded(src: &[[f64; 3]], dst: &[[f64; 3]], range: Option<(f64, f64)>) -> Option<Sim3> {
+    let x = umeyama(src, dst, range.is_some())?;
+    let Some((lo, hi)) = range else { return Some(x) };
+    let scale = x.scale.clamp(lo, hi);
+    if scale == x.scale {
+        return Some(x);
+    }
+    let n = src.len() as f64;
+    let mean = |p: &[[f64; 3]]| p.iter().fold(Vector3::zeros(), |a, x| a + Vector3::from(*x)) / n;
+    Some(Sim3 { scale, translation: mean(dst) - x.rotation * mean(src) * scale, ..x })
+}
+
 /// Centroids of the occupied cells of a `voxel`-sized grid, in first-seen cell order.
 pub fn voxel_downsample(points: &[[f64; 3]], voxel: f64) -> Vec<[f64; 3]> {
     voxel_downsample_with(points, None, voxel).0
@@ -297,10 +312,16 @@ pub struct RegisterOptions {
     pub voxel: f64,
     /// Also estimate a uniform scale.
     pub with_scale: bool,
+    /// With scale: the estimate stays within this relative distance of the two clouds' size
+    /// ratio ([`object_size`]): s ∈ [s₀/(1+tol), s₀·(1+tol)].
+    pub scale_tolerance: f64,
     pub ransac_iterations: usize,
     /// Edge-length check: pairwise source and target distances of a sample agree to this ratio.
     pub edge_ratio: f64,
     pub icp_iterations: usize,
+    /// Rotations of a uniform grid on SO(3) ([`rotation_grid`]) tried as starts besides
+    /// RANSAC's hypotheses, each about the clouds' centroids (0: RANSAC alone).
+    pub grid_rotations: usize,
     /// Weight of colour in [`register_coloured`]'s ICP (0: geometry only).
     pub colour_weight: f64,
     pub seed: u64,
@@ -312,9 +333,11 @@ impl RegisterOptions {
         RegisterOptions {
             voxel: size / 25.0,
             with_scale: true,
+            scale_tolerance: 0.25,
             ransac_iterations: 100_000,
             edge_ratio: 0.9,
             icp_iterations: 60,
+            grid_rotations: 300,
             colour_weight: 1.0,
             seed: 0,
         }
@@ -325,10 +348,12 @@ impl RegisterOptions {
 #[derive(Clone, Debug)]
 pub struct Registration {
     pub transform: Sim3,
-    /// Fraction of (ICP-resolution) source points with a target point within the final ICP
-    /// distance.
+    /// Fraction of (ICP-resolution) source points with a target point within one voxel.
     pub fitness: f64,
-    /// RMS distance of those pairs.
+    /// Fraction of target points with a (moved) source point within one voxel: low when the
+    /// source covers only part of the target (a collapsed or misplaced pose).
+    pub fitness_reverse: f64,
+    /// RMS distance of the source → target pairs (within one voxel).
     pub rmse: f64,
     /// Mean L1 difference of their normalised colours ([`register_coloured`]; 0 without).
     pub colour_error: f64,
@@ -336,6 +361,15 @@ pub struct Registration {
     pub shape_ambiguous: bool,
     /// Mutual feature correspondences RANSAC drew from.
     pub correspondences: usize,
+    /// The size ratio the scale was held near (1 for rigid registration).
+    pub expected_scale: f64,
+}
+
+impl Registration {
+    /// The smaller of the two fitnesses: both clouds must be covered.
+    pub fn overlap(&self) -> f64 {
+        self.fitness.min(self.fitness_reverse)
+    }
 }
 
 /// Fitness, RMSE and mean colour difference (L1 over channels; 0 without colours) of `x` over
@@ -363,22 +397,102 @@ fn evaluate(
     (n as f64 / src.len().max(1) as f64, rms, col)
 }
 
-/// Point-to-point ICP from `init`: pairs each source point with its nearest target point within
-/// `dist`, refits (Umeyama) until the transform changes by less than 1e-9 or `iterations` end.
-pub fn icp(src: &[[f64; 3]], dst: &[[f64; 3]], init: Sim3, dist: f64, iterations: usize, with_scale: bool) -> Sim3 {
+/// Fraction of `dst` points with a point of `src` moved by `x` within `dist`.
+pub fn reverse_fitness(x: &Sim3, src: &[[f64; 3]], dst: &[[f64; 3]], dist: f64) -> f64 {
+    if src.is_empty() {
+        return 0.0;
+    }
+    let moved: Vec<[f64; 3]> = src.iter().map(|p| x.apply(p)).collect();
+    let t = tree(&moved);
+    let n = dst.iter().filter(|q| t.nearest_one::<SquaredEuclidean>(q).distance <= dist * dist).count();
+    n as f64 / dst.len().max(1) as f64
+}
+
+/// The median distance of a point of `points` to its nearest other point (0 for fewer than 2).
+pub fn median_spacing(points: &[[f64; 3]]) -> f64 {
+    if points.len() < 2 {
+        return 0.0;
+    }
+    let t = tree(points);
+    let mut d: Vec<f64> = points
+        .iter()
+        .map(|p| t.nearest_n::<SquaredEuclidean>(p, 2).last().map_or(0.0, |n| n.distance.sqrt()))
+        .collect();
+    d.sort_by(f64::total_cmp);
+    d[d.len() / 2]
+}
+
+/// An object's size, rotation-invariant: twice the 98th percentile of the points' distances to
+/// their centroid, after statistical outlier removal ([`inliers`]: stray Gaussians and floaters
+/// do not count).
+pub fn object_size(points: &[[f64; 3]]) -> f64 {
+    let kept: Vec<[f64; 3]> = inliers(points).into_iter().map(|i| points[i]).collect();
+    let c = centroid(&kept);
+    let mut d: Vec<f64> = kept.iter().map(|p| (Vector3::from(*p) - c).norm()).collect();
+    d.sort_by(f64::total_cmp);
+    2.0 * d.get(((d.len() as f64 - 1.0) * 0.98) as usize).copied().unwrap_or(0.0)
+}
+
+/// Statistical outlier removal (as PCL's and Open3D's): the indices of the points whose mean
+/// distance to their 16 nearest neighbours is at most the mean of that over all points plus two
+/// standard deviations. Every index for fewer than 32 points.
+pub fn inliers(points: &[[f64; 3]]) -> Vec<usize> {
+    const K: usize = 16;
+    if points.len() < 2 * K {
+        return (0..points.len()).collect();
+    }
+    let t = tree(points);
+    let mean_dist: Vec<f64> = points
+        .iter()
+        .map(|p| {
+            let nn = t.nearest_n::<SquaredEuclidean>(p, K + 1);
+            nn.iter().skip(1).map(|n| n.distance.sqrt()).sum::<f64>() / K as f64
+        })
+        .collect();
+    let n = mean_dist.len() as f64;
+    let mu = mean_dist.iter().sum::<f64>() / n;
+    let sigma = (mean_dist.iter().map(|d| (d - mu).powi(2)).sum::<f64>() / n).sqrt();
+    (0..points.len()).filter(|&i| mean_dist[i] <= mu + 2.0 * sigma).collect()
+}
+
+/// Point-to-point ICP from `init`: pairs each source point with its nearest target point
+/// within `dist` and, when `symmetric`, each target point with its nearest (moved) source point
+/// within `dist`; refits (Umeyama, the scale held in `scale_range`; `None`: rigid) until the transform
+/// changes by less than 1e-9 or `iterations` end. The target → source pairs keep a scaled fit
+/// from shrinking the source onto part of the target (one-sided pairs reward that: every
+/// shrunken source point still finds a near target point).
+pub fn icp(
+    src: &[[f64; 3]],
+    dst: &[[f64; 3]],
+    init: Sim3,
+    dist: f64,
+    iterations: usize,
+    scale_range: Option<(f64, f64)>,
+    symmetric: bool,
+) -> Sim3 {
     let t = tree(dst);
     let mut x = init;
     for _ in 0..iterations {
         let (mut a, mut b) = (Vec::new(), Vec::new());
-        for p in src {
-            let q = x.apply(p);
-            let nn = t.nearest_one::<SquaredEuclidean>(&q);
+        let moved: Vec<[f64; 3]> = src.iter().map(|p| x.apply(p)).collect();
+        for (p, q) in src.iter().zip(&moved) {
+            let nn = t.nearest_one::<SquaredEuclidean>(q);
             if nn.distance <= dist * dist {
                 a.push(*p);
                 b.push(dst[nn.item as usize]);
             }
         }
-        let Some(next) = umeyama(&a, &b, with_scale) else { break };
+        if symmetric {
+            let back = tree(&moved);
+            for q in dst {
+                let nn = back.nearest_one::<SquaredEuclidean>(q);
+                if dist2(&moved[nn.item as usize], q) <= dist * dist {
+                    a.push(src[nn.item as usize]);
+                    b.push(*q);
+                }
+            }
+        }
+        let Some(next) = umeyama_bounded(&a, &b, scale_range) else { break };
         let change = (next.rotation - x.rotation).norm()
             + (next.translation - x.translation).norm() / dist
             + (next.scale - x.scale).abs();
@@ -390,23 +504,18 @@ pub fn icp(src: &[[f64; 3]], dst: &[[f64; 3]], init: Sim3, dist: f64, iterations
     x
 }
 
-/// Registers `source` onto `target` (both clouds of one object, any similarity apart): FPFH on
-/// voxel-downsampled clouds, RANSAC over mutual nearest features (3-point samples passing the
-/// edge-length check, scored by correspondence inliers within 1.5 voxels); the 8 best distinct
-/// hypotheses, each also spun about the target's three principal axes in 30° steps (a mug's
-/// handle, a brick's studs: small asymmetries of symmetric bulk) and screened by a short ICP on
-/// the coarse clouds; the 8 fittest refined by ICP (1.5 voxels, then 0.5 voxel at half the
-/// voxel size); the fittest kept.
+/// Registers `source` onto `target` (both clouds of one object, any similarity apart); the
+/// first of [`candidates`].
 pub fn register(source: &[[f64; 3]], target: &[[f64; 3]], o: &RegisterOptions) -> Result<Registration> {
-    register_impl(source, None, target, None, o)
+    Ok(candidates(source, None, target, None, o)?.remove(0))
 }
 
 /// [`register`] with per-point colours (e.g. the RGB of the SH DC), for objects whose shape is
 /// (nearly) symmetric. Colours are normalised per cloud by their per-channel mean, so a
 /// per-instance tint (a per-channel factor, also after a gamma curve) cancels. Colour is used
 /// only where the shape leaves the pose open (see `shape_ambiguous`): then every candidate is
-/// refined by ICP in (position, λ·colour) space (λ = 2 voxels × `colour_weight`), the fittest
-/// is polished by shape ICP.
+/// refined by ICP in (position, λ·colour) space (λ = 2 voxels × `colour_weight`), and polished
+/// by shape ICP.
 pub fn register_coloured(
     source: &[[f64; 3]],
     source_rgb: &[[f64; 3]],
@@ -414,17 +523,7 @@ pub fn register_coloured(
     target_rgb: &[[f64; 3]],
     o: &RegisterOptions,
 ) -> Result<Registration> {
-    if source_rgb.len() != source.len() || target_rgb.len() != target.len() {
-        bail!(
-            "colours for {} and {} points, not {} and {}",
-            source_rgb.len(),
-            target_rgb.len(),
-            source.len(),
-            target.len()
-        );
-    }
-    let (a, b) = (normalise_colours(source_rgb), normalise_colours(target_rgb));
-    register_impl(source, Some(&a), target, Some(&b), o)
+    Ok(candidates(source, Some(source_rgb), target, Some(target_rgb), o)?.remove(0))
 }
 
 /// Colours divided by their per-channel mean.
@@ -434,13 +533,62 @@ fn normalise_colours(c: &[[f64; 3]]) -> Vec<[f64; 3]> {
     c.iter().map(|x| std::array::from_fn(|a| x[a] / mean[a].max(1e-6))).collect()
 }
 
-fn register_impl(
+/// Every distinct pose hypothesis for `source` onto `target`, the most plausible first (at
+/// least one): a caller that checks poses against the data ([`crate::template::instantiate`])
+/// takes the first that passes.
+///
+/// With scale, the source is first scaled by the clouds' size ratio s₀ ([`object_size`]), so
+/// that features, RANSAC's edge-length check and the ICP distances see one object size; the
+/// scale then stays within [`RegisterOptions::scale_tolerance`] of s₀. FPFH on
+/// voxel-downsampled clouds, RANSAC over mutual nearest features (3-point samples passing the
+/// edge-length check, scored by correspondence inliers within 1.5 voxels); the 8 best distinct
+/// hypotheses, each also spun about the target's three principal axes in 30° steps (a mug's
+/// handle, a brick's studs: small asymmetries of symmetric bulk) and screened by a short ICP on
+/// the coarse clouds; the 8 fittest refined by symmetric ICP (1.5 voxels, then 0.5 voxel at
+/// half the voxel size). Fitness is counted within one voxel (Gaussian means of two instances
+/// are different samples of one surface: within half a voxel a right and a flipped pose score
+/// alike on a few hundred points). Ranked by the two-sided fitness
+/// ([`Registration::overlap`]), then RMSE.
+/// When the shape leaves the choice open (a candidate turned more than 10° from the best fits
+/// within 95 % as well: a ball, a can) and colours are given, every candidate is refined by
+/// colour ICP, then by shape ICP, and ranked the same way.
+pub fn candidates(
     source: &[[f64; 3]],
     source_rgb: Option<&[[f64; 3]]>,
     target: &[[f64; 3]],
     target_rgb: Option<&[[f64; 3]]>,
     o: &RegisterOptions,
-) -> Result<Registration> {
+) -> Result<Vec<Registration>> {
+    for (rgb, pts, what) in [(source_rgb, source, "source"), (target_rgb, target, "target")] {
+        if rgb.is_some_and(|c| c.len() != pts.len()) {
+            bail!("colours for {} {what} points, not {}", rgb.map_or(0, |c| c.len()), pts.len());
+        }
+    }
+    let (sc, tc) = (source_rgb.map(normalise_colours), target_rgb.map(normalise_colours));
+    let source_size = object_size(source);
+    let expected_scale = if o.with_scale && source_size > 0.0 { object_size(target) / source_size } else { 1.0 };
+    if !(expected_scale.is_finite() && expected_scale > 0.0) {
+        bail!("cannot register a cloud of size {} onto one of size {}", source_size, object_size(target));
+    }
+    let pre = Sim3 { scale: expected_scale, ..Sim3::identity() };
+    let scaled: Vec<[f64; 3]> = source.iter().map(|p| pre.apply(p)).collect();
+    let range = o.with_scale.then(|| (1.0 / (1.0 + o.scale_tolerance), 1.0 + o.scale_tolerance));
+    let mut out = register_scaled(&scaled, sc.as_deref(), target, tc.as_deref(), o, range)?;
+    for r in &mut out {
+        r.transform = r.transform.compose(&pre);
+        r.expected_scale = expected_scale;
+    }
+    Ok(out)
+}
+
+fn register_scaled(
+    source: &[[f64; 3]],
+    source_rgb: Option<&[[f64; 3]]>,
+    target: &[[f64; 3]],
+    target_rgb: Option<&[[f64; 3]]>,
+    o: &RegisterOptions,
+    range: Option<(f64, f64)>,
+) -> Result<Vec<Registration>> {
     let (s, sc) = voxel_downsample_with(source, source_rgb, o.voxel);
     let (d, dc) = voxel_downsample_with(target, target_rgb, o.voxel);
     if s.len() < 8 || d.len() < 8 {
@@ -473,7 +621,7 @@ fn register_impl(
         if !edges_agree(&a, &b, o.edge_ratio) {
             continue;
         }
-        let Some(x) = umeyama(&a, &b, o.with_scale) else { continue };
+        let Some(x) = umeyama_bounded(&a, &b, range) else { continue };
         if a.iter().zip(&b).any(|(p, q)| dist2(&x.apply(p), q) > dist * dist) {
             continue;
         }
@@ -491,37 +639,46 @@ fn register_impl(
             best.truncate(KEEP);
         }
     }
-    if best.is_empty() {
+    if best.is_empty() && o.grid_rotations == 0 {
         bail!(
             "RANSAC found no hypothesis passing the edge-length and distance checks ({} correspondences)",
             corr.len()
         );
     }
     // Candidates: every kept hypothesis, also spun about the target's principal axes in 30°
-    // steps; screened by a short ICP on the coarse clouds, the 8 fittest refined.
+    // steps, and the rotation grid about the centroids (feature matches on a few hundred noisy
+    // Gaussian means can all be wrong); screened by a short ICP on the coarse clouds
+    // (two-sided fitness), the 8 fittest refined.
     let d_tree = tree(&d);
     let centre = centroid(&d);
     let axes = principal_axes(&d);
-    let mut screened: Vec<(f64, Sim3)> = Vec::new();
+    let mut starts: Vec<Sim3> = Vec::new();
     for (_, x) in &best {
-        let mut spun = vec![*x];
+        starts.push(*x);
         for axis in &axes {
             for step in 1..12 {
                 let r = *nalgebra::Rotation3::from_axis_angle(axis, step as f64 * std::f64::consts::PI / 6.0).matrix();
-                spun.push(Sim3 { rotation: r, scale: 1.0, translation: centre - r * centre }.compose(x));
+                starts.push(Sim3 { rotation: r, scale: 1.0, translation: centre - r * centre }.compose(x));
             }
         }
-        for x in spun {
-            let x = icp(&s, &d, x, dist, 15, o.with_scale);
-            let (fitness, _, _) = evaluate(&x, &s, &sc, &d_tree, &dc, o.voxel / 2.0);
-            screened.push((fitness, x));
-        }
     }
+    let source_centre = centroid(&s);
+    for r in rotation_grid(o.grid_rotations) {
+        starts.push(Sim3 { rotation: r, scale: 1.0, translation: centre - r * source_centre });
+    }
+    let mut screened: Vec<(f64, Sim3)> = starts
+        .into_iter()
+        .map(|x| {
+            let x = icp(&s, &d, x, dist, 15, range, false);
+            let (fitness, _, _) = evaluate(&x, &s, &sc, &d_tree, &dc, o.voxel);
+            (fitness.min(reverse_fitness(&x, &s, &d, o.voxel)), x)
+        })
+        .collect();
     screened.sort_by(|a, b| b.0.total_cmp(&a.0));
-    let mut candidates: Vec<Sim3> = Vec::new();
+    let mut coarse: Vec<Sim3> = Vec::new();
     for (_, x) in screened {
-        if candidates.len() < KEEP && candidates.iter().all(|y| y.rotation_error_deg(&x) > 5.0) {
-            candidates.push(x);
+        if coarse.len() < KEEP && coarse.iter().all(|y| y.rotation_error_deg(&x) > 5.0) {
+            coarse.push(x);
         }
     }
     let fine = o.voxel / 2.0;
@@ -530,47 +687,86 @@ fn register_impl(
     let d2_tree = tree(&d2);
     let lambda = 2.0 * o.voxel * o.colour_weight;
     let coloured = source_rgb.is_some() && target_rgb.is_some() && lambda > 0.0;
-    // Each candidate refined by shape (two ICP stages). When the shape leaves the choice open
-    // (a candidate turned more than 10° from the fittest fits within 95 % as well: a ball, a
-    // can) and colours are given, colour ICP refines every candidate further, the fittest of
-    // those wins and gets a last shape-only ICP; otherwise the fittest shape-only result wins.
     let score = |x: Sim3| {
-        let (fitness, rmse, colour) = evaluate(&x, &s2, &s2c, &d2_tree, &d2c, o.voxel / 2.0);
-        (x, fitness, rmse, colour)
+        let (fitness, rmse, colour) = evaluate(&x, &s2, &s2c, &d2_tree, &d2c, o.voxel);
+        Registration {
+            transform: x,
+            fitness,
+            fitness_reverse: reverse_fitness(&x, &s2, &d2, o.voxel),
+            rmse,
+            colour_error: colour,
+            shape_ambiguous: false,
+            correspondences: corr.len(),
+            expected_scale: 1.0,
+        }
     };
-    let fittest = |v: &[(Sim3, f64, f64, f64)]| {
-        *v.iter()
-            .max_by(|a, b| (a.1, -a.2).partial_cmp(&(b.1, -b.2)).unwrap_or(std::cmp::Ordering::Equal))
-            .expect("candidates")
+    let rank = |v: &mut Vec<Registration>| {
+        v.sort_by(|a, b| {
+            (b.overlap(), -b.rmse).partial_cmp(&(a.overlap(), -a.rmse)).unwrap_or(std::cmp::Ordering::Equal)
+        });
+        let mut kept: Vec<Registration> = Vec::new();
+        for r in v.drain(..) {
+            if kept.iter().all(|k| k.transform.rotation_error_deg(&r.transform) > 5.0) {
+                kept.push(r);
+            }
+        }
+        *v = kept;
     };
-    let shaped: Vec<(Sim3, f64, f64, f64)> = candidates
+    let mut shaped: Vec<Registration> = coarse
         .into_iter()
         .map(|x| {
-            let x = icp(&s2, &d2, x, dist, o.icp_iterations, o.with_scale);
-            score(icp(&s2, &d2, x, o.voxel / 2.0, o.icp_iterations, o.with_scale))
+            let x = icp(&s2, &d2, x, dist, o.icp_iterations, range, true);
+            score(icp(&s2, &d2, x, fine, o.icp_iterations, range, true))
         })
         .collect();
-    let best_shape = fittest(&shaped);
-    let rival = shaped.iter().filter(|c| c.0.rotation_error_deg(&best_shape.0) > 10.0).map(|c| c.1).fold(0.0, f64::max);
-    let ambiguous = rival >= 0.95 * best_shape.1;
-    let pick = if coloured && ambiguous {
-        let tinted: Vec<_> = shaped
+    rank(&mut shaped);
+    let top = shaped[0].overlap();
+    let ambiguous = shaped[1..].iter().any(|c| c.overlap() >= 0.95 * top);
+    let mut out = if coloured && ambiguous {
+        let mut tinted: Vec<Registration> = shaped
             .iter()
-            .map(|c| score(colour_icp(&s2, &s2c, &d2, &d2c, c.0, o.voxel, lambda, o.icp_iterations, o.with_scale)))
+            .map(|c| {
+                let x = colour_icp(&s2, &s2c, &d2, &d2c, c.transform, o.voxel, lambda, o.icp_iterations, range);
+                score(icp(&s2, &d2, x, fine, o.icp_iterations, range, true))
+            })
             .collect();
-        score(icp(&s2, &d2, fittest(&tinted).0, o.voxel / 2.0, o.icp_iterations, o.with_scale))
+        // Colour decides among poses the shape cannot tell apart.
+        tinted.sort_by(|a, b| a.colour_error.total_cmp(&b.colour_error));
+        let best = tinted[0].overlap();
+        tinted.sort_by(|a, b| {
+            let ok = |r: &Registration| r.overlap() >= 0.95 * best;
+            ok(b).cmp(&ok(a)).then(a.colour_error.total_cmp(&b.colour_error))
+        });
+        let mut kept: Vec<Registration> = Vec::new();
+        for r in tinted {
+            if kept.iter().all(|k| k.transform.rotation_error_deg(&r.transform) > 5.0) {
+                kept.push(r);
+            }
+        }
+        kept
     } else {
-        best_shape
+        shaped
     };
-    let (transform, fitness, rmse, colour) = pick;
-    Ok(Registration {
-        transform,
-        fitness,
-        rmse,
-        colour_error: colour,
-        shape_ambiguous: ambiguous,
-        correspondences: corr.len(),
-    })
+    for r in &mut out {
+        r.shape_ambiguous = ambiguous;
+    }
+    Ok(out)
+}
+
+/// `n` rotations spread evenly over SO(3): a super-Fibonacci spiral of unit quaternions (Alexa,
+/// "Super-Fibonacci Spirals", CVPR 2022); 300 leave no rotation farther than ~25° from one.
+pub fn rotation_grid(n: usize) -> Vec<Matrix3<f64>> {
+    let phi = std::f64::consts::SQRT_2;
+    let psi = 1.533_751_168_755_204_3;
+    (0..n)
+        .map(|i| {
+            let s = i as f64 + 0.5;
+            let (r, big_r) = ((s / n as f64).sqrt(), (1.0 - s / n as f64).sqrt());
+            let (a, b) = (std::f64::consts::TAU * s / phi, std::f64::consts::TAU * s / psi);
+            let q = nalgebra::Quaternion::new(big_r * b.cos(), r * a.sin(), r * a.cos(), big_r * b.sin());
+            *nalgebra::UnitQuaternion::from_quaternion(q).to_rotation_matrix().matrix()
+        })
+        .collect()
 }
 
 /// The principal axes (unit eigenvectors of the covariance) of `points`.
@@ -596,7 +792,7 @@ fn colour_icp(
     dist: f64,
     lambda: f64,
     iterations: usize,
-    with_scale: bool,
+    scale_range: Option<(f64, f64)>,
 ) -> Sim3 {
     let lift =
         |p: &[f64; 3], c: &[f64; 3]| -> [f64; 6] { [p[0], p[1], p[2], lambda * c[0], lambda * c[1], lambda * c[2]] };
@@ -612,7 +808,7 @@ fn colour_icp(
                 b.push(dst[nn.item as usize]);
             }
         }
-        let Some(next) = umeyama(&a, &b, with_scale) else { break };
+        let Some(next) = umeyama_bounded(&a, &b, scale_range) else { break };
         let change = (next.rotation - x.rotation).norm() + (next.translation - x.translation).norm() / dist;
         x = next;
         if change < 1e-9 {

@@ -124,15 +124,27 @@ pub fn write(run: &Path, a: &PipelineArgs, stages: &[(Stage, bool, f64)]) -> Res
                 seg["instances"].as_array().into_iter().flatten().filter_map(|r| num(r, "gaussians")).sum();
             let pruning = read(run, "instance.json").map(|v| v["background_pruning"].clone()).unwrap_or_default();
             if let (Some(keep), Some(dropped)) = (num(&pruning, "keep"), num(&pruning, "dropped")) {
+                let rule = &pruning["rule"];
+                let how = match (num(rule, "budget_db"), num(rule, "psnr_whole"), num(rule, "psnr_pruned")) {
+                    (Some(b), Some(w), Some(p)) => format!(
+                        "the smallest share whose pruned plain scene stays within the budget of {b} dB on {} training \
+                         views ({w:.2} → {p:.2} dB) before the joint optimisation",
+                        rule["views"]
+                    ),
+                    _ => format!("`instance.background_keep` = {keep}"),
+                };
                 let _ = writeln!(
                     md,
                     "Of the plain scene's {:.0} Gaussians, {:.0} ({:.1} %) belong to instances; of its {:.0} background \
-                     Gaussians InstGS keeps the {:.0} most significant (`instance.background_keep` = {keep}).\n",
+                     Gaussians InstGS keeps the {:.0} most significant ({:.1} %: {how}; the {} near an instance rank \
+                     first).\n",
                     bg + objects,
                     objects,
                     100.0 * objects / (bg + objects),
                     bg,
-                    bg - dropped
+                    bg - dropped,
+                    100.0 * keep,
+                    rule["protected"]
                 );
             } else if bg + objects > 0.0 {
                 let _ = writeln!(
@@ -172,27 +184,68 @@ pub fn write(run: &Path, a: &PipelineArgs, stages: &[(Stage, bool, f64)]) -> Res
             s["background_gaussians"],
             s["splats"]
         );
+        let acc = &s["acceptance"];
+        let limit = |k: &str| num(acc, k).unwrap_or(f64::NAN);
         let _ = writeln!(
             md,
-            "| group | instance | Gaussians | fitness | RMSE | scale | rotation error (°) | translation error (% of size) | scale error (%) |\n|---|---|---|---|---|---|---|---|---|"
+            "Each instance is registered onto its group's reference (the instance with the most opaque Gaussians) \
+             and accepted only when the pose passes every check: both fitnesses ≥ {}, scale within ±{:.0} % of the \
+             clouds' size ratio{}. A refused instance stays plain (its Gaussians remain background). \
+             *borderline*: accepted with a check within 0.05 (1 dB for PSNR) of its limit.\n",
+            limit("min_fitness"),
+            100.0 * limit("scale_tolerance"),
+            if s["render_check"].as_bool() == Some(true) {
+                format!(
+                    ", and the render check: silhouette IoU ≥ {} and PSNR ≥ {} dB against the instance's own render",
+                    limit("min_render_iou"),
+                    limit("min_render_psnr")
+                )
+            } else {
+                " (no render check ran)".into()
+            }
+        );
+        let _ = writeln!(
+            md,
+            "| group | instance | status | Gaussians | fitness | reverse fitness | scale | render IoU | render PSNR (dB) | rotation error (°) | translation error (% of size) | scale error (%) |\n|---|---|---|---|---|---|---|---|---|---|---|---|"
         );
         let f = |r: &serde_json::Value, k: &str, m: f64, d: usize| {
             num(r, k).map(|v| format!("{:.*}", d, v * m)).unwrap_or_else(|| "—".into())
         };
+        let mut reasons = Vec::new();
         for r in s["instances"].as_array().into_iter().flatten() {
+            let status = r["status"].as_str().unwrap_or("?");
+            let near = |k: &str, lim: &str, margin: f64| num(r, k).is_some_and(|v| v < limit(lim) + margin);
+            let borderline = status == "accepted"
+                && (near("fitness", "min_fitness", 0.05)
+                    || near("fitness_reverse", "min_fitness", 0.05)
+                    || near("render_iou", "min_render_iou", 0.05)
+                    || near("render_psnr", "min_render_psnr", 1.0));
+            let shown = match status {
+                "refused" | "plain" => format!("**{status}**"),
+                "accepted" if borderline => "accepted, *borderline*".into(),
+                other => other.into(),
+            };
+            if let Some(why) = r["reason"].as_str() {
+                reasons.push(format!("- {} {}: {status}: {why}", r["group"].as_str().unwrap_or("?"), r["id"]));
+            }
             let _ = writeln!(
                 md,
-                "| {} | {} | {} | {} | {} | {} | {} | {} | {} |",
+                "| {} | {} | {shown} | {} | {} | {} | {} | {} | {} | {} | {} | {} |",
                 r["group"].as_str().unwrap_or("?"),
                 r["id"],
                 r["gaussians"],
                 f(r, "fitness", 1.0, 3),
-                f(r, "rmse", 1.0, 4),
+                f(r, "fitness_reverse", 1.0, 3),
                 f(r, "scale", 1.0, 4),
+                f(r, "render_iou", 1.0, 3),
+                f(r, "render_psnr", 1.0, 1),
                 f(r, "rotation_error_deg", 1.0, 2),
                 f(r, "translation_error_fraction", 100.0, 2),
                 f(r, "scale_error_fraction", 100.0, 2)
             );
+        }
+        if !reasons.is_empty() {
+            let _ = writeln!(md, "\n{}", reasons.join("\n"));
         }
         md.push('\n');
     }

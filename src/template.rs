@@ -22,7 +22,10 @@ use glam::{Mat3, Quat, Vec3};
 use kiddo::SquaredEuclidean;
 
 use crate::instance::{quat_mul, Group, Instance, InstancedScene, Offsets, ShRotation, Similarity};
-use crate::register::{centroid, farthest_point_sample, register, register_coloured, RegisterOptions, Sim3};
+use crate::register::{
+    candidates, centroid, farthest_point_sample, median_spacing, object_size, reverse_fitness, voxel_downsample,
+    RegisterOptions, Sim3,
+};
 use crate::scene::{Scene, SH_C0};
 use crate::segment::InstanceGroup;
 use crate::train::{knn_log_scales, logit, sigmoid};
@@ -44,15 +47,48 @@ pub struct InstanceOptions {
     pub init: TemplateInit,
     /// Estimate a uniform scale per instance (registration and ICP).
     pub with_scale: bool,
-    /// Register with the Gaussians' base colours too ([`register_coloured`]), for symmetric shapes.
+    /// Register with the Gaussians' base colours too ([`crate::register::register_coloured`]),
+    /// for symmetric shapes.
     pub use_colour: bool,
     /// [`RegisterOptions::colour_weight`].
     pub colour_weight: f64,
     /// Gaussians below this opacity take no part in registration and merging.
     pub min_opacity: f32,
-    /// Registration voxel = this fraction of the first instance's size ([`object_size`]).
+    /// Registration voxel = this fraction of the reference instance's size ([`object_size`]).
     pub voxel_fraction: f64,
     pub seed: u64,
+    /// What a pose must pass before its instance is instanced.
+    pub accept: Acceptance,
+}
+
+/// The checks a registered pose must pass before its instance shares the group's template
+/// (configuration `[instance]`, configs/pipeline.toml). A pose that fails them all leaves the
+/// instance plain: its Gaussians stay in the scene as background.
+#[derive(Clone, Debug, PartialEq, serde::Serialize)]
+pub struct Acceptance {
+    /// Both fitnesses ([`PoseCheck`]) at least this: the instance's Gaussians lie on the
+    /// reference's and the reference's on the instance's.
+    pub min_fitness: f64,
+    /// The pose's scale within this relative distance of the two clouds' size ratio.
+    pub scale_tolerance: f64,
+    /// Render check ([`RenderCheck`]): median silhouette IoU at least this.
+    pub min_render_iou: f64,
+    /// Render check: PSNR (dB, after a per-channel gain for the instance's tint) at least this.
+    pub min_render_psnr: f64,
+    /// Pose hypotheses tried per instance, the most plausible first, over two RANSAC seeds.
+    pub max_candidates: usize,
+}
+
+impl Default for Acceptance {
+    fn default() -> Self {
+        Acceptance {
+            min_fitness: 0.5,
+            scale_tolerance: 0.25,
+            min_render_iou: 0.7,
+            min_render_psnr: 17.0,
+            max_candidates: 6,
+        }
+    }
 }
 
 impl Default for InstanceOptions {
@@ -65,6 +101,44 @@ impl Default for InstanceOptions {
             min_opacity: 0.05,
             voxel_fraction: 0.04,
             seed: 0,
+            accept: Acceptance::default(),
+        }
+    }
+}
+
+/// What became of one instance.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Status {
+    /// The group's reference: the instance the others are registered onto (the one with the
+    /// most opaque Gaussians); its frame is the template's.
+    Reference,
+    /// Registered; every check passed.
+    Accepted,
+    /// No pose passed the checks; the instance stays plain (background Gaussians).
+    Refused(String),
+    /// Its group kept fewer than two instances, so the whole group stays plain.
+    Plain(String),
+}
+
+impl Status {
+    pub fn instanced(&self) -> bool {
+        matches!(self, Status::Reference | Status::Accepted)
+    }
+
+    /// "reference", "accepted", "refused" or "plain".
+    pub fn name(&self) -> &'static str {
+        match self {
+            Status::Reference => "reference",
+            Status::Accepted => "accepted",
+            Status::Refused(_) => "refused",
+            Status::Plain(_) => "plain",
+        }
+    }
+
+    pub fn reason(&self) -> Option<&str> {
+        match self {
+            Status::Refused(r) | Status::Plain(r) => Some(r),
+            _ => None,
         }
     }
 }
@@ -74,16 +148,122 @@ impl Default for InstanceOptions {
 pub struct InstanceReport {
     pub group: String,
     pub id: u32,
+    /// The group's reference instance.
+    pub reference: u32,
     /// Gaussians labelled with the instance.
     pub gaussians: usize,
-    /// Instance world → first instance's world (identity for the first).
+    /// Instance world → reference's world, the pose kept (identity for the reference; for a
+    /// refused instance the most plausible pose tried, for the record).
     pub relative: Sim3,
-    /// Registration fitness and RMSE (see [`crate::register::Registration`]); 1 and 0 for the
-    /// first instance.
-    pub fitness: f64,
-    pub rmse: f64,
+    /// The checks of that pose.
+    pub check: PoseCheck,
+    /// Its render check, where one ran.
+    pub render: Option<RenderScore>,
+    /// Pose hypotheses tried.
+    pub tried: usize,
     /// Another pose fitted the shape nearly as well; colour decided (when used).
     pub shape_ambiguous: bool,
+    pub status: Status,
+}
+
+/// The geometric checks of a pose (instance world → reference world) on the two instances'
+/// opaque Gaussian means, both voxel-downsampled at half the registration voxel.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PoseCheck {
+    /// Fraction of the instance's points with a reference point near ([`PoseCheck::measure`]).
+    pub fitness: f64,
+    /// Fraction of the reference's points with a (moved) instance point near.
+    pub fitness_reverse: f64,
+    /// The pose's scale over the clouds' size ratio ([`object_size`]): 1 when they agree.
+    pub scale_ratio: f64,
+    /// det of the pose's rotation part (+1 for a rotation, −1 for a mirror).
+    pub determinant: f64,
+}
+
+impl PoseCheck {
+    /// The identity pose of the reference onto itself.
+    pub fn perfect() -> PoseCheck {
+        PoseCheck { fitness: 1.0, fitness_reverse: 1.0, scale_ratio: 1.0, determinant: 1.0 }
+    }
+
+    /// Measures `x` (instance → reference) on the two clouds with the registration `voxel`.
+    /// Counterparts are sought within one voxel, or twice the sparser cloud's median point
+    /// spacing where that is larger (a coarser reconstruction's Gaussians lie farther apart).
+    pub fn measure(instance: &[[f64; 3]], reference: &[[f64; 3]], x: &Sim3, voxel: f64) -> PoseCheck {
+        let (a, b) = (voxel_downsample(instance, voxel / 2.0), voxel_downsample(reference, voxel / 2.0));
+        let size = object_size(instance);
+        let expected = if size > 0.0 { object_size(reference) / size } else { f64::NAN };
+        let spacing = (median_spacing(&a) * x.scale).max(median_spacing(&b));
+        let dist = voxel.max(2.0 * spacing);
+        PoseCheck {
+            fitness: reverse_fitness(&x.inverse(), &b, &a, dist / x.scale),
+            fitness_reverse: reverse_fitness(x, &a, &b, dist),
+            scale_ratio: x.scale / expected,
+            determinant: x.rotation.determinant(),
+        }
+    }
+
+    /// Why `x` fails `accept`'s geometric checks (None: it passes). `rigid`: the scale must be 1.
+    pub fn failure(&self, x: &Sim3, accept: &Acceptance, rigid: bool) -> Option<String> {
+        let finite = x.rotation.iter().chain(x.translation.iter()).all(|v| v.is_finite()) && x.scale.is_finite();
+        let orthonormal = (x.rotation * x.rotation.transpose() - nalgebra::Matrix3::identity()).norm() < 1e-6;
+        if !finite || !orthonormal {
+            return Some("the pose is not a similarity".into());
+        }
+        if self.determinant < 0.0 {
+            return Some("the pose mirrors the object".into());
+        }
+        if x.scale <= 0.0 || (rigid && (x.scale - 1.0).abs() > 1e-9) {
+            return Some(format!("scale {:.4} is not allowed", x.scale));
+        }
+        if !rigid && (self.scale_ratio.is_nan() || (self.scale_ratio - 1.0).abs() > accept.scale_tolerance + 1e-9) {
+            return Some(format!(
+                "scale {:.4} is {:.2}× the clouds' size ratio (tolerance ±{:.0} %)",
+                x.scale,
+                self.scale_ratio,
+                100.0 * accept.scale_tolerance
+            ));
+        }
+        if self.fitness.min(self.fitness_reverse) < accept.min_fitness {
+            return Some(format!(
+                "fitness {:.2} / reverse {:.2} below {:.2}",
+                self.fitness, self.fitness_reverse, accept.min_fitness
+            ));
+        }
+        None
+    }
+}
+
+/// A pose checked against the training images: the reference's Gaussians placed where the
+/// instance is and both rendered alone.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct RenderScore {
+    /// Views compared.
+    pub views: usize,
+    /// Median over views of the silhouettes' IoU (alpha > 0.5).
+    pub iou: f64,
+    /// PSNR (dB) of the placed reference against the instance's own render over the pixels of
+    /// either silhouette, after a least-squares gain per colour channel (the instance's tint).
+    pub psnr: f64,
+}
+
+impl RenderScore {
+    pub fn failure(&self, accept: &Acceptance) -> Option<String> {
+        if self.iou.is_nan() || self.iou < accept.min_render_iou {
+            return Some(format!("render IoU {:.2} below {:.2}", self.iou, accept.min_render_iou));
+        }
+        if self.psnr.is_nan() || self.psnr < accept.min_render_psnr {
+            return Some(format!("render PSNR {:.1} dB below {:.1}", self.psnr, accept.min_render_psnr));
+        }
+        None
+    }
+}
+
+/// Renders a pose check ([`crate::verify::ImageCheck`] on the GPU; tests may bring their own).
+pub trait RenderCheck {
+    /// `reference` and `instance`: the two instances' Gaussians in world space; `x`: instance
+    /// world → reference world. None when the instance shows in no view.
+    fn score(&mut self, reference: &Scene, instance: &Scene, id: u32, x: &Sim3) -> Result<Option<RenderScore>>;
 }
 
 /// Per-Gaussian labels (0 = background) from `labels.json` ({ids, labels}) or `labels.bin`
@@ -119,7 +299,7 @@ fn to_f64(p: [f32; 3]) -> [f64; 3] {
     p.map(|c| c as f64)
 }
 
-fn sim3_to_similarity(x: &Sim3) -> Similarity {
+pub fn sim3_to_similarity(x: &Sim3) -> Similarity {
     let r = Mat3::from_cols_array(&std::array::from_fn(|i| x.rotation[(i % 3, i / 3)] as f32));
     Similarity::from_parts(
         Quat::from_mat3(&r).normalize(),
@@ -129,7 +309,7 @@ fn sim3_to_similarity(x: &Sim3) -> Similarity {
 }
 
 /// `part` (world Gaussians) mapped by `x`, every parameter: means, rotations, log scales, SH.
-fn transform_gaussians(part: &Scene, x: &Similarity) -> Scene {
+pub fn transform_gaussians(part: &Scene, x: &Similarity) -> Scene {
     let mut out = part.clone();
     let q = x.quat_wxyz();
     let ln_s = x.scale.ln();
@@ -171,13 +351,17 @@ pub fn prune_background(
     Ok((scene.select(&idx), idx.iter().map(|&i| labels[i]).collect(), bg.len() - n_keep))
 }
 
-/// Registers every group's instances, builds templates and offsets; Gaussians of no group's
-/// instance stay background. `progress` receives one line per step.
+/// Registers every group's instances onto the group's reference (the instance with the most
+/// opaque Gaussians), checks each pose ([`PoseCheck`], and [`RenderCheck`] when given), builds
+/// templates and offsets from the accepted instances. A refused instance's Gaussians stay
+/// background, as do a whole group's when fewer than two of its instances are left; Gaussians
+/// of no group's instance stay background. `progress` receives one line per step.
 pub fn instantiate(
     scene: &Scene,
     labels: &[u32],
     groups: &[InstanceGroup],
     o: &InstanceOptions,
+    mut render_check: Option<&mut dyn RenderCheck>,
     mut progress: impl FnMut(&str),
 ) -> Result<(InstancedScene, Vec<InstanceReport>)> {
     if labels.len() != scene.len() {
@@ -192,7 +376,7 @@ pub fn instantiate(
     if !unknown.is_empty() {
         bail!("labels {unknown:?} are not instances of the groups file");
     }
-    let background_idx = members.get(&0).cloned().unwrap_or_default();
+    let mut background_idx = members.get(&0).cloned().unwrap_or_default();
     let mut reports = Vec::new();
     let mut out_groups = Vec::new();
     let c = scene.sh_coeffs() * 3;
@@ -217,67 +401,112 @@ pub fn instantiate(
                 (idx.iter().map(|&i| to_f64(p.means[i])).collect(), idx.iter().map(|&i| rgb(i)).collect())
             })
             .unzip();
-        let size = object_size(&opaque[0]);
+        // The reference: the most complete cloud (most opaque Gaussians; ties: the first).
+        let r = (0..parts.len()).max_by_key(|&k| (opaque[k].len(), usize::MAX - k)).expect("instances");
+        let size = object_size(&opaque[r]);
         let reg = RegisterOptions {
             voxel: size * o.voxel_fraction,
             with_scale: o.with_scale,
+            scale_tolerance: o.accept.scale_tolerance,
             colour_weight: o.colour_weight,
             seed: o.seed,
             ..RegisterOptions::for_size(size)
         };
-        // relative[k]: instance k's world → instance 1's world.
-        let mut relative = vec![Sim3::identity()];
-        reports.push(InstanceReport {
-            group: g.name.clone(),
-            id: g.ids[0],
-            gaussians: parts[0].len(),
-            relative: Sim3::identity(),
-            fitness: 1.0,
-            rmse: 0.0,
-            shape_ambiguous: false,
-        });
+        // relative[k]: instance k's world → the reference's world; None: not instanced.
+        let mut relative: Vec<Option<Sim3>> = vec![None; parts.len()];
+        relative[r] = Some(Sim3::identity());
+        let mut group_reports: Vec<InstanceReport> = Vec::new();
         if g.ids.len() == 1 {
             progress(&format!(
                 "group {:?} has one instance ({}): its Gaussians become the template unchanged",
                 g.name, g.ids[0]
             ));
         }
-        for k in 1..g.ids.len() {
-            let ro = RegisterOptions { seed: o.seed + k as u64, ..reg.clone() };
-            let r = if o.use_colour {
-                register_coloured(&opaque[k], &colours[k], &opaque[0], &colours[0], &ro)
-            } else {
-                register(&opaque[k], &opaque[0], &ro)
-            }
-            .with_context(|| format!("group {:?}: registering instance {} onto {}", g.name, g.ids[k], g.ids[0]))?;
-            progress(&format!(
-                "{} {}: registered onto {} (fitness {:.3}, RMSE {:.4}, scale {:.4}, {} correspondences{})",
-                g.name,
-                g.ids[k],
-                g.ids[0],
-                r.fitness,
-                r.rmse,
-                r.transform.scale,
-                r.correspondences,
-                if r.shape_ambiguous { "; shape ambiguous" } else { "" }
-            ));
-            relative.push(r.transform);
-            reports.push(InstanceReport {
+        for k in 0..parts.len() {
+            let mut report = InstanceReport {
                 group: g.name.clone(),
                 id: g.ids[k],
+                reference: g.ids[r],
                 gaussians: parts[k].len(),
-                relative: r.transform,
-                fitness: r.fitness,
-                rmse: r.rmse,
-                shape_ambiguous: r.shape_ambiguous,
-            });
+                relative: Sim3::identity(),
+                check: PoseCheck::perfect(),
+                render: None,
+                tried: 0,
+                shape_ambiguous: false,
+                status: Status::Reference,
+            };
+            if k != r {
+                let (x, status) = register_and_check(
+                    &parts,
+                    &opaque,
+                    &colours,
+                    k,
+                    r,
+                    &reg,
+                    o,
+                    &mut render_check,
+                    &mut report,
+                    &g.name,
+                    &g.ids,
+                )?;
+                report.relative = x;
+                report.status = status;
+                if report.status.instanced() {
+                    relative[k] = Some(x);
+                }
+                let line = match &report.status {
+                    Status::Refused(why) => format!("refused, stays plain: {why}"),
+                    _ => "accepted".into(),
+                };
+                progress(&format!(
+                    "{} {}: onto {} {line} (fitness {:.2} / {:.2}, scale {:.4}{}; {} poses tried{})",
+                    g.name,
+                    g.ids[k],
+                    g.ids[r],
+                    report.check.fitness,
+                    report.check.fitness_reverse,
+                    x.scale,
+                    report
+                        .render
+                        .map(|s| format!(", render IoU {:.2} PSNR {:.1} dB", s.iou, s.psnr))
+                        .unwrap_or_default(),
+                    report.tried,
+                    if report.shape_ambiguous { "; shape ambiguous" } else { "" }
+                ));
+            }
+            group_reports.push(report);
         }
-        // Template space: instance 1's world shifted so that its centroid is the origin.
-        let shift = Sim3 { translation: centroid(&opaque[0]), ..Sim3::identity() };
+        let kept: Vec<usize> = (0..parts.len()).filter(|&k| relative[k].is_some()).collect();
+        if kept.len() < 2 && g.ids.len() > 1 {
+            let why = format!(
+                "no instance of group {:?} but its reference {} passed the checks: the group stays plain",
+                g.name, g.ids[r]
+            );
+            progress(&why);
+            for rep in &mut group_reports {
+                if rep.status.instanced() {
+                    rep.status = Status::Plain(why.clone());
+                }
+            }
+            for id in &g.ids {
+                background_idx.extend_from_slice(&members[id]);
+            }
+            reports.extend(group_reports);
+            continue;
+        }
+        for &k in (0..parts.len()).filter(|k| !kept.contains(k)).collect::<Vec<_>>().iter() {
+            background_idx.extend_from_slice(&members[&g.ids[k]]);
+        }
+        reports.extend(group_reports);
+        let parts: Vec<Scene> = kept.iter().map(|&k| parts[k].clone()).collect();
+        let ids: Vec<u32> = kept.iter().map(|&k| g.ids[k]).collect();
+        let relative: Vec<Sim3> = kept.iter().map(|&k| relative[k].expect("kept")).collect();
+        // Template space: the reference's world shifted so that its centroid is the origin.
+        let shift = Sim3 { translation: centroid(&opaque[r]), ..Sim3::identity() };
         // template → world of instance k, and its inverse.
         let to_world: Vec<Sim3> = relative.iter().map(|a| a.inverse().compose(&shift)).collect();
         let to_template: Vec<Similarity> = to_world.iter().map(|x| sim3_to_similarity(&x.inverse())).collect();
-        let template = if g.ids.len() == 1 {
+        let template = if parts.len() == 1 {
             transform_gaussians(&parts[0], &to_template[0])
         } else {
             match o.init {
@@ -290,8 +519,7 @@ pub fn instantiate(
             }
         };
         progress(&format!("{}: template of {} Gaussians ({:?})", g.name, template.len(), o.init));
-        let instances: Vec<Instance> = g
-            .ids
+        let instances: Vec<Instance> = ids
             .iter()
             .zip(&to_world)
             .map(|(id, x)| Instance { id: id.to_string(), transform: sim3_to_similarity(x) })
@@ -299,19 +527,168 @@ pub fn instantiate(
         let offsets = nearest_offsets(&template, &instances, &parts, reg.voxel as f32);
         out_groups.push(Group { name: g.name.clone(), template, instances, offsets });
     }
+    background_idx.sort_unstable();
     let background = scene.select(&background_idx);
     let out = InstancedScene { sh_degree: scene.sh_degree, background, groups: out_groups };
     out.validate("instanced scene")?;
     Ok((out, reports))
 }
 
-/// An object's size, rotation-invariant: twice the 98th percentile of the points' distances to
-/// their centroid (a stray Gaussian does not count).
-pub fn object_size(points: &[[f64; 3]]) -> f64 {
-    let c = centroid(points);
-    let mut d: Vec<f64> = points.iter().map(|p| (nalgebra::Vector3::from(*p) - c).norm()).collect();
-    d.sort_by(f64::total_cmp);
-    2.0 * d.get(((d.len() as f64 - 1.0) * 0.98) as usize).copied().unwrap_or(0.0)
+/// Registers instance `k` onto the reference `r` and checks the hypotheses, the most plausible
+/// first, over two RANSAC seeds (up to `max_candidates`). Without a render check the first that
+/// passes the geometric checks ([`PoseCheck::failure`]) is kept. With one, every hypothesis
+/// that passes them is rendered; the best-rendering one whose silhouettes agree
+/// ([`Acceptance::min_render_iou`]) is refined against the renders ([`refine_pose`]) and kept
+/// if it still passes every check. Returns the pose and the verdict; `report` receives the kept
+/// (or, when refused, the most plausible) pose's checks.
+#[allow(clippy::too_many_arguments)]
+fn register_and_check(
+    parts: &[Scene],
+    opaque: &[Vec<[f64; 3]>],
+    colours: &[Vec<[f64; 3]>],
+    k: usize,
+    r: usize,
+    reg: &RegisterOptions,
+    o: &InstanceOptions,
+    render_check: &mut Option<&mut dyn RenderCheck>,
+    report: &mut InstanceReport,
+    group: &str,
+    ids: &[u32],
+) -> Result<(Sim3, Status)> {
+    let a = &o.accept;
+    let rigid = !o.with_scale;
+    // The most plausible pose tried and why it failed, for a refusal.
+    let mut first: Option<(Sim3, PoseCheck, Option<RenderScore>, String)> = None;
+    let mut best: Option<(Sim3, PoseCheck, RenderScore)> = None;
+    let mut tried = 0;
+    let mut last_error = None;
+    let context = || format!("group {group:?}: render check of instance {}", ids[k]);
+    'seeds: for attempt in 0..2u64 {
+        let ro = RegisterOptions { seed: o.seed + k as u64 + 1000 * attempt, ..reg.clone() };
+        let rgb = |i: usize| o.use_colour.then(|| colours[i].as_slice());
+        let found = match candidates(&opaque[k], rgb(k), &opaque[r], rgb(r), &ro) {
+            Ok(c) => c,
+            Err(e) => {
+                last_error = Some(format!("{e:#}"));
+                continue;
+            }
+        };
+        report.shape_ambiguous |= found[0].shape_ambiguous;
+        for cand in found {
+            if tried >= a.max_candidates {
+                break 'seeds;
+            }
+            tried += 1;
+            let x = cand.transform;
+            let check = PoseCheck::measure(&opaque[k], &opaque[r], &x, reg.voxel);
+            if let Some(why) = check.failure(&x, a, rigid) {
+                first.get_or_insert((x, check, None, why));
+                continue;
+            }
+            let Some(rc) = render_check.as_deref_mut() else {
+                report.check = check;
+                report.tried = tried;
+                return Ok((x, Status::Accepted));
+            };
+            let Some(score) = rc.score(&parts[r], &parts[k], ids[k], &x).with_context(context)? else {
+                first.get_or_insert((x, check, None, "the instance shows in no training view".into()));
+                continue;
+            };
+            if score.iou < a.min_render_iou {
+                first.get_or_insert((x, check, Some(score), score.failure(a).unwrap_or_default()));
+            } else if best.as_ref().is_none_or(|b| score.psnr > b.2.psnr) {
+                best = Some((x, check, score));
+            }
+        }
+        if best.is_some() {
+            break;
+        }
+    }
+    report.tried = tried;
+    if let (Some((x, _, score)), Some(rc)) = (best, render_check.as_deref_mut()) {
+        let centre = centroid(&opaque[r]);
+        let (x, score) =
+            refine_pose(rc, &parts[r], &parts[k], ids[k], x, score, centre, object_size(&opaque[r]), rigid)
+                .with_context(context)?;
+        let check = PoseCheck::measure(&opaque[k], &opaque[r], &x, reg.voxel);
+        report.check = check;
+        report.render = Some(score);
+        return Ok(match check.failure(&x, a, rigid).or_else(|| score.failure(a)) {
+            None => (x, Status::Accepted),
+            Some(why) => (x, Status::Refused(why)),
+        });
+    }
+    match first {
+        Some((x, check, score, why)) => {
+            report.check = check;
+            report.render = score;
+            Ok((x, Status::Refused(why)))
+        }
+        None => Ok((
+            Sim3::identity(),
+            Status::Refused(format!("registration failed: {}", last_error.unwrap_or_else(|| "no hypothesis".into()))),
+        )),
+    }
+}
+
+/// Pose refinement against the images: a pattern search over a small similarity `D` applied
+/// after `x` about the reference's `centre` (rotation about three axes, translation along three,
+/// and log scale unless `rigid`), each step kept when the render check's PSNR rises; steps start
+/// at 2° / 1 % of `size` / 1 % of scale and halve three times when no move helps (at most 120
+/// renders of the check). Registration on a few hundred Gaussian means leaves a few degrees of
+/// error that the pictures still show; the check's optimum is where the reference's pictures
+/// match the instance's.
+#[allow(clippy::too_many_arguments)]
+pub fn refine_pose(
+    rc: &mut dyn RenderCheck,
+    reference: &Scene,
+    instance: &Scene,
+    id: u32,
+    x: Sim3,
+    score: RenderScore,
+    centre: nalgebra::Vector3<f64>,
+    size: f64,
+    rigid: bool,
+) -> Result<(Sim3, RenderScore)> {
+    let about = |d: Sim3| {
+        let to = Sim3 { translation: -centre, ..Sim3::identity() };
+        let back = Sim3 { translation: centre, ..Sim3::identity() };
+        back.compose(&d).compose(&to)
+    };
+    let (mut x, mut score) = (x, score);
+    let mut evaluations = 0;
+    let params = if rigid { 6 } else { 7 };
+    for level in 0..4 {
+        let f = 0.5f64.powi(level);
+        let mut improved = true;
+        while improved && evaluations < 120 {
+            improved = false;
+            for p in 0..params {
+                for sign in [1.0, -1.0] {
+                    let step = sign * f;
+                    let mut d = Sim3::identity();
+                    match p {
+                        0..=2 => {
+                            let axis = nalgebra::Vector3::ith_axis(p);
+                            d.rotation =
+                                *nalgebra::Rotation3::from_axis_angle(&axis, (2.0 * step).to_radians()).matrix();
+                        }
+                        3..=5 => d.translation[p - 3] = 0.01 * step * size,
+                        _ => d.scale = (0.01 * step).exp(),
+                    }
+                    let y = about(d).compose(&x);
+                    evaluations += 1;
+                    if let Some(s) = rc.score(reference, instance, id, &y)? {
+                        if s.psnr > score.psnr + 0.01 {
+                            (x, score, improved) = (y, s, true);
+                            break;
+                        }
+                    }
+                }
+            }
+        }
+    }
+    Ok((x, score))
 }
 
 /// The paper's merge-and-sample template: every instance's opaque Gaussians in template space,

@@ -206,7 +206,7 @@ fn instantiate_recovers_instances_and_builds_templates() {
     let groups = vec![InstanceGroup { name: "blob".into(), ids: vec![1, 2, 3] }];
     for init in [TemplateInit::Merge, TemplateInit::Max, TemplateInit::First] {
         let o = InstanceOptions { init, ..Default::default() };
-        let (inst, reports) = instantiate(&scene, &labels, &groups, &o, |_| {}).unwrap();
+        let (inst, reports) = instantiate(&scene, &labels, &groups, &o, None, |_| {}).unwrap();
         assert_eq!(inst.background.len(), 3000);
         let g = &inst.groups[0];
         assert_eq!(g.instances.iter().map(|i| i.id.as_str()).collect::<Vec<_>>(), ["1", "2", "3"]);
@@ -217,8 +217,11 @@ fn instantiate_recovers_instances_and_builds_templates() {
         };
         assert_eq!(g.template.len(), expect, "{init:?}");
         for (k, r) in reports.iter().enumerate() {
-            // relative = instance k world → instance 1 world = truth₀ ∘ truthₖ⁻¹.
-            let truth = truths[0].compose(&truths[k].inverse());
+            // The reference is the largest instance (3, 5000 Gaussians); relative = instance k
+            // world → the reference's world = truth₂ ∘ truthₖ⁻¹.
+            assert_eq!(r.reference, 3);
+            assert_eq!(r.status.name(), if k == 2 { "reference" } else { "accepted" }, "{init:?} {k}");
+            let truth = truths[2].compose(&truths[k].inverse());
             let c = truths[k].apply(&[0.0; 3]);
             assert!(r.relative.rotation_error_deg(&truth) < 1.0, "{init:?} {k}");
             assert!(dist(r.relative.apply(&c), truth.apply(&c)) < 0.008, "{init:?} {k}");
@@ -253,18 +256,18 @@ fn instantiate_reports_bad_labels() {
     let (scene, labels) = plain_scene(&mut rng, &truths);
     let o = InstanceOptions::default();
     let groups = vec![InstanceGroup { name: "blob".into(), ids: vec![1, 2, 5] }];
-    let e = instantiate(&scene, &labels, &groups, &o, |_| {}).unwrap_err();
+    let e = instantiate(&scene, &labels, &groups, &o, None, |_| {}).unwrap_err();
     assert!(format!("{e:#}").contains("instance 5 claims no Gaussian"), "{e:#}");
     let groups = vec![InstanceGroup { name: "blob".into(), ids: vec![1] }];
-    let e = instantiate(&scene, &labels, &groups, &o, |_| {}).unwrap_err();
+    let e = instantiate(&scene, &labels, &groups, &o, None, |_| {}).unwrap_err();
     assert!(format!("{e:#}").contains("labels [2] are not instances"), "{e:#}");
-    let e = instantiate(&scene, &labels[1..], &groups, &o, |_| {}).unwrap_err();
+    let e = instantiate(&scene, &labels[1..], &groups, &o, None, |_| {}).unwrap_err();
     assert!(format!("{e:#}").contains("labels for"), "{e:#}");
     // A group of one instance keeps its Gaussians as the template.
     let groups =
         vec![InstanceGroup { name: "a".into(), ids: vec![1] }, InstanceGroup { name: "b".into(), ids: vec![2] }];
     let mut lines = Vec::new();
-    let (inst, _) = instantiate(&scene, &labels, &groups, &o, |l| lines.push(l.to_string())).unwrap();
+    let (inst, _) = instantiate(&scene, &labels, &groups, &o, None, |l| lines.push(l.to_string())).unwrap();
     assert_eq!(inst.groups[0].template.len(), 4000);
     assert!(lines.iter().any(|l| l.contains("has one instance")));
 }
@@ -330,4 +333,52 @@ fn background_pruning_keeps_instances_and_the_most_significant_background() {
     let (all, _, none) = instgs_vk::template::prune_background(&scene, &labels, &significance, 1.0).unwrap();
     assert_eq!((all.len(), none), (40, 0));
     assert!(instgs_vk::template::prune_background(&scene, &labels, &significance, 0.0).is_err());
+}
+
+/// `d` applied about the point `c`, after `x`.
+fn about(c: [f64; 3], d: Sim3, x: Sim3) -> Sim3 {
+    let c = Vector3::from(c);
+    let to = Sim3 { translation: -c, ..Sim3::identity() };
+    let back = Sim3 { translation: c, ..Sim3::identity() };
+    back.compose(&d).compose(&to).compose(&x)
+}
+
+#[test]
+fn degenerate_poses_are_refused_by_the_geometric_checks() {
+    use instgs_vk::template::{Acceptance, PoseCheck};
+    let mut rng = Rng::new(11);
+    let reference = object(&mut rng, 4000);
+    let truth = random_sim3(&mut rng, 1.0);
+    let instance: Vec<[f64; 3]> = object(&mut rng, 4000).iter().map(|p| truth.apply(p)).collect();
+    let x = truth.inverse();
+    let voxel = 0.8 * 0.04;
+    let a = Acceptance::default();
+    let check = |y: &Sim3| PoseCheck::measure(&instance, &reference, y, voxel).failure(y, &a, false);
+    assert_eq!(check(&x), None, "the true pose passes: {:?}", PoseCheck::measure(&instance, &reference, &x, voxel));
+    let c = instgs_vk::register::centroid(&reference);
+    let c = [c.x, c.y, c.z];
+    // Collapsed onto the reference's centre (one-sided fitness would read ~1).
+    let collapsed = about(c, Sim3 { scale: 0.02, ..Sim3::identity() }, x);
+    assert!(check(&collapsed).is_some_and(|w| w.contains("scale")), "{:?}", check(&collapsed));
+    // Shrunk by half: still inside the reference, fitness one way only.
+    let shrunk = about(c, Sim3 { scale: 0.5, ..Sim3::identity() }, x);
+    assert!(check(&shrunk).is_some_and(|w| w.contains("scale")), "{:?}", check(&shrunk));
+    // Mirrored through a plane (det −1).
+    let mut m = Sim3::identity();
+    m.rotation[(2, 2)] = -1.0;
+    let mirrored = about(c, m, x);
+    assert!(check(&mirrored).is_some_and(|w| w.contains("mirror")), "{:?}", check(&mirrored));
+    // Turned a quarter about each axis, and flipped upside down: the clouds no longer cover
+    // each other.
+    for (axis, angle) in [(0, 90.0), (1, 90.0), (2, 90.0), (0, 180.0)] {
+        let r = Rotation3::from_axis_angle(&Vector3::ith_axis(axis), f64::to_radians(angle));
+        let turned = about(c, Sim3 { rotation: *r.matrix(), ..Sim3::identity() }, x);
+        assert!(check(&turned).is_some_and(|w| w.contains("fitness")), "axis {axis} {angle}°: {:?}", check(&turned));
+    }
+    // A rigid run refuses any scale but 1; not a similarity at all is refused.
+    let rigid_check = PoseCheck::measure(&instance, &reference, &x, voxel);
+    assert!(rigid_check.failure(&Sim3 { scale: 1.1, ..x }, &a, true).is_some());
+    let mut sheared = x;
+    sheared.rotation[(0, 1)] += 0.3;
+    assert!(check(&sheared).is_some_and(|w| w.contains("not a similarity")), "{:?}", check(&sheared));
 }

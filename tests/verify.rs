@@ -1,0 +1,206 @@
+//! Registration checked against the images (`instgs_vk::verify`): on a rendered scene of copies
+//! of one coloured object and one object that only resembles it, the copies are accepted, the
+//! other is refused and stays plain (the instanced scene renders like the plain one over its
+//! pixels), a group left with one instance stays plain whole, and a flipped pose of a copy
+//! fails the render check. Validation on.
+mod common;
+
+use common::*;
+use glam::Vec3;
+use instgs_vk::camera::Camera;
+use instgs_vk::raster::{GpuScene, Rasterizer};
+use instgs_vk::register::Sim3;
+use instgs_vk::scene::Scene;
+use instgs_vk::segment::InstanceGroup;
+use instgs_vk::template::{instantiate, InstanceOptions, RenderCheck};
+use instgs_vk::verify::ImageCheck;
+use nalgebra::{Rotation3, Vector3};
+
+/// Surface samples of an asymmetric object about 0.8 units across (an ellipsoid body, a head,
+/// a handle), or of a ball of the same size (`ball`).
+fn surface(rng: &mut Rng, n: usize, ball: bool) -> Vec<[f64; 3]> {
+    (0..n)
+        .map(|i| {
+            let d = Vector3::new(rng.normal() as f64, rng.normal() as f64, rng.normal() as f64).normalize();
+            let p = if ball {
+                d * 0.33
+            } else {
+                match i % 4 {
+                    0 | 1 => Vector3::new(0.3 * d.x, 0.2 * d.y, 0.15 * d.z),
+                    2 => Vector3::new(0.25, 0.0, 0.2) + d * 0.1,
+                    _ => Vector3::new(-0.3 - rng.range(0.0, 0.2) as f64, 0.04 * d.y + 0.05, 0.04 * d.z),
+                }
+            };
+            [p.x, p.y, p.z]
+        })
+        .collect()
+}
+
+/// Gaussians on `points` placed by `x`, coloured by their object-space position (so a turned
+/// copy shows other colours where the true pose shows these).
+fn push(scene: &mut Scene, labels: &mut Vec<u32>, points: &[[f64; 3]], x: &Sim3, label: u32) {
+    for p in points {
+        let q = x.apply(p);
+        scene.means.push(q.map(|c| c as f32));
+        scene.scales.push([-3.4; 3]);
+        scene.quats.push([1.0, 0.0, 0.0, 0.0]);
+        scene.opacities.push(3.0);
+        scene.sh.extend([4.0 * p[0] as f32, 4.0 * p[1] as f32, 4.0 * p[2] as f32]);
+        labels.push(label);
+    }
+}
+
+fn pose(yaw_deg: f64, x: f64) -> Sim3 {
+    let r = Rotation3::from_axis_angle(&Vector3::y_axis(), yaw_deg.to_radians());
+    Sim3 { rotation: *r.matrix(), scale: 1.0, translation: Vector3::new(x, 0.0, 0.0) }
+}
+
+/// Copies 1 and 2 of the object, 3 the ball, on a line; a ground of background Gaussians.
+fn scene() -> (Scene, Vec<u32>, [Sim3; 3]) {
+    let mut rng = Rng::new(31);
+    let mut s = Scene { sh_degree: 0, ..Default::default() };
+    let mut labels = Vec::new();
+    let poses = [pose(40.0, -1.3), pose(-75.0, 0.0), pose(10.0, 1.3)];
+    push(&mut s, &mut labels, &surface(&mut rng, 3000, false), &poses[0], 1);
+    push(&mut s, &mut labels, &surface(&mut rng, 3400, false), &poses[1], 2);
+    push(&mut s, &mut labels, &surface(&mut rng, 3000, true), &poses[2], 3);
+    let ground: Vec<[f64; 3]> =
+        (0..2000).map(|_| [rng.range(-2.5, 2.5) as f64, 0.45, rng.range(-1.5, 1.5) as f64]).collect();
+    push(&mut s, &mut labels, &ground, &Sim3::identity(), 0);
+    (s, labels, poses)
+}
+
+/// A ring of cameras looking down at the scene (−Y is up, as OpenCV captures).
+fn cameras(n: usize) -> Vec<Camera> {
+    (0..n)
+        .map(|i| {
+            let a = i as f32 * std::f32::consts::TAU / n as f32;
+            let eye = Vec3::new(4.5 * a.sin(), -2.5, 4.5 * a.cos());
+            look_at(eye, Vec3::ZERO, Vec3::new(0.0, -1.0, 0.0), 128, 96, 110.0)
+        })
+        .collect()
+}
+
+/// PSNR of two renders over the pixels `keep` marks (∞ when equal).
+fn psnr_over(a: &[[f32; 4]], b: &[[f32; 4]], keep: &[bool]) -> f64 {
+    let (mut sq, mut n) = (0.0f64, 0usize);
+    for ((p, q), &k) in a.iter().zip(b).zip(keep) {
+        if k {
+            sq += (0..3).map(|c| (p[c] as f64 - q[c] as f64).powi(2)).sum::<f64>();
+            n += 3;
+        }
+    }
+    assert!(n > 300, "{n} channel values compared");
+    if sq == 0.0 {
+        f64::INFINITY
+    } else {
+        -10.0 * (sq / n as f64).log10()
+    }
+}
+
+#[test]
+fn copies_are_accepted_and_a_look_alike_stays_plain() {
+    let (gpu, k) = gpu();
+    let (plain, labels, poses) = scene();
+    let mut check = ImageCheck::new(&gpu, &k, cameras(12), None).unwrap();
+    let groups = vec![InstanceGroup { name: "thing".into(), ids: vec![1, 2, 3] }];
+    let o = InstanceOptions::default();
+    let (inst, reports) =
+        instantiate(&plain, &labels, &groups, &o, Some(&mut check as &mut dyn RenderCheck), |_| {}).unwrap();
+    let status: Vec<&str> = reports.iter().map(|r| r.status.name()).collect();
+    assert_eq!(status, ["accepted", "reference", "refused"], "{reports:#?}");
+    assert!(reports.iter().all(|r| r.reference == 2));
+    // The copy's pose is right: instance 1 → the reference = pose₂ ∘ pose₁⁻¹.
+    let truth = poses[1].compose(&poses[0].inverse());
+    assert!(reports[0].relative.rotation_error_deg(&truth) < 1.0, "{:?}", reports[0].relative);
+    let render = reports[0].render.expect("render check ran");
+    assert!(render.iou > 0.9 && render.psnr > 25.0, "{render:?}");
+    // The ball stays background: 3000 ground-truth-plain Gaussians more than the ground.
+    assert_eq!(inst.groups.len(), 1);
+    assert_eq!(inst.groups[0].instances.len(), 2);
+    assert_eq!(inst.background.len(), 2000 + 3000);
+    // The instanced scene renders like the plain one over the ball's pixels.
+    let mut r = Rasterizer::new(&gpu, &k).unwrap();
+    let top = look_at(Vec3::new(0.0, -6.0, 0.3), Vec3::ZERO, Vec3::new(0.0, 0.0, -1.0), 160, 120, 150.0);
+    let a = r.render(&GpuScene::new(&gpu, &plain).unwrap(), &top, [0.0; 3]).unwrap().image;
+    let b = r.render(&GpuScene::instanced(&gpu, &inst).unwrap(), &top, [0.0; 3]).unwrap().image;
+    let ball = instgs_vk::segment::subset(&plain, &labels, 3);
+    let alone = r.render(&GpuScene::new(&gpu, &ball).unwrap(), &top, [0.0; 3]).unwrap().image;
+    let keep: Vec<bool> = alone.iter().map(|p| p[3] < 0.99).collect();
+    let db = psnr_over(&a, &b, &keep);
+    assert!(db >= 50.0, "refused instance's pixels: {db} dB against the plain render");
+    assert_clean(&gpu);
+}
+
+#[test]
+fn a_group_left_with_one_instance_stays_plain() {
+    let (gpu, k) = gpu();
+    let (plain, labels, _) = scene();
+    let mut check = ImageCheck::new(&gpu, &k, cameras(12), None).unwrap();
+    let groups = vec![
+        InstanceGroup { name: "thing".into(), ids: vec![1, 3] },
+        InstanceGroup { name: "other".into(), ids: vec![2] },
+    ];
+    let mut lines = Vec::new();
+    let (inst, reports) = instantiate(
+        &plain,
+        &labels,
+        &groups,
+        &InstanceOptions::default(),
+        Some(&mut check as &mut dyn RenderCheck),
+        |l| lines.push(l.to_string()),
+    )
+    .unwrap();
+    let status: Vec<&str> = reports.iter().map(|r| r.status.name()).collect();
+    assert_eq!(status, ["plain", "refused", "reference"], "{reports:#?}");
+    assert!(lines.iter().any(|l| l.contains("stays plain")), "{lines:?}");
+    assert_eq!(inst.groups.len(), 1, "only the one-instance group is instanced");
+    assert_eq!(inst.background.len(), 2000 + 3000 + 3000);
+    let mut r = Rasterizer::new(&gpu, &k).unwrap();
+    for cam in cameras(4) {
+        let a = r.render(&GpuScene::new(&gpu, &plain).unwrap(), &cam, [0.0; 3]).unwrap().image;
+        let b = r.render(&GpuScene::instanced(&gpu, &inst).unwrap(), &cam, [0.0; 3]).unwrap().image;
+        let db = psnr_over(&a, &b, &vec![true; a.len()]);
+        assert!(db >= 50.0, "{db} dB against the plain render");
+    }
+    assert_clean(&gpu);
+}
+
+#[test]
+fn a_flipped_or_shrunk_pose_fails_the_render_check() {
+    let (gpu, k) = gpu();
+    let (plain, labels, poses) = scene();
+    let mut check = ImageCheck::new(&gpu, &k, cameras(12), None).unwrap();
+    let (one, two) = (instgs_vk::segment::subset(&plain, &labels, 1), instgs_vk::segment::subset(&plain, &labels, 2));
+    let truth = poses[1].compose(&poses[0].inverse());
+    let a = instgs_vk::template::Acceptance::default();
+    let good = check.score(&two, &one, 1, &truth).unwrap().expect("visible");
+    assert_eq!(good.failure(&a), None, "{good:?}");
+    let centre = poses[1].translation;
+    let around = |d: Sim3| {
+        let to = Sim3 { translation: -centre, ..Sim3::identity() };
+        let back = Sim3 { translation: centre, ..Sim3::identity() };
+        back.compose(&d).compose(&to).compose(&truth)
+    };
+    for (name, d) in [
+        (
+            "flipped",
+            Sim3 {
+                rotation: *Rotation3::from_axis_angle(&Vector3::x_axis(), std::f64::consts::PI).matrix(),
+                ..Sim3::identity()
+            },
+        ),
+        (
+            "turned",
+            Sim3 {
+                rotation: *Rotation3::from_axis_angle(&Vector3::y_axis(), std::f64::consts::FRAC_PI_2).matrix(),
+                ..Sim3::identity()
+            },
+        ),
+        ("shrunk", Sim3 { scale: 0.3, ..Sim3::identity() }),
+    ] {
+        let s = check.score(&two, &one, 1, &around(d)).unwrap().expect("visible");
+        assert!(s.failure(&a).is_some(), "{name}: {s:?} passes");
+    }
+    assert_clean(&gpu);
+}

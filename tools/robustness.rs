@@ -1,0 +1,259 @@
+//! The registration robustness study (BENCHMARKS.md "Registration robustness"): the segmented
+//! instances of a pipeline run (RUN/point_cloud.ply + RUN/labels.json of a dataset with
+//! ground-truth poses in DIR/instances.json) are perturbed, seeded, and registered again with
+//! the acceptance checks and the render check of the `instance` stage; every instance but the
+//! reference is classed against the ground truth: correct (< 2°, < 2 % translation and scale),
+//! refused, wrong (accepted with > 5° or > 5 %), or in between (accepted, 2–5°/2–5 %).
+//!
+//! Cases: as segmented; Gaussians subsampled to 50 % and 25 % (the kept ones enlarged to cover
+//! the same surface, as a coarser reconstruction would); partial (the 30 % of each
+//! instance's Gaussians farthest along a random horizontal direction cut away); scaled (each
+//! instance by a uniform factor in 0.85–1.15 about its centroid; the truth scaled alike);
+//! outliers (10 % more Gaussians scattered in each instance's box, 20 % larger).
+//!
+//! ```sh
+//! cargo run --release --example robustness -- RUN DIR [--downscale K] [--seeds N] [--up z|y] [--only CASE]
+//! ```
+use std::collections::BTreeMap;
+use std::path::PathBuf;
+
+use anyhow::{bail, Context, Result};
+use instgs_vk::gpu::{Gpu, GpuOptions};
+use instgs_vk::kernels::Kernels;
+use instgs_vk::register::{centroid, Sim3};
+use instgs_vk::scene::Scene;
+use instgs_vk::template::{self, GroundTruthPose, InstanceOptions, RenderCheck};
+use rand::{Rng, SeedableRng};
+
+#[derive(Clone, Copy, Debug)]
+enum Case {
+    AsSegmented,
+    Subsample(f64),
+    Partial(f64),
+    Scaled,
+    Outliers(f64),
+}
+
+impl Case {
+    fn name(self) -> String {
+        match self {
+            Case::AsSegmented => "as segmented".into(),
+            Case::Subsample(f) => format!("subsampled to {:.0} %", 100.0 * f),
+            Case::Partial(f) => format!("partial ({:.0} % cut away)", 100.0 * f),
+            Case::Scaled => "scaled 0.85–1.15".into(),
+            Case::Outliers(f) => format!("{:.0} % outliers", 100.0 * f),
+        }
+    }
+}
+
+/// The perturbed scene and labels, and the ground truth moved with the instances.
+fn perturb(
+    scene: &Scene,
+    labels: &[u32],
+    truth: &BTreeMap<u32, GroundTruthPose>,
+    case: Case,
+    up: usize,
+    seed: u64,
+) -> (Scene, Vec<u32>, BTreeMap<u32, GroundTruthPose>) {
+    let mut rng = rand_pcg::Pcg64::seed_from_u64(seed);
+    let ids: Vec<u32> = truth.keys().copied().collect();
+    let mut keep: Vec<usize> = (0..scene.len()).collect();
+    let mut out_truth = truth.clone();
+    let mut extra = Scene { sh_degree: scene.sh_degree, ..Default::default() };
+    let mut extra_labels = Vec::new();
+    let mut s = scene.clone();
+    for &id in &ids {
+        let members: Vec<usize> = (0..scene.len()).filter(|&i| labels[i] == id).collect();
+        if members.is_empty() {
+            continue;
+        }
+        let pts: Vec<[f64; 3]> = members.iter().map(|&i| scene.means[i].map(|c| c as f64)).collect();
+        let c = centroid(&pts);
+        match case {
+            Case::AsSegmented => {}
+            Case::Subsample(f) => {
+                // A coarser reconstruction: fewer Gaussians, each larger (the kept ones cover
+                // the surface area of those dropped: scale × f^(-1/2)).
+                let drop: std::collections::HashSet<usize> =
+                    members.iter().copied().filter(|_| rng.random::<f64>() >= f).collect();
+                keep.retain(|i| !drop.contains(i));
+                for &i in &members {
+                    s.scales[i] = scene.scales[i].map(|v| v - 0.5 * f.ln() as f32);
+                }
+            }
+            Case::Partial(f) => {
+                // A horizontal direction (perpendicular to the up axis).
+                let a = rng.random::<f64>() * std::f64::consts::TAU;
+                let mut d = [0.0; 3];
+                d[(up + 1) % 3] = a.cos();
+                d[(up + 2) % 3] = a.sin();
+                let mut along: Vec<(f64, usize)> =
+                    members.iter().map(|&i| ((0..3).map(|k| scene.means[i][k] as f64 * d[k]).sum(), i)).collect();
+                along.sort_by(|x, y| y.0.total_cmp(&x.0));
+                let cut: std::collections::HashSet<usize> =
+                    along[..(f * along.len() as f64) as usize].iter().map(|x| x.1).collect();
+                keep.retain(|i| !cut.contains(i));
+            }
+            Case::Scaled => {
+                let k = 0.85 + 0.3 * rng.random::<f64>();
+                for &i in &members {
+                    for a in 0..3 {
+                        s.means[i][a] = (c[a] + k * (scene.means[i][a] as f64 - c[a])) as f32;
+                    }
+                    s.scales[i] = scene.scales[i].map(|v| v + k.ln() as f32);
+                }
+                let about = Sim3 { scale: k, translation: c * (1.0 - k), ..Sim3::identity() };
+                let t = out_truth.get_mut(&id).expect("truth");
+                t.object_to_world = about.compose(&t.object_to_world);
+                t.center = about.apply(&t.center);
+                t.size *= k;
+            }
+            Case::Outliers(f) => {
+                let (lo, hi) = pts.iter().fold(([f64::MAX; 3], [f64::MIN; 3]), |(lo, hi), p| {
+                    (std::array::from_fn(|a| lo[a].min(p[a])), std::array::from_fn(|a| hi[a].max(p[a])))
+                });
+                let n = (f * members.len() as f64).round() as usize;
+                let coeffs = scene.sh_coeffs() * 3;
+                for j in 0..n {
+                    let src = members[j % members.len()];
+                    let p: [f32; 3] = std::array::from_fn(|a| {
+                        let (m, h) = (0.5 * (lo[a] + hi[a]), 0.6 * (hi[a] - lo[a]));
+                        (m + h * (2.0 * rng.random::<f64>() - 1.0)) as f32
+                    });
+                    extra.means.push(p);
+                    extra.scales.push(scene.scales[src]);
+                    extra.quats.push(scene.quats[src]);
+                    extra.opacities.push(scene.opacities[src]);
+                    extra.sh.extend_from_slice(&scene.sh[src * coeffs..(src + 1) * coeffs]);
+                    extra_labels.push(id);
+                }
+            }
+        }
+    }
+    let mut out = s.select(&keep);
+    let mut out_labels: Vec<u32> = keep.iter().map(|&i| labels[i]).collect();
+    out.means.extend(extra.means);
+    out.scales.extend(extra.scales);
+    out.quats.extend(extra.quats);
+    out.opacities.extend(extra.opacities);
+    out.sh.extend(extra.sh);
+    out_labels.extend(extra_labels);
+    (out, out_labels, out_truth)
+}
+
+#[derive(Default)]
+struct Tally {
+    instances: usize,
+    correct: usize,
+    between: usize,
+    refused: usize,
+    wrong: usize,
+    worst_accepted: (f64, f64),
+}
+
+fn main() -> Result<()> {
+    let mut it = std::env::args().skip(1);
+    let (Some(run), Some(data)) = (it.next().map(PathBuf::from), it.next().map(PathBuf::from)) else {
+        bail!("usage: robustness RUN DIR [--downscale K] [--seeds N] [--up z|y]");
+    };
+    let (mut downscale, mut seeds, mut up, mut only) = (1u32, 2u64, 2usize, String::new());
+    while let Some(k) = it.next() {
+        let v = it.next().with_context(|| format!("{k} needs a value"))?;
+        match k.as_str() {
+            "--downscale" => downscale = v.parse()?,
+            "--seeds" => seeds = v.parse()?,
+            "--up" => up = if v == "y" { 1 } else { 2 },
+            "--only" => only = v,
+            _ => bail!("unknown option {k}"),
+        }
+    }
+    let scene = instgs_vk::scene::read_ply(&run.join("point_cloud.ply"))?;
+    let labels = template::read_labels(&run.join("labels.json"), scene.len())?;
+    let groups_path = data.join("instances.json");
+    let groups = instgs_vk::segment::read_groups(&groups_path)?;
+    let truth = template::read_ground_truth(&groups_path)?.context("instances.json has no ground-truth poses")?;
+    let ds = instgs_vk::dataset::load(&data, &instgs_vk::dataset::LoadOptions { downscale, background: [0.0; 3] })?;
+    let masks = instgs_vk::segment::load_masks(&data, "train", &ds.train)?;
+    let gpu = Gpu::new(&GpuOptions::from_env(None))?;
+    let k = Kernels::new(&gpu)?;
+    let cams: Vec<_> = ds.train.iter().map(|v| v.camera.clone()).collect();
+    let cases = [
+        Case::AsSegmented,
+        Case::Subsample(0.5),
+        Case::Subsample(0.25),
+        Case::Partial(0.3),
+        Case::Scaled,
+        Case::Outliers(0.1),
+    ];
+    println!("{} ({} instances), {}", data.display(), truth.len(), gpu.describe());
+    println!("| case | registrations | correct | 2–5° / 2–5 % | refused | **wrong** | worst accepted (°, %) |");
+    println!("|---|---|---|---|---|---|---|");
+    let mut rows = Vec::new();
+    for case in cases.into_iter().filter(|c| c.name().contains(&only)) {
+        let mut t = Tally::default();
+        let n_seeds = if matches!(case, Case::AsSegmented) { 1 } else { seeds };
+        for seed in 0..n_seeds {
+            let (s, l, gt) = perturb(&scene, &labels, &truth, case, up, seed);
+            let mut check = instgs_vk::verify::ImageCheck::new(&gpu, &k, cams.clone(), Some(masks.clone()))?;
+            let o = InstanceOptions::default();
+            let (_, reports) =
+                template::instantiate(&s, &l, &groups, &o, Some(&mut check as &mut dyn RenderCheck), |_| {})?;
+            for r in reports.iter().filter(|r| r.id != r.reference) {
+                t.instances += 1;
+                let (rot, trans, scale) = template::pose_error(&r.relative, &gt[&r.reference], &gt[&r.id]);
+                let err = trans.max(scale.abs());
+                match r.status.name() {
+                    "accepted" => {
+                        t.worst_accepted = (t.worst_accepted.0.max(rot), t.worst_accepted.1.max(100.0 * err));
+                        if rot < 2.0 && err < 0.02 {
+                            t.correct += 1;
+                        } else if rot > 5.0 || err > 0.05 {
+                            t.wrong += 1;
+                            eprintln!(
+                                "WRONG {} seed {seed}: {} {}: {rot:.2}°, {:.2} % ({:?}, {:?})",
+                                case.name(),
+                                r.group,
+                                r.id,
+                                100.0 * err,
+                                r.check,
+                                r.render
+                            );
+                        } else {
+                            t.between += 1;
+                        }
+                    }
+                    _ => {
+                        t.refused += 1;
+                        eprintln!(
+                            "refused {} seed {seed}: {} {} ({rot:.2}°, {:.2} %): {}",
+                            case.name(),
+                            r.group,
+                            r.id,
+                            100.0 * err,
+                            r.status.reason().unwrap_or("")
+                        );
+                    }
+                }
+            }
+        }
+        println!(
+            "| {} | {} | {} | {} | {} | **{}** | {:.2}°, {:.2} % |",
+            case.name(),
+            t.instances,
+            t.correct,
+            t.between,
+            t.refused,
+            t.wrong,
+            t.worst_accepted.0,
+            t.worst_accepted.1
+        );
+        rows.push(serde_json::json!({
+            "case": case.name(), "registrations": t.instances, "correct": t.correct, "between": t.between,
+            "refused": t.refused, "wrong": t.wrong,
+        }));
+    }
+    let out = run.join("robustness.json");
+    std::fs::write(&out, serde_json::to_string_pretty(&rows)?).with_context(|| out.display().to_string())?;
+    eprintln!("{}", out.display());
+    Ok(())
+}
