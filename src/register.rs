@@ -730,20 +730,10 @@ fn register_scaled(
                 score(icp(&s2, &d2, x, fine, o.icp_iterations, range, true))
             })
             .collect();
-        // Colour decides among poses the shape cannot tell apart.
-        tinted.sort_by(|a, b| a.colour_error.total_cmp(&b.colour_error));
-        let best = tinted[0].overlap();
-        tinted.sort_by(|a, b| {
-            let ok = |r: &Registration| r.overlap() >= 0.95 * best;
-            ok(b).cmp(&ok(a)).then(a.colour_error.total_cmp(&b.colour_error))
-        });
-        let mut kept: Vec<Registration> = Vec::new();
-        for r in tinted {
-            if kept.iter().all(|k| k.transform.rotation_error_deg(&r.transform) > 5.0) {
-                kept.push(r);
-            }
-        }
-        kept
+        // Colour ICP has moved each candidate to where the colours agree too; ranked by shape
+        // as before (ranking by colour agreement alone picked wrong mug poses, BENCHMARKS.md).
+        rank(&mut tinted);
+        tinted
     } else {
         shaped
     };
