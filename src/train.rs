@@ -704,6 +704,9 @@ pub struct Evaluation {
     pub views: Vec<ViewScore>,
 }
 
+/// Seconds between progress lines when the output is not a terminal.
+pub const LINE_SECONDS: f64 = 30.0;
+
 /// Renders `views` from `scene` and scores them against their images; `each` sees every
 /// rendered frame (for writing pictures).
 pub fn evaluate(
@@ -883,7 +886,8 @@ pub struct RunOptions {
     pub resume: bool,
     /// Joint optimisation of this instanced scene (else plain training from the dataset).
     pub init: Option<InstancedScene>,
-    /// Show a progress bar (else a line every 10 %).
+    /// Show progress: a bar on a terminal, else a line every 10 % or [`LINE_SECONDS`] (false:
+    /// a line every 10 % only).
     pub progress: bool,
     /// Written before the progress bar and the progress lines (the pipeline's stage).
     pub label: String,
@@ -1025,7 +1029,10 @@ pub fn run(gpu: &Arc<Gpu>, k: &Arc<Kernels>, ds: &Dataset, cfg: &Config, opts: &
     let start_it = state.iteration;
     let elapsed0 = rows.last().map_or(0.0, |r| r.elapsed_s);
     let t0 = Instant::now();
-    let bar = if opts.progress {
+    // A bar on a terminal; elsewhere (a log file, a pipe) a plain line every 10 % of the run or
+    // every LINE_SECONDS, whichever comes first (and one line per 10 % with --quiet).
+    use std::io::IsTerminal;
+    let bar = if opts.progress && std::io::stderr().is_terminal() {
         let b = indicatif::ProgressBar::new(cfg.iterations);
         b.set_style(
             indicatif::ProgressStyle::with_template("{prefix}{bar:30} {pos}/{len} {msg} {per_sec} ETA {eta}").unwrap(),
@@ -1036,6 +1043,7 @@ pub fn run(gpu: &Arc<Gpu>, k: &Arc<Kernels>, ds: &Dataset, cfg: &Config, opts: &
     } else {
         None
     };
+    let mut last_line = Instant::now();
     let mut test = rows.iter().rev().find_map(|r| r.test_psnr.zip(r.test_ssim));
     let mut interrupted = false;
     let mut pass_times: Vec<(String, Vec<f64>)> = Vec::new();
@@ -1143,8 +1151,17 @@ pub fn run(gpu: &Arc<Gpu>, k: &Arc<Kernels>, ds: &Dataset, cfg: &Config, opts: &
                 b.set_message(msg);
             }
             None => {
-                if it % (cfg.iterations / 10).max(1) == 0 {
-                    eprintln!("{}iteration {it}/{}: {msg}", opts.label, cfg.iterations);
+                let timed = opts.progress && last_line.elapsed().as_secs_f64() >= LINE_SECONDS;
+                if it % (cfg.iterations / 10).max(1) == 0 || timed || it == cfg.iterations {
+                    last_line = Instant::now();
+                    let rate = (it - start_it) as f64 / t0.elapsed().as_secs_f64().max(1e-9);
+                    let eta = (cfg.iterations - it) as f64 / rate.max(1e-9);
+                    eprintln!(
+                        "{}iteration {it}/{}: {msg}, {rate:.2} it/s, ETA {}",
+                        opts.label,
+                        cfg.iterations,
+                        crate::util::duration(eta)
+                    );
                 }
             }
         }

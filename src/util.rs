@@ -103,6 +103,16 @@ pub fn side_by_side(panels: &[&[[f32; 4]]], width: usize, height: usize) -> Vec<
     out
 }
 
+/// `secs` as "1 h 02 min", "3 min 05 s" or "12 s".
+pub fn duration(secs: f64) -> String {
+    let s = secs.max(0.0).round() as u64;
+    match s {
+        0..60 => format!("{s} s"),
+        60..3600 => format!("{} min {:02} s", s / 60, s % 60),
+        _ => format!("{} h {:02} min", s / 3600, (s % 3600) / 60),
+    }
+}
+
 /// The median of `v` (the upper one of an even count; NaN when empty).
 pub fn median(v: &[f64]) -> f64 {
     percentile(v, 0.5)

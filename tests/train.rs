@@ -207,11 +207,20 @@ fn short_training_run_learns() {
             run_dir.to_str().unwrap(),
             "--config",
             cfg.to_str().unwrap(),
-            "--quiet",
         ],
         &[],
     );
     assert!(o.ok, "{}", o.stderr);
+    // stderr is a pipe here, as in a log file: progress comes as plain lines (every 10 % at
+    // least), each with the loss, PSNR, splats, speed and ETA.
+    let lines: Vec<&str> = o.stderr.lines().filter(|l| l.starts_with("iteration ")).collect();
+    assert!(lines.len() >= 10, "{}", o.stderr);
+    for l in &lines {
+        for needle in ["/200: loss ", " PSNR ", " splats ", " it/s, ETA "] {
+            assert!(l.contains(needle), "{l}");
+        }
+    }
+    assert!(lines.last().unwrap().starts_with("iteration 200/200"), "{}", o.stderr);
     let r = rows(&run_dir);
     assert_eq!(r.len(), 200);
     let mean_loss = |rs: &[Vec<String>]| rs.iter().map(|x| x[1].parse::<f64>().unwrap()).sum::<f64>() / rs.len() as f64;

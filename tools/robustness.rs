@@ -243,7 +243,8 @@ fn main() -> Result<()> {
                         t.worst_accepted = (t.worst_accepted.0.max(rot), t.worst_accepted.1.max(100.0 * err));
                         if rot < 2.0 && err < 0.02 {
                             t.correct += 1;
-                        } else if (rot > 5.0 || err > 0.05) && equivalent(&gpu, &k, &cams, &mut check, &s, &l, r, &gt)? {
+                        } else if (rot > 5.0 || err > 0.05) && equivalent(&gpu, &k, &cams, &mut check, &s, &l, r, &gt)?
+                        {
                             t.symmetric += 1;
                             eprintln!(
                                 "symmetric {} seed {seed}: {} {}: {rot:.2}°, {:.2} % matches the images at least as the true pose",
