@@ -10,7 +10,7 @@ use instgs_vk::instgs::{self, AnyScene};
 use instgs_vk::kernels::Kernels;
 use instgs_vk::raster::Rasterizer;
 use instgs_vk::scene::read_ply;
-use instgs_vk::util::{median, percentile, save_png};
+use instgs_vk::util::{median, percentile, save_png, Progress, ProgressMode};
 
 mod pipeline;
 mod report;
@@ -715,13 +715,18 @@ fn eval(
     if let Some(dir) = out {
         std::fs::create_dir_all(dir).with_context(|| format!("{}: cannot create", dir.display()))?;
     }
+    let mut bar = Progress::new("eval: ", "view", "views/s", views.len() as u64, 0, ProgressMode::Auto);
+    let mut done = 0;
     let e = instgs_vk::train::evaluate(&mut r, &gs, views, background, |v, f| {
+        done += 1;
+        bar.set(done, "");
         let Some(dir) = out else { return Ok(()) };
         save_png(&dir.join(format!("{}.png", v.camera.name)), f.width, f.height, &f.image)?;
         let err = instgs_vk::util::error_image(&f.image, &v.image);
         let cmp = instgs_vk::util::side_by_side(&[&v.image, &f.image, &err], f.width as usize, f.height as usize);
         save_png(&dir.join(format!("{}_compare.png", v.camera.name)), 3 * f.width, f.height, &cmp)
     })?;
+    bar.finish();
     if json {
         let views: Vec<_> =
             e.views.iter().map(|v| serde_json::json!({"name": v.name, "psnr": v.psnr, "ssim": v.ssim})).collect();
@@ -863,7 +868,17 @@ fn segment(
     let opts = instgs_vk::dataset::LoadOptions { downscale: 1, background: [0.0; 3] };
     let ds = instgs_vk::dataset::load(data, &opts)?;
     let (gpu, k) = open_device(device)?;
-    let seg = segment_scene(&gpu, &k, &scene, data, &ds, split, alpha, per_frame_ids)?;
+    let seg = segment_scene(
+        &gpu,
+        &k,
+        &scene,
+        data,
+        &ds,
+        split,
+        alpha,
+        per_frame_ids,
+        ("segmentation: ", ProgressMode::Auto),
+    )?;
     if is_json {
         write_json(out, &seg.doc, false)?;
     } else {
@@ -919,6 +934,7 @@ fn segment_scene(
     split: &str,
     alpha: f32,
     per_frame_ids: bool,
+    progress: (&str, ProgressMode),
 ) -> Result<SegmentOutcome> {
     use instgs_vk::segment;
     let views = ds.split(split)?;
@@ -954,11 +970,9 @@ fn segment_scene(
         segment::read_groups(&data.join("instances.json"))?
     };
     let ids: Vec<u32> = groups.iter().flat_map(|g| g.ids.iter().copied()).collect();
-    let bar = indicatif::ProgressBar::new(views.len() as u64);
-    bar.set_style(indicatif::ProgressStyle::with_template("segmentation {bar:30} {pos}/{len} views ETA {eta}")?);
-    let seg =
-        segment::segment_with_progress(gpu, k, scene, views, &masks, &ids, alpha, |i, _| bar.set_position(i as u64))?;
-    bar.finish_and_clear();
+    let mut bar = Progress::new(progress.0, "view", "views/s", views.len() as u64, 0, progress.1);
+    let seg = segment::segment_with_progress(gpu, k, scene, views, &masks, &ids, alpha, |i, _| bar.set(i as u64, ""))?;
+    bar.finish();
     if !seg.unknown_ids.is_empty() {
         eprintln!(
             "warning: mask ids {:?} are not in {}; their pixels count as background",
@@ -1407,7 +1421,16 @@ fn bench(
     }
     let Setup { gpu, k, scene, cams } = setup(device, view)?;
     let b = compare.map(|(p, c)| AnyScene::read(p).map(|s| (p, s, c))).transpose()?;
-    let v = bench_scenes(&gpu, &k, (&view.scene, scene, cfg), b, &cams, frames, warmup, view.background)?;
+    let v = bench_scenes(
+        &gpu,
+        &k,
+        (&view.scene, scene, cfg),
+        b,
+        &cams,
+        (frames, warmup),
+        view.background,
+        ("bench: ", ProgressMode::Auto),
+    )?;
     if let Some(path) = json {
         write_json(path, &v, true)?;
     }
@@ -1423,9 +1446,9 @@ fn bench_scenes(
     a: (&Path, AnyScene, &instgs_vk::lod::RenderConfig),
     b: Option<(&Path, AnyScene, instgs_vk::lod::RenderConfig)>,
     cams: &[Camera],
-    frames: usize,
-    warmup: usize,
+    (frames, warmup): (usize, usize),
     background: [f32; 3],
+    progress: (&str, ProgressMode),
 ) -> Result<serde_json::Value> {
     let cfg = a.2;
     let mut runs = vec![BenchScene::new(gpu, k, a.0, a.1, cfg)?];
@@ -1433,7 +1456,8 @@ fn bench_scenes(
         runs.push(BenchScene::new(gpu, k, p, scene, &bcfg)?);
     }
     // Interleaved (A B A B …) so that clock and thermal drift hit both scenes alike.
-    for cam in cams {
+    let mut bar = Progress::new(progress.0, "view", "views/s", cams.len() as u64, 0, progress.1);
+    for (i, cam) in cams.iter().enumerate() {
         for _ in 0..warmup {
             for run in runs.iter_mut() {
                 run.frame(cam, background, false)?;
@@ -1444,7 +1468,9 @@ fn bench_scenes(
                 run.frame(cam, background, true)?;
             }
         }
+        bar.set(i as u64 + 1, "");
     }
+    bar.finish();
     let mut reports = Vec::new();
     for (i, run) in runs.iter().enumerate() {
         if i > 0 {

@@ -27,6 +27,7 @@ use instgs_vk::gpu::Gpu;
 use instgs_vk::instgs::AnyScene;
 use instgs_vk::kernels::Kernels;
 use instgs_vk::train::{self, INTERRUPTED};
+use instgs_vk::util::{Progress, ProgressMode};
 use serde::{Deserialize, Serialize};
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, clap::ValueEnum)]
@@ -375,6 +376,14 @@ impl Ctx<'_> {
         &self.a.out
     }
 
+    fn progress_mode(&self) -> ProgressMode {
+        if self.a.progress {
+            ProgressMode::Auto
+        } else {
+            ProgressMode::Tenths
+        }
+    }
+
     /// Runs one stage: Ok(true) finished, Ok(false) interrupted (nothing half-written).
     fn stage(&self, s: Stage, hooked: bool) -> Result<bool> {
         if hooked && !matches!(s, Stage::Plain | Stage::Joint) {
@@ -406,6 +415,7 @@ impl Ctx<'_> {
                     "train",
                     self.cfg.segment.alpha,
                     per_frame,
+                    (&s.label(), self.progress_mode()),
                 )?;
                 if interrupted() {
                     return Ok(false);
@@ -532,9 +542,9 @@ impl Ctx<'_> {
                     (&a, AnyScene::read(&a)?, &render),
                     Some((&b, AnyScene::read(&b)?, render.clone())),
                     &cams,
-                    self.cfg.bench.frames,
-                    self.cfg.bench.warmup,
+                    (self.cfg.bench.frames, self.cfg.bench.warmup),
                     self.cfg.plain.background,
+                    (&s.label(), self.progress_mode()),
                 )?;
                 if interrupted() {
                     return Ok(false);
@@ -608,10 +618,13 @@ impl Ctx<'_> {
             let mut index = 0usize;
             let mut pictures = Vec::new();
             let mut regions = [(0.0, 0usize), (0.0, 0usize)];
+            let label = format!("{}{name}: ", Stage::Eval.label());
+            let mut progress = Progress::new(&label, "view", "views/s", views.len() as u64, 0, self.progress_mode());
             let e = train::evaluate(&mut r, &gs, views, bg, |v, f| {
                 if interrupted() {
                     bail!("interrupted");
                 }
+                progress.set(index as u64 + 1, "");
                 if let Some(m) = &masks {
                     let m = &m[index];
                     for (k, object) in [true, false].into_iter().enumerate() {
@@ -631,6 +644,7 @@ impl Ctx<'_> {
                 index += 1;
                 Ok(())
             });
+            progress.finish();
             let e = match e {
                 Err(_) if interrupted() => return Ok(false),
                 other => other?,

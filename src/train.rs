@@ -35,6 +35,7 @@ use crate::kernels::Kernels;
 use crate::optim::{offset_buffers, param_buffers, record_adam, record_loss, AdamState, LearningRates, LossBufs};
 use crate::raster::{GpuScene, Grads, Rasterizer};
 use crate::scene::{Scene, SH_C0};
+use crate::util::{Progress, ProgressMode};
 
 /// Parameters per Gaussian of the five parameter groups (means, scales, quats, opacities, sh).
 fn strides(sh_degree: u32) -> [usize; 5] {
@@ -704,9 +705,6 @@ pub struct Evaluation {
     pub views: Vec<ViewScore>,
 }
 
-/// Seconds between progress lines when the output is not a terminal.
-pub const LINE_SECONDS: f64 = 30.0;
-
 /// Renders `views` from `scene` and scores them against their images; `each` sees every
 /// rendered frame (for writing pictures).
 pub fn evaluate(
@@ -886,7 +884,7 @@ pub struct RunOptions {
     pub resume: bool,
     /// Joint optimisation of this instanced scene (else plain training from the dataset).
     pub init: Option<InstancedScene>,
-    /// Show progress: a bar on a terminal, else a line every 10 % or [`LINE_SECONDS`] (false:
+    /// Show progress: a bar on a terminal, else a line every 10 % or [`crate::util::LINE_SECONDS`] (false:
     /// a line every 10 % only).
     pub progress: bool,
     /// Written before the progress bar and the progress lines (the pipeline's stage).
@@ -900,6 +898,40 @@ impl RunOptions {
     /// Plain training into `out` (no init, no label, no forced stop).
     pub fn new(out: PathBuf, resume: bool, progress: bool) -> RunOptions {
         RunOptions { out, resume, init: None, progress, label: String::new(), stop_after: None }
+    }
+}
+
+/// Whether iteration `it` densifies the scene (plain runs; never the last iteration).
+fn densifies(d: &crate::config::DensifyConfig, it: u64) -> bool {
+    it < d.until_iter && it > d.from_iter && it % d.interval == 0
+}
+
+/// Whether iteration `it` resets the opacities (plain runs; never the last iteration).
+fn resets_opacities(d: &crate::config::DensifyConfig, it: u64) -> bool {
+    d.opacity_reset_interval > 0 && it % d.opacity_reset_interval == 0 && it < d.until_iter
+}
+
+/// The figure of a run's metrics with its schedule's events (`curves.png`).
+pub fn curves(rows: &[MetricsRow], cfg: &Config, plain: bool, ds: &Dataset) -> crate::plot::Curves {
+    let d = &cfg.densify;
+    let kind = if plain { "Plain 3DGS training" } else { "Joint optimisation of the instanced scene" };
+    crate::plot::Curves {
+        title: format!(
+            "{kind}: {} iterations, {} training views, {} held-out views",
+            cfg.iterations,
+            ds.train.len(),
+            ds.test.len()
+        ),
+        loss: rows.iter().map(|r| (r.iteration, r.loss)).collect(),
+        train_psnr: rows.iter().map(|r| (r.iteration, r.train_psnr)).collect(),
+        test_psnr: rows.iter().filter_map(|r| r.test_psnr.map(|p| (r.iteration, p))).collect(),
+        densify: (plain && d.until_iter > d.from_iter).then_some((d.from_iter, d.until_iter.min(cfg.iterations))),
+        opacity_resets: if plain {
+            (1..cfg.iterations).filter(|&it| resets_opacities(d, it)).collect()
+        } else {
+            Vec::new()
+        },
+        iterations: cfg.iterations,
     }
 }
 
@@ -1029,21 +1061,8 @@ pub fn run(gpu: &Arc<Gpu>, k: &Arc<Kernels>, ds: &Dataset, cfg: &Config, opts: &
     let start_it = state.iteration;
     let elapsed0 = rows.last().map_or(0.0, |r| r.elapsed_s);
     let t0 = Instant::now();
-    // A bar on a terminal; elsewhere (a log file, a pipe) a plain line every 10 % of the run or
-    // every LINE_SECONDS, whichever comes first (and one line per 10 % with --quiet).
-    use std::io::IsTerminal;
-    let bar = if opts.progress && std::io::stderr().is_terminal() {
-        let b = indicatif::ProgressBar::new(cfg.iterations);
-        b.set_style(
-            indicatif::ProgressStyle::with_template("{prefix}{bar:30} {pos}/{len} {msg} {per_sec} ETA {eta}").unwrap(),
-        );
-        b.set_prefix(opts.label.clone());
-        b.set_position(start_it);
-        Some(b)
-    } else {
-        None
-    };
-    let mut last_line = Instant::now();
+    let mode = if opts.progress { ProgressMode::Auto } else { ProgressMode::Tenths };
+    let mut progress = Progress::new(&opts.label, "iteration", "it/s", cfg.iterations, start_it, mode);
     let mut test = rows.iter().rev().find_map(|r| r.test_psnr.zip(r.test_ssim));
     let mut interrupted = false;
     let mut pass_times: Vec<(String, Vec<f64>)> = Vec::new();
@@ -1096,12 +1115,8 @@ pub fn run(gpu: &Arc<Gpu>, k: &Arc<Kernels>, ds: &Dataset, cfg: &Config, opts: &
         let d = &cfg.densify;
         let plain = state.layout.is_none();
         // Neither on the last iteration: nothing would train after it, it would only alter the output.
-        let densify_now = plain && !final_it && it < d.until_iter && it > d.from_iter && it % d.interval == 0;
-        let reset_now = plain
-            && !final_it
-            && d.opacity_reset_interval > 0
-            && it % d.opacity_reset_interval == 0
-            && it < d.until_iter;
+        let densify_now = plain && !final_it && densifies(d, it);
+        let reset_now = plain && !final_it && resets_opacities(d, it);
         if densify_now || reset_now {
             state = trainer.download(it)?;
             if densify_now {
@@ -1145,32 +1160,11 @@ pub fn run(gpu: &Arc<Gpu>, k: &Arc<Kernels>, ds: &Dataset, cfg: &Config, opts: &
             test.map(|(p, _)| format!(" test {p:.2}")).unwrap_or_default(),
             trainer.scene.len
         );
-        match &bar {
-            Some(b) => {
-                b.set_position(it);
-                b.set_message(msg);
-            }
-            None => {
-                let timed = opts.progress && last_line.elapsed().as_secs_f64() >= LINE_SECONDS;
-                if it % (cfg.iterations / 10).max(1) == 0 || timed || it == cfg.iterations {
-                    last_line = Instant::now();
-                    let rate = (it - start_it) as f64 / t0.elapsed().as_secs_f64().max(1e-9);
-                    let eta = (cfg.iterations - it) as f64 / rate.max(1e-9);
-                    eprintln!(
-                        "{}iteration {it}/{}: {msg}, {rate:.2} it/s, ETA {}",
-                        opts.label,
-                        cfg.iterations,
-                        crate::util::duration(eta)
-                    );
-                }
-            }
-        }
+        progress.set(it, &msg);
     }
     // The iterations' own time (held-out evaluations included), not the run's end below.
     let loop_secs = t0.elapsed().as_secs_f64();
-    if let Some(b) = &bar {
-        b.finish_and_clear();
-    }
+    progress.finish();
     let done = rows.last().map_or(start_it, |r| r.iteration);
     state = trainer.download(done)?;
     if interrupted || done > start_it {
@@ -1181,7 +1175,7 @@ pub fn run(gpu: &Arc<Gpu>, k: &Arc<Kernels>, ds: &Dataset, cfg: &Config, opts: &
         Some(inst) => crate::instgs::write(&inst, &opts.out.join("scene.instgs"), crate::instgs::Dtype::F32)?,
         None => crate::scene::write_ply(&state.scene, &opts.out.join("point_cloud.ply"))?,
     }
-    crate::plot::curves(&rows, &opts.out.join("curves.png"))?;
+    crate::plot::write(&curves(&rows, cfg, state.layout.is_none(), ds), &opts.out.join("curves.png"))?;
     let secs = t0.elapsed().as_secs_f64();
     Ok(RunSummary {
         iterations: done,

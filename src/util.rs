@@ -144,3 +144,102 @@ mod tests {
         assert!((psnr(&a, &b) - 10.0 * 400f64.log10()).abs() < 1e-4);
     }
 }
+
+/// Seconds between progress lines when the output is not a terminal.
+pub const LINE_SECONDS: f64 = 30.0;
+
+/// How a long stage shows its progress on stderr.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum ProgressMode {
+    /// A bar on a terminal; elsewhere (a log file, a pipe) a plain line every 10 % of the work
+    /// or every [`LINE_SECONDS`], whichever comes first.
+    Auto,
+    /// A line every 10 % only (`--quiet`).
+    Tenths,
+}
+
+/// Progress of a long stage over `total` steps: an indicatif bar on a terminal, else plain
+/// lines `LABELUNIT 30/120: MESSAGE, 2.41 RATE_UNIT, ETA 1 min 05 s`.
+pub struct Progress {
+    label: String,
+    unit: &'static str,
+    rate_unit: &'static str,
+    total: u64,
+    first: u64,
+    bar: Option<indicatif::ProgressBar>,
+    timed: bool,
+    start: std::time::Instant,
+    last_line: std::time::Instant,
+}
+
+impl Progress {
+    /// `label` is printed first (e.g. the pipeline's stage), `unit` names a step ("iteration",
+    /// "view") and `rate_unit` its rate ("it/s"); work resumed at step `first` counts its rate
+    /// from there.
+    pub fn new(
+        label: &str,
+        unit: &'static str,
+        rate_unit: &'static str,
+        total: u64,
+        first: u64,
+        mode: ProgressMode,
+    ) -> Progress {
+        use std::io::IsTerminal;
+        let bar = (mode == ProgressMode::Auto && std::io::stderr().is_terminal()).then(|| {
+            let b = indicatif::ProgressBar::new(total);
+            b.set_style(
+                indicatif::ProgressStyle::with_template(&format!(
+                    "{{prefix}}{{bar:30}} {{pos}}/{{len}} {unit}s {{msg}} {{per_sec}} ETA {{eta}}"
+                ))
+                .expect("a valid progress template"),
+            );
+            b.set_prefix(label.to_string());
+            b.set_position(first);
+            b
+        });
+        let now = std::time::Instant::now();
+        Progress {
+            label: label.to_string(),
+            unit,
+            rate_unit,
+            total,
+            first,
+            bar,
+            timed: mode == ProgressMode::Auto,
+            start: now,
+            last_line: now,
+        }
+    }
+
+    /// `done` steps of `total` are done; `msg` says how it goes (loss, PSNR, …).
+    pub fn set(&mut self, done: u64, msg: &str) {
+        if let Some(b) = &self.bar {
+            b.set_position(done);
+            b.set_message(msg.to_string());
+            return;
+        }
+        let tenth = done % (self.total / 10).max(1) == 0;
+        let timed = self.timed && self.last_line.elapsed().as_secs_f64() >= LINE_SECONDS;
+        if tenth || timed || done == self.total {
+            self.last_line = std::time::Instant::now();
+            let rate = done.saturating_sub(self.first) as f64 / self.start.elapsed().as_secs_f64().max(1e-9);
+            let eta = self.total.saturating_sub(done) as f64 / rate.max(1e-9);
+            let msg = if msg.is_empty() { String::new() } else { format!(": {msg}") };
+            eprintln!(
+                "{}{} {done}/{}{msg}, {rate:.2} {}, ETA {}",
+                self.label,
+                self.unit,
+                self.total,
+                self.rate_unit,
+                duration(eta)
+            );
+        }
+    }
+
+    /// Clears the bar (plain lines stay).
+    pub fn finish(self) {
+        if let Some(b) = self.bar {
+            b.finish_and_clear();
+        }
+    }
+}
