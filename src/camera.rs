@@ -44,6 +44,11 @@ impl Camera {
         }
     }
 
+    /// The OpenGL camera-to-world matrix (the inverse of [`Camera::from_c2w_opengl`]).
+    pub fn c2w_opengl(&self) -> Mat4 {
+        self.viewmat.inverse() * Mat4::from_diagonal(Vec4::new(1.0, -1.0, -1.0, 1.0))
+    }
+
     /// The same view at another resolution (intrinsics scaled per axis).
     pub fn resized(&self, width: u32, height: u32) -> Camera {
         let sx = width as f32 / self.width as f32;
@@ -79,10 +84,17 @@ struct TransformsFile {
     frames: Vec<Frame>,
 }
 
+/// A frame; its own intrinsics (nerfstudio's per-frame keys) override the file's.
 #[derive(serde::Deserialize)]
 struct Frame {
     file_path: String,
     transform_matrix: [[f32; 4]; 4],
+    fl_x: Option<f32>,
+    fl_y: Option<f32>,
+    cx: Option<f32>,
+    cy: Option<f32>,
+    w: Option<f32>,
+    h: Option<f32>,
 }
 
 /// Loads the cameras of a NeRF-synthetic `transforms_*.json`. The image size comes from `w`/`h`
@@ -99,7 +111,7 @@ pub fn load_transforms_with_images(path: &Path) -> Result<Vec<(Camera, std::path
     if tf.frames.is_empty() {
         bail!("{what}: no frames");
     }
-    let (w, h) = match (tf.w, tf.h) {
+    let (w, h) = match (tf.w.or(tf.frames[0].w), tf.h.or(tf.frames[0].h)) {
         (Some(w), Some(h)) => (w, h),
         _ => {
             let dir = path.parent().unwrap_or(Path::new("."));
@@ -112,28 +124,60 @@ pub fn load_transforms_with_images(path: &Path) -> Result<Vec<(Camera, std::path
     if !(w >= 1.0 && h >= 1.0) {
         bail!("{what}: image size {w}x{h} is empty");
     }
-    let fx = match (tf.fl_x, tf.camera_angle_x) {
-        (Some(f), _) => f,
-        (None, Some(a)) => 0.5 * w / (0.5 * a).tan(),
-        (None, None) => bail!("{what}: neither fl_x nor camera_angle_x is given"),
-    };
-    let fy = tf.fl_y.unwrap_or(fx);
-    let intr = [fx, fy, tf.cx.unwrap_or(0.5 * w), tf.cy.unwrap_or(0.5 * h)];
     let mut cams = Vec::new();
     for (k, f) in tf.frames.iter().enumerate() {
+        let (w, h) = (f.w.unwrap_or(w), f.h.unwrap_or(h));
+        if !(w >= 1.0 && h >= 1.0) {
+            bail!("{what}: frame {k}: image size {w}x{h} is empty");
+        }
+        let fx = match (f.fl_x.or(tf.fl_x), tf.camera_angle_x) {
+            (Some(f), _) => f,
+            (None, Some(a)) => 0.5 * w / (0.5 * a).tan(),
+            (None, None) => bail!("{what}: neither fl_x nor camera_angle_x is given"),
+        };
+        let fy = f.fl_y.or(tf.fl_y).unwrap_or(fx);
+        let intr = [fx, fy, f.cx.or(tf.cx).unwrap_or(0.5 * w), f.cy.or(tf.cy).unwrap_or(0.5 * h)];
         // transform_matrix is row-major.
         let c2w = Mat4::from_cols_array_2d(&f.transform_matrix).transpose();
         let name = Path::new(&f.file_path)
             .file_name()
             .map(|n| n.to_string_lossy().into_owned())
             .unwrap_or_else(|| format!("frame_{k:03}"));
-        let name = name.strip_suffix(".png").unwrap_or(&name).to_string();
+        let name = [".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG"]
+            .iter()
+            .find_map(|e| name.strip_suffix(e))
+            .unwrap_or(&name)
+            .to_string();
         let cam = Camera::from_c2w_opengl(&name, c2w, w.round() as u32, h.round() as u32, intr);
         cam.validate().with_context(|| format!("{what}: frame {k}"))?;
         let dir = path.parent().unwrap_or(Path::new("."));
         cams.push((cam, image_path(dir, &f.file_path)));
     }
     Ok(cams)
+}
+
+/// `cams` as a NeRF-synthetic transforms JSON (OpenGL camera-to-world, row-major) with each
+/// frame's intrinsics (`fl_x fl_y cx cy w h`, nerfstudio's per-frame keys; the first camera's
+/// also at the top level, with `camera_angle_x`, for readers that take one camera for all) and
+/// `file_path` from `images` (the image of each camera).
+pub fn transforms_json(cams: &[Camera], images: &[String]) -> serde_json::Value {
+    let frames: Vec<serde_json::Value> = cams
+        .iter()
+        .zip(images)
+        .map(|(c, file)| {
+            let m = c.c2w_opengl().transpose().to_cols_array_2d();
+            serde_json::json!({
+                "file_path": file, "transform_matrix": m,
+                "fl_x": c.fx, "fl_y": c.fy, "cx": c.cx, "cy": c.cy, "w": c.width, "h": c.height,
+            })
+        })
+        .collect();
+    let c = &cams[0];
+    serde_json::json!({
+        "camera_angle_x": 2.0 * (0.5 * c.width as f32 / c.fx).atan(),
+        "fl_x": c.fx, "fl_y": c.fy, "cx": c.cx, "cy": c.cy, "w": c.width, "h": c.height,
+        "frames": frames,
+    })
 }
 
 /// The image file of a frame: `file_path` as given, or with `.png` appended.

@@ -511,22 +511,48 @@ fn load_colmap(dir: &Path, opts: &LoadOptions) -> Result<Dataset> {
     Ok(Dataset { kind: "colmap", train: load_views(train, opts)?, test: load_views(test, opts)?, points })
 }
 
-/// The cameras of a dataset folder without loading its images: NeRF-synthetic's training
-/// cameras, or every COLMAP image's camera (sorted by name). A `.json` path is read as a
-/// NeRF-synthetic transforms file.
-pub fn dataset_cameras(path: &Path) -> Result<Vec<Camera>> {
-    if path.extension().is_some_and(|e| e == "json") {
-        return crate::camera::load_transforms(path);
+/// The cameras of a dataset without loading its images, with their image files: a
+/// NeRF-synthetic folder's `transforms_<split>.json` (`all`: train, val and test), a COLMAP
+/// folder's images (its test split is every 8th image by name, as [`load`] holds out; `all`:
+/// every image), or a transforms JSON file itself (all its frames; `split` is not used).
+pub fn dataset_cameras_with_images(path: &Path, split: &str) -> Result<Vec<(Camera, PathBuf)>> {
+    if !["train", "test", "all"].contains(&split) {
+        bail!("split '{split}': expected train, test or all");
+    }
+    if path.is_file() {
+        return crate::camera::load_transforms_with_images(path);
     }
     if path.join("transforms_train.json").exists() {
-        crate::camera::load_transforms(&path.join("transforms_train.json"))
+        let names = if split == "all" { vec!["train", "val", "test"] } else { vec![split] };
+        let mut cams = Vec::new();
+        for n in names {
+            let f = path.join(format!("transforms_{n}.json"));
+            if f.exists() || split != "all" {
+                cams.extend(crate::camera::load_transforms_with_images(&f)?);
+            }
+        }
+        Ok(cams)
     } else if ["cameras.bin", "cameras.txt"].iter().any(|f| path.join("sparse/0").join(f).exists()) {
         let model = read_colmap(&path.join("sparse/0"))?;
-        Ok(colmap_cameras(path, &model)?.into_iter().map(|(c, _)| c).collect())
+        Ok(colmap_cameras(path, &model)?
+            .into_iter()
+            .enumerate()
+            .filter(|(k, _)| match split {
+                "train" => k % 8 != 0,
+                "test" => k % 8 == 0,
+                _ => true,
+            })
+            .map(|(_, c)| c)
+            .collect())
     } else {
         bail!(
             "{}: no cameras: expected a transforms_*.json file, or a folder with transforms_train.json (NeRF-synthetic) or sparse/0/cameras.bin|txt (COLMAP)",
             path.display()
         )
     }
+}
+
+/// [`dataset_cameras_with_images`] without the image files.
+pub fn dataset_cameras(path: &Path, split: &str) -> Result<Vec<Camera>> {
+    Ok(dataset_cameras_with_images(path, split)?.into_iter().map(|(c, _)| c).collect())
 }

@@ -376,8 +376,8 @@ pub fn part_bytes(bytes: &[u8]) -> Result<Vec<PartBytes>> {
     Ok(parts)
 }
 
-/// A scene file of either kind: a plain 3DGS PLY (Inria or SuperSplat compressed) or an
-/// `.instgs` instanced scene (chosen by the `.instgs` extension).
+/// A scene file of either kind: a plain scene in any format [`crate::formats`] reads, or an
+/// `.instgs` instanced scene (chosen by content).
 pub enum AnyScene {
     Plain(Scene),
     Instanced(InstancedScene),
@@ -385,10 +385,10 @@ pub enum AnyScene {
 
 impl AnyScene {
     pub fn read(path: &Path) -> Result<AnyScene> {
-        if path.extension().is_some_and(|e| e.eq_ignore_ascii_case("instgs")) {
+        if crate::formats::detect(path)? == crate::formats::Format::Instgs {
             Ok(AnyScene::Instanced(read(path)?))
         } else {
-            Ok(AnyScene::Plain(crate::scene::read_ply(path)?))
+            Ok(AnyScene::Plain(crate::formats::read_scene(path)?))
         }
     }
 

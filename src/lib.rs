@@ -14,6 +14,7 @@ pub mod compact;
 pub mod config;
 pub mod cpu;
 pub mod dataset;
+pub mod formats;
 pub mod gpu;
 pub mod grad;
 pub mod instance;

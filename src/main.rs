@@ -160,12 +160,24 @@ enum Cmd {
         #[arg(long)]
         out: PathBuf,
     },
-    /// Convert an .instgs scene: OUT.ply writes the fully expanded plain 3DGS PLY (SH bands
-    /// rotated per instance; any 3DGS viewer opens it); OUT.json writes its scene_graph.json.
+    /// Convert a scene between formats, chosen by OUT's name: .ply (Inria), .compressed.ply
+    /// (SuperSplat, with SH), .spz (version 4), .splat (no SH), or .json (an .instgs scene's
+    /// scene graph). An .instgs scene is expanded first (SH bands rotated per instance).
     Convert {
-        /// The .instgs scene.
+        /// Any scene we read (PLY, compressed PLY, .spz, SOG, .splat, .instgs).
         scene: PathBuf,
-        /// OUT.ply or OUT.json.
+        /// OUT.ply, OUT.compressed.ply, OUT.spz, OUT.splat or OUT.json.
+        out: PathBuf,
+    },
+    /// Export a dataset's cameras (NeRF-synthetic or COLMAP folder) as a NeRF-synthetic
+    /// transforms JSON: OpenGL camera-to-world matrices, per-frame intrinsics, image paths.
+    Cameras {
+        /// The dataset folder (or a transforms JSON).
+        data: PathBuf,
+        /// train, test or all.
+        #[arg(long, default_value = "all")]
+        split: String,
+        #[arg(long)]
         out: PathBuf,
     },
     /// Gradient-driven instance segmentation of a trained plain scene with the dataset's
@@ -268,6 +280,9 @@ enum Cmd {
         /// Which of those cameras.
         #[arg(long, default_value_t = 0, requires = "cameras")]
         camera: usize,
+        /// Which cameras of a dataset folder: train, test or all.
+        #[arg(long, default_value = "train", requires = "cameras")]
+        split: String,
         /// Which world axis is up (orbit and fly moves).
         #[arg(long, value_enum, default_value = "-y", allow_hyphen_values = true)]
         up: UpAxis,
@@ -363,9 +378,12 @@ struct ViewArgs {
     /// Scene file (.ply: Inria 3DGS or SuperSplat compressed; .instgs).
     #[arg(long)]
     scene: PathBuf,
-    /// NeRF-synthetic transforms_*.json with the cameras.
+    /// The cameras: a transforms_*.json file, a NeRF-synthetic folder or a COLMAP folder.
     #[arg(long, conflicts_with = "orbit", required_unless_present = "orbit")]
     cameras: Option<PathBuf>,
+    /// Which cameras of a dataset folder: train, test or all.
+    #[arg(long, default_value = "train", requires = "cameras")]
+    split: String,
     /// N cameras on an orbit around the scene's bounds.
     #[arg(long)]
     orbit: Option<usize>,
@@ -431,6 +449,7 @@ fn run(cli: Cli) -> Result<()> {
             &out,
         ),
         Cmd::Convert { scene, out } => convert(&scene, &out),
+        Cmd::Cameras { data, split, out } => export_cameras(&data, &split, &out),
         Cmd::Segment { scene, data, split, alpha, out, export_dir, per_frame_ids } => {
             segment(cli.device, &scene, &data, &split, alpha, &out, export_dir.as_deref(), per_frame_ids)
         }
@@ -514,6 +533,7 @@ fn run(cli: Cli) -> Result<()> {
             scene,
             cameras,
             camera,
+            split,
             up,
             width,
             height,
@@ -537,11 +557,14 @@ fn run(cli: Cli) -> Result<()> {
                 frames,
                 out,
             };
-            view(opts, cameras.as_deref(), camera, up, headless)
+            view(opts, cameras.as_deref(), (camera, &split), up, headless)
         }
         Cmd::BenchSort { keys, bits, repeats } => bench_sort(cli.device, keys, bits, repeats),
         Cmd::Train { data, out, init, config, iterations, resume, quiet, from, until } => {
-            let is_instgs = init.as_deref().is_some_and(|p| p.extension().is_some_and(|e| e == "instgs"));
+            let is_instgs = match init.as_deref() {
+                Some(p) => instgs_vk::formats::detect(p)? == instgs_vk::formats::Format::Instgs,
+                None => false,
+            };
             let masks = pipeline::has_masks(&data.data);
             if masks && !is_instgs {
                 let init_ply = init.clone();
@@ -585,7 +608,7 @@ fn run(cli: Cli) -> Result<()> {
 fn view(
     opts: instgs_vk::player::PlayerOptions,
     cameras: Option<&Path>,
-    camera: usize,
+    (camera, split): (usize, &str),
     up: UpAxis,
     headless: bool,
 ) -> Result<()> {
@@ -602,7 +625,7 @@ fn view(
     let centre = 0.5 * (lo + hi);
     let start = match cameras {
         Some(path) => {
-            let cams = instgs_vk::dataset::dataset_cameras(path)?;
+            let cams = instgs_vk::dataset::dataset_cameras(path, split)?;
             let n = cams.len();
             cams.into_iter()
                 .nth(camera)
@@ -749,17 +772,19 @@ fn eval(
 }
 
 fn info(path: &Path, json: bool) -> Result<()> {
-    if path.extension().is_some_and(|e| e.eq_ignore_ascii_case("instgs")) {
+    let format = instgs_vk::formats::detect(path)?;
+    if format == instgs_vk::formats::Format::Instgs {
         return info_instgs(path, json);
     }
-    let scene = read_ply(path)?;
-    let file_bytes = std::fs::metadata(path)?.len();
+    let scene = instgs_vk::formats::read_scene(path)?;
+    let file_bytes = instgs_vk::formats::file_bytes(path)?;
     let (lo, hi) = scene.bounds();
     let (rlo, rhi) = scene.robust_bounds(0.02);
     if json {
         let v = serde_json::json!({
             "file": path.display().to_string(),
             "kind": "plain",
+            "format": format.name(),
             "gaussians": scene.len(),
             "sh_degree": scene.sh_degree,
             "bounds_min": lo.to_array(),
@@ -771,6 +796,7 @@ fn info(path: &Path, json: bool) -> Result<()> {
         println!("{}", serde_json::to_string_pretty(&v)?);
     } else {
         println!("file        {}", path.display());
+        println!("format      {}", format.name());
         println!("gaussians   {}", scene.len());
         println!("sh degree   {}", scene.sh_degree);
         println!("bounds      [{:.4}, {:.4}, {:.4}] .. [{:.4}, {:.4}, {:.4}]", lo.x, lo.y, lo.z, hi.x, hi.y, hi.z);
@@ -864,7 +890,7 @@ fn segment(
     if !is_json && out.extension().and_then(|e| e.to_str()) != Some("bin") {
         bail!("{}: the output must end in .json or .bin", out.display());
     }
-    let scene = read_ply(scene_path)?;
+    let scene = instgs_vk::formats::read_scene(scene_path)?;
     let opts = instgs_vk::dataset::LoadOptions { downscale: 1, background: [0.0; 3] };
     let ds = instgs_vk::dataset::load(data, &opts)?;
     let (gpu, k) = open_device(device)?;
@@ -1043,7 +1069,7 @@ fn instance(
     out: &Path,
 ) -> Result<serde_json::Value> {
     use instgs_vk::template;
-    let scene = read_ply(scene_path)?;
+    let scene = instgs_vk::formats::read_scene(scene_path)?;
     let labels = template::read_labels(labels, scene.len())?;
     let groups = instgs_vk::segment::read_groups(groups_path)?;
     // Background pruning (the pipeline's `instance.background_keep`): the background Gaussians
@@ -1159,7 +1185,7 @@ fn compose(
         let Some((name, file)) = t.split_once('=') else {
             bail!("--template {t:?}: expected NAME=FILE.ply");
         };
-        loaded.push((name.to_string(), read_ply(Path::new(file))?));
+        loaded.push((name.to_string(), instgs_vk::formats::read_scene(Path::new(file))?));
     }
     let graph = instgs_vk::instance::read_scene_graph(graph)?;
     let background = background.map(read_ply).transpose()?;
@@ -1176,20 +1202,55 @@ fn compose(
 }
 
 fn convert(path: &Path, out: &Path) -> Result<()> {
-    let scene = instgs::read(path)?;
-    match out.extension().and_then(|e| e.to_str()).map(|e| e.to_ascii_lowercase()).as_deref() {
-        Some("ply") => instgs_vk::scene::write_ply(&scene.expand(), out)?,
-        Some("json") => {
-            let graph = instgs_vk::instance::scene_graph(&scene);
-            let text = serde_json::to_string_pretty(&graph)?;
-            instgs_vk::util::write_atomic(out, |f| {
-                use std::io::Write;
-                f.write_all(text.as_bytes())
-            })?;
+    let scene = AnyScene::read(path)?;
+    let name = out.file_name().map(|n| n.to_string_lossy().to_ascii_lowercase()).unwrap_or_default();
+    let plain = || match &scene {
+        AnyScene::Plain(s) => s.clone(),
+        AnyScene::Instanced(s) => s.expand(),
+    };
+    if name.ends_with(".compressed.ply") {
+        instgs_vk::scene::write_compressed_ply(&plain(), out)?;
+    } else if name.ends_with(".ply") {
+        instgs_vk::scene::write_ply(&plain(), out)?;
+    } else if name.ends_with(".spz") {
+        instgs_vk::formats::write_spz(&plain(), out)?;
+    } else if name.ends_with(".splat") {
+        let s = plain();
+        if s.sh_degree > 0 {
+            eprintln!("note: .splat holds no SH bands: degree {} dropped", s.sh_degree);
         }
-        _ => bail!("{}: the output must end in .ply (expanded scene) or .json (scene graph)", out.display()),
+        instgs_vk::formats::write_splat(&s, out)?;
+    } else if name.ends_with(".json") {
+        let AnyScene::Instanced(s) = &scene else {
+            bail!("{}: a scene graph (.json) comes from an instanced scene; {} is plain", out.display(), path.display())
+        };
+        let text = serde_json::to_string_pretty(&instgs_vk::instance::scene_graph(s))?;
+        instgs_vk::util::write_atomic(out, |f| {
+            use std::io::Write;
+            f.write_all(text.as_bytes())
+        })?;
+    } else {
+        bail!(
+            "{}: cannot write this format; the output's name chooses: .ply (Inria), .compressed.ply (SuperSplat), .spz (version 4), .splat, or .json (an instanced scene's scene graph)",
+            out.display()
+        );
     }
     eprintln!("wrote {}", out.display());
+    Ok(())
+}
+
+fn export_cameras(data: &Path, split: &str, out: &Path) -> Result<()> {
+    let cams = instgs_vk::dataset::dataset_cameras_with_images(data, split)?;
+    if cams.is_empty() {
+        bail!("{}: the {split} split has no cameras", data.display());
+    }
+    let images: Vec<String> = cams
+        .iter()
+        .map(|(_, p)| std::fs::canonicalize(p).unwrap_or_else(|_| p.clone()).display().to_string())
+        .collect();
+    let cams: Vec<Camera> = cams.into_iter().map(|(c, _)| c).collect();
+    write_json(out, &camera::transforms_json(&cams, &images), true)?;
+    eprintln!("wrote {} ({} cameras)", out.display(), cams.len());
     Ok(())
 }
 
@@ -1199,7 +1260,7 @@ fn cameras(view: &ViewArgs, scene: &AnyScene) -> Result<Vec<Camera>> {
     }
     let cams = match (&view.cameras, view.orbit) {
         (Some(path), _) => {
-            let cams = camera::load_transforms(path)?;
+            let cams = instgs_vk::dataset::dataset_cameras(path, &view.split)?;
             match (view.width, view.height) {
                 (None, None) => cams,
                 (w, h) => cams

@@ -256,7 +256,7 @@ pub fn run(a: PipelineArgs) -> Result<()> {
     let mask_ids = check_masks(&a.data, &ds)?;
     if let Some(p) = &a.init_ply {
         // Read now: a bad file is refused before anything runs.
-        instgs_vk::scene::read_ply(p)?;
+        instgs_vk::formats::read_scene(p)?;
     }
     std::fs::create_dir_all(&a.out).with_context(|| format!("{}: cannot create", a.out.display()))?;
     let run = a.out.as_path();
@@ -393,11 +393,16 @@ impl Ctx<'_> {
         match s {
             Stage::Plain => {
                 if let Some(p) = &self.a.init_ply {
-                    let bytes = std::fs::read(p).with_context(|| format!("{}: cannot read", p.display()))?;
-                    instgs_vk::util::write_atomic(&run.join("point_cloud.ply"), |f| {
-                        use std::io::Write;
-                        f.write_all(&bytes)
-                    })?;
+                    let to = run.join("point_cloud.ply");
+                    if instgs_vk::formats::detect(p)? == instgs_vk::formats::Format::Ply {
+                        let bytes = std::fs::read(p).with_context(|| format!("{}: cannot read", p.display()))?;
+                        instgs_vk::util::write_atomic(&to, |f| {
+                            use std::io::Write;
+                            f.write_all(&bytes)
+                        })?;
+                    } else {
+                        instgs_vk::scene::write_ply(&instgs_vk::formats::read_scene(p)?, &to)?;
+                    }
                     eprintln!("{}: plain scene from {}", run.join("point_cloud.ply").display(), p.display());
                     return Ok(!interrupted());
                 }

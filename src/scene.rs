@@ -363,7 +363,9 @@ fn scene_from_rows(rows: &[GaussRow], sh_degree: u32) -> Scene {
     for r in rows {
         let v = &r.0;
         s.means.push([v[0], v[1], v[2]]);
-        s.opacities.push(v[6]);
+        // ±inf (other tools' fully opaque or transparent splats) clamps like our decoders;
+        // NaN passes through to `validate`, which refuses it.
+        s.opacities.push(if v[6].is_infinite() { v[6].signum() * crate::formats::OPACITY_LOGIT_LIMIT } else { v[6] });
         s.scales.push([v[7], v[8], v[9]]);
         s.quats.push([v[10], v[11], v[12], v[13]]);
         s.sh.extend_from_slice(&v[3..6]);
@@ -381,13 +383,10 @@ fn read_compressed<R: std::io::BufRead>(
     reader: &mut ply_rs_bw::parser::Reader<R>,
     header: &ply_rs_bw::ply::Header,
 ) -> Result<Scene> {
-    if header.elements.contains_key("sh") {
-        bail!(
-            "{what}: compressed PLY with SH bands ('sh' element) is not supported yet; decode it to a plain PLY first"
-        );
-    }
     let mut chunks = Vec::new();
     let mut packed = Vec::new();
+    let mut sh_rows: Vec<ShRow> = Vec::new();
+    let mut sh_degree = 0;
     for (name, def) in &header.elements {
         let err = |e: ply_rs_bw::parser::ParseError| {
             anyhow!("{what}: truncated or corrupt '{name}' data: {}", first_line(&e.to_string()))
@@ -409,6 +408,23 @@ fn read_compressed<R: std::io::BufRead>(
                 }
                 packed = Parser::<PackedRow>::new().read_payload_for_element(reader, def, header).map_err(err)?;
             }
+            "sh" => {
+                let rest = def.properties.keys().filter(|k| k.starts_with("f_rest_")).count();
+                sh_degree = match rest {
+                    9 => 1,
+                    24 => 2,
+                    45 => 3,
+                    k => bail!("{what}: the 'sh' element has {k} f_rest properties; expected 9, 24 or 45"),
+                };
+                for j in 0..rest {
+                    match def.properties.get(&format!("f_rest_{j}")).map(|p| &p.data_type) {
+                        Some(ply_rs_bw::ply::PropertyType::Scalar(ply_rs_bw::ply::ScalarType::UChar)) => {}
+                        Some(_) => bail!("{what}: 'sh' property 'f_rest_{j}' must be a uchar"),
+                        None => bail!("{what}: 'sh' property 'f_rest_{j}' is missing"),
+                    }
+                }
+                sh_rows = Parser::<ShRow>::new().read_payload_for_element(reader, def, header).map_err(err)?;
+            }
             _ => {
                 Parser::<Ignore>::new().read_payload_for_element(reader, def, header).map_err(err)?;
             }
@@ -417,7 +433,63 @@ fn read_compressed<R: std::io::BufRead>(
     if chunks.len() * 256 < packed.len() {
         bail!("{what}: {} chunks cannot hold {} splats (256 per chunk)", chunks.len(), packed.len());
     }
-    Ok(decode_compressed(&chunks, &packed))
+    if sh_degree > 0 && sh_rows.len() != packed.len() {
+        bail!("{what}: {} 'sh' rows for {} splats", sh_rows.len(), packed.len());
+    }
+    let mut scene = decode_compressed(&chunks, &packed);
+    if sh_degree > 0 {
+        add_compressed_sh(&mut scene, &sh_rows, sh_degree);
+    }
+    Ok(scene)
+}
+
+/// A row of a compressed PLY's `sh` element: `f_rest_*` bytes, channel-major.
+struct ShRow(Vec<u8>);
+
+impl PropertyAccess for ShRow {
+    fn new() -> Self {
+        ShRow(vec![0; 45])
+    }
+    fn set_uchar(&mut self, n: &str, v: u8) -> PropertyAccessResult {
+        match n.strip_prefix("f_rest_").and_then(|k| k.parse::<usize>().ok()).filter(|&k| k < 45) {
+            Some(k) => {
+                self.0[k] = v;
+                PropertyAccessResult::Set
+            }
+            None => PropertyAccessResult::Ignored,
+        }
+    }
+}
+
+/// SuperSplat's SH byte: 0 and 255 are the ends of ±4, the rest bin centres.
+fn sh_from_byte(b: u8) -> f32 {
+    let t = match b {
+        0 => 0.0,
+        255 => 1.0,
+        _ => (b as f32 + 0.5) / 256.0,
+    };
+    (t - 0.5) * 8.0
+}
+
+/// The inverse of [`sh_from_byte`] (SuperSplat's writer: truncating (v / 8 + 0.5)·256).
+pub fn sh_to_byte(v: f32) -> u8 {
+    ((v / 8.0 + 0.5) * 256.0).clamp(0.0, 255.0) as u8
+}
+
+fn add_compressed_sh(scene: &mut Scene, rows: &[ShRow], degree: u32) {
+    let coeffs = ((degree + 1) * (degree + 1)) as usize;
+    let rest = coeffs - 1;
+    let mut sh = Vec::with_capacity(scene.len() * coeffs * 3);
+    for (i, row) in rows.iter().enumerate() {
+        sh.extend_from_slice(&scene.sh[i * 3..i * 3 + 3]);
+        for k in 0..rest {
+            for c in 0..3 {
+                sh.push(sh_from_byte(row.0[c * rest + k]));
+            }
+        }
+    }
+    scene.sh = sh;
+    scene.sh_degree = degree;
 }
 
 fn unorm(v: u32, bits: u32) -> f32 {
@@ -508,6 +580,110 @@ pub fn write_ply(scene: &Scene, path: &Path) -> Result<()> {
             row.extend_from_slice(&scene.quats[i]);
             for v in &row {
                 w.write_all(&v.to_le_bytes())?;
+            }
+        }
+        w.flush()?;
+        Ok(())
+    })
+}
+
+fn pack_unorm(v: f32, bits: u32) -> u32 {
+    let m = ((1u32 << bits) - 1) as f32;
+    (v * m + 0.5).floor().clamp(0.0, m) as u32
+}
+
+/// Writes `scene` as a SuperSplat compressed PLY: chunks of 256 splats in file order with
+/// their position, log-scale (clamped to ±20) and colour bounds; per splat position and scale
+/// 11/10/11 bits within the bounds, rotation as the largest component's index and the other
+/// three in 10 bits, colour and opacity 8 bits; SH bands (if any) as an `sh` element of bytes,
+/// channel-major as Inria's `f_rest` (SuperSplat's ±4 range).
+pub fn write_compressed_ply(scene: &Scene, path: &Path) -> Result<()> {
+    let n = scene.len();
+    let coeffs = scene.sh_coeffs();
+    let rest = coeffs - 1;
+    let chunks = n.div_ceil(256);
+    let mut header = String::from("ply\nformat binary_little_endian 1.0\ncomment written by instgs-vk\n");
+    header += &format!("element chunk {chunks}\n");
+    for p in CHUNK_PROPS {
+        header += &format!("property float {p}\n");
+    }
+    header += &format!("element vertex {n}\n");
+    for p in PACKED_PROPS {
+        header += &format!("property uint {p}\n");
+    }
+    if rest > 0 {
+        header += &format!("element sh {n}\n");
+        for j in 0..3 * rest {
+            header += &format!("property uchar f_rest_{j}\n");
+        }
+    }
+    header += "end_header\n";
+    let colour = |i: usize, c: usize| 0.5 + SH_C0 * scene.sh[i * coeffs * 3 + c];
+    let mut chunk_rows = Vec::with_capacity(chunks * 18);
+    let mut packed = Vec::with_capacity(n * 4);
+    for c in 0..chunks {
+        let range = c * 256..((c + 1) * 256).min(n);
+        let bounds = |f: &dyn Fn(usize) -> [f32; 3]| {
+            let mut lo = [f32::MAX; 3];
+            let mut hi = [f32::MIN; 3];
+            for i in range.clone() {
+                let v = f(i);
+                for a in 0..3 {
+                    lo[a] = lo[a].min(v[a]);
+                    hi[a] = hi[a].max(v[a]);
+                }
+            }
+            (lo, hi)
+        };
+        let (plo, phi) = bounds(&|i| scene.means[i]);
+        let (slo, shi) = bounds(&|i| scene.scales[i].map(|v| v.clamp(-20.0, 20.0)));
+        let (clo, chi) = bounds(&|i| [colour(i, 0), colour(i, 1), colour(i, 2)]);
+        for v in [plo, phi, slo, shi, clo, chi] {
+            chunk_rows.extend_from_slice(&v);
+        }
+        let norm = |v: f32, lo: f32, hi: f32| if hi - lo < 1e-5 { 0.0 } else { ((v - lo) / (hi - lo)).clamp(0.0, 1.0) };
+        let pack3 = |v: [f32; 3], lo: [f32; 3], hi: [f32; 3]| {
+            pack_unorm(norm(v[0], lo[0], hi[0]), 11) << 21
+                | pack_unorm(norm(v[1], lo[1], hi[1]), 10) << 11
+                | pack_unorm(norm(v[2], lo[2], hi[2]), 11)
+        };
+        for i in range {
+            let position = pack3(scene.means[i], plo, phi);
+            let scale = pack3(scene.scales[i].map(|v| v.clamp(-20.0, 20.0)), slo, shi);
+            let q = scene.quats[i];
+            let len = q.iter().map(|v| v * v).sum::<f32>().sqrt().max(1e-12);
+            let mut q = q.map(|v| v / len);
+            let largest = (0..4).max_by(|&a, &b| q[a].abs().total_cmp(&q[b].abs())).unwrap_or(0);
+            if q[largest] < 0.0 {
+                q = q.map(|v| -v);
+            }
+            let mut rotation = largest as u32;
+            for (j, v) in q.iter().enumerate() {
+                if j != largest {
+                    rotation = rotation << 10 | pack_unorm(v * std::f32::consts::FRAC_1_SQRT_2 + 0.5, 10);
+                }
+            }
+            let rgb: [u32; 3] = std::array::from_fn(|ch| pack_unorm(norm(colour(i, ch), clo[ch], chi[ch]), 8));
+            let alpha = pack_unorm(1.0 / (1.0 + (-scene.opacities[i]).exp()), 8);
+            let color = rgb[0] << 24 | rgb[1] << 16 | rgb[2] << 8 | alpha;
+            packed.extend_from_slice(&[position, rotation, scale, color]);
+        }
+    }
+    crate::util::write_atomic(path, |w| {
+        let mut w = BufWriter::new(w);
+        w.write_all(header.as_bytes())?;
+        for v in &chunk_rows {
+            w.write_all(&v.to_le_bytes())?;
+        }
+        for v in &packed {
+            w.write_all(&v.to_le_bytes())?;
+        }
+        for i in 0..n {
+            let sh = &scene.sh[i * coeffs * 3..(i + 1) * coeffs * 3];
+            for c in 0..3 {
+                for k in 1..coeffs {
+                    w.write_all(&[sh_to_byte(sh[k * 3 + c])])?;
+                }
             }
         }
         w.flush()?;

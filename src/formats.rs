@@ -1,0 +1,689 @@
+//! Scene files of other 3DGS tools: chosen by content (magic bytes, `meta.json`), not by name.
+//!
+//! | format | read | written by `convert` | lossy |
+//! |---|---|---|---|
+//! | Inria 3DGS PLY | yes | `.ply` | no |
+//! | SuperSplat compressed PLY (`chunk` + packed `vertex`, optional `sh`) | yes | `.compressed.ply` | yes: 11/10/11-bit positions and log-scales per 256-splat chunk, 2+10+10+10-bit rotations, 8-bit colour and opacity, 8-bit SH in ±4 |
+//! | Niantic `.spz` (versions 2 and 3: gzip; 4: zstd streams) | yes | `.spz` (version 4) | yes: 24-bit fixed-point positions (12 fractional bits when written), 8-bit log-scales (1/16), rotations (smallest three, 10 bits), 8-bit colour (±1/0.15·½), opacity and SH (±1, 1/128) |
+//! | PlayCanvas SOG version 2 (`meta.json` + WebP images) | yes | — | yes: 16-bit log-positions, 256-entry codebooks, 8-bit rotations, palettised SH |
+//! | antimatter15 `.splat` (32-byte rows, no SH) | yes | `.splat` | yes: 8-bit colour, opacity and rotation; SH dropped |
+//! | `.instgs` (ours, `docs/format.md`) | yes | `.instgs` | f16 offsets on request |
+//!
+//! Conventions on reading: every scene comes out in the Inria/COLMAP frame the PLY formats use
+//! (x right, y down, z forward). `.spz` stores x right, y up, z back (its README), so y and z
+//! are negated: means (x, −y, −z), quaternions (w, x, −y, −z) and each SH coefficient by the
+//! parity of its basis function under that turn (as Niantic's own converter does). Opacities
+//! of exactly 0 or 1 — an infinite logit, which splat-transform and spz-js write into PLYs for
+//! fully opaque splats — are clamped to ±ln 1019 (the centre of the outer halves of the outer
+//! 8-bit bins, the rule of our compressed-PLY reader); NaN anywhere stays an error.
+use std::io::Read;
+use std::path::{Path, PathBuf};
+
+use anyhow::{anyhow, bail, Context, Result};
+
+use crate::scene::{Scene, SH_C0};
+
+/// An opacity logit's bound when the stored opacity is exactly 0 or 1: ln(1019).
+pub const OPACITY_LOGIT_LIMIT: f32 = 6.926_577;
+
+/// The scene formats we read.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Format {
+    Ply,
+    Spz,
+    Sog,
+    Splat,
+    Instgs,
+}
+
+impl Format {
+    pub fn name(self) -> &'static str {
+        match self {
+            Format::Ply => "PLY",
+            Format::Spz => ".spz",
+            Format::Sog => "SOG",
+            Format::Splat => ".splat",
+            Format::Instgs => ".instgs",
+        }
+    }
+}
+
+/// What we read, for errors.
+pub const READABLE: &str = "PLY (Inria 3DGS or SuperSplat compressed), .spz (versions 2-4), SOG (a meta.json with its \
+                            WebP images, or their folder), .splat (32-byte rows) and .instgs";
+
+/// The format of `path` by its content (a folder holding `meta.json` is SOG; `.splat` has no
+/// magic bytes and is taken by its extension when its size is a multiple of 32).
+pub fn detect(path: &Path) -> Result<Format> {
+    let what = path.display();
+    if path.is_dir() {
+        if path.join("meta.json").is_file() {
+            return Ok(Format::Sog);
+        }
+        bail!("{what}: a folder without meta.json; we read {READABLE}");
+    }
+    let mut head = [0u8; 16];
+    let n = {
+        let mut f = std::fs::File::open(path).with_context(|| format!("{what}: cannot open"))?;
+        let mut n = 0;
+        while n < head.len() {
+            let k = f.read(&mut head[n..]).with_context(|| format!("{what}: cannot read"))?;
+            if k == 0 {
+                break;
+            }
+            n += k;
+        }
+        n
+    };
+    let head = &head[..n];
+    let ext = path.extension().map(|e| e.to_string_lossy().to_ascii_lowercase()).unwrap_or_default();
+    if head.starts_with(b"ply\n") || head.starts_with(b"ply\r\n") {
+        return Ok(Format::Ply);
+    }
+    if head.starts_with(b"NGSP") || head.starts_with(&[0x1f, 0x8b]) {
+        return Ok(Format::Spz);
+    }
+    if head.starts_with(b"INSTGS") {
+        return Ok(Format::Instgs);
+    }
+    let first = head.iter().find(|b| !b.is_ascii_whitespace());
+    if first == Some(&b'{') && is_sog_meta(path) {
+        return Ok(Format::Sog);
+    }
+    if ext == "splat" {
+        let len = std::fs::metadata(path).with_context(|| format!("{what}: cannot read"))?.len();
+        if len % 32 != 0 || len == 0 {
+            bail!("{what}: a .splat file holds 32-byte rows, but it is {len} bytes long");
+        }
+        return Ok(Format::Splat);
+    }
+    let detected = if head.starts_with(b"\x89PNG") {
+        "a PNG image"
+    } else if head.starts_with(&[0xff, 0xd8, 0xff]) {
+        "a JPEG image"
+    } else if head.starts_with(b"PK\x03\x04") {
+        "a zip archive (a bundled .sog? unzip it and pass its meta.json)"
+    } else if head.starts_with(b"RIFF") {
+        "a RIFF/WebP image (SOG images are read through their meta.json)"
+    } else if first == Some(&b'{')
+        && std::fs::read(path).is_ok_and(|b| serde_json::from_slice::<serde_json::Value>(&b).is_ok())
+    {
+        "JSON that is not a SOG meta.json"
+    } else if head.is_empty() {
+        "an empty file"
+    } else if head.iter().all(|b| b.is_ascii_graphic() || b.is_ascii_whitespace()) {
+        "text"
+    } else {
+        "unknown binary data"
+    };
+    bail!("{what}: not a scene file we read ({detected}); we read {READABLE}")
+}
+
+/// Bytes the scene occupies on disk (a SOG scene: its meta.json and the images it names).
+pub fn file_bytes(path: &Path) -> Result<u64> {
+    let len = |p: &Path| std::fs::metadata(p).map(|m| m.len()).with_context(|| format!("{}: cannot read", p.display()));
+    if detect(path)? != Format::Sog {
+        return len(path);
+    }
+    let meta = if path.is_dir() { path.join("meta.json") } else { path.to_path_buf() };
+    let dir = meta.parent().unwrap_or(Path::new("."));
+    let v: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&meta)?)?;
+    let mut total = len(&meta)?;
+    if let Some(o) = v.as_object() {
+        for part in o.values() {
+            for f in part.get("files").and_then(|f| f.as_array()).into_iter().flatten() {
+                if let Some(name) = f.as_str() {
+                    total += len(&dir.join(name))?;
+                }
+            }
+        }
+    }
+    Ok(total)
+}
+
+fn is_sog_meta(path: &Path) -> bool {
+    let Ok(text) = std::fs::read_to_string(path) else { return false };
+    serde_json::from_str::<serde_json::Value>(&text)
+        .is_ok_and(|v| v.get("means").is_some() && v.get("quats").is_some() && v.get("sh0").is_some())
+}
+
+/// Reads a plain scene in any format we read (an `.instgs` file is refused: it is instanced,
+/// see [`crate::instgs::AnyScene`]).
+pub fn read_scene(path: &Path) -> Result<Scene> {
+    let what = path.display().to_string();
+    let scene = match detect(path)? {
+        Format::Ply => return crate::scene::read_ply(path),
+        Format::Spz => {
+            let bytes = std::fs::read(path).with_context(|| format!("{what}: cannot read"))?;
+            read_spz(&what, &bytes)?
+        }
+        Format::Sog => read_sog(path)?,
+        Format::Splat => {
+            let bytes = std::fs::read(path).with_context(|| format!("{what}: cannot read"))?;
+            read_splat(&what, &bytes)?
+        }
+        Format::Instgs => bail!(
+            "{what}: an instanced scene (.instgs); this command takes a plain scene — `instgs-vk convert {what} OUT.ply` expands it"
+        ),
+    };
+    scene.validate(&what)?;
+    Ok(scene)
+}
+
+/// An opacity in [0, 1] as a logit, 0 and 1 clamped to ±[`OPACITY_LOGIT_LIMIT`].
+pub fn opacity_logit(a: f32) -> f32 {
+    let limit = 1.0 / (1.0 + OPACITY_LOGIT_LIMIT.exp());
+    let a = a.clamp(limit, 1.0 - limit);
+    (a / (1.0 - a)).ln()
+}
+
+fn sigmoid(x: f32) -> f32 {
+    1.0 / (1.0 + (-x).exp())
+}
+
+/// Sign of SH coefficient k (1..16, band-major, m = −l..l as Inria orders them) when y and z
+/// are negated: the parity of its basis function in y and z.
+const SH_FLIP_YZ: [f32; 16] = [1.0, -1.0, -1.0, 1.0, -1.0, 1.0, 1.0, -1.0, 1.0, -1.0, 1.0, -1.0, -1.0, 1.0, -1.0, 1.0];
+
+/// Negates y and z of the whole scene (the `.spz` frame ↔ the PLY frame; its own inverse).
+fn flip_yz(s: &mut Scene) {
+    let coeffs = s.sh_coeffs();
+    for m in &mut s.means {
+        m[1] = -m[1];
+        m[2] = -m[2];
+    }
+    for q in &mut s.quats {
+        q[2] = -q[2];
+        q[3] = -q[3];
+    }
+    for (i, v) in s.sh.iter_mut().enumerate() {
+        *v *= SH_FLIP_YZ[(i / 3) % coeffs];
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// .spz
+
+const SPZ_COLOR_SCALE: f32 = 0.15;
+const SPZ_MAGIC: &[u8; 4] = b"NGSP";
+
+struct SpzHeader {
+    version: u32,
+    count: usize,
+    sh_degree: u32,
+    fractional_bits: u32,
+}
+
+fn u32_at(b: &[u8], at: usize) -> u32 {
+    u32::from_le_bytes([b[at], b[at + 1], b[at + 2], b[at + 3]])
+}
+
+fn u64_at(b: &[u8], at: usize) -> u64 {
+    u64::from_le_bytes(b[at..at + 8].try_into().expect("8 bytes"))
+}
+
+/// Bytes per Gaussian of each `.spz` attribute stream, in file order: positions, alphas,
+/// colours, scales, rotations, SH.
+fn spz_strides(h: &SpzHeader) -> [usize; 6] {
+    let sh = ((h.sh_degree + 1) * (h.sh_degree + 1) - 1) as usize * 3;
+    [9, 1, 3, 3, if h.version >= 3 { 4 } else { 3 }, sh]
+}
+
+fn check_spz_header(what: &str, h: &SpzHeader) -> Result<()> {
+    if !(2..=4).contains(&h.version) {
+        bail!("{what}: .spz version {} is not read (versions 2-4 are)", h.version);
+    }
+    if h.sh_degree > 3 {
+        bail!("{what}: .spz SH degree {} is not supported (0..3)", h.sh_degree);
+    }
+    if h.fractional_bits > 23 {
+        bail!("{what}: .spz fractional bits {} out of range (0..23)", h.fractional_bits);
+    }
+    if h.count == 0 {
+        bail!("{what}: the .spz holds no Gaussians");
+    }
+    Ok(())
+}
+
+/// Reads a `.spz` file's bytes (versions 2-3 gzip-compressed, 4 with zstd streams).
+pub fn read_spz(what: &str, bytes: &[u8]) -> Result<Scene> {
+    if bytes.starts_with(&[0x1f, 0x8b]) {
+        let mut gz = flate2::read::GzDecoder::new(bytes);
+        let mut head = [0u8; 16];
+        gz.read_exact(&mut head).map_err(|e| anyhow!("{what}: not a .spz gzip stream: {e}"))?;
+        if &head[..4] != SPZ_MAGIC {
+            bail!("{what}: a gzip stream, but not a .spz (no NGSP magic inside)");
+        }
+        let h = SpzHeader {
+            version: u32_at(&head, 4),
+            count: u32_at(&head, 8) as usize,
+            sh_degree: head[12] as u32,
+            fractional_bits: head[13] as u32,
+        };
+        check_spz_header(what, &h)?;
+        if h.version == 4 {
+            bail!("{what}: .spz version 4 inside gzip (version 4 files are not gzip-wrapped)");
+        }
+        let strides = spz_strides(&h);
+        let total = h.count.checked_mul(strides.iter().sum()).ok_or_else(|| anyhow!("{what}: count too large"))?;
+        // Bounded: a gzip bomb cannot make us allocate more than the header's count implies,
+        // and the count itself is bounded by what deflate can expand the file to (1032:1).
+        if total as u64 > bytes.len() as u64 * 1032 {
+            bail!("{what}: the header's {} Gaussians cannot fit in a {}-byte file", h.count, bytes.len());
+        }
+        let mut body = Vec::with_capacity(total);
+        gz.by_ref()
+            .take(total as u64)
+            .read_to_end(&mut body)
+            .map_err(|e| anyhow!("{what}: corrupt gzip stream: {e}"))?;
+        if body.len() < total {
+            bail!("{what}: truncated: {} of {} bytes of Gaussian data", body.len(), total);
+        }
+        let mut streams = Vec::new();
+        let mut at = 0;
+        for s in strides {
+            streams.push(body[at..at + s * h.count].to_vec());
+            at += s * h.count;
+        }
+        return decode_spz(&h, &streams);
+    }
+    if bytes.len() < 32 || &bytes[..4] != SPZ_MAGIC {
+        bail!("{what}: not a .spz file (no NGSP magic or gzip stream)");
+    }
+    let h = SpzHeader {
+        version: u32_at(bytes, 4),
+        count: u32_at(bytes, 8) as usize,
+        sh_degree: bytes[12] as u32,
+        fractional_bits: bytes[13] as u32,
+    };
+    if h.version != 4 {
+        bail!("{what}: a plain NGSP header says version {}, but only version 4 is stored without gzip", h.version);
+    }
+    check_spz_header(what, &h)?;
+    let streams_n = bytes[15] as usize;
+    let toc = u32_at(bytes, 16) as usize;
+    let strides = spz_strides(&h);
+    let expected = strides.iter().filter(|&&s| s > 0).count();
+    if streams_n != expected {
+        bail!("{what}: {streams_n} attribute streams; SH degree {} needs {expected}", h.sh_degree);
+    }
+    let toc_end = toc.checked_add(streams_n * 16).filter(|&e| toc >= 32 && e <= bytes.len());
+    let Some(toc_end) = toc_end else { bail!("{what}: the table of contents lies outside the file") };
+    let mut at = toc_end;
+    let mut streams = Vec::new();
+    let mut k = 0;
+    for s in strides {
+        if s == 0 {
+            streams.push(Vec::new());
+            continue;
+        }
+        let compressed = u64_at(bytes, toc + k * 16) as usize;
+        let size = u64_at(bytes, toc + k * 16 + 8) as usize;
+        k += 1;
+        if size != s * h.count {
+            bail!("{what}: stream {k} holds {size} bytes, {} Gaussians need {}", h.count, s * h.count);
+        }
+        let end = at.checked_add(compressed).filter(|&e| e <= bytes.len());
+        let Some(end) = end else { bail!("{what}: truncated: stream {k} runs past the end of the file") };
+        let data = zstd::bulk::decompress(&bytes[at..end], size)
+            .map_err(|e| anyhow!("{what}: corrupt zstd stream {k}: {e}"))?;
+        if data.len() != size {
+            bail!("{what}: stream {k} decompresses to {} bytes, expected {size}", data.len());
+        }
+        streams.push(data);
+        at = end;
+    }
+    if at != bytes.len() {
+        bail!("{what}: {} bytes follow the last stream", bytes.len() - at);
+    }
+    decode_spz(&h, &streams)
+}
+
+fn decode_spz(h: &SpzHeader, st: &[Vec<u8>]) -> Result<Scene> {
+    let n = h.count;
+    let coeffs = ((h.sh_degree + 1) * (h.sh_degree + 1)) as usize;
+    let mut s = Scene { sh_degree: h.sh_degree, ..Default::default() };
+    let unit = 1.0 / (1u32 << h.fractional_bits) as f32;
+    let rot_bytes = if h.version >= 3 { 4 } else { 3 };
+    for i in 0..n {
+        let p = &st[0][i * 9..i * 9 + 9];
+        s.means.push(std::array::from_fn(|a| {
+            let raw = p[a * 3] as u32 | (p[a * 3 + 1] as u32) << 8 | (p[a * 3 + 2] as u32) << 16;
+            ((raw << 8) as i32 >> 8) as f32 * unit
+        }));
+        s.opacities.push(opacity_logit(st[1][i] as f32 / 255.0));
+        let c = &st[2][i * 3..i * 3 + 3];
+        s.sh.extend(c.iter().map(|&b| (b as f32 / 255.0 - 0.5) / SPZ_COLOR_SCALE));
+        for k in 1..coeffs {
+            for ch in 0..3 {
+                let b = st[5][(i * (coeffs - 1) + k - 1) * 3 + ch];
+                s.sh.push((b as f32 - 128.0) / 128.0);
+            }
+        }
+        let sc = &st[3][i * 3..i * 3 + 3];
+        s.scales.push(std::array::from_fn(|a| sc[a] as f32 / 16.0 - 10.0));
+        let r = &st[4][i * rot_bytes..(i + 1) * rot_bytes];
+        // Stored (x, y, z, w); ours (w, x, y, z).
+        let xyzw = if h.version >= 3 { unpack_smallest_three(r) } else { first_three(r) };
+        s.quats.push([xyzw[3], xyzw[0], xyzw[1], xyzw[2]]);
+    }
+    flip_yz(&mut s);
+    Ok(s)
+}
+
+/// Version 3+: the largest component's index in the top 2 bits, the other three as a sign
+/// and 9-bit magnitude in [0, 1/√2], the last component in the lowest bits.
+fn unpack_smallest_three(r: &[u8]) -> [f32; 4] {
+    let mut comp = u32::from_le_bytes([r[0], r[1], r[2], r[3]]);
+    let largest = (comp >> 30) as usize;
+    let mask = (1u32 << 9) - 1;
+    let mut q = [0.0f32; 4];
+    let mut sum = 0.0;
+    for i in (0..4).rev() {
+        if i == largest {
+            continue;
+        }
+        let mag = (comp & mask) as f32 / mask as f32 * std::f32::consts::FRAC_1_SQRT_2;
+        q[i] = if (comp >> 9) & 1 == 1 { -mag } else { mag };
+        sum += q[i] * q[i];
+        comp >>= 10;
+    }
+    q[largest] = (1.0 - sum).max(0.0).sqrt();
+    q
+}
+
+/// Version 2: x, y, z as bytes in [−1, 1], w ≥ 0 from unit length.
+fn first_three(r: &[u8]) -> [f32; 4] {
+    let xyz: [f32; 3] = std::array::from_fn(|a| r[a] as f32 / 127.5 - 1.0);
+    let w = (1.0 - xyz.iter().map(|v| v * v).sum::<f32>()).max(0.0).sqrt();
+    [xyz[0], xyz[1], xyz[2], w]
+}
+
+fn pack_smallest_three(xyzw: [f32; 4]) -> [u8; 4] {
+    let norm = xyzw.iter().map(|v| v * v).sum::<f32>().sqrt().max(1e-12);
+    let mut q = xyzw.map(|v| v / norm);
+    let largest = (0..4).max_by(|&a, &b| q[a].abs().total_cmp(&q[b].abs())).unwrap_or(3);
+    if q[largest] < 0.0 {
+        q = q.map(|v| -v);
+    }
+    let mask = (1u32 << 9) - 1;
+    let mut comp = largest as u32;
+    for (i, v) in q.iter().enumerate() {
+        if i == largest {
+            continue;
+        }
+        let mag = ((mask as f32) * (v.abs() / std::f32::consts::FRAC_1_SQRT_2) + 0.5).min(mask as f32) as u32;
+        comp = (comp << 10) | ((v < &0.0) as u32) << 9 | mag;
+    }
+    comp.to_le_bytes()
+}
+
+fn unorm8(v: f32) -> u8 {
+    (v * 255.0).round().clamp(0.0, 255.0) as u8
+}
+
+/// `scene` as a version-4 `.spz` (12 fractional bits; zstd level 12).
+pub fn write_spz(scene: &Scene, path: &Path) -> Result<()> {
+    let what = path.display().to_string();
+    let mut s = scene.clone();
+    flip_yz(&mut s);
+    let n = s.len();
+    let coeffs = s.sh_coeffs();
+    let bits = 12;
+    let limit = (1i32 << 23) - 1;
+    for (i, m) in s.means.iter().enumerate() {
+        if m.iter().any(|v| (v * (1 << bits) as f32).abs() > limit as f32) {
+            bail!("{what}: Gaussian {i} lies {m:?} from the origin, outside .spz's ±2048 range at 12 fractional bits");
+        }
+    }
+    let mut streams: Vec<Vec<u8>> =
+        vec![Vec::with_capacity(n * 9), Vec::new(), Vec::new(), Vec::new(), Vec::new(), Vec::new()];
+    for i in 0..n {
+        for v in s.means[i] {
+            let fixed = (v * (1 << bits) as f32).round() as i32;
+            streams[0].extend_from_slice(&fixed.to_le_bytes()[..3]);
+        }
+        streams[1].push(unorm8(sigmoid(s.opacities[i])));
+        let sh = &s.sh[i * coeffs * 3..(i + 1) * coeffs * 3];
+        for v in &sh[..3] {
+            streams[2].push(unorm8(v * SPZ_COLOR_SCALE + 0.5));
+        }
+        for v in s.scales[i] {
+            streams[3].push(((v + 10.0) * 16.0).round().clamp(0.0, 255.0) as u8);
+        }
+        let [w, x, y, z] = s.quats[i];
+        streams[4].extend_from_slice(&pack_smallest_three([x, y, z, w]));
+        for v in &sh[3..] {
+            streams[5].push((v * 128.0 + 128.0).round().clamp(0.0, 255.0) as u8);
+        }
+    }
+    let streams: Vec<Vec<u8>> = streams.into_iter().filter(|s| !s.is_empty()).collect();
+    let mut compressed = Vec::new();
+    for st in &streams {
+        compressed.push(zstd::bulk::compress(st, 12).with_context(|| format!("{what}: zstd"))?);
+    }
+    let mut out = Vec::new();
+    out.extend_from_slice(SPZ_MAGIC);
+    out.extend_from_slice(&4u32.to_le_bytes());
+    out.extend_from_slice(&(n as u32).to_le_bytes());
+    out.extend_from_slice(&[s.sh_degree as u8, bits as u8, 0, streams.len() as u8]);
+    out.extend_from_slice(&32u32.to_le_bytes());
+    out.extend_from_slice(&[0u8; 12]);
+    for (c, st) in compressed.iter().zip(&streams) {
+        out.extend_from_slice(&(c.len() as u64).to_le_bytes());
+        out.extend_from_slice(&(st.len() as u64).to_le_bytes());
+    }
+    for c in &compressed {
+        out.extend_from_slice(c);
+    }
+    crate::util::write_atomic(path, |f| std::io::Write::write_all(f, &out))
+}
+
+// ---------------------------------------------------------------------------------------------
+// .splat
+
+/// Reads antimatter15's `.splat`: per Gaussian 32 bytes — position f32×3, linear scale f32×3,
+/// colour and opacity u8×4 (colour = 0.5 + SH_C0·sh0), rotation u8×4 (w, x, y, z; v/255·2 − 1).
+pub fn read_splat(what: &str, bytes: &[u8]) -> Result<Scene> {
+    if bytes.is_empty() || bytes.len() % 32 != 0 {
+        bail!("{what}: a .splat file holds 32-byte rows, but it is {} bytes long", bytes.len());
+    }
+    let mut s = Scene::default();
+    for (i, row) in bytes.chunks_exact(32).enumerate() {
+        let f = |k: usize| f32::from_le_bytes(row[k * 4..k * 4 + 4].try_into().expect("4 bytes"));
+        s.means.push([f(0), f(1), f(2)]);
+        let scale = [f(3), f(4), f(5)];
+        if scale.iter().any(|&v| v.is_nan() || v < 0.0) {
+            bail!("{what}: Gaussian {i} has a negative or NaN scale {scale:?}");
+        }
+        s.scales.push(scale.map(|v| v.max(1e-30).ln()));
+        s.sh.extend(row[24..27].iter().map(|&b| (b as f32 / 255.0 - 0.5) / SH_C0));
+        s.opacities.push(opacity_logit(row[27] as f32 / 255.0));
+        s.quats.push(std::array::from_fn(|k| row[28 + k] as f32 / 255.0 * 2.0 - 1.0));
+    }
+    Ok(s)
+}
+
+/// `scene` as `.splat` (SH bands beyond sh0 are dropped; rotations normalised).
+pub fn write_splat(scene: &Scene, path: &Path) -> Result<()> {
+    let coeffs = scene.sh_coeffs();
+    let mut out = Vec::with_capacity(scene.len() * 32);
+    for i in 0..scene.len() {
+        for v in scene.means[i] {
+            out.extend_from_slice(&v.to_le_bytes());
+        }
+        for v in scene.scales[i] {
+            out.extend_from_slice(&v.exp().to_le_bytes());
+        }
+        for c in 0..3 {
+            out.push(unorm8(0.5 + SH_C0 * scene.sh[i * coeffs * 3 + c]));
+        }
+        out.push(unorm8(sigmoid(scene.opacities[i])));
+        let q = scene.quats[i];
+        let norm = q.iter().map(|v| v * v).sum::<f32>().sqrt().max(1e-12);
+        for v in q {
+            out.push(unorm8((v / norm + 1.0) * 0.5));
+        }
+    }
+    crate::util::write_atomic(path, |f| std::io::Write::write_all(f, &out))
+}
+
+// ---------------------------------------------------------------------------------------------
+// SOG (version 2)
+
+#[derive(serde::Deserialize)]
+struct SogMeans {
+    mins: [f32; 3],
+    maxs: [f32; 3],
+    files: [String; 2],
+}
+
+#[derive(serde::Deserialize)]
+struct SogCodebook {
+    codebook: Vec<f32>,
+    files: Vec<String>,
+}
+
+#[derive(serde::Deserialize)]
+struct SogFiles {
+    files: Vec<String>,
+}
+
+#[derive(serde::Deserialize)]
+struct SogShN {
+    count: usize,
+    bands: u32,
+    codebook: Vec<f32>,
+    files: [String; 2],
+}
+
+#[derive(serde::Deserialize)]
+struct SogMeta {
+    version: Option<u32>,
+    count: Option<usize>,
+    means: SogMeans,
+    scales: SogCodebook,
+    quats: SogFiles,
+    sh0: SogCodebook,
+    #[serde(rename = "shN")]
+    sh_n: Option<SogShN>,
+}
+
+/// An RGBA image decoded from a SOG WebP file: (width, height, bytes).
+fn sog_image(dir: &Path, name: &str, count: usize) -> Result<(usize, usize, Vec<u8>)> {
+    let path = dir.join(name);
+    let what = path.display();
+    let bytes = std::fs::read(&path).with_context(|| format!("{what}: cannot read (named by meta.json)"))?;
+    let img = image::load_from_memory_with_format(&bytes, image::ImageFormat::WebP)
+        .map_err(|e| anyhow!("{what}: not a WebP image: {e}"))?
+        .to_rgba8();
+    let (w, h) = (img.width() as usize, img.height() as usize);
+    if w * h < count {
+        bail!("{what}: {w}×{h} texels cannot hold {count} Gaussians");
+    }
+    Ok((w, h, img.into_raw()))
+}
+
+/// Reads a SOG version 2 scene: `meta.json` (or its folder) and the WebP images it names.
+pub fn read_sog(path: &Path) -> Result<Scene> {
+    let meta_path: PathBuf = if path.is_dir() { path.join("meta.json") } else { path.to_path_buf() };
+    let what = meta_path.display().to_string();
+    let dir = meta_path.parent().unwrap_or(Path::new("."));
+    let text = std::fs::read_to_string(&meta_path).with_context(|| format!("{what}: cannot read"))?;
+    let meta: SogMeta = serde_json::from_str(&text).map_err(|e| anyhow!("{what}: not a SOG meta.json: {e}"))?;
+    match meta.version {
+        Some(2) => {}
+        Some(v) => bail!("{what}: SOG version {v} is not read (version 2 is)"),
+        None => bail!(
+            "{what}: a SOG version 1 meta.json (no \"version\"): not read; re-save it with a current splat-transform"
+        ),
+    }
+    let n = meta.count.ok_or_else(|| anyhow!("{what}: no \"count\""))?;
+    if n == 0 {
+        bail!("{what}: the SOG holds no Gaussians");
+    }
+    if meta.scales.codebook.len() != 256 || meta.sh0.codebook.len() != 256 {
+        bail!("{what}: the scales and sh0 codebooks must hold 256 entries");
+    }
+    let one = |c: &SogCodebook, name: &str| {
+        c.files.first().cloned().ok_or_else(|| anyhow!("{what}: \"{name}\" names no file"))
+    };
+    let (_, _, lo) = sog_image(dir, &meta.means.files[0], n)?;
+    let (_, _, hi) = sog_image(dir, &meta.means.files[1], n)?;
+    let quat_file = meta.quats.files.first().ok_or_else(|| anyhow!("{what}: \"quats\" names no file"))?;
+    let (_, _, quats) = sog_image(dir, quat_file, n)?;
+    let (_, _, scales) = sog_image(dir, &one(&meta.scales, "scales")?, n)?;
+    let (_, _, sh0) = sog_image(dir, &one(&meta.sh0, "sh0")?, n)?;
+    let (degree, palette) = match &meta.sh_n {
+        Some(sh) if sh.bands > 0 => {
+            if sh.bands > 3 {
+                bail!("{what}: shN with {} bands is not supported (1..3)", sh.bands);
+            }
+            if sh.codebook.len() != 256 {
+                bail!("{what}: the shN codebook must hold 256 entries");
+            }
+            let coeffs = ((sh.bands + 1) * (sh.bands + 1) - 1) as usize;
+            let (cw, ch, centroids) = sog_image(dir, &sh.files[0], 0)?;
+            if cw != 64 * coeffs {
+                bail!(
+                    "{}: {cw} texels wide; {} bands need {}",
+                    dir.join(&sh.files[0]).display(),
+                    sh.bands,
+                    64 * coeffs
+                );
+            }
+            if sh.count > ch * 64 {
+                bail!("{what}: shN count {} exceeds its centroids image ({} entries)", sh.count, ch * 64);
+            }
+            let (_, _, labels) = sog_image(dir, &sh.files[1], n)?;
+            (sh.bands, Some((coeffs, cw, centroids, labels, sh.count, &sh.codebook)))
+        }
+        _ => (0, None),
+    };
+    let m = &meta.means;
+    let mut s = Scene { sh_degree: degree, ..Default::default() };
+    let unlog = |v: f32| v.signum() * (v.abs().exp() - 1.0);
+    for i in 0..n {
+        let o = i * 4;
+        s.means.push(std::array::from_fn(|a| {
+            let q = (lo[o + a] as u32 | (hi[o + a] as u32) << 8) as f32 / 65535.0;
+            let range = if m.maxs[a] > m.mins[a] { m.maxs[a] - m.mins[a] } else { 1.0 };
+            unlog(m.mins[a] + range * q)
+        }));
+        let tag = quats[o + 3];
+        if !(252..=255).contains(&tag) {
+            bail!("{what}: Gaussian {i}'s rotation tag {tag} is not 252-255");
+        }
+        let largest = (tag - 252) as usize;
+        let abc = [0, 1, 2].map(|k| (quats[o + k] as f32 / 255.0 * 2.0 - 1.0) * std::f32::consts::FRAC_1_SQRT_2);
+        let mut q = [0.0f32; 4];
+        let mut k = 0;
+        for (j, v) in q.iter_mut().enumerate() {
+            if j != largest {
+                *v = abc[k];
+                k += 1;
+            }
+        }
+        q[largest] = (1.0 - abc.iter().map(|v| v * v).sum::<f32>()).max(0.0).sqrt();
+        s.quats.push(q);
+        s.scales.push(std::array::from_fn(|a| meta.scales.codebook[scales[o + a] as usize]));
+        s.opacities.push(opacity_logit(sh0[o + 3] as f32 / 255.0));
+        for c in 0..3 {
+            s.sh.push(meta.sh0.codebook[sh0[o + c] as usize]);
+        }
+        if let Some((coeffs, cw, centroids, labels, count, codebook)) = &palette {
+            let label = labels[o] as usize | (labels[o + 1] as usize) << 8;
+            if label >= *count {
+                bail!("{what}: Gaussian {i}'s SH palette label {label} is not below its count {count}");
+            }
+            let (row, col) = (label / 64, (label % 64) * coeffs);
+            for j in 0..*coeffs {
+                let t = (row * cw + col + j) * 4;
+                for c in 0..3 {
+                    s.sh.push(codebook[centroids[t + c] as usize]);
+                }
+            }
+        }
+    }
+    Ok(s)
+}

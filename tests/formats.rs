@@ -1,0 +1,242 @@
+//! Other tools' scene files (`instgs_vk::formats`): the shared real files against their decoded
+//! PLYs (renders from the same cameras, Gaussian counts), our writers read back by our readers
+//! (attribute errors within each format's quantisation), detection by content, clear errors.
+mod common;
+
+use std::path::Path;
+
+use common::{assert_clean, gpu, shared_data};
+use instgs_vk::camera::{orbit_around, UpAxis};
+use instgs_vk::formats::{self, Format};
+use instgs_vk::raster::{GpuScene, Rasterizer};
+use instgs_vk::scene::{read_ply, write_compressed_ply, Scene};
+use instgs_vk::util::psnr;
+
+/// The worst PSNR over 4 orbit views (320×240) of `b` against `a`.
+fn render_agreement(a: &Scene, b: &Scene) -> f64 {
+    let (gpu, k) = gpu();
+    let mut r = Rasterizer::new(&gpu, &k).unwrap();
+    let (ga, gb) = (GpuScene::new(&gpu, a).unwrap(), GpuScene::new(&gpu, b).unwrap());
+    let mut worst = f64::INFINITY;
+    for cam in orbit_around(a, 4, UpAxis::NegY, 320, 240) {
+        let x = r.render(&ga, &cam, [0.0; 3]).unwrap().image;
+        let y = r.render(&gb, &cam, [0.0; 3]).unwrap().image;
+        worst = worst.min(psnr(&x, &y));
+    }
+    assert_clean(&gpu);
+    worst
+}
+
+fn tmp(name: &str) -> std::path::PathBuf {
+    let d = std::env::temp_dir().join(format!("instgs-formats-{}", std::process::id()));
+    std::fs::create_dir_all(&d).unwrap();
+    d.join(name)
+}
+
+/// Largest absolute difference per attribute: (means, log-scales, quats up to sign, opacity
+/// as alpha, sh0, shN).
+fn max_errors(a: &Scene, b: &Scene) -> [f32; 6] {
+    assert_eq!(a.len(), b.len());
+    assert_eq!(a.sh_degree, b.sh_degree);
+    let coeffs = a.sh_coeffs();
+    let mut e = [0.0f32; 6];
+    let sig = |x: f32| 1.0 / (1.0 + (-x).exp());
+    for i in 0..a.len() {
+        for k in 0..3 {
+            e[0] = e[0].max((a.means[i][k] - b.means[i][k]).abs());
+            e[1] = e[1].max((a.scales[i][k] - b.scales[i][k]).abs());
+        }
+        let n = |q: [f32; 4]| {
+            let l = q.iter().map(|v| v * v).sum::<f32>().sqrt();
+            q.map(|v| v / l)
+        };
+        let (qa, qb) = (n(a.quats[i]), n(b.quats[i]));
+        let dot: f32 = (0..4).map(|k| qa[k] * qb[k]).sum();
+        let s = if dot < 0.0 { -1.0 } else { 1.0 };
+        for k in 0..4 {
+            e[2] = e[2].max((qa[k] - s * qb[k]).abs());
+        }
+        e[3] = e[3].max((sig(a.opacities[i]) - sig(b.opacities[i])).abs());
+        for j in 0..coeffs * 3 {
+            let d = (a.sh[i * coeffs * 3 + j] - b.sh[i * coeffs * 3 + j]).abs();
+            let slot = if j < 3 { 4 } else { 5 };
+            e[slot] = e[slot].max(d);
+        }
+    }
+    e
+}
+
+#[test]
+fn spz_v4_reads_like_its_decoded_ply() {
+    let path = shared_data("splats/biker.spz");
+    assert_eq!(formats::detect(&path).unwrap(), Format::Spz);
+    let spz = formats::read_scene(&path).unwrap();
+    let ply = read_ply(&shared_data("splats/biker.ply")).unwrap();
+    assert_eq!(spz.len(), ply.len());
+    // The same Gaussians in the same order, in the PLY's frame (y and z negated on reading).
+    let e = max_errors(&ply, &spz);
+    assert!(e[0] <= 2e-4, "positions differ by {}", e[0]);
+    let db = render_agreement(&ply, &spz);
+    eprintln!("biker.spz against biker.ply: {db:.1} dB (worst of 4 views); errors {e:?}");
+    assert!(db >= 45.0, "biker.spz renders {db:.1} dB from biker.ply");
+}
+
+#[test]
+fn sog_reads_like_its_decoded_ply() {
+    for (dir, ply) in [("playbot/2_0", "playbot_lod2.ply"), ("playbot/6_0/meta.json", "playbot_lod6.ply")] {
+        let path = shared_data(&format!("splats/{dir}"));
+        assert_eq!(formats::detect(&path).unwrap(), Format::Sog);
+        let sog = formats::read_scene(&path).unwrap();
+        let reference = read_ply(&shared_data(&format!("splats/{ply}"))).unwrap();
+        assert_eq!(sog.len(), reference.len(), "{dir}");
+        assert_eq!(sog.sh_degree, 2, "{dir}");
+        let db = render_agreement(&reference, &sog);
+        eprintln!("{dir} against {ply}: {db:.1} dB (worst of 4 views)");
+        assert!(db >= 45.0, "{dir} renders {db:.1} dB from {ply}");
+    }
+}
+
+#[test]
+fn compressed_ply_with_sh_round_trips() {
+    // playbot has SH degree 2: our writer's `sh` element, read back.
+    let source = read_ply(&shared_data("splats/playbot_lod2.ply")).unwrap();
+    let out = tmp("playbot.compressed.ply");
+    write_compressed_ply(&source, &out).unwrap();
+    assert_eq!(formats::detect(&out).unwrap(), Format::Ply);
+    let back = formats::read_scene(&out).unwrap();
+    let e = max_errors(&source, &back);
+    // SH: 8 bits over ±4 (one bin 1/32, half a bin at most off, and the clamp beyond ±4).
+    let clamped = source.sh.iter().enumerate().any(|(j, v)| j % 27 >= 3 && v.abs() > 4.0);
+    assert!(clamped || e[5] <= 1.0 / 32.0 + 1e-6, "SH error {}", e[5]);
+    assert!(e[3] <= 0.5 / 255.0 + 1e-6, "opacity error {}", e[3]);
+    let db = render_agreement(&source, &back);
+    eprintln!("playbot_lod2 through our compressed PLY with SH: {db:.1} dB; errors {e:?}");
+    assert!(db >= 45.0, "{db:.1} dB");
+    // The shared compressed files (no SH) still read as before.
+    let guitar = formats::read_scene(&shared_data("splats/guitar.compressed.ply")).unwrap();
+    assert_eq!(guitar.len(), 90_854);
+}
+
+#[test]
+fn spz_writer_round_trips_within_its_quantisation() {
+    // fruit_drops has SH degree 3.
+    for name in ["biker.ply", "fruit_drops_minimal.ply"] {
+        let source = read_ply(&shared_data(&format!("splats/{name}"))).unwrap();
+        let out = tmp(&format!("{name}.spz"));
+        formats::write_spz(&source, &out).unwrap();
+        let back = formats::read_scene(&out).unwrap();
+        let e = max_errors(&source, &back);
+        eprintln!("{name} through .spz: errors {e:?}");
+        assert!(e[0] <= 0.5 / 4096.0 + 1e-6, "{name}: position error {}", e[0]);
+        assert!(e[3] <= 0.5 / 255.0 + 1e-6, "{name}: opacity error {}", e[3]);
+        // Log-scales in 1/16 steps from −10 (clamped to the byte's range outside it).
+        let inside = source.scales.iter().flatten().all(|&v| (-10.0..=5.9).contains(&v));
+        assert!(!inside || e[1] <= 1.0 / 32.0 + 1e-5, "{name}: scale error {}", e[1]);
+        assert!(e[2] <= 2e-3, "{name}: rotation error {}", e[2]);
+        let db = render_agreement(&source, &back);
+        eprintln!("{name} through .spz: {db:.1} dB");
+        assert!(db >= 30.0, "{name}: {db:.1} dB");
+        // Writing what we read back moves nothing by more than rounding: the quantisation is
+        // stable under itself.
+        let again = tmp(&format!("{name}.2.spz"));
+        formats::write_spz(&back, &again).unwrap();
+        let e2 = max_errors(&back, &formats::read_scene(&again).unwrap());
+        assert!(e2.iter().all(|&v| v <= 2e-3), "{name}: a second round trip moved {e2:?}");
+    }
+}
+
+#[test]
+fn splat_writer_round_trips_within_its_quantisation() {
+    let source = read_ply(&shared_data("splats/guitar.ply")).unwrap();
+    let out = tmp("guitar.splat");
+    formats::write_splat(&source, &out).unwrap();
+    assert_eq!(formats::detect(&out).unwrap(), Format::Splat);
+    let back = formats::read_scene(&out).unwrap();
+    let e = max_errors(&source, &back);
+    assert_eq!(e[0], 0.0, "positions are f32");
+    assert!(e[1] <= 1e-5, "scales are f32 (linear): {}", e[1]);
+    assert!(e[3] <= 0.5 / 255.0 + 1e-6, "opacity error {}", e[3]);
+    // Colours in [0, 1] keep 8 bits (half a step off at most); others are clamped.
+    let c0 = 0.282_094_8;
+    let colour = |s: &Scene, i: usize, c: usize| 0.5 + c0 * s.sh[3 * i + c];
+    let mut worst = 0.0f32;
+    for i in 0..source.len() {
+        for c in 0..3 {
+            if (0.0..=1.0).contains(&colour(&source, i, c)) {
+                worst = worst.max((colour(&source, i, c) - colour(&back, i, c)).abs());
+            }
+        }
+    }
+    assert!(worst <= 0.5 / 255.0 + 1e-5, "colour error {worst}");
+    let db = render_agreement(&source, &back);
+    eprintln!("guitar through .splat: {db:.1} dB; errors {e:?}");
+    assert!(db >= 30.0, "{db:.1} dB");
+}
+
+#[test]
+fn infinite_opacity_logits_are_clamped_and_nan_refused() {
+    // A PLY as splat-transform writes fully opaque splats: opacity +inf.
+    let mut s = read_ply(&shared_data("splats/fruit_drops_minimal.ply")).unwrap();
+    s.opacities[3] = f32::INFINITY;
+    s.opacities[4] = f32::NEG_INFINITY;
+    let out = tmp("inf.ply");
+    instgs_vk::scene::write_ply(&s, &out).unwrap();
+    let back = formats::read_scene(&out).unwrap();
+    assert_eq!(back.opacities[3], formats::OPACITY_LOGIT_LIMIT);
+    assert_eq!(back.opacities[4], -formats::OPACITY_LOGIT_LIMIT);
+    assert!((formats::OPACITY_LOGIT_LIMIT - 1019f32.ln()).abs() < 1e-5);
+    s.opacities[3] = f32::NAN;
+    instgs_vk::scene::write_ply(&s, &out).unwrap();
+    let e = format!("{:#}", formats::read_scene(&out).unwrap_err());
+    assert!(e.contains("inf.ply") && e.contains("non-finite opacity"), "{e}");
+}
+
+#[test]
+fn unreadable_files_name_what_they_are_and_what_we_read() {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    for (file, detected) in [("docs/curves.png", "a PNG image"), ("Cargo.toml", "text")] {
+        let e = format!("{:#}", formats::read_scene(&root.join(file)).unwrap_err());
+        assert!(e.contains(file) && e.contains(detected) && e.contains(".spz") && e.contains("SOG"), "{e}");
+    }
+    // A .spz cut short, and a gzip stream that is not a .spz.
+    let bytes = std::fs::read(shared_data("splats/biker.spz")).unwrap();
+    let cut = tmp("cut.spz");
+    std::fs::write(&cut, &bytes[..bytes.len() / 2]).unwrap();
+    let e = format!("{:#}", formats::read_scene(&cut).unwrap_err());
+    assert!(e.contains("cut.spz") && e.contains("truncated"), "{e}");
+    let gz = tmp("other.spz");
+    let mut enc = flate2::write::GzEncoder::new(Vec::new(), flate2::Compression::fast());
+    std::io::Write::write_all(&mut enc, b"hello, not a splat file").unwrap();
+    std::fs::write(&gz, enc.finish().unwrap()).unwrap();
+    let e = format!("{:#}", formats::read_scene(&gz).unwrap_err());
+    assert!(e.contains("other.spz") && e.contains("not a .spz"), "{e}");
+    // A .splat whose size is not a multiple of 32.
+    let odd = tmp("odd.splat");
+    std::fs::write(&odd, [0u8; 33]).unwrap();
+    let e = format!("{:#}", formats::read_scene(&odd).unwrap_err());
+    assert!(e.contains("odd.splat") && e.contains("32-byte rows"), "{e}");
+}
+
+#[test]
+fn dataset_cameras_export_and_read_back() {
+    // A COLMAP capture (one camera per image, heights 328-331) and a NeRF-synthetic scene.
+    for (data, split, n) in [("colmap/statue", "all", 23), ("colmap/statue", "test", 3), ("scenes/ducks6", "test", 12)]
+    {
+        let dir = shared_data(data);
+        let cams = instgs_vk::dataset::dataset_cameras_with_images(&dir, split).unwrap();
+        assert_eq!(cams.len(), n, "{data} {split}");
+        let images: Vec<String> = cams.iter().map(|(_, p)| p.display().to_string()).collect();
+        let only: Vec<_> = cams.iter().map(|(c, _)| c.clone()).collect();
+        let json = instgs_vk::camera::transforms_json(&only, &images);
+        let out = tmp(&format!("{}-{split}.json", data.replace('/', "-")));
+        std::fs::write(&out, serde_json::to_string(&json).unwrap()).unwrap();
+        let back = instgs_vk::dataset::dataset_cameras_with_images(&out, "train").unwrap();
+        assert_eq!(back.len(), n);
+        for ((a, pa), (b, pb)) in cams.iter().zip(&back) {
+            assert_eq!(a.name, b.name);
+            assert_eq!((a.width, a.height, a.fx, a.fy, a.cx, a.cy), (b.width, b.height, b.fx, b.fy, b.cx, b.cy));
+            assert!((a.viewmat - b.viewmat).abs().to_cols_array().iter().all(|&d| d < 1e-5), "{}", a.name);
+            assert_eq!(pa, pb);
+        }
+    }
+}
