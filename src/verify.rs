@@ -30,8 +30,10 @@ type Image = Vec<Pixel>;
 /// Renders of one scene: (camera index, image).
 type Renders = Vec<(usize, Image)>;
 
-/// Views compared per instance at most.
-pub const MAX_VIEWS: usize = 12;
+/// Views compared per instance at most. More views pin a pose down better where each sees
+/// the instance small: on the demo (ducks ~30 px wide) the refined poses came within 2.9° with
+/// 24 views and 0.9–5.0° with 12, 0.9–5.0° with 6 (BENCHMARKS.md, "The demo").
+pub const MAX_VIEWS: usize = 24;
 /// A view counts when the instance's own silhouette covers at least this many pixels.
 pub const MIN_VIEW_PIXELS: usize = 64;
 
