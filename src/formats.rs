@@ -687,3 +687,216 @@ pub fn read_sog(path: &Path) -> Result<Scene> {
     }
     Ok(s)
 }
+
+/// 1D k-means (Lloyd) of `values` into at most `k` centres, ascending.
+fn codebook_1d(values: &[f32], k: usize) -> Vec<f32> {
+    let mut v: Vec<f32> = values.to_vec();
+    v.sort_by(f32::total_cmp);
+    let n = v.len();
+    if n == 0 {
+        return vec![0.0; k];
+    }
+    // Half the starts at quantiles (where the values are), half evenly over the range (so
+    // the rare extremes — the largest splats, the brightest colours — keep entries of their own).
+    let (lo, hi) = (v[0], v[n - 1]);
+    let mut centres: Vec<f32> = (0..k)
+        .map(|i| {
+            let t = (i / 2) as f64 / (k / 2).max(1) as f64 + 0.5 / k as f64;
+            if i % 2 == 0 {
+                v[((t * n as f64) as usize).min(n - 1)]
+            } else {
+                lo + (hi - lo) * t as f32
+            }
+        })
+        .collect();
+    centres.sort_by(f32::total_cmp);
+    for _ in 0..10 {
+        centres.dedup();
+        // Sorted values: each centre's members are a run between the midpoints.
+        let mut sums = vec![(0.0f64, 0usize); centres.len()];
+        let mut c = 0;
+        for &x in &v {
+            while c + 1 < centres.len() && x > 0.5 * (centres[c] + centres[c + 1]) {
+                c += 1;
+            }
+            sums[c].0 += x as f64;
+            sums[c].1 += 1;
+        }
+        for (centre, (s, m)) in centres.iter_mut().zip(&sums) {
+            if *m > 0 {
+                *centre = (*s / *m as f64) as f32;
+            }
+        }
+        centres.sort_by(f32::total_cmp);
+    }
+    centres.resize(k, *centres.last().unwrap_or(&0.0));
+    centres
+}
+
+/// The index of the codebook entry nearest to `x` (the codebook ascending).
+fn nearest(codebook: &[f32], x: f32) -> u8 {
+    let i = codebook.partition_point(|&c| c < x);
+    let best = match i {
+        0 => 0,
+        i if i >= codebook.len() => codebook.len() - 1,
+        i => {
+            if (x - codebook[i - 1]).abs() <= (codebook[i] - x).abs() {
+                i - 1
+            } else {
+                i
+            }
+        }
+    };
+    best as u8
+}
+
+/// Entries of the SH palette (k-means centres of the Gaussians' shN vectors) at most.
+pub const SOG_PALETTE: usize = 1024;
+
+fn write_webp(path: &Path, w: usize, h: usize, rgba: &[u8]) -> Result<()> {
+    let mut bytes = Vec::new();
+    image::codecs::webp::WebPEncoder::new_lossless(&mut bytes)
+        .encode(rgba, w as u32, h as u32, image::ExtendedColorType::Rgba8)
+        .map_err(|e| anyhow!("{}: WebP: {e}", path.display()))?;
+    crate::util::write_atomic(path, |f| std::io::Write::write_all(f, &bytes))
+}
+
+/// `scene` as SOG version 2: `meta.json` and lossless WebP images in the folder of `meta`
+/// (created). Positions 16-bit in log space (splat-transform's sign(x)·ln(|x| + 1)), rotations
+/// smallest-three 8-bit, scales and sh0 through 256-entry codebooks (1D k-means), opacity 8-bit,
+/// SH bands as a palette of at most [`SOG_PALETTE`] k-means centres (10 Lloyd iterations) whose
+/// coefficients go through a third codebook.
+pub fn write_sog(scene: &Scene, meta: &Path) -> Result<()> {
+    let dir = meta.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
+    std::fs::create_dir_all(dir).with_context(|| format!("{}: cannot create", dir.display()))?;
+    let n = scene.len();
+    let coeffs = scene.sh_coeffs();
+    let w = ((n as f64).sqrt().ceil() as usize).div_ceil(4) * 4;
+    let h = n.div_ceil(w);
+    let image = || vec![0u8; w * h * 4];
+    let log = |x: f32| x.signum() * (x.abs() + 1.0).ln();
+    let mut mins = [f32::MAX; 3];
+    let mut maxs = [f32::MIN; 3];
+    for m in &scene.means {
+        for a in 0..3 {
+            mins[a] = mins[a].min(log(m[a]));
+            maxs[a] = maxs[a].max(log(m[a]));
+        }
+    }
+    let (mut lo, mut hi, mut quats, mut scales, mut sh0) = (image(), image(), image(), image(), image());
+    let scale_book = codebook_1d(&scene.scales.iter().flatten().copied().collect::<Vec<_>>(), 256);
+    let dc: Vec<f32> = (0..n).flat_map(|i| scene.sh[i * coeffs * 3..i * coeffs * 3 + 3].to_vec()).collect();
+    let sh0_book = codebook_1d(&dc, 256);
+    for i in 0..n {
+        let o = i * 4;
+        for a in 0..3 {
+            let range = if maxs[a] > mins[a] { maxs[a] - mins[a] } else { 1.0 };
+            let q = (((log(scene.means[i][a]) - mins[a]) / range * 65535.0).round().clamp(0.0, 65535.0)) as u32;
+            lo[o + a] = (q & 255) as u8;
+            hi[o + a] = (q >> 8) as u8;
+            scales[o + a] = nearest(&scale_book, scene.scales[i][a]);
+            sh0[o + a] = nearest(&sh0_book, dc[i * 3 + a]);
+        }
+        lo[o + 3] = 255;
+        hi[o + 3] = 255;
+        scales[o + 3] = 255;
+        sh0[o + 3] = unorm8(sigmoid(scene.opacities[i]));
+        let q = scene.quats[i];
+        let len = q.iter().map(|v| v * v).sum::<f32>().sqrt().max(1e-12);
+        let mut q = q.map(|v| v / len);
+        let largest = (0..4).max_by(|&a, &b| q[a].abs().total_cmp(&q[b].abs())).unwrap_or(0);
+        if q[largest] < 0.0 {
+            q = q.map(|v| -v);
+        }
+        let mut k = 0;
+        for (j, v) in q.iter().enumerate() {
+            if j != largest {
+                quats[o + k] = unorm8((v * std::f32::consts::SQRT_2 + 1.0) * 0.5);
+                k += 1;
+            }
+        }
+        quats[o + 3] = 252 + largest as u8;
+    }
+    let names = ["means_l.webp", "means_u.webp", "quats.webp", "scales.webp", "sh0.webp"];
+    for (name, img) in names.iter().zip([&lo, &hi, &quats, &scales, &sh0]) {
+        write_webp(&dir.join(name), w, h, img)?;
+    }
+    let mut doc = serde_json::json!({
+        "version": 2,
+        "asset": {"generator": "instgs-vk"},
+        "count": n,
+        "means": {"mins": mins, "maxs": maxs, "files": [names[0], names[1]]},
+        "scales": {"codebook": scale_book, "files": [names[3]]},
+        "quats": {"files": [names[2]]},
+        "sh0": {"codebook": sh0_book, "files": [names[4]]},
+    });
+    if coeffs > 1 {
+        let rest = (coeffs - 1) * 3;
+        let vectors: Vec<&[f32]> = (0..n).map(|i| &scene.sh[i * coeffs * 3 + 3..(i + 1) * coeffs * 3]).collect();
+        let (centres, labels) = palette(&vectors, rest, SOG_PALETTE.min(n));
+        let book = codebook_1d(&centres, 256);
+        let count = centres.len() / rest;
+        let (cw, ch) = (64 * (coeffs - 1), count.div_ceil(64));
+        let mut cimg = vec![0u8; cw * ch * 4];
+        for c in 0..count {
+            for j in 0..coeffs - 1 {
+                let t = ((c / 64) * cw + (c % 64) * (coeffs - 1) + j) * 4;
+                for ch in 0..3 {
+                    // Centres are stored coefficient-major then RGB, as the Gaussians' sh.
+                    cimg[t + ch] = nearest(&book, centres[c * rest + j * 3 + ch]);
+                }
+                cimg[t + 3] = 255;
+            }
+        }
+        let mut limg = image();
+        for (i, &l) in labels.iter().enumerate() {
+            limg[i * 4] = (l & 255) as u8;
+            limg[i * 4 + 1] = (l >> 8) as u8;
+            limg[i * 4 + 3] = 255;
+        }
+        write_webp(&dir.join("shN_centroids.webp"), cw, ch, &cimg)?;
+        write_webp(&dir.join("shN_labels.webp"), w, h, &limg)?;
+        doc["shN"] = serde_json::json!({
+            "count": count, "bands": scene.sh_degree, "codebook": book,
+            "files": ["shN_centroids.webp", "shN_labels.webp"],
+        });
+    }
+    let text = serde_json::to_string(&doc)?;
+    crate::util::write_atomic(meta, |f| std::io::Write::write_all(f, text.as_bytes()))
+}
+
+/// k-means of `vectors` (each `dim` long) into `k` centres: evenly spaced starts, 10 Lloyd
+/// iterations, brute-force assignment. Returns the centres (flat) and each vector's label.
+fn palette(vectors: &[&[f32]], dim: usize, k: usize) -> (Vec<f32>, Vec<u32>) {
+    let n = vectors.len();
+    let mut centres: Vec<f32> = (0..k).flat_map(|c| vectors[c * n / k].to_vec()).collect();
+    let mut labels = vec![0u32; n];
+    for _ in 0..10 {
+        for (i, v) in vectors.iter().enumerate() {
+            let mut best = (f32::MAX, 0);
+            for c in 0..k {
+                let d: f32 = centres[c * dim..(c + 1) * dim].iter().zip(*v).map(|(a, b)| (a - b) * (a - b)).sum();
+                if d < best.0 {
+                    best = (d, c);
+                }
+            }
+            labels[i] = best.1 as u32;
+        }
+        let mut sums = vec![0.0f64; k * dim];
+        let mut counts = vec![0usize; k];
+        for (v, &l) in vectors.iter().zip(&labels) {
+            counts[l as usize] += 1;
+            for (s, x) in sums[l as usize * dim..(l as usize + 1) * dim].iter_mut().zip(*v) {
+                *s += *x as f64;
+            }
+        }
+        for c in 0..k {
+            if counts[c] > 0 {
+                for d in 0..dim {
+                    centres[c * dim + d] = (sums[c * dim + d] / counts[c] as f64) as f32;
+                }
+            }
+        }
+    }
+    (centres, labels)
+}

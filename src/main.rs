@@ -161,12 +161,12 @@ enum Cmd {
         out: PathBuf,
     },
     /// Convert a scene between formats, chosen by OUT's name: .ply (Inria), .compressed.ply
-    /// (SuperSplat, with SH), .spz (version 4), .splat (no SH), or .json (an .instgs scene's
-    /// scene graph). An .instgs scene is expanded first (SH bands rotated per instance).
+    /// (SuperSplat, with SH), .spz (version 4), DIR/meta.json (SOG version 2), .splat (no SH),
+    /// or .json (an .instgs scene's scene graph). An .instgs scene is expanded first (SH bands rotated per instance).
     Convert {
         /// Any scene we read (PLY, compressed PLY, .spz, SOG, .splat, .instgs).
         scene: PathBuf,
-        /// OUT.ply, OUT.compressed.ply, OUT.spz, OUT.splat or OUT.json.
+        /// OUT.ply, OUT.compressed.ply, OUT.spz, DIR/meta.json, OUT.splat or OUT.json.
         out: PathBuf,
     },
     /// Export a dataset's cameras (NeRF-synthetic or COLMAP folder) as a NeRF-synthetic
@@ -1214,6 +1214,8 @@ fn convert(path: &Path, out: &Path) -> Result<()> {
         instgs_vk::scene::write_ply(&plain(), out)?;
     } else if name.ends_with(".spz") {
         instgs_vk::formats::write_spz(&plain(), out)?;
+    } else if name.ends_with("meta.json") {
+        instgs_vk::formats::write_sog(&plain(), out)?;
     } else if name.ends_with(".splat") {
         let s = plain();
         if s.sh_degree > 0 {
@@ -1231,7 +1233,7 @@ fn convert(path: &Path, out: &Path) -> Result<()> {
         })?;
     } else {
         bail!(
-            "{}: cannot write this format; the output's name chooses: .ply (Inria), .compressed.ply (SuperSplat), .spz (version 4), .splat, or .json (an instanced scene's scene graph)",
+            "{}: cannot write this format; the output's name chooses: .ply (Inria), .compressed.ply (SuperSplat), .spz (version 4), meta.json (SOG version 2, its images beside it), .splat, or .json (an instanced scene's scene graph)",
             out.display()
         );
     }

@@ -240,3 +240,21 @@ fn dataset_cameras_export_and_read_back() {
         }
     }
 }
+
+#[test]
+fn sog_writer_round_trips_within_its_quantisation() {
+    // fruit_drops: SH degree 3 (the palette), 4.7k Gaussians.
+    let source = read_ply(&shared_data("splats/fruit_drops_minimal.ply")).unwrap();
+    let out = tmp("sog/meta.json");
+    formats::write_sog(&source, &out).unwrap();
+    assert_eq!(formats::detect(out.parent().unwrap()).unwrap(), Format::Sog);
+    let back = formats::read_scene(&out).unwrap();
+    let e = max_errors(&source, &back);
+    let db = render_agreement(&source, &back);
+    eprintln!("fruit_drops through SOG: {db:.1} dB; errors {e:?}");
+    // Positions: 16 bits over the log range; opacity: 8 bits.
+    assert!(e[0] <= 1e-4, "position error {}", e[0]);
+    assert!(e[3] <= 0.5 / 255.0 + 1e-6, "opacity error {}", e[3]);
+    // Codebooks and the SH palette are k-means: no fixed bound, the picture is the measure.
+    assert!(db >= 38.0, "{db:.1} dB");
+}
