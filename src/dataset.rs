@@ -317,6 +317,9 @@ pub fn read_colmap(dir: &Path) -> Result<ColmapModel> {
                 let _err = b.f64()?;
                 let track = b.count(8)?;
                 b.skip(track * 8)?;
+                if !p.iter().all(|v| v.is_finite()) {
+                    bail!("{}: point {_id} has a non-finite position {p:?}", path.display());
+                }
                 m.points.positions.push(p);
                 m.points.colors.push(c);
             }
@@ -401,6 +404,9 @@ pub fn read_colmap(dir: &Path) -> Result<ColmapModel> {
                 }
                 let f: Vec<f32> =
                     t[1..7].iter().map(|v| v.parse()).collect::<Result<_, _>>().map_err(|_| parse_err())?;
+                if !f[..3].iter().all(|v| v.is_finite()) {
+                    return Err(bad("points3D.txt", no, "the point's position is not finite"));
+                }
                 m.points.positions.push([f[0], f[1], f[2]]);
                 m.points.colors.push([f[3] / 255.0, f[4] / 255.0, f[5] / 255.0]);
             }

@@ -5,7 +5,7 @@
 //! | Inria 3DGS PLY | yes | `.ply` | no |
 //! | SuperSplat compressed PLY (`chunk` + packed `vertex`, optional `sh`) | yes | `.compressed.ply` | yes: 11/10/11-bit positions and log-scales per 256-splat chunk, 2+10+10+10-bit rotations, 8-bit colour and opacity, 8-bit SH in ±4 |
 //! | Niantic `.spz` (versions 2 and 3: gzip; 4: zstd streams) | yes | `.spz` (version 4) | yes: 24-bit fixed-point positions (12 fractional bits when written), 8-bit log-scales (1/16), rotations (smallest three, 10 bits), 8-bit colour (±1/0.15·½), opacity and SH (±1, 1/128) |
-//! | PlayCanvas SOG version 2 (`meta.json` + WebP images) | yes | — | yes: 16-bit log-positions, 256-entry codebooks, 8-bit rotations, palettised SH |
+//! | PlayCanvas SOG versions 1 and 2 (`meta.json` + WebP images) | yes | version 2 | yes: 16-bit log-positions, 256-entry codebooks, 8-bit rotations, palettised SH |
 //! | antimatter15 `.splat` (32-byte rows, no SH) | yes | `.splat` | yes: 8-bit colour, opacity and rotation; SH dropped |
 //! | `.instgs` (ours, `docs/format.md`) | yes | `.instgs` | f16 offsets on request |
 //!
@@ -49,8 +49,9 @@ impl Format {
 }
 
 /// What we read, for errors.
-pub const READABLE: &str = "PLY (Inria 3DGS or SuperSplat compressed), .spz (versions 2-4), SOG (a meta.json with its \
-                            WebP images, or their folder), .splat (32-byte rows) and .instgs";
+pub const READABLE: &str =
+    "PLY (Inria 3DGS or SuperSplat compressed), .spz (versions 2-4), SOG versions 1-2 (a meta.json \
+                            with its WebP images, or their folder), .splat (32-byte rows) and .instgs";
 
 /// The format of `path` by its content (a folder holding `meta.json` is SOG; `.splat` has no
 /// magic bytes and is taken by its extension when its size is a multiple of 32).
@@ -529,18 +530,24 @@ pub fn write_splat(scene: &Scene, path: &Path) -> Result<()> {
 }
 
 // ---------------------------------------------------------------------------------------------
-// SOG (version 2)
+// SOG (versions 1 and 2)
 
 #[derive(serde::Deserialize)]
 struct SogMeans {
     mins: [f32; 3],
     maxs: [f32; 3],
     files: [String; 2],
+    /// Version 1: [count, 3].
+    shape: Option<[usize; 2]>,
 }
 
+/// An attribute's table: version 2 a 256-entry `codebook`, version 1 per-channel `mins` and
+/// `maxs` (bytes lerped between them).
 #[derive(serde::Deserialize)]
-struct SogCodebook {
-    codebook: Vec<f32>,
+struct SogTable {
+    codebook: Option<Vec<f32>>,
+    mins: Option<Vec<f32>>,
+    maxs: Option<Vec<f32>>,
     files: Vec<String>,
 }
 
@@ -549,11 +556,15 @@ struct SogFiles {
     files: Vec<String>,
 }
 
+/// Version 2: `count`, `bands`, `codebook`; version 1: scalar `mins`/`maxs`, bands from the
+/// centroids image's width.
 #[derive(serde::Deserialize)]
 struct SogShN {
-    count: usize,
-    bands: u32,
-    codebook: Vec<f32>,
+    count: Option<usize>,
+    bands: Option<u32>,
+    codebook: Option<Vec<f32>>,
+    mins: Option<f32>,
+    maxs: Option<f32>,
     files: [String; 2],
 }
 
@@ -562,11 +573,42 @@ struct SogMeta {
     version: Option<u32>,
     count: Option<usize>,
     means: SogMeans,
-    scales: SogCodebook,
+    scales: SogTable,
     quats: SogFiles,
-    sh0: SogCodebook,
+    sh0: SogTable,
     #[serde(rename = "shN")]
     sh_n: Option<SogShN>,
+}
+
+/// Decodes a byte of channel `c`: a codebook entry (version 2) or a lerp (version 1).
+enum Lookup {
+    Codebook(Vec<f32>),
+    Lerp(Vec<f32>, Vec<f32>),
+}
+
+impl Lookup {
+    fn new(what: &str, name: &str, t: &SogTable, v1: bool, channels: usize) -> Result<Lookup> {
+        if v1 {
+            match (&t.mins, &t.maxs) {
+                (Some(lo), Some(hi)) if lo.len() >= channels && hi.len() >= channels => {
+                    Ok(Lookup::Lerp(lo.clone(), hi.clone()))
+                }
+                _ => bail!("{what}: \"{name}\" needs {channels} mins and maxs (SOG version 1)"),
+            }
+        } else {
+            match &t.codebook {
+                Some(c) if c.len() == 256 => Ok(Lookup::Codebook(c.clone())),
+                _ => bail!("{what}: \"{name}\" needs a 256-entry codebook (SOG version 2)"),
+            }
+        }
+    }
+
+    fn get(&self, c: usize, b: u8) -> f32 {
+        match self {
+            Lookup::Codebook(book) => book[b as usize],
+            Lookup::Lerp(lo, hi) => lo[c] + (hi[c] - lo[c]) * (b as f32 / 255.0),
+        }
+    }
 }
 
 /// An RGBA image decoded from a SOG WebP file: (width, height, bytes).
@@ -584,62 +626,80 @@ fn sog_image(dir: &Path, name: &str, count: usize) -> Result<(usize, usize, Vec<
     Ok((w, h, img.into_raw()))
 }
 
-/// Reads a SOG version 2 scene: `meta.json` (or its folder) and the WebP images it names.
+/// Reads a SOG scene, version 2 or 1: `meta.json` (or its folder) and the WebP images it
+/// names (splat-transform's layouts; version 1 lerps bytes between per-channel bounds where
+/// version 2 has codebooks, and stores the opacity logit itself).
 pub fn read_sog(path: &Path) -> Result<Scene> {
     let meta_path: PathBuf = if path.is_dir() { path.join("meta.json") } else { path.to_path_buf() };
     let what = meta_path.display().to_string();
     let dir = meta_path.parent().unwrap_or(Path::new("."));
     let text = std::fs::read_to_string(&meta_path).with_context(|| format!("{what}: cannot read"))?;
     let meta: SogMeta = serde_json::from_str(&text).map_err(|e| anyhow!("{what}: not a SOG meta.json: {e}"))?;
-    match meta.version {
-        Some(2) => {}
-        Some(v) => bail!("{what}: SOG version {v} is not read (version 2 is)"),
-        None => bail!(
-            "{what}: a SOG version 1 meta.json (no \"version\"): not read; re-save it with a current splat-transform"
-        ),
-    }
-    let n = meta.count.ok_or_else(|| anyhow!("{what}: no \"count\""))?;
+    let v1 = match meta.version {
+        Some(2) => false,
+        None => true,
+        Some(v) => bail!("{what}: SOG version {v} is not read (versions 1 and 2 are)"),
+    };
+    let n = if v1 { meta.means.shape.map(|s| s[0]) } else { meta.count }
+        .ok_or_else(|| anyhow!("{what}: no Gaussian count (\"count\", or version 1's \"means.shape\")"))?;
     if n == 0 {
         bail!("{what}: the SOG holds no Gaussians");
     }
-    if meta.scales.codebook.len() != 256 || meta.sh0.codebook.len() != 256 {
-        bail!("{what}: the scales and sh0 codebooks must hold 256 entries");
-    }
-    let one = |c: &SogCodebook, name: &str| {
-        c.files.first().cloned().ok_or_else(|| anyhow!("{what}: \"{name}\" names no file"))
-    };
+    let scale_of = Lookup::new(&what, "scales", &meta.scales, v1, 3)?;
+    let sh0_of = Lookup::new(&what, "sh0", &meta.sh0, v1, if v1 { 4 } else { 3 })?;
+    let one =
+        |c: &SogTable, name: &str| c.files.first().cloned().ok_or_else(|| anyhow!("{what}: \"{name}\" names no file"));
     let (_, _, lo) = sog_image(dir, &meta.means.files[0], n)?;
     let (_, _, hi) = sog_image(dir, &meta.means.files[1], n)?;
     let quat_file = meta.quats.files.first().ok_or_else(|| anyhow!("{what}: \"quats\" names no file"))?;
     let (_, _, quats) = sog_image(dir, quat_file, n)?;
     let (_, _, scales) = sog_image(dir, &one(&meta.scales, "scales")?, n)?;
     let (_, _, sh0) = sog_image(dir, &one(&meta.sh0, "sh0")?, n)?;
-    let (degree, palette) = match &meta.sh_n {
-        Some(sh) if sh.bands > 0 => {
-            if sh.bands > 3 {
-                bail!("{what}: shN with {} bands is not supported (1..3)", sh.bands);
+    // The SH palette: (coefficients, centroids image width, its bytes, labels, entries, lookup).
+    let mut palette = None;
+    let mut degree = 0;
+    if let Some(sh) = &meta.sh_n {
+        let centroids_path = dir.join(&sh.files[0]);
+        let (cw, ch, centroids) = sog_image(dir, &sh.files[0], 0)?;
+        let bands = if v1 {
+            match cw {
+                192 => 1,
+                512 => 2,
+                960 => 3,
+                _ => {
+                    bail!("{}: {cw} texels wide; SOG version 1 palettes are 192, 512 or 960", centroids_path.display())
+                }
             }
-            if sh.codebook.len() != 256 {
-                bail!("{what}: the shN codebook must hold 256 entries");
-            }
-            let coeffs = ((sh.bands + 1) * (sh.bands + 1) - 1) as usize;
-            let (cw, ch, centroids) = sog_image(dir, &sh.files[0], 0)?;
+        } else {
+            sh.bands.unwrap_or(0)
+        };
+        if bands > 3 {
+            bail!("{what}: shN with {bands} bands is not supported (1..3)");
+        }
+        if bands > 0 {
+            let coeffs = ((bands + 1) * (bands + 1) - 1) as usize;
             if cw != 64 * coeffs {
-                bail!(
-                    "{}: {cw} texels wide; {} bands need {}",
-                    dir.join(&sh.files[0]).display(),
-                    sh.bands,
-                    64 * coeffs
-                );
+                bail!("{}: {cw} texels wide; {bands} bands need {}", centroids_path.display(), 64 * coeffs);
             }
-            if sh.count > ch * 64 {
-                bail!("{what}: shN count {} exceeds its centroids image ({} entries)", sh.count, ch * 64);
+            let (count, lookup) = if v1 {
+                let (Some(a), Some(b)) = (sh.mins, sh.maxs) else {
+                    bail!("{what}: \"shN\" needs mins and maxs (SOG version 1)")
+                };
+                (ch * 64, Lookup::Lerp(vec![a; 3], vec![b; 3]))
+            } else {
+                match (&sh.codebook, sh.count) {
+                    (Some(c), Some(count)) if c.len() == 256 => (count, Lookup::Codebook(c.clone())),
+                    _ => bail!("{what}: \"shN\" needs a count and a 256-entry codebook (SOG version 2)"),
+                }
+            };
+            if count > ch * 64 {
+                bail!("{what}: shN count {count} exceeds its centroids image ({} entries)", ch * 64);
             }
             let (_, _, labels) = sog_image(dir, &sh.files[1], n)?;
-            (sh.bands, Some((coeffs, cw, centroids, labels, sh.count, &sh.codebook)))
+            degree = bands;
+            palette = Some((coeffs, cw, centroids, labels, count, lookup));
         }
-        _ => (0, None),
-    };
+    }
     let m = &meta.means;
     let mut s = Scene { sh_degree: degree, ..Default::default() };
     let unlog = |v: f32| v.signum() * (v.abs().exp() - 1.0);
@@ -666,12 +726,17 @@ pub fn read_sog(path: &Path) -> Result<Scene> {
         }
         q[largest] = (1.0 - abc.iter().map(|v| v * v).sum::<f32>()).max(0.0).sqrt();
         s.quats.push(q);
-        s.scales.push(std::array::from_fn(|a| meta.scales.codebook[scales[o + a] as usize]));
-        s.opacities.push(opacity_logit(sh0[o + 3] as f32 / 255.0));
+        s.scales.push(std::array::from_fn(|a| scale_of.get(a, scales[o + a])));
+        s.opacities.push(if v1 {
+            // Version 1 stores the logit itself between its bounds.
+            sh0_of.get(3, sh0[o + 3])
+        } else {
+            opacity_logit(sh0[o + 3] as f32 / 255.0)
+        });
         for c in 0..3 {
-            s.sh.push(meta.sh0.codebook[sh0[o + c] as usize]);
+            s.sh.push(sh0_of.get(c, sh0[o + c]));
         }
-        if let Some((coeffs, cw, centroids, labels, count, codebook)) = &palette {
+        if let Some((coeffs, cw, centroids, labels, count, lookup)) = &palette {
             let label = labels[o] as usize | (labels[o + 1] as usize) << 8;
             if label >= *count {
                 bail!("{what}: Gaussian {i}'s SH palette label {label} is not below its count {count}");
@@ -680,7 +745,7 @@ pub fn read_sog(path: &Path) -> Result<Scene> {
             for j in 0..*coeffs {
                 let t = (row * cw + col + j) * 4;
                 for c in 0..3 {
-                    s.sh.push(codebook[centroids[t + c] as usize]);
+                    s.sh.push(lookup.get(c, centroids[t + c]));
                 }
             }
         }

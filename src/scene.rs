@@ -471,7 +471,7 @@ fn sh_from_byte(b: u8) -> f32 {
     (t - 0.5) * 8.0
 }
 
-/// The inverse of [`sh_from_byte`] (SuperSplat's writer: truncating (v / 8 + 0.5)·256).
+/// The inverse of `sh_from_byte` (SuperSplat's writer: truncating (v / 8 + 0.5)·256).
 pub fn sh_to_byte(v: f32) -> u8 {
     ((v / 8.0 + 0.5) * 256.0).clamp(0.0, 255.0) as u8
 }

@@ -258,3 +258,123 @@ fn sog_writer_round_trips_within_its_quantisation() {
     // Codebooks and the SH palette are k-means: no fixed bound, the picture is the measure.
     assert!(db >= 38.0, "{db:.1} dB");
 }
+
+/// A SOG version 1 folder for `s` (splat-transform's legacy layout, written here because no
+/// shared file has it): per-channel 8-bit lerps for scales and sh0 (opacity logit included),
+/// one SH palette entry per Gaussian lerped between scalar bounds.
+fn write_sog_v1(s: &Scene, dir: &Path) {
+    std::fs::create_dir_all(dir).unwrap();
+    let n = s.len();
+    let coeffs = s.sh_coeffs() - 1;
+    let w = 64;
+    let h = n.div_ceil(w);
+    let webp = |name: &str, w: usize, h: usize, rgba: &[u8]| {
+        let mut bytes = Vec::new();
+        image::codecs::webp::WebPEncoder::new_lossless(&mut bytes)
+            .encode(rgba, w as u32, h as u32, image::ExtendedColorType::Rgba8)
+            .unwrap();
+        std::fs::write(dir.join(name), bytes).unwrap();
+    };
+    let bounds = |f: &dyn Fn(usize) -> Vec<f32>, k: usize| {
+        let mut lo = vec![f32::MAX; k];
+        let mut hi = vec![f32::MIN; k];
+        for i in 0..n {
+            for (c, v) in f(i).into_iter().enumerate() {
+                lo[c] = lo[c].min(v);
+                hi[c] = hi[c].max(v);
+            }
+        }
+        (lo, hi)
+    };
+    let byte = |v: f32, lo: f32, hi: f32| ((v - lo) / (hi - lo).max(1e-12) * 255.0).round().clamp(0.0, 255.0) as u8;
+    let log = |x: f32| x.signum() * (x.abs() + 1.0).ln();
+    let (mlo, mhi) = bounds(&|i| s.means[i].iter().map(|&x| log(x)).collect(), 3);
+    let (slo, shi) = bounds(&|i| s.scales[i].to_vec(), 3);
+    let c = s.sh_coeffs() * 3;
+    let (clo, chi) = bounds(&|i| vec![s.sh[i * c], s.sh[i * c + 1], s.sh[i * c + 2], s.opacities[i]], 4);
+    let rest: Vec<f32> = (0..n).flat_map(|i| s.sh[i * c + 3..(i + 1) * c].to_vec()).collect();
+    let (rlo, rhi) = rest.iter().fold((f32::MAX, f32::MIN), |(a, b), &v| (a.min(v), b.max(v)));
+    let mut img =
+        [vec![0u8; w * h * 4], vec![0u8; w * h * 4], vec![0u8; w * h * 4], vec![0u8; w * h * 4], vec![0u8; w * h * 4]];
+    let mut labels = vec![0u8; w * h * 4];
+    let (cw, ch) = (64 * coeffs, n.div_ceil(64));
+    let mut centroids = vec![0u8; cw * ch * 4];
+    for i in 0..n {
+        let o = i * 4;
+        for a in 0..3 {
+            let q = (((log(s.means[i][a]) - mlo[a]) / (mhi[a] - mlo[a]) * 65535.0).round()) as u32;
+            img[0][o + a] = (q & 255) as u8;
+            img[1][o + a] = (q >> 8) as u8;
+            img[3][o + a] = byte(s.scales[i][a], slo[a], shi[a]);
+            img[4][o + a] = byte(s.sh[i * c + a], clo[a], chi[a]);
+        }
+        img[4][o + 3] = byte(s.opacities[i], clo[3], chi[3]);
+        let l = s.quats[i].iter().map(|v| v * v).sum::<f32>().sqrt();
+        let mut q = s.quats[i].map(|v| v / l);
+        let largest = (0..4).max_by(|&a, &b| q[a].abs().total_cmp(&q[b].abs())).unwrap();
+        if q[largest] < 0.0 {
+            q = q.map(|v| -v);
+        }
+        let mut k = 0;
+        for (j, v) in q.iter().enumerate() {
+            if j != largest {
+                img[2][o + k] = ((v * std::f32::consts::SQRT_2 + 1.0) * 0.5 * 255.0).round() as u8;
+                k += 1;
+            }
+        }
+        img[2][o + 3] = 252 + largest as u8;
+        labels[o] = (i & 255) as u8;
+        labels[o + 1] = (i >> 8) as u8;
+        for j in 0..coeffs {
+            let t = ((i / 64) * cw + (i % 64) * coeffs + j) * 4;
+            for ch in 0..3 {
+                centroids[t + ch] = byte(s.sh[i * c + 3 + j * 3 + ch], rlo, rhi);
+            }
+        }
+    }
+    let names = ["means_l.webp", "means_u.webp", "quats.webp", "scales.webp", "sh0.webp"];
+    for (name, data) in names.iter().zip(&img) {
+        webp(name, w, h, data);
+    }
+    webp("shN_labels.webp", w, h, &labels);
+    webp("shN_centroids.webp", cw, ch, &centroids);
+    let meta = serde_json::json!({
+        "means": {"shape": [n, 3], "mins": mlo, "maxs": mhi, "files": [names[0], names[1]]},
+        "scales": {"mins": slo, "maxs": shi, "files": [names[3]]},
+        "quats": {"files": [names[2]]},
+        "sh0": {"mins": clo, "maxs": chi, "files": [names[4]]},
+        "shN": {"mins": rlo, "maxs": rhi, "files": ["shN_centroids.webp", "shN_labels.webp"]},
+    });
+    std::fs::write(dir.join("meta.json"), meta.to_string()).unwrap();
+}
+
+#[test]
+fn sog_version_1_reads_within_its_quantisation() {
+    let source = read_ply(&shared_data("splats/playbot_lod6.ply")).unwrap();
+    let dir = tmp("sog-v1");
+    write_sog_v1(&source, &dir);
+    assert_eq!(formats::detect(&dir).unwrap(), Format::Sog);
+    let back = formats::read_scene(&dir).unwrap();
+    let e = max_errors(&source, &back);
+    let db = render_agreement(&source, &back);
+    eprintln!("playbot_lod6 through SOG version 1: {db:.1} dB; errors {e:?}");
+    assert!(e[0] <= 1e-3, "position error {}", e[0]);
+    assert!(db >= 40.0, "{db:.1} dB");
+}
+
+#[test]
+fn a_colmap_point_that_is_not_finite_is_refused_at_the_door() {
+    // Was a panic inside the k-d tree of the initial scales (issue 24).
+    let dir = tmp("colmap-nan");
+    let sparse = dir.join("sparse/0");
+    std::fs::create_dir_all(&sparse).unwrap();
+    for f in ["cameras.bin", "images.bin", "points3D.bin"] {
+        std::fs::copy(shared_data(&format!("colmap/statue/sparse/0/{f}")), sparse.join(f)).unwrap();
+    }
+    let mut points = std::fs::read(sparse.join("points3D.bin")).unwrap();
+    // count u64, then the first point: id u64, x f64 …
+    points[16..24].copy_from_slice(&f64::NAN.to_le_bytes());
+    std::fs::write(sparse.join("points3D.bin"), &points).unwrap();
+    let e = format!("{:#}", instgs_vk::dataset::read_colmap(&sparse).unwrap_err());
+    assert!(e.contains("points3D.bin") && e.contains("non-finite"), "{e}");
+}
