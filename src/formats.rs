@@ -171,6 +171,31 @@ pub fn read_scene(path: &Path) -> Result<Scene> {
     Ok(scene)
 }
 
+/// Writes `scene` in the format `out`'s name chooses: `.compressed.ply`, `.ply`, `.spz`,
+/// `…meta.json` (SOG) or `.splat` (its SH bands dropped, said on stderr).
+pub fn write_scene(scene: &Scene, out: &Path) -> Result<()> {
+    let name = out.file_name().map(|n| n.to_string_lossy().to_ascii_lowercase()).unwrap_or_default();
+    if name.ends_with(".compressed.ply") {
+        crate::scene::write_compressed_ply(scene, out)
+    } else if name.ends_with(".ply") {
+        crate::scene::write_ply(scene, out)
+    } else if name.ends_with(".spz") {
+        write_spz(scene, out)
+    } else if name.ends_with("meta.json") {
+        write_sog(scene, out)
+    } else if name.ends_with(".splat") {
+        if scene.sh_degree > 0 {
+            eprintln!("note: .splat holds no SH bands: degree {} dropped", scene.sh_degree);
+        }
+        write_splat(scene, out)
+    } else {
+        bail!(
+            "{}: cannot write this format; the output's name chooses: .ply (Inria), .compressed.ply (SuperSplat), .spz (version 4), meta.json (SOG version 2, its images beside it), .splat, or .json (an instanced scene's scene graph)",
+            out.display()
+        )
+    }
+}
+
 /// An opacity in [0, 1] as a logit, 0 and 1 clamped to ±[`OPACITY_LOGIT_LIMIT`].
 pub fn opacity_logit(a: f32) -> f32 {
     let limit = 1.0 / (1.0 + OPACITY_LOGIT_LIMIT.exp());
@@ -400,13 +425,17 @@ fn first_three(r: &[u8]) -> [f32; 4] {
     [xyz[0], xyz[1], xyz[2], w]
 }
 
+/// A quaternion normalised, with the index of its largest component made positive: what
+/// every "smallest three" encoding (compressed PLY, .spz, SOG) stores.
+pub fn largest_component(q: [f32; 4]) -> (usize, [f32; 4]) {
+    let norm = q.iter().map(|v| v * v).sum::<f32>().sqrt().max(1e-12);
+    let q = q.map(|v| v / norm);
+    let largest = (0..4).max_by(|&a, &b| q[a].abs().total_cmp(&q[b].abs())).unwrap_or(0);
+    (largest, if q[largest] < 0.0 { q.map(|v| -v) } else { q })
+}
+
 fn pack_smallest_three(xyzw: [f32; 4]) -> [u8; 4] {
-    let norm = xyzw.iter().map(|v| v * v).sum::<f32>().sqrt().max(1e-12);
-    let mut q = xyzw.map(|v| v / norm);
-    let largest = (0..4).max_by(|&a, &b| q[a].abs().total_cmp(&q[b].abs())).unwrap_or(3);
-    if q[largest] < 0.0 {
-        q = q.map(|v| -v);
-    }
+    let (largest, q) = largest_component(xyzw);
     let mask = (1u32 << 9) - 1;
     let mut comp = largest as u32;
     for (i, v) in q.iter().enumerate() {
@@ -866,13 +895,7 @@ pub fn write_sog(scene: &Scene, meta: &Path) -> Result<()> {
         hi[o + 3] = 255;
         scales[o + 3] = 255;
         sh0[o + 3] = unorm8(sigmoid(scene.opacities[i]));
-        let q = scene.quats[i];
-        let len = q.iter().map(|v| v * v).sum::<f32>().sqrt().max(1e-12);
-        let mut q = q.map(|v| v / len);
-        let largest = (0..4).max_by(|&a, &b| q[a].abs().total_cmp(&q[b].abs())).unwrap_or(0);
-        if q[largest] < 0.0 {
-            q = q.map(|v| -v);
-        }
+        let (largest, q) = largest_component(scene.quats[i]);
         let mut k = 0;
         for (j, v) in q.iter().enumerate() {
             if j != largest {

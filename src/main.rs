@@ -1204,38 +1204,19 @@ fn compose(
 fn convert(path: &Path, out: &Path) -> Result<()> {
     let scene = AnyScene::read(path)?;
     let name = out.file_name().map(|n| n.to_string_lossy().to_ascii_lowercase()).unwrap_or_default();
-    let plain = || match &scene {
-        AnyScene::Plain(s) => s.clone(),
-        AnyScene::Instanced(s) => s.expand(),
-    };
-    if name.ends_with(".compressed.ply") {
-        instgs_vk::scene::write_compressed_ply(&plain(), out)?;
-    } else if name.ends_with(".ply") {
-        instgs_vk::scene::write_ply(&plain(), out)?;
-    } else if name.ends_with(".spz") {
-        instgs_vk::formats::write_spz(&plain(), out)?;
-    } else if name.ends_with("meta.json") {
-        instgs_vk::formats::write_sog(&plain(), out)?;
-    } else if name.ends_with(".splat") {
-        let s = plain();
-        if s.sh_degree > 0 {
-            eprintln!("note: .splat holds no SH bands: degree {} dropped", s.sh_degree);
+    match (&scene, name.ends_with(".json") && !name.ends_with("meta.json")) {
+        (AnyScene::Instanced(s), true) => {
+            let text = serde_json::to_string_pretty(&instgs_vk::instance::scene_graph(s))?;
+            instgs_vk::util::write_atomic(out, |f| {
+                use std::io::Write;
+                f.write_all(text.as_bytes())
+            })?;
         }
-        instgs_vk::formats::write_splat(&s, out)?;
-    } else if name.ends_with(".json") {
-        let AnyScene::Instanced(s) = &scene else {
+        (AnyScene::Plain(_), true) => {
             bail!("{}: a scene graph (.json) comes from an instanced scene; {} is plain", out.display(), path.display())
-        };
-        let text = serde_json::to_string_pretty(&instgs_vk::instance::scene_graph(s))?;
-        instgs_vk::util::write_atomic(out, |f| {
-            use std::io::Write;
-            f.write_all(text.as_bytes())
-        })?;
-    } else {
-        bail!(
-            "{}: cannot write this format; the output's name chooses: .ply (Inria), .compressed.ply (SuperSplat), .spz (version 4), meta.json (SOG version 2, its images beside it), .splat, or .json (an instanced scene's scene graph)",
-            out.display()
-        );
+        }
+        (AnyScene::Plain(s), false) => instgs_vk::formats::write_scene(s, out)?,
+        (AnyScene::Instanced(s), false) => instgs_vk::formats::write_scene(&s.expand(), out)?,
     }
     eprintln!("wrote {}", out.display());
     Ok(())

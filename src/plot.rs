@@ -95,20 +95,7 @@ pub fn render(c: &Curves) -> Result<Vec<u8>> {
             .collect();
         let y = (lo..hi).log_scale().with_key_points(ticks);
         let mut chart = panel::<WithKeyPoints<LogCoord<f64>>, _>(&left, "Training loss", x_max, y)?;
-        chart
-            .configure_mesh()
-            .x_desc("iteration")
-            .y_desc("loss, (1−λ)·L1 + λ·D-SSIM (log)")
-            .x_labels(8)
-            .max_light_lines(1)
-            .y_label_formatter(&|v| short(*v))
-            .x_label_formatter(&|v| thousands(*v))
-            .light_line_style(RGBColor(240, 240, 240))
-            .bold_line_style(RGBColor(215, 215, 215))
-            .label_style((FONT, 13))
-            .axis_desc_style((FONT, 14))
-            .draw()
-            .map_err(e)?;
+        axes(&mut chart, "loss, (1−λ)·L1 + λ·D-SSIM (log)", &|v| short(*v))?;
         schedule(&mut chart, c, lo, hi)?;
         chart
             .draw_series(LineSeries::new(positive, BLACK))
@@ -126,21 +113,7 @@ pub fn render(c: &Curves) -> Result<Vec<u8>> {
         let (plo, phi) =
             if plo <= phi { ((plo / 5.0).floor() * 5.0, (phi / 5.0).ceil() * 5.0 + 0.01) } else { (0.0, 40.0) };
         let mut chart = panel::<RangedCoordf64, _>(&right, "PSNR", x_max, plo..phi)?;
-        chart
-            .configure_mesh()
-            .x_desc("iteration")
-            .y_desc("PSNR (dB)")
-            .y_labels(10)
-            .x_labels(8)
-            .max_light_lines(1)
-            .y_label_formatter(&|v| format!("{v:.0}"))
-            .x_label_formatter(&|v| thousands(*v))
-            .light_line_style(RGBColor(240, 240, 240))
-            .bold_line_style(RGBColor(215, 215, 215))
-            .label_style((FONT, 13))
-            .axis_desc_style((FONT, 14))
-            .draw()
-            .map_err(e)?;
+        axes(&mut chart, "PSNR (dB)", &|v| format!("{v:.0}"))?;
         schedule(&mut chart, c, plo, phi)?;
         let grey = RGBColor(160, 160, 160);
         chart
@@ -180,6 +153,28 @@ fn panel<'a, 'b, Y: Ranged<ValueType = f64>, R: Into<Y>>(
         .x_label_area_size(X_LABEL_HEIGHT)
         .y_label_area_size(Y_LABEL_WIDTH)
         .build_cartesian_2d(0.0..x_max, y.into())
+        .map_err(|e| anyhow!("plot: {e}"))
+}
+
+/// Numbered axes with their descriptions (iterations on x as 1k, 2k, …; `y_label` formats y).
+fn axes<'a, 'b: 'a, Y>(chart: &mut Chart<'a, 'b, Y>, y_desc: &str, y_label: &dyn Fn(&f64) -> String) -> Result<()>
+where
+    Y: Ranged<ValueType = f64> + plotters::coord::ranged1d::ValueFormatter<f64>,
+{
+    chart
+        .configure_mesh()
+        .x_desc("iteration")
+        .y_desc(y_desc)
+        .y_labels(10)
+        .x_labels(8)
+        .max_light_lines(1)
+        .y_label_formatter(y_label)
+        .x_label_formatter(&|v| thousands(*v))
+        .light_line_style(RGBColor(240, 240, 240))
+        .bold_line_style(RGBColor(215, 215, 215))
+        .label_style((FONT, 13))
+        .axis_desc_style((FONT, 14))
+        .draw()
         .map_err(|e| anyhow!("plot: {e}"))
 }
 

@@ -650,13 +650,7 @@ pub fn write_compressed_ply(scene: &Scene, path: &Path) -> Result<()> {
         for i in range {
             let position = pack3(scene.means[i], plo, phi);
             let scale = pack3(scene.scales[i].map(|v| v.clamp(-20.0, 20.0)), slo, shi);
-            let q = scene.quats[i];
-            let len = q.iter().map(|v| v * v).sum::<f32>().sqrt().max(1e-12);
-            let mut q = q.map(|v| v / len);
-            let largest = (0..4).max_by(|&a, &b| q[a].abs().total_cmp(&q[b].abs())).unwrap_or(0);
-            if q[largest] < 0.0 {
-                q = q.map(|v| -v);
-            }
+            let (largest, q) = crate::formats::largest_component(scene.quats[i]);
             let mut rotation = largest as u32;
             for (j, v) in q.iter().enumerate() {
                 if j != largest {
