@@ -1,5 +1,21 @@
 //! instgs-vk: instanced 3D Gaussian Splatting (InstGS) on Vulkan compute.
 //!
+//! The modules follow the stages of the main job, and imports only flow down this list
+//! (`docs/architecture.md` draws it; `docs/conventions.md` collects the coordinate, camera,
+//! SH, quaternion and file conventions):
+//!
+//! | layer | modules |
+//! |---|---|
+//! | shared maths and files | [`shared`] (generated from `glsl/common.glsl`), [`util`] |
+//! | the device | [`gpu`] (context, buffers, recording, kernels) |
+//! | in-memory models | [`model`] (scene, camera, instanced scene) |
+//! | files and datasets | [`formats`] (PLY, `.instgs`, .spz, SOG, …), [`dataset`] (NeRF-synthetic, COLMAP) |
+//! | rendering | [`render`] (upload, rasterizer, backward, sort, level of detail, CPU reference twins) |
+//! | training | [`train`] (3DGS optimisation, densification, checkpoints, evaluation, curves) |
+//! | InstGS stages | [`segment`] → [`register`] → [`instancing`] (templates, checks, compaction) |
+//! | the main job | [`bench`], [`pipeline`] (stages, resume, report) |
+//! | viewing | [`player`] |
+//!
 //! Conventions: world space as stored in the scene; cameras are OpenCV (+X right, +Y down,
 //! +Z forward) with `viewmat` world → camera; pixel (0, 0)'s centre is at (0.5, 0.5).
 
@@ -8,29 +24,21 @@ pub mod shared {
     include!(concat!(env!("OUT_DIR"), "/gpu_shared.rs"));
 }
 
-pub mod camera;
-pub mod codes;
-pub mod compact;
-pub mod config;
-pub mod cpu;
+pub mod util;
+
+pub mod gpu;
+
+pub mod model;
+
 pub mod dataset;
 pub mod formats;
-pub mod gpu;
-pub mod grad;
-pub mod instance;
-pub mod instgs;
-pub mod kernels;
-pub mod lod;
-pub mod optim;
-pub mod overlay;
-pub mod player;
-pub mod plot;
-pub mod raster;
-pub mod register;
-pub mod scene;
-pub mod segment;
-pub mod sort;
-pub mod template;
+
+pub mod render;
+
 pub mod train;
-pub mod util;
-pub mod verify;
+
+pub mod instancing;
+pub mod register;
+pub mod segment;
+
+pub mod player;

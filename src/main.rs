@@ -4,15 +4,16 @@ use std::sync::Arc;
 
 use anyhow::{anyhow, bail, Context, Result};
 use clap::{Args, Parser, Subcommand};
-use instgs_vk::camera::{self, Camera, UpAxis};
+use instgs_vk::formats::instgs::{self, AnyScene};
+use instgs_vk::gpu::kernels::Kernels;
 use instgs_vk::gpu::{Gpu, GpuOptions};
-use instgs_vk::instgs::{self, AnyScene};
-use instgs_vk::kernels::Kernels;
-use instgs_vk::raster::Rasterizer;
-use instgs_vk::scene::read_ply;
+use instgs_vk::model::camera::{self, Camera, UpAxis};
+use instgs_vk::model::scene::read_ply;
+use instgs_vk::render::raster::Rasterizer;
 use instgs_vk::util::{median, percentile, save_png, Progress, ProgressMode};
 
 mod pipeline;
+#[path = "pipeline/report.rs"]
 mod report;
 
 /// Instanced 3D Gaussian Splatting on Vulkan compute.
@@ -227,7 +228,7 @@ enum Cmd {
         /// Template initialisation: max (the largest instance kept whole; measured best), merge
         /// (the paper's merge-and-sample) or first.
         #[arg(long, value_enum, default_value = "max")]
-        init: instgs_vk::template::TemplateInit,
+        init: instgs_vk::instancing::template::TemplateInit,
         /// Rigid registration (no per-instance scale).
         #[arg(long)]
         rigid: bool,
@@ -254,16 +255,16 @@ enum Cmd {
         #[arg(long)]
         no_render_check: bool,
         /// Acceptance: both fitnesses at least this.
-        #[arg(long, default_value_t = instgs_vk::template::Acceptance::default().min_fitness)]
+        #[arg(long, default_value_t = instgs_vk::instancing::template::Acceptance::default().min_fitness)]
         min_fitness: f64,
         /// Acceptance: scale within this relative distance of the clouds' size ratio.
-        #[arg(long, default_value_t = instgs_vk::template::Acceptance::default().scale_tolerance)]
+        #[arg(long, default_value_t = instgs_vk::instancing::template::Acceptance::default().scale_tolerance)]
         scale_tolerance: f64,
         /// Acceptance: the render check's median silhouette IoU at least this.
-        #[arg(long, default_value_t = instgs_vk::template::Acceptance::default().min_render_iou)]
+        #[arg(long, default_value_t = instgs_vk::instancing::template::Acceptance::default().min_render_iou)]
         min_render_iou: f64,
         /// Acceptance: the render check's PSNR (dB) at least this.
-        #[arg(long, default_value_t = instgs_vk::template::Acceptance::default().min_render_psnr)]
+        #[arg(long, default_value_t = instgs_vk::instancing::template::Acceptance::default().min_render_psnr)]
         min_render_psnr: f64,
         #[arg(long)]
         out: PathBuf,
@@ -367,8 +368,8 @@ struct RenderArgs {
 }
 
 impl RenderArgs {
-    fn load(&self) -> Result<instgs_vk::lod::RenderConfig> {
-        let cfg = instgs_vk::lod::RenderConfig::load(self.render_config.as_deref())?;
+    fn load(&self) -> Result<instgs_vk::render::lod::RenderConfig> {
+        let cfg = instgs_vk::render::lod::RenderConfig::load(self.render_config.as_deref())?;
         Ok(if self.exact { cfg.exact() } else { cfg })
     }
 }
@@ -475,14 +476,14 @@ fn run(cli: Cli) -> Result<()> {
         } => {
             let groups_file = groups.clone().unwrap_or_else(|| data.join("instances.json"));
             let truth = groups.is_none().then_some(groups_file.as_path());
-            let accept = instgs_vk::template::Acceptance {
+            let accept = instgs_vk::instancing::template::Acceptance {
                 min_fitness,
                 scale_tolerance,
                 min_render_iou,
                 min_render_psnr,
                 ..Default::default()
             };
-            let opts = instgs_vk::template::InstanceOptions {
+            let opts = instgs_vk::instancing::template::InstanceOptions {
                 init,
                 with_scale: !rigid,
                 use_colour: !geometry_only,
@@ -505,9 +506,9 @@ fn run(cli: Cli) -> Result<()> {
                 };
                 let (gpu, k) = open_device(cli.device.clone())?;
                 let cams = ds.train.iter().map(|v| v.camera.clone()).collect();
-                Some(instgs_vk::verify::ImageCheck::new(&gpu, &k, cams, masks)?)
+                Some(instgs_vk::instancing::verify::ImageCheck::new(&gpu, &k, cams, masks)?)
             };
-            let check = check.as_mut().map(|c| c as &mut dyn instgs_vk::template::RenderCheck);
+            let check = check.as_mut().map(|c| c as &mut dyn instgs_vk::instancing::template::RenderCheck);
             instance(
                 &scene,
                 &labels,
@@ -599,7 +600,8 @@ fn run(cli: Cli) -> Result<()> {
             train(cli.device, &data, &out, init.as_deref(), config.as_deref(), iterations, resume, quiet)
         }
         Cmd::Eval { scene, data, split, json, out, background, lod, render_config } => {
-            let render = lod.then(|| instgs_vk::lod::RenderConfig::load(render_config.as_deref())).transpose()?;
+            let render =
+                lod.then(|| instgs_vk::render::lod::RenderConfig::load(render_config.as_deref())).transpose()?;
             eval(cli.device, &scene, &data, &split, json, out.as_deref(), background, render.as_ref())
         }
     }
@@ -621,7 +623,7 @@ fn view(
     }
     let scene = AnyScene::read(&opts.scene_path)?;
     let means = scene.means();
-    let (lo, hi) = instgs_vk::scene::robust_bounds(&means, 0.02);
+    let (lo, hi) = instgs_vk::model::scene::robust_bounds(&means, 0.02);
     let centre = 0.5 * (lo + hi);
     let start = match cameras {
         Some(path) => {
@@ -631,7 +633,7 @@ fn view(
                 .nth(camera)
                 .ok_or_else(|| anyhow::anyhow!("{}: --camera {camera} is out of range ({n} cameras)", path.display()))?
         }
-        None => instgs_vk::camera::orbit_around_points(&means, 1, up, opts.width, opts.height).remove(0),
+        None => instgs_vk::model::camera::orbit_around_points(&means, 1, up, opts.width, opts.height).remove(0),
     };
     let start = ViewCamera::from_camera(&start, centre, up.vector());
     drop(means);
@@ -665,9 +667,9 @@ fn train(
     let instanced =
         init.is_some() || (resume && train::read_checkpoint(&ckpt).is_ok_and(|(st, _)| st.layout.is_some()));
     let mut cfg = if instanced {
-        instgs_vk::config::Config::load_instanced(config)?
+        instgs_vk::train::config::Config::load_instanced(config)?
     } else {
-        instgs_vk::config::Config::load(config)?
+        instgs_vk::train::config::Config::load(config)?
     };
     if let Some(n) = iterations {
         cfg.iterations = n;
@@ -719,7 +721,7 @@ fn eval(
     json: bool,
     out: Option<&Path>,
     background: [f32; 3],
-    render: Option<&instgs_vk::lod::RenderConfig>,
+    render: Option<&instgs_vk::render::lod::RenderConfig>,
 ) -> Result<()> {
     let scene = AnyScene::read(scene_path)?;
     let opts = instgs_vk::dataset::LoadOptions { downscale: data.downscale, background };
@@ -828,7 +830,7 @@ fn info_instgs(path: &Path, json: bool) -> Result<()> {
                     "template_gaussians": g.template.len(),
                     "instances": g.instances.iter().map(|i| serde_json::json!({
                         "id": i.id,
-                        "transform": instgs_vk::instance::mat4_to_rows(i.transform.to_mat4()),
+                        "transform": instgs_vk::model::instanced::mat4_to_rows(i.transform.to_mat4()),
                     })).collect::<Vec<_>>(),
                 })
             })
@@ -919,7 +921,7 @@ fn segment(
             let part = instgs_vk::segment::subset(&scene, &seg.labels, id);
             let name = if id == 0 { "background.ply".to_string() } else { format!("instance_{id}.ply") };
             if !part.is_empty() {
-                instgs_vk::scene::write_ply(&part, &dir.join(name))?;
+                instgs_vk::model::scene::write_ply(&part, &dir.join(name))?;
             }
         }
     }
@@ -954,7 +956,7 @@ struct SegmentOutcome {
 fn segment_scene(
     gpu: &Arc<Gpu>,
     k: &Arc<Kernels>,
-    scene: &instgs_vk::scene::Scene,
+    scene: &instgs_vk::model::scene::Scene,
     data: &Path,
     ds: &instgs_vk::dataset::Dataset,
     split: &str,
@@ -1053,7 +1055,7 @@ fn segment_scene(
 /// Chooses the kept background fraction: (scene, labels, significance) → (fraction, ranking
 /// per Gaussian, what was decided as JSON).
 type KeepRule<'a> =
-    dyn FnMut(&instgs_vk::scene::Scene, &[u32], &[f32]) -> Result<(f64, Vec<f32>, serde_json::Value)> + 'a;
+    dyn FnMut(&instgs_vk::model::scene::Scene, &[u32], &[f32]) -> Result<(f64, Vec<f32>, serde_json::Value)> + 'a;
 
 #[allow(clippy::too_many_arguments)]
 fn instance(
@@ -1061,14 +1063,14 @@ fn instance(
     labels: &Path,
     groups_path: &Path,
     truth_path: Option<&Path>,
-    opts: &instgs_vk::template::InstanceOptions,
+    opts: &instgs_vk::instancing::template::InstanceOptions,
     dtype: instgs::Dtype,
     prune: Option<(&Path, &mut KeepRule)>,
-    check: Option<&mut dyn instgs_vk::template::RenderCheck>,
+    check: Option<&mut dyn instgs_vk::instancing::template::RenderCheck>,
     report: Option<&Path>,
     out: &Path,
 ) -> Result<serde_json::Value> {
-    use instgs_vk::template;
+    use instgs_vk::instancing::template;
     let scene = instgs_vk::formats::read_scene(scene_path)?;
     let labels = template::read_labels(labels, scene.len())?;
     let groups = instgs_vk::segment::read_groups(groups_path)?;
@@ -1187,9 +1189,9 @@ fn compose(
         };
         loaded.push((name.to_string(), instgs_vk::formats::read_scene(Path::new(file))?));
     }
-    let graph = instgs_vk::instance::read_scene_graph(graph)?;
+    let graph = instgs_vk::model::instanced::read_scene_graph(graph)?;
     let background = background.map(read_ply).transpose()?;
-    let scene = instgs_vk::instance::compose(loaded, graph, background, random_offsets)?;
+    let scene = instgs_vk::model::instanced::compose(loaded, graph, background, random_offsets)?;
     instgs::write(&scene, out, dtype.into())?;
     eprintln!(
         "wrote {}: {} groups, {} splats from {} parameter rows",
@@ -1206,7 +1208,7 @@ fn convert(path: &Path, out: &Path) -> Result<()> {
     let name = out.file_name().map(|n| n.to_string_lossy().to_ascii_lowercase()).unwrap_or_default();
     match (&scene, name.ends_with(".json") && !name.ends_with("meta.json")) {
         (AnyScene::Instanced(s), true) => {
-            let text = serde_json::to_string_pretty(&instgs_vk::instance::scene_graph(s))?;
+            let text = serde_json::to_string_pretty(&instgs_vk::model::instanced::scene_graph(s))?;
             instgs_vk::util::write_atomic(out, |f| {
                 use std::io::Write;
                 f.write_all(text.as_bytes())
@@ -1335,7 +1337,7 @@ fn print_passes(per_pass: &[(String, Vec<f64>)]) {
 struct BenchScene {
     path: PathBuf,
     scene: AnyScene,
-    gs: instgs_vk::raster::GpuScene,
+    gs: instgs_vk::render::raster::GpuScene,
     r: Rasterizer,
     per_pass: Vec<(String, Vec<f64>)>,
     frame_ms: Vec<f64>,
@@ -1349,7 +1351,7 @@ impl BenchScene {
         k: &Arc<Kernels>,
         path: &Path,
         scene: AnyScene,
-        cfg: &instgs_vk::lod::RenderConfig,
+        cfg: &instgs_vk::render::lod::RenderConfig,
     ) -> Result<BenchScene> {
         let gs = scene.upload_for_rendering(gpu, cfg).with_context(|| path.display().to_string())?;
         let r = Rasterizer::new(gpu, k)?;
@@ -1456,8 +1458,8 @@ fn bench(
     view: &ViewArgs,
     frames: usize,
     warmup: usize,
-    cfg: &instgs_vk::lod::RenderConfig,
-    compare: Option<(&Path, instgs_vk::lod::RenderConfig)>,
+    cfg: &instgs_vk::render::lod::RenderConfig,
+    compare: Option<(&Path, instgs_vk::render::lod::RenderConfig)>,
     json: Option<&Path>,
 ) -> Result<()> {
     if frames == 0 {
@@ -1487,8 +1489,8 @@ fn bench(
 fn bench_scenes(
     gpu: &Arc<Gpu>,
     k: &Arc<Kernels>,
-    a: (&Path, AnyScene, &instgs_vk::lod::RenderConfig),
-    b: Option<(&Path, AnyScene, instgs_vk::lod::RenderConfig)>,
+    a: (&Path, AnyScene, &instgs_vk::render::lod::RenderConfig),
+    b: Option<(&Path, AnyScene, instgs_vk::render::lod::RenderConfig)>,
     cams: &[Camera],
     (frames, warmup): (usize, usize),
     background: [f32; 3],
@@ -1616,13 +1618,13 @@ struct SortComparison {
 /// The GPU's depth and tile sorts (median pass times) against Rust's sort_unstable of the same
 /// (key, value) pairs, rebuilt from the last frame's GPU state in the order the GPU sorted them.
 fn sort_comparison(r: &Rasterizer, per_pass: &[(String, Vec<f64>)]) -> Result<Vec<SortComparison>> {
-    use instgs_vk::cpu;
+    use instgs_vk::render::reference;
     let st = r.read_state()?;
     let proj = st.projected;
     let depth_ids: Vec<u32> = (0..proj.depths.len() as u32).filter(|&i| proj.tiles_touched[i as usize] > 0).collect();
     let depth_keys: Vec<u32> = depth_ids.iter().map(|&i| proj.depths[i as usize].to_bits()).collect();
     let fp = r.last_frame_params().ok_or_else(|| anyhow!("no frame rendered"))?;
-    let (tile_keys, tile_ids) = cpu::emit(&fp, &proj, &st.depth_ids);
+    let (tile_keys, tile_ids) = reference::forward::emit(&fp, &proj, &st.depth_ids);
     let gpu = |name: &str| per_pass.iter().find(|(n, _)| n == name).map_or(f64::NAN, |(_, v)| median(v));
     Ok(vec![
         SortComparison {
@@ -1659,7 +1661,7 @@ fn bench_sort(device: Option<String>, n: usize, bits: u32, repeats: usize) -> Re
         })
         .collect();
     let vals: Vec<u32> = (0..n as u32).collect();
-    let mut sorter = instgs_vk::sort::GpuSort::new(&gpu, &k, n)?;
+    let mut sorter = instgs_vk::render::sort::GpuSort::new(&gpu, &k, n)?;
     let sorted = sorter.sort(&keys, &vals, bits, repeats)?;
     let gpu_ms = sorted.gpu_ms.ok_or_else(|| anyhow!("the device has no timestamps"))?;
     let cpu_ms = time_sort_unstable(&keys, &vals, repeats);

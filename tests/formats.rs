@@ -6,10 +6,10 @@ mod common;
 use std::path::Path;
 
 use common::{assert_clean, gpu, shared_data};
-use instgs_vk::camera::{orbit_around, UpAxis};
 use instgs_vk::formats::{self, Format};
-use instgs_vk::raster::{GpuScene, Rasterizer};
-use instgs_vk::scene::{read_ply, write_compressed_ply, Scene};
+use instgs_vk::model::camera::{orbit_around, UpAxis};
+use instgs_vk::model::scene::{read_ply, write_compressed_ply, Scene};
+use instgs_vk::render::raster::{GpuScene, Rasterizer};
 use instgs_vk::util::psnr;
 
 /// The worst PSNR over 4 orbit views (320×240) of `b` against `a`.
@@ -180,13 +180,13 @@ fn infinite_opacity_logits_are_clamped_and_nan_refused() {
     s.opacities[3] = f32::INFINITY;
     s.opacities[4] = f32::NEG_INFINITY;
     let out = tmp("inf.ply");
-    instgs_vk::scene::write_ply(&s, &out).unwrap();
+    instgs_vk::model::scene::write_ply(&s, &out).unwrap();
     let back = formats::read_scene(&out).unwrap();
     assert_eq!(back.opacities[3], formats::OPACITY_LOGIT_LIMIT);
     assert_eq!(back.opacities[4], -formats::OPACITY_LOGIT_LIMIT);
     assert!((formats::OPACITY_LOGIT_LIMIT - 1019f32.ln()).abs() < 1e-5);
     s.opacities[3] = f32::NAN;
-    instgs_vk::scene::write_ply(&s, &out).unwrap();
+    instgs_vk::model::scene::write_ply(&s, &out).unwrap();
     let e = format!("{:#}", formats::read_scene(&out).unwrap_err());
     assert!(e.contains("inf.ply") && e.contains("non-finite opacity"), "{e}");
 }
@@ -227,7 +227,7 @@ fn dataset_cameras_export_and_read_back() {
         assert_eq!(cams.len(), n, "{data} {split}");
         let images: Vec<String> = cams.iter().map(|(_, p)| p.display().to_string()).collect();
         let only: Vec<_> = cams.iter().map(|(c, _)| c.clone()).collect();
-        let json = instgs_vk::camera::transforms_json(&only, &images);
+        let json = instgs_vk::model::camera::transforms_json(&only, &images);
         let out = tmp(&format!("{}-{split}.json", data.replace('/', "-")));
         std::fs::write(&out, serde_json::to_string(&json).unwrap()).unwrap();
         let back = instgs_vk::dataset::dataset_cameras_with_images(&out, "train").unwrap();

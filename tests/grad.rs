@@ -7,10 +7,13 @@ use std::sync::Arc;
 
 use common::*;
 use glam::Vec3;
-use instgs_vk::grad::{self, Gaussian, Splat};
-use instgs_vk::kernels::{KernelPolicy, Kernels};
-use instgs_vk::raster::{frame_params, GpuScene, Grads, Rasterizer};
-use instgs_vk::scene::Scene;
+use instgs_vk::gpu::kernels::{KernelPolicy, Kernels};
+use instgs_vk::model::scene::Scene;
+use instgs_vk::render::raster::{frame_params, GpuScene, Grads, Rasterizer};
+use instgs_vk::render::reference::{
+    self,
+    backward::{Gaussian, Splat},
+};
 
 fn assert_close(what: &str, analytic: f64, numeric: f64, rel: f64, abs: f64) {
     assert!(
@@ -19,7 +22,7 @@ fn assert_close(what: &str, analytic: f64, numeric: f64, rel: f64, abs: f64) {
     );
 }
 
-fn test_camera(w: u32, h: u32) -> instgs_vk::camera::Camera {
+fn test_camera(w: u32, h: u32) -> instgs_vk::model::camera::Camera {
     look_at(Vec3::new(0.3, -0.4, -4.0), Vec3::ZERO, Vec3::new(0.0, -1.0, 0.0), w, h, 0.9 * w as f32)
 }
 
@@ -44,14 +47,14 @@ fn projection_vjp_matches_finite_differences() {
                 g.mean[0] += 6.0;
             }
             let v = Splat::from_flat(&(0..9).map(|_| rng.range(-1.0, 1.0) as f64).collect::<Vec<_>>());
-            let analytic = grad::project_vjp(&fp, &g, &v).flat();
+            let analytic = reference::backward::project_vjp(&fp, &g, &v).flat();
             let x = g.flat();
             let f = |x: &[f64]| {
-                let s = grad::project(&fp, &Gaussian::from_flat(x));
+                let s = reference::backward::project(&fp, &Gaussian::from_flat(x));
                 // The colour clamp at 0 is a kink; keep away from it in this test.
                 s.flat().iter().zip(v.flat()).map(|(a, b)| a * b).sum::<f64>()
             };
-            let raw = grad::project(&fp, &g);
+            let raw = reference::backward::project(&fp, &g);
             if raw.color.iter().any(|&c| c.abs() < 1e-3) {
                 continue;
             }
@@ -105,13 +108,13 @@ fn blend_backward_matches_finite_differences() {
         let v_image: Vec<[f64; 3]> = (0..w * h)
             .map(|_| [rng.range(-1.0, 1.0) as f64, rng.range(-1.0, 1.0) as f64, rng.range(-1.0, 1.0) as f64])
             .collect();
-        let (_, ts, _) = grad::blend(&fp, &ranges, &ids, &splats);
+        let (_, ts, _) = reference::backward::blend(&fp, &ranges, &ids, &splats);
         if opaque {
             assert!(ts.iter().any(|&t| t < 0.01), "no pixel near saturation");
         }
-        let analytic = grad::blend_backward(&fp, &ranges, &ids, &splats, &v_image);
+        let analytic = reference::backward::blend_backward(&fp, &ranges, &ids, &splats, &v_image);
         let f = |s: &[Splat]| {
-            let (img, _, _) = grad::blend(&fp, &ranges, &ids, s);
+            let (img, _, _) = reference::backward::blend(&fp, &ranges, &ids, s);
             img.iter().zip(&v_image).map(|(a, b)| a[0] * b[0] + a[1] * b[1] + a[2] * b[2]).sum::<f64>()
         };
         // A step that moves some pixel's alpha across the 1/255 cut-off (or T across 1e-4)
@@ -152,7 +155,7 @@ fn rel_err(a: &[f64], b: &[f64]) -> f64 {
     a.iter().zip(b).fold(0.0f64, |m, (x, y)| m.max((x - y).abs())) / scale
 }
 
-fn check_backward(k: &Arc<Kernels>, scene: &Scene, cam: &instgs_vk::camera::Camera, seed: u64) {
+fn check_backward(k: &Arc<Kernels>, scene: &Scene, cam: &instgs_vk::model::camera::Camera, seed: u64) {
     let (gpu, _) = gpu();
     let bg = [0.1, 0.3, 0.6];
     let gs = GpuScene::new(&gpu, scene).unwrap();
@@ -171,7 +174,7 @@ fn check_backward(k: &Arc<Kernels>, scene: &Scene, cam: &instgs_vk::camera::Came
     gpu.submit_and_wait(|rec| {
         grads.record_reset_stats(rec);
         for b in [&grads.means, &grads.scales, &grads.quats, &grads.opacities, &grads.sh] {
-            rec.fill(b, instgs_vk::raster::POISON);
+            rec.fill(b, instgs_vk::render::raster::POISON);
         }
         r.record_backward(rec, &gs, &v_buf, &grads)
     })
@@ -181,11 +184,11 @@ fn check_backward(k: &Arc<Kernels>, scene: &Scene, cam: &instgs_vk::camera::Came
     // blend_backward against the f64 twin fed with the GPU's splats, ranges and order.
     let splats: Vec<Splat> = (0..n).map(|i| Splat::of_projected(&st.projected, i)).collect();
     let v64: Vec<[f64; 3]> = v_image.iter().map(|v| [v[0] as f64, v[1] as f64, v[2] as f64]).collect();
-    let (_, _, lasts) = grad::blend(&fp, &st.ranges, &st.isect_ids, &splats);
+    let (_, _, lasts) = reference::backward::blend(&fp, &st.ranges, &st.isect_ids, &splats);
     let gpu_last = r.read_last().unwrap();
     let same = lasts.iter().zip(&gpu_last).filter(|(a, b)| a == b).count();
     assert!(same as f64 >= 0.999 * npx as f64, "last: {same} of {npx} pixels agree");
-    let want = grad::blend_backward(&fp, &st.ranges, &st.isect_ids, &splats, &v64);
+    let want = reference::backward::blend_backward(&fp, &st.ranges, &st.isect_ids, &splats, &v64);
     let read = |b: &instgs_vk::gpu::Buffer, len: usize| -> Vec<f64> {
         gpu.read::<f32>(b, len).unwrap().into_iter().map(|v| v as f64).collect()
     };
@@ -240,7 +243,7 @@ fn check_backward(k: &Arc<Kernels>, scene: &Scene, cam: &instgs_vk::camera::Came
             assert!(got_i.iter().all(|&v| v == 0.0), "culled Gaussian {i} has gradients");
             continue;
         }
-        let want_i = grad::project_vjp(&fp, &Gaussian::of_scene(scene, i), &v_splat[i]).flat();
+        let want_i = reference::backward::project_vjp(&fp, &Gaussian::of_scene(scene, i), &v_splat[i]).flat();
         // Per Gaussian: relative to the largest gradient of that Gaussian.
         let e = rel_err(&got_i, &want_i);
         let scale = want_i.iter().fold(0.0f64, |m, v| m.max(v.abs()));

@@ -6,13 +6,16 @@ mod common;
 
 use common::*;
 use glam::{DVec3, Vec3};
-use instgs_vk::camera::Camera;
-use instgs_vk::grad::{self, Gaussian, Splat};
-use instgs_vk::instance::{
+use instgs_vk::model::camera::Camera;
+use instgs_vk::model::instanced::{
     quat_mul, xform_from_params, xform_param_grads, xform_params, InstancedScene, Offsets, ShRotation,
 };
-use instgs_vk::raster::{GpuScene, Grads, Rasterizer};
-use instgs_vk::scene::Scene;
+use instgs_vk::model::scene::Scene;
+use instgs_vk::render::raster::{GpuScene, Grads, Rasterizer};
+use instgs_vk::render::reference::{
+    self,
+    backward::{Gaussian, Splat},
+};
 use instgs_vk::util::psnr;
 
 fn camera(w: u32, h: u32) -> Camera {
@@ -37,8 +40,8 @@ fn sh_rotation_turns_view_dependent_colour_with_the_instance() {
             }
             for _ in 0..20 {
                 let d = Vec3::new(rng.normal(), rng.normal(), rng.normal()).normalize();
-                let world = instgs_vk::cpu::sh_basis(d, deg);
-                let template = instgs_vk::cpu::sh_basis(q.inverse() * d, deg);
+                let world = instgs_vk::render::reference::forward::sh_basis(d, deg);
+                let template = instgs_vk::render::reference::forward::sh_basis(q.inverse() * d, deg);
                 for ch in 0..3 {
                     let want: f32 = (0..c).map(|k| template[k] * sh[k * 3 + ch]).sum();
                     let got: f32 = (0..c).map(|k| world[k] * rotated[k * 3 + ch]).sum();
@@ -73,7 +76,7 @@ fn instanced_render_equals_the_expanded_scene() {
         // The preprocess outputs agree splat by splat with the CPU twin on the expanded scene.
         assert_eq!(inst_state.projected.tiles_touched, plain_state.projected.tiles_touched);
         let fp = r.last_frame_params().unwrap();
-        let cpu = instgs_vk::cpu::render(&expanded, &fp);
+        let cpu = instgs_vk::render::reference::forward::render(&expanded, &fp);
         let db = psnr(&inst.image, &cpu);
         assert!(db >= 50.0, "degree {deg}: instanced GPU vs CPU twin {db:.1} dB");
     }
@@ -125,7 +128,7 @@ fn gpu_grads(scene: &InstancedScene, cam: &Camera, v_image: &[[f32; 4]]) -> (Sce
     gpu.submit_and_wait(|rec| {
         g.record_reset_stats(rec);
         for b in [&g.means, &g.scales, &g.quats, &g.opacities, &g.sh, &g.d_means, &g.d_sh0, &g.d_opacities, &g.xforms] {
-            rec.fill(b, instgs_vk::raster::POISON);
+            rec.fill(b, instgs_vk::render::raster::POISON);
         }
         r.record_backward(rec, &gs, &v, &g)
     })
@@ -319,8 +322,9 @@ fn instanced_gradients_match_finite_differences() {
     let fp = r.last_frame_params().unwrap();
     let loss = |s: &InstancedScene| -> f64 {
         let t = s.groups[0].template.len();
-        let splats: Vec<Splat> = (0..3 * t).map(|i| grad::project(&fp, &expand64(s, 0, i / t, i % t))).collect();
-        let (img, _, _) = grad::blend(&fp, &st.ranges, &st.isect_ids, &splats);
+        let splats: Vec<Splat> =
+            (0..3 * t).map(|i| reference::backward::project(&fp, &expand64(s, 0, i / t, i % t))).collect();
+        let (img, _, _) = reference::backward::blend(&fp, &st.ranges, &st.isect_ids, &splats);
         img.iter().zip(&v_image).map(|(p, v)| p[0] * v[0] as f64 + p[1] * v[1] as f64 + p[2] * v[2] as f64).sum()
     };
     type Get = fn(&mut InstancedScene, usize, usize) -> &mut f32;
@@ -409,9 +413,9 @@ fn scene_graph_round_trip_and_convention() {
     let scene = random_instanced(&mut rng, 0, 0, &[(5, 3)]);
     let dir = tempdir("scene_graph");
     let path = dir.join("scene_graph.json");
-    let graph = instgs_vk::instance::scene_graph(&scene);
+    let graph = instgs_vk::model::instanced::scene_graph(&scene);
     std::fs::write(&path, serde_json::to_string(&graph).unwrap()).unwrap();
-    let back = instgs_vk::instance::read_scene_graph(&path).unwrap();
+    let back = instgs_vk::model::instanced::read_scene_graph(&path).unwrap();
     for (inst, got) in scene.groups[0].instances.iter().zip(&back[0].1) {
         // The file maps world points onto template space: inverse of template→world.
         let p = Vec3::new(0.3, -0.2, 0.5);
@@ -425,14 +429,14 @@ fn scene_graph_round_trip_and_convention() {
     assert_eq!(r, a);
     // Bad files.
     std::fs::write(&path, "[{\"template_id\": \"1\", \"instances\": []}]").unwrap();
-    let e = instgs_vk::instance::read_scene_graph(&path).unwrap_err().to_string();
+    let e = instgs_vk::model::instanced::read_scene_graph(&path).unwrap_err().to_string();
     assert!(e.contains("no instances"), "{e}");
     std::fs::write(
         &path,
         "[{\"template_id\": \"1\", \"instances\": [{\"instance_id\": \"1\", \"transform\": [[1,0,0,0],[0,2,0,0],[0,0,1,0],[0,0,0,1]]}]}]",
     )
     .unwrap();
-    let e = format!("{:#}", instgs_vk::instance::read_scene_graph(&path).unwrap_err());
+    let e = format!("{:#}", instgs_vk::model::instanced::read_scene_graph(&path).unwrap_err());
     assert!(e.contains("uniform scale"), "{e}");
 }
 
@@ -488,7 +492,7 @@ fn joint_optimisation_learns_templates_offsets_and_background() {
             *v += 0.4 * rng.normal();
         }
     }
-    let mut cfg = instgs_vk::config::Config::load_instanced(None).unwrap();
+    let mut cfg = instgs_vk::train::config::Config::load_instanced(None).unwrap();
     assert_eq!((cfg.iterations, cfg.lr.spatial_scale, cfg.densify.until_iter), (10_000, 0.1, 0));
     cfg.iterations = 120;
     cfg.test_interval = 40;
@@ -500,7 +504,7 @@ fn joint_optimisation_learns_templates_offsets_and_background() {
     };
     let r = instgs_vk::train::run(&gpu, &k, &ds, &cfg, &opts).unwrap();
     assert_eq!((r.iterations, r.splats), (120, 80 + 240));
-    let result = instgs_vk::instgs::read(&out.join("scene.instgs")).unwrap();
+    let result = instgs_vk::formats::instgs::read(&out.join("scene.instgs")).unwrap();
     // Every part was optimised (the prototype froze the background); transforms stay.
     assert_ne!(result.background.sh, init.background.sh, "background frozen");
     assert_ne!(result.groups[0].template.sh, init.groups[0].template.sh);
@@ -554,8 +558,11 @@ fn refining_transforms_recovers_perturbed_poses() {
         let axis = glam::Vec3::new(rng.normal(), rng.normal(), rng.normal()).normalize();
         let turn = glam::Quat::from_axis_angle(axis, 3f32.to_radians());
         let shift = glam::Vec3::new(rng.normal(), rng.normal(), rng.normal()).normalize() * 0.04;
-        inst.transform =
-            instgs_vk::instance::Similarity::from_parts(turn * x.rotation, x.scale * 1.03, x.translation + shift);
+        inst.transform = instgs_vk::model::instanced::Similarity::from_parts(
+            turn * x.rotation,
+            x.scale * 1.03,
+            x.translation + shift,
+        );
     }
     let pose_error = |s: &InstancedScene| -> f32 {
         s.groups[0]
@@ -567,7 +574,7 @@ fn refining_transforms_recovers_perturbed_poses() {
     };
     let mut results = Vec::new();
     for refine in [false, true] {
-        let mut cfg = instgs_vk::config::Config::load_instanced(None).unwrap();
+        let mut cfg = instgs_vk::train::config::Config::load_instanced(None).unwrap();
         cfg.iterations = 200;
         cfg.test_interval = 200;
         cfg.checkpoint_interval = 0;
@@ -582,7 +589,7 @@ fn refining_transforms_recovers_perturbed_poses() {
             ..instgs_vk::train::RunOptions::new(out.clone(), false, false)
         };
         let r = instgs_vk::train::run(&gpu, &k, &ds, &cfg, &opts).unwrap();
-        let result = instgs_vk::instgs::read(&out.join("scene.instgs")).unwrap();
+        let result = instgs_vk::formats::instgs::read(&out.join("scene.instgs")).unwrap();
         results.push((r.test_psnr.unwrap(), pose_error(&result)));
     }
     eprintln!(

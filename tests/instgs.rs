@@ -4,8 +4,8 @@ mod common;
 
 use common::*;
 use glam::{Quat, Vec3};
-use instgs_vk::instance::{Group, Instance, InstancedScene, Offsets, Similarity};
-use instgs_vk::instgs::{self, Dtype};
+use instgs_vk::formats::instgs::{self, Dtype};
+use instgs_vk::model::instanced::{Group, Instance, InstancedScene, Offsets, Similarity};
 
 fn scene(rng: &mut Rng, deg: u32) -> InstancedScene {
     let groups = (0..2)
@@ -58,7 +58,7 @@ fn write_then_read_is_exact() {
     }
     // A scene without background Gaussians.
     let mut s = scene(&mut rng, 1);
-    s.background = instgs_vk::scene::Scene { sh_degree: 1, ..Default::default() };
+    s.background = instgs_vk::model::scene::Scene { sh_degree: 1, ..Default::default() };
     let bytes = instgs::to_bytes(&s, Dtype::F32);
     assert_eq!(instgs::from_bytes(&bytes, "mem").unwrap(), s);
 }

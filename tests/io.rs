@@ -1,9 +1,9 @@
 //! Scene files: PLY round trips, ASCII and big-endian input, SuperSplat compressed PLY.
 mod common;
 use common::*;
-use instgs_vk::camera::{orbit_around, UpAxis};
-use instgs_vk::raster::{GpuScene, Rasterizer};
-use instgs_vk::scene::{read_ply, write_ply, Scene};
+use instgs_vk::model::camera::{orbit_around, UpAxis};
+use instgs_vk::model::scene::{read_ply, write_ply, Scene};
+use instgs_vk::render::raster::{GpuScene, Rasterizer};
 use instgs_vk::util::psnr;
 
 fn bits(s: &Scene) -> Vec<u32> {

@@ -6,10 +6,10 @@ mod common;
 
 use common::*;
 use glam::Vec3;
-use instgs_vk::camera::Camera;
-use instgs_vk::instance::{Group, InstancedScene, Offsets};
-use instgs_vk::lod::{build_levels, select_instance, RenderConfig};
-use instgs_vk::raster::{GpuScene, Rasterizer};
+use instgs_vk::model::camera::Camera;
+use instgs_vk::model::instanced::{Group, InstancedScene, Offsets};
+use instgs_vk::render::lod::{build_levels, select_instance, RenderConfig};
+use instgs_vk::render::raster::{GpuScene, Rasterizer};
 use instgs_vk::shared::*;
 use instgs_vk::util::psnr;
 
@@ -19,7 +19,8 @@ fn spread_scene(rng: &mut Rng) -> InstancedScene {
     for g in &mut s.groups {
         for i in &mut g.instances {
             let t = Vec3::new(rng.range(-9.0, 9.0), rng.range(-4.0, 4.0), rng.range(-6.0, 30.0));
-            i.transform = instgs_vk::instance::Similarity::from_parts(i.transform.rotation, i.transform.scale, t);
+            i.transform =
+                instgs_vk::model::instanced::Similarity::from_parts(i.transform.rotation, i.transform.scale, t);
         }
     }
     for m in &mut s.background.means {
@@ -141,14 +142,14 @@ fn culling_is_lossless() {
 fn level_of_detail_keeps_distant_guitars() {
     let (gpu, k) = gpu();
     let demo = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("demo/guitar.compressed.ply");
-    let guitar = instgs_vk::scene::read_ply(&demo).unwrap();
+    let guitar = instgs_vk::model::scene::read_ply(&demo).unwrap();
     let (lo, hi) = guitar.robust_bounds(0.0);
     let size = (hi - lo).length();
     let mut rng = Rng::new(2);
     let instances: Vec<_> = (0..6)
-        .map(|i| instgs_vk::instance::Instance {
+        .map(|i| instgs_vk::model::instanced::Instance {
             id: format!("{i}"),
-            transform: instgs_vk::instance::Similarity::from_parts(
+            transform: instgs_vk::model::instanced::Similarity::from_parts(
                 glam::Quat::from_rotation_y(rng.range(-0.5, 0.5)),
                 1.0,
                 Vec3::new((i % 3) as f32 - 1.0, (i / 3) as f32 - 0.5, 0.0) * size,
@@ -157,7 +158,7 @@ fn level_of_detail_keeps_distant_guitars() {
         .collect();
     let scene = InstancedScene {
         sh_degree: guitar.sh_degree,
-        background: instgs_vk::scene::Scene { sh_degree: guitar.sh_degree, ..Default::default() },
+        background: instgs_vk::model::scene::Scene { sh_degree: guitar.sh_degree, ..Default::default() },
         groups: vec![Group {
             name: "guitar".into(),
             offsets: Offsets::zeros(guitar.len() * instances.len()),
@@ -186,10 +187,10 @@ fn product_quantised_offsets_render_as_their_decoded_values() {
     let (gpu, k) = gpu();
     let mut rng = Rng::new(13);
     let scene = spread_scene(&mut rng);
-    let bytes = instgs_vk::instgs::to_bytes(&scene, instgs_vk::instgs::Dtype::Pq8);
-    let f32_bytes = instgs_vk::instgs::to_bytes(&scene, instgs_vk::instgs::Dtype::F32);
+    let bytes = instgs_vk::formats::instgs::to_bytes(&scene, instgs_vk::formats::instgs::Dtype::Pq8);
+    let f32_bytes = instgs_vk::formats::instgs::to_bytes(&scene, instgs_vk::formats::instgs::Dtype::F32);
     assert!(bytes.len() < f32_bytes.len() / 2, "{} vs {}", bytes.len(), f32_bytes.len());
-    let decoded = instgs_vk::instgs::from_bytes(&bytes, "pq8").unwrap();
+    let decoded = instgs_vk::formats::instgs::from_bytes(&bytes, "pq8").unwrap();
     assert_ne!(decoded.groups[0].offsets, scene.groups[0].offsets, "k-means codes are lossy");
     let cfg = RenderConfig::load(None).unwrap();
     let coded = GpuScene::instanced_for_rendering(&gpu, &decoded, &cfg.clone().exact()).unwrap();

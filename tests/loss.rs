@@ -3,14 +3,16 @@
 //! CPU twins. Validation layers on.
 mod common;
 use common::*;
-use instgs_vk::grad;
-use instgs_vk::kernels::{KernelPolicy, Kernels};
+use instgs_vk::gpu::kernels::{KernelPolicy, Kernels};
+use instgs_vk::render::reference;
 use std::sync::Arc;
 
 use instgs_vk::gpu::Gpu;
-use instgs_vk::optim::{adam_parts, record_adam, record_loss, AdamState, LearningRates, LossBufs, BETA1, BETA2, EPS};
-use instgs_vk::raster::{GpuScene, Grads};
+use instgs_vk::render::raster::{GpuScene, Grads};
 use instgs_vk::shared::*;
+use instgs_vk::train::optim::{
+    adam_parts, record_adam, record_loss, AdamState, LearningRates, LossBufs, BETA1, BETA2, EPS,
+};
 
 fn fixture() -> serde_json::Value {
     let p = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/ssim_skimage.json");
@@ -26,7 +28,7 @@ fn ssim_matches_scikit_image() {
     let f = fixture();
     let (w, h) = (f["width"].as_u64().unwrap() as usize, f["height"].as_u64().unwrap() as usize);
     let (x, y) = (floats(&f["x"]), floats(&f["y"]));
-    let (s, cot) = grad::ssim_plane(&x, &y, w, h);
+    let (s, cot) = reference::backward::ssim_plane(&x, &y, w, h);
     // The map where the window does not reach the border (padding differs: zero vs reflect).
     let want = floats(&f["ssim_map"]);
     let mut interior = Vec::new();
@@ -40,7 +42,7 @@ fn ssim_matches_scikit_image() {
     let mean = interior.iter().sum::<f64>() / interior.len() as f64;
     assert!((mean - f["mssim_interior"].as_f64().unwrap()).abs() < 1e-9);
     // d mean(S) / dx where no window of a pixel that sees x(q) reaches the border.
-    let filtered: Vec<Vec<f64>> = cot.iter().map(|c| grad::gauss_filter(c, w, h)).collect();
+    let filtered: Vec<Vec<f64>> = cot.iter().map(|c| reference::backward::gauss_filter(c, w, h)).collect();
     let want = floats(&f["grad_mean_ssim"]);
     let n = (w * h) as f64;
     for r in 10..h - 10 {
@@ -66,7 +68,7 @@ fn loss_gradient_matches_finite_differences() {
     let (w, h) = (19, 14);
     let x = random_image(&mut rng, w * h);
     let y = random_image(&mut rng, w * h);
-    let (_, _, _, g) = grad::loss(&x, &y, w, h, 0.2);
+    let (_, _, _, g) = reference::backward::loss(&x, &y, w, h, 0.2);
     for _ in 0..60 {
         let i = (rng.u32() as usize) % (w * h);
         let c = (rng.u32() as usize) % 3;
@@ -75,7 +77,9 @@ fn loss_gradient_matches_finite_differences() {
         let mut xm = x.clone();
         xp[i][c] += e;
         xm[i][c] -= e;
-        let numeric = (grad::loss(&xp, &y, w, h, 0.2).0 - grad::loss(&xm, &y, w, h, 0.2).0) / (2.0 * e);
+        let numeric = (reference::backward::loss(&xp, &y, w, h, 0.2).0
+            - reference::backward::loss(&xm, &y, w, h, 0.2).0)
+            / (2.0 * e);
         assert!(
             (numeric - g[i][c]).abs() < 1e-7 + 1e-5 * numeric.abs(),
             "pixel {i} channel {c}: {} vs {numeric}",
@@ -100,13 +104,13 @@ fn gpu_loss_matches_cpu_twin() {
         let y32 = to_gpu(&y);
         let x64: Vec<[f64; 3]> = x32.iter().map(|p| [p[0] as f64, p[1] as f64, p[2] as f64]).collect();
         let y64: Vec<[f64; 3]> = y32.iter().map(|p| [p[0] as f64, p[1] as f64, p[2] as f64]).collect();
-        let (_, l1, ssim, want) = grad::loss(&x64, &y64, w, h, 0.2);
+        let (_, l1, ssim, want) = reference::backward::loss(&x64, &y64, w, h, 0.2);
         for kk in [&k, &cas] {
             let lb = LossBufs::new(&gpu, w as u32, h as u32).unwrap();
             gpu.write(&lb.target, &y32).unwrap();
             let image = gpu.upload("image", &x32).unwrap();
             gpu.submit_and_wait(|rec| {
-                rec.fill(&lb.v_image, instgs_vk::raster::POISON);
+                rec.fill(&lb.v_image, instgs_vk::render::raster::POISON);
                 record_loss(rec, kk, &image, &lb, 0.2)
             })
             .unwrap();
@@ -195,7 +199,7 @@ fn adam_case(gpu: &Arc<Gpu>, k: &Kernels, rng: &mut Rng, n: usize, degree: u32) 
         }
         gpu.submit_and_wait(|rec| record_adam(rec, k, &gs, &grads, &st, &lr, step)).unwrap();
         for (i, g) in g32s.iter().enumerate() {
-            let base = grad::AdamStep { lr: 0.0, beta1: BETA1, beta2: BETA2, eps: EPS as f64, step };
+            let base = reference::backward::AdamStep { lr: 0.0, beta1: BETA1, beta2: BETA2, eps: EPS as f64, step };
             let g = flat(g);
             let stride = params[i].len() / n;
             // Per element: the group's learning rate (SH: dc for the first 3 of each Gaussian).
@@ -208,9 +212,9 @@ fn adam_case(gpu: &Arc<Gpu>, k: &Kernels, rng: &mut Rng, n: usize, degree: u32) 
                     _ if j % stride < 3 => lr.sh0,
                     _ => lr.sh_rest,
                 } as f64;
-                let a = grad::AdamStep { lr: lr_j, ..base };
+                let a = reference::backward::AdamStep { lr: lr_j, ..base };
                 let (p, mm, vv) = (&mut params[i][j..j + 1], &mut m[i][j..j + 1], &mut v[i][j..j + 1]);
-                grad::adam(p, &g[j..j + 1], mm, vv, a);
+                reference::backward::adam(p, &g[j..j + 1], mm, vv, a);
             }
         }
         let bufs = [&gs.means, &gs.scales, &gs.quats, &gs.opacities, &gs.sh];

@@ -1,6 +1,6 @@
 //! `curves.png` is a figure a reader can use: text (title, tick numbers, axis labels) is drawn
 //! in the title band and in each panel's axis areas, not only lines.
-use instgs_vk::plot::{self, Curves, HEIGHT, TITLE_HEIGHT, WIDTH, X_LABEL_HEIGHT, Y_LABEL_WIDTH};
+use instgs_vk::train::plot::{self, Curves, HEIGHT, TITLE_HEIGHT, WIDTH, X_LABEL_HEIGHT, Y_LABEL_WIDTH};
 
 fn synthetic_run() -> Curves {
     let n = 3000u64;

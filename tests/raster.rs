@@ -3,10 +3,10 @@
 mod common;
 use common::*;
 use glam::Vec3;
-use instgs_vk::camera::{orbit_around, Camera, UpAxis};
-use instgs_vk::cpu;
-use instgs_vk::raster::{frame_params, GpuScene, Rasterizer};
-use instgs_vk::scene::{read_ply, Scene};
+use instgs_vk::model::camera::{orbit_around, Camera, UpAxis};
+use instgs_vk::model::scene::{read_ply, Scene};
+use instgs_vk::render::raster::{frame_params, GpuScene, Rasterizer};
+use instgs_vk::render::reference;
 use instgs_vk::shared::*;
 use instgs_vk::util::psnr;
 
@@ -24,7 +24,7 @@ fn check_passes(scene: &Scene, cam: &Camera, bg: [f32; 3]) -> f64 {
 }
 
 fn check_passes_with(
-    k: &std::sync::Arc<instgs_vk::kernels::Kernels>,
+    k: &std::sync::Arc<instgs_vk::gpu::kernels::Kernels>,
     scene: &Scene,
     cam: &Camera,
     bg: [f32; 3],
@@ -41,7 +41,7 @@ fn check_passes_with(
 
     // preprocess: same culling and radii (a float may land on the other side of a ceil for a
     // very few Gaussians), values to float precision.
-    let want = cpu::preprocess(scene, &fp);
+    let want = reference::forward::preprocess(scene, &fp);
     let got = &st.projected;
     let mut mismatched = 0;
     for i in 0..n {
@@ -68,33 +68,33 @@ fn check_passes_with(
 
     // scan visible + compact + depth sort, from the GPU's preprocess output.
     let gpu_proj = &st.projected;
-    let (dkeys, dids) = cpu::depth_order(gpu_proj);
+    let (dkeys, dids) = reference::forward::depth_order(gpu_proj);
     assert_eq!(st.counts[COUNT_VISIBLE as usize] as usize, dids.len(), "visible count");
     assert!(st.depth_keys == dkeys && st.depth_ids == dids, "depth order differs");
 
     // scan of tiles touched in depth order.
     let touched: Vec<u32> = dids.iter().map(|&i| gpu_proj.tiles_touched[i as usize]).collect();
-    let (offsets, total) = cpu::exclusive_scan(&touched);
+    let (offsets, total) = reference::forward::exclusive_scan(&touched);
     assert!(st.isect_offsets == offsets, "intersection offsets differ");
     assert_eq!(st.counts[COUNT_ISECT_NEEDED as usize], total);
     assert_eq!(st.counts[COUNT_ISECT as usize], total, "capacity should have grown");
 
     // emit + tile sort.
-    let (ikeys, iids) = cpu::emit(&fp, gpu_proj, &dids);
+    let (ikeys, iids) = reference::forward::emit(&fp, gpu_proj, &dids);
     // emit's tile costs (f32 maths as the kernel's; a row bound may round differently).
-    let costs = cpu::tile_costs(&fp, gpu_proj, &dids, k.policy.blend_pixels_per_thread);
+    let costs = reference::forward::tile_costs(&fp, gpu_proj, &dids, k.policy.blend_pixels_per_thread);
     for (t, (got, want)) in st.tile_costs.iter().zip(&costs).enumerate() {
         assert!(got.abs_diff(*want) <= 2 + want / 1000, "tile {t}: cost {got}, CPU twin {want}");
     }
-    let (skeys, sids) = cpu::stable_sort(&ikeys, &iids);
+    let (skeys, sids) = reference::forward::stable_sort(&ikeys, &iids);
     assert!(st.isect_keys == skeys && st.isect_ids == sids, "sorted intersections differ");
 
     // ranges.
-    let ranges = cpu::tile_ranges(&skeys, (fp.tiles_x * fp.tiles_y) as usize);
+    let ranges = reference::forward::tile_ranges(&skeys, (fp.tiles_x * fp.tiles_y) as usize);
     assert!(st.ranges == ranges, "tile ranges differ");
 
     // blend, from the GPU's own lists.
-    let img = cpu::blend(&fp, &st.ranges, &st.isect_ids, gpu_proj);
+    let img = reference::forward::blend(&fp, &st.ranges, &st.isect_ids, gpu_proj);
     let p = psnr(&img, &frame.image);
     assert!(p >= 60.0, "blend differs from its CPU twin: PSNR {p:.1} dB");
     let max_t = img.iter().zip(&frame.image).map(|(a, b)| (a[3] - b[3]).abs()).fold(0.0f32, f32::max);
@@ -102,7 +102,7 @@ fn check_passes_with(
     assert!(frame.image.iter().all(|p| p.iter().all(|v| v.is_finite())), "unwritten (poisoned) pixels");
 
     // The whole pipeline against the CPU render.
-    let full = cpu::render(scene, &fp);
+    let full = reference::forward::render(scene, &fp);
     let p = psnr(&full, &frame.image);
     assert_clean(&gpu);
     p
@@ -180,7 +180,7 @@ fn images_match_cpu_twin_on_real_splats() {
         for cam in orbit_around(&scene, 3, UpAxis::NegY, 320, 240).iter().take(2) {
             let frame = r.render(&gs, cam, [0.0, 0.0, 0.0]).unwrap();
             let fp = frame_params(scene.len(), scene.sh_degree, cam, [0.0; 3], frame.intersections);
-            let want = cpu::render(&scene, &fp);
+            let want = reference::forward::render(&scene, &fp);
             let p = psnr(&want, &frame.image);
             assert!(p >= 50.0, "{name} {}: GPU vs CPU PSNR {p:.1} dB", cam.name);
             let lit = frame.image.iter().filter(|px| px[3] < 0.5).count();
@@ -192,7 +192,7 @@ fn images_match_cpu_twin_on_real_splats() {
 
 #[test]
 fn buffers_past_max_storage_buffer_range_are_refused() {
-    use instgs_vk::raster::check_scene_fits;
+    use instgs_vk::render::raster::check_scene_fits;
     let mib128 = 128 << 20;
     // 1M Gaussians at SH degree 3: a 192 MB SH buffer.
     let e = check_scene_fits(1_000_000, 1_000_000, 3, mib128).unwrap_err().to_string();
@@ -219,12 +219,12 @@ fn buffers_past_max_storage_buffer_range_are_refused() {
 }
 
 /// The CPU pipeline after preprocess, from given per-Gaussian data.
-fn cpu_render_from(fp: &instgs_vk::shared::FrameParams, p: &cpu::Projected) -> Vec<[f32; 4]> {
-    let (_, ids) = cpu::depth_order(p);
-    let (keys, ids) = cpu::emit(fp, p, &ids);
-    let (keys, ids) = cpu::stable_sort(&keys, &ids);
-    let ranges = cpu::tile_ranges(&keys, (fp.tiles_x * fp.tiles_y) as usize);
-    cpu::blend(fp, &ranges, &ids, p)
+fn cpu_render_from(fp: &instgs_vk::shared::FrameParams, p: &reference::forward::Projected) -> Vec<[f32; 4]> {
+    let (_, ids) = reference::forward::depth_order(p);
+    let (keys, ids) = reference::forward::emit(fp, p, &ids);
+    let (keys, ids) = reference::forward::stable_sort(&keys, &ids);
+    let ranges = reference::forward::tile_ranges(&keys, (fp.tiles_x * fp.tiles_y) as usize);
+    reference::forward::blend(fp, &ranges, &ids, p)
 }
 
 #[test]
@@ -238,7 +238,7 @@ fn tight_extents_render_the_3_sigma_image() {
     for scene in [&random, &biker] {
         let cam = &orbit_around(scene, 2, UpAxis::NegY, 320, 240)[1];
         let fp = frame_params(scene.len(), scene.sh_degree, cam, [0.3, 0.3, 0.3], 0);
-        let ours = cpu::preprocess(scene, &fp);
+        let ours = reference::forward::preprocess(scene, &fp);
         let mut inria = ours.clone();
         let mut shrunk = 0;
         for i in 0..scene.len() {
@@ -255,7 +255,7 @@ fn tight_extents_render_the_3_sigma_image() {
             let r = (3.0 * lambda.sqrt()).ceil() as u32;
             assert!(ours.radii[i][0] <= r + 1 && ours.radii[i][1] <= r + 1, "extent larger than Inria's");
             inria.radii[i] = [r, r];
-            let (lo, hi) = cpu::tile_rect(&fp, inria.xys[i], [r, r]);
+            let (lo, hi) = reference::forward::tile_rect(&fp, inria.xys[i], [r, r]);
             inria.tiles_touched[i] = ((hi[0] - lo[0]) * (hi[1] - lo[1])) as u32;
             shrunk += (inria.tiles_touched[i] > ours.tiles_touched[i]) as usize;
         }
@@ -309,7 +309,7 @@ fn tile_test_keeps_every_tile_a_splat_reaches() {
                 least = least.min(a * dx * dx + 2.0 * b * dx * dy + c * dy * dy);
             }
         }
-        let hit = cpu::splat_hits_tile(xy, co, [0, 0]);
+        let hit = reference::forward::splat_hits_tile(xy, co, [0, 0]);
         assert!(hit || least > lim, "dropped a tile with q = {least} <= {lim}: xy {xy:?}, co {co:?}");
         // A pixel centre lies within half a pixel per axis of the least q's point, where q grows
         // by at most 2 sqrt(l q) |d| + l |d|^2, |d|^2 <= 1/2 (l >= the largest eigenvalue).
@@ -334,21 +334,26 @@ fn tile_culling_drops_intersections_not_pixels() {
     for scene in [&random, &biker] {
         let cam = &orbit_around(scene, 2, UpAxis::NegY, 320, 240)[0];
         let fp = frame_params(scene.len(), scene.sh_degree, cam, [0.3, 0.3, 0.3], 0);
-        let p = cpu::preprocess(scene, &fp);
-        let (_, order) = cpu::depth_order(&p);
-        let culled = cpu::emit(&fp, &p, &order);
+        let p = reference::forward::preprocess(scene, &fp);
+        let (_, order) = reference::forward::depth_order(&p);
+        let culled = reference::forward::emit(&fp, &p, &order);
         let mut whole = (Vec::new(), Vec::new());
         for &i in &order {
-            let (lo, hi) = cpu::tile_rect(&fp, p.xys[i as usize], p.radii[i as usize]);
-            for [x, y] in cpu::rect_tiles(lo, hi) {
+            let (lo, hi) = reference::forward::tile_rect(&fp, p.xys[i as usize], p.radii[i as usize]);
+            for [x, y] in reference::forward::rect_tiles(lo, hi) {
                 whole.0.push(y as u32 * fp.tiles_x + x as u32);
                 whole.1.push(i);
             }
         }
         assert!(culled.0.len() < whole.0.len() * 19 / 20, "{} of {} intersections", culled.0.len(), whole.0.len());
         let render = |(keys, ids): &(Vec<u32>, Vec<u32>)| {
-            let (keys, ids) = cpu::stable_sort(keys, ids);
-            cpu::blend(&fp, &cpu::tile_ranges(&keys, (fp.tiles_x * fp.tiles_y) as usize), &ids, &p)
+            let (keys, ids) = reference::forward::stable_sort(keys, ids);
+            reference::forward::blend(
+                &fp,
+                &reference::forward::tile_ranges(&keys, (fp.tiles_x * fp.tiles_y) as usize),
+                &ids,
+                &p,
+            )
         };
         assert!(render(&culled) == render(&whole), "culling changed the image");
     }

@@ -6,11 +6,11 @@ mod common;
 
 use common::*;
 use glam::Vec3;
+use instgs_vk::instancing::template::{instantiate, InstanceOptions, TemplateInit};
 use instgs_vk::register::{
     farthest_point_sample, fpfh, normals, register, umeyama, voxel_downsample, RegisterOptions, Sim3,
 };
 use instgs_vk::segment::InstanceGroup;
-use instgs_vk::template::{instantiate, InstanceOptions, TemplateInit};
 use nalgebra::{Rotation3, Vector3};
 
 /// Surface samples of an asymmetric object about 0.8 units across: an ellipsoid body, a head
@@ -171,10 +171,10 @@ fn farthest_point_sampling_spreads_and_is_deterministic() {
 
 /// A plain scene made of a known object's Gaussians placed as instances (each its own
 /// resampling with a little noise), plus background Gaussians; labels known.
-fn plain_scene(rng: &mut Rng, truths: &[Sim3]) -> (instgs_vk::scene::Scene, Vec<u32>) {
-    let mut s = instgs_vk::scene::Scene { sh_degree: 1, ..Default::default() };
+fn plain_scene(rng: &mut Rng, truths: &[Sim3]) -> (instgs_vk::model::scene::Scene, Vec<u32>) {
+    let mut s = instgs_vk::model::scene::Scene { sh_degree: 1, ..Default::default() };
     let mut labels = Vec::new();
-    let mut push = |s: &mut instgs_vk::scene::Scene, p: [f64; 3], dc: [f32; 3], label: u32| {
+    let mut push = |s: &mut instgs_vk::model::scene::Scene, p: [f64; 3], dc: [f32; 3], label: u32| {
         s.means.push(p.map(|c| c as f32));
         s.scales.push([-4.0; 3]);
         s.quats.push([1.0, 0.0, 0.0, 0.0]);
@@ -317,7 +317,7 @@ fn background_pruning_keeps_instances_and_the_most_significant_background() {
     let labels: Vec<u32> = (0..40).map(|i| if i % 4 == 0 { 1 + (i % 3) as u32 } else { 0 }).collect();
     let significance: Vec<f32> = (0..40).map(|i| ((i * 17) % 40) as f32).collect();
     let (pruned, kept_labels, dropped) =
-        instgs_vk::template::prune_background(&scene, &labels, &significance, 0.25).unwrap();
+        instgs_vk::instancing::template::prune_background(&scene, &labels, &significance, 0.25).unwrap();
     let bg: Vec<usize> = (0..40).filter(|&i| labels[i] == 0).collect();
     assert_eq!(bg.len(), 30);
     assert_eq!(dropped, 30 - 8, "⌈0.25 × 30⌉ = 8 background Gaussians stay");
@@ -330,9 +330,10 @@ fn background_pruning_keeps_instances_and_the_most_significant_background() {
         assert_eq!(pruned.means[j], scene.means[i], "order kept");
         assert_eq!(kept_labels[j], labels[i]);
     }
-    let (all, _, none) = instgs_vk::template::prune_background(&scene, &labels, &significance, 1.0).unwrap();
+    let (all, _, none) =
+        instgs_vk::instancing::template::prune_background(&scene, &labels, &significance, 1.0).unwrap();
     assert_eq!((all.len(), none), (40, 0));
-    assert!(instgs_vk::template::prune_background(&scene, &labels, &significance, 0.0).is_err());
+    assert!(instgs_vk::instancing::template::prune_background(&scene, &labels, &significance, 0.0).is_err());
 }
 
 /// `d` applied about the point `c`, after `x`.
@@ -345,7 +346,7 @@ fn about(c: [f64; 3], d: Sim3, x: Sim3) -> Sim3 {
 
 #[test]
 fn degenerate_poses_are_refused_by_the_geometric_checks() {
-    use instgs_vk::template::{Acceptance, PoseCheck};
+    use instgs_vk::instancing::template::{Acceptance, PoseCheck};
     let mut rng = Rng::new(11);
     let reference = object(&mut rng, 4000);
     let truth = random_sim3(&mut rng, 1.0);

@@ -10,17 +10,20 @@ use instgs_vk::segment::{associate, instance_iou, segment, AssociateOptions};
 /// from the true labels: (plain scene, labels, views, masks).
 fn known_scene(
     gpu: &std::sync::Arc<instgs_vk::gpu::Gpu>,
-    k: &std::sync::Arc<instgs_vk::kernels::Kernels>,
-) -> (instgs_vk::scene::Scene, Vec<u32>, Vec<instgs_vk::dataset::View>, Vec<Vec<u16>>) {
+    k: &std::sync::Arc<instgs_vk::gpu::kernels::Kernels>,
+) -> (instgs_vk::model::scene::Scene, Vec<u32>, Vec<instgs_vk::dataset::View>, Vec<Vec<u16>>) {
     let mut rng = Rng::new(9);
     let mut scene = random_instanced(&mut rng, 1, 0, &[(150, 3)]);
     // Instances apart (x = -1.2, 0, 1.2), opaque enough to occlude, no offsets.
     for (i, inst) in scene.groups[0].instances.iter_mut().enumerate() {
         let x = inst.transform;
-        inst.transform =
-            instgs_vk::instance::Similarity::from_parts(x.rotation, 1.0, Vec3::new(1.2 * i as f32 - 1.2, 0.0, 0.0));
+        inst.transform = instgs_vk::model::instanced::Similarity::from_parts(
+            x.rotation,
+            1.0,
+            Vec3::new(1.2 * i as f32 - 1.2, 0.0, 0.0),
+        );
     }
-    scene.groups[0].offsets = instgs_vk::instance::Offsets::zeros(450);
+    scene.groups[0].offsets = instgs_vk::model::instanced::Offsets::zeros(450);
     // Splats within their object (a trained object's are; a huge one spilling far past the
     // instance's silhouette belongs to no mask).
     for sc in &mut scene.groups[0].template.scales {
@@ -51,10 +54,13 @@ fn known_scene(
             for id in 1..=3u32 {
                 let mut s = plain.clone();
                 s.sh_degree = 0;
-                let c0 = instgs_vk::scene::SH_C0;
+                let c0 = instgs_vk::model::scene::SH_C0;
                 s.sh = truth.iter().flat_map(|&l| [if l == id { 0.5 / c0 } else { -0.5 / c0 }; 3]).collect();
-                let gs = instgs_vk::raster::GpuScene::new(gpu, &s).unwrap();
-                let f = instgs_vk::raster::Rasterizer::new(gpu, k).unwrap().render(&gs, &v.camera, [0.0; 3]).unwrap();
+                let gs = instgs_vk::render::raster::GpuScene::new(gpu, &s).unwrap();
+                let f = instgs_vk::render::raster::Rasterizer::new(gpu, k)
+                    .unwrap()
+                    .render(&gs, &v.camera, [0.0; 3])
+                    .unwrap();
                 for (px, p) in m.iter_mut().zip(&f.image) {
                     if p[0] > 0.5 {
                         *px = id as u16;
@@ -127,14 +133,16 @@ fn segmentation_scores_match_the_cpu_twin() {
     let view = instgs_vk::dataset::View { camera: camera.clone(), image: Vec::new(), path: Default::default() };
     let alpha = 0.8;
     let seg = segment(&gpu, &k, &scene, &[view], std::slice::from_ref(&mask), &[1, 2], alpha).unwrap();
-    let mut r = instgs_vk::raster::Rasterizer::new(&gpu, &k).unwrap();
-    r.render(&instgs_vk::raster::GpuScene::new(&gpu, &scene).unwrap(), &camera, [0.0; 3]).unwrap();
+    let mut r = instgs_vk::render::raster::Rasterizer::new(&gpu, &k).unwrap();
+    r.render(&instgs_vk::render::raster::GpuScene::new(&gpu, &scene).unwrap(), &camera, [0.0; 3]).unwrap();
     let st = r.read_state().unwrap();
     let fp = r.last_frame_params().unwrap();
-    let splats: Vec<_> = (0..scene.len()).map(|i| instgs_vk::grad::Splat::of_projected(&st.projected, i)).collect();
+    let splats: Vec<_> = (0..scene.len())
+        .map(|i| instgs_vk::render::reference::backward::Splat::of_projected(&st.projected, i))
+        .collect();
     let gseg = |keep: &dyn Fn(u16) -> bool| -> Vec<f64> {
         let v: Vec<[f64; 3]> = mask.iter().map(|&m| if keep(m) { [1.0; 3] } else { [0.0; 3] }).collect();
-        instgs_vk::grad::blend_backward(&fp, &st.ranges, &st.isect_ids, &splats, &v)
+        instgs_vk::render::reference::backward::blend_backward(&fp, &st.ranges, &st.isect_ids, &splats, &v)
             .iter()
             .map(|s| s.color.iter().sum::<f64>() / 3.0)
             .collect()

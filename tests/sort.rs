@@ -1,9 +1,9 @@
 //! The GPU radix sort equals a CPU stable sort, under validation layers.
 mod common;
 use common::*;
-use instgs_vk::cpu::{self, stable_sort};
-use instgs_vk::kernels::{KernelPolicy, Kernels};
-use instgs_vk::sort::GpuSort;
+use instgs_vk::gpu::kernels::{KernelPolicy, Kernels};
+use instgs_vk::render::reference::{self, forward::stable_sort};
+use instgs_vk::render::sort::GpuSort;
 
 #[test]
 fn gpu_sort_equals_cpu_stable_sort() {
@@ -50,7 +50,7 @@ fn check_sort(mut sorter: GpuSort) {
 
 #[test]
 fn dispatch_args_match_cpu_twin() {
-    use instgs_vk::kernels::Counts;
+    use instgs_vk::gpu::kernels::Counts;
     use instgs_vk::shared::{ARGS_PER_SLOT, COUNT_SLOTS};
     let (gpu, _) = gpu();
     for k in both_policies() {
@@ -67,7 +67,7 @@ fn dispatch_args_match_cpu_twin() {
         .unwrap();
         let got: Vec<u32> = gpu.read(&counts.indirect, (COUNT_SLOTS * ARGS_PER_SLOT * 3) as usize).unwrap();
         for (slot, &n) in ns.iter().enumerate() {
-            let want = cpu::dispatch_groups(n, k.sort_block());
+            let want = reference::forward::dispatch_groups(n, k.sort_block());
             for (kind, &groups) in want.iter().enumerate() {
                 let at = (slot * ARGS_PER_SLOT as usize + kind) * 3;
                 assert_eq!(got[at..at + 3], [groups, 1, 1], "n={n} kind={kind}");

@@ -9,8 +9,8 @@ use std::process::Command;
 use std::time::{Duration, Instant};
 
 use common::*;
-use instgs_vk::config::Config;
 use instgs_vk::dataset::{self, LoadOptions};
+use instgs_vk::train::config::Config;
 use instgs_vk::train::{read_checkpoint, TrainState};
 
 const OPTS: LoadOptions = LoadOptions { downscale: 1, background: [0.0; 3] };
@@ -360,15 +360,15 @@ fn divergence_keeps_the_last_good_checkpoint() {
 fn configurations_saved_before_new_keys_take_their_defaults() {
     // A checkpoint's configuration written before `refine_transforms` and the `lr.transform_*`
     // rates existed resumes with today's defaults for them.
-    let today = instgs_vk::config::Config::load(None).unwrap();
+    let today = instgs_vk::train::config::Config::load(None).unwrap();
     let mut saved = serde_json::to_value(&today).unwrap();
     saved.as_object_mut().unwrap().remove("refine_transforms");
     saved["lr"].as_object_mut().unwrap().remove("transform_rotation");
     saved["lr"].as_object_mut().unwrap().remove("spatial_scale");
     saved["iterations"] = 1234.into();
-    let back = instgs_vk::config::Config::from_saved(saved).unwrap();
+    let back = instgs_vk::train::config::Config::from_saved(saved).unwrap();
     assert_eq!(back.iterations, 1234);
-    assert_eq!(instgs_vk::config::Config { iterations: today.iterations, ..back }, today);
+    assert_eq!(instgs_vk::train::config::Config { iterations: today.iterations, ..back }, today);
 }
 
 #[test]
@@ -381,9 +381,9 @@ fn every_shipped_configuration_loads() {
         let path = entry.unwrap().path();
         if path.extension().is_some_and(|e| e == "toml") {
             if path.file_name().is_some_and(|f| f == "render.toml") {
-                instgs_vk::lod::RenderConfig::load(Some(&path)).unwrap();
+                instgs_vk::render::lod::RenderConfig::load(Some(&path)).unwrap();
             } else {
-                let c = instgs_vk::config::PipelineConfig::load(Some(&path));
+                let c = instgs_vk::train::config::PipelineConfig::load(Some(&path));
                 assert!(c.is_ok(), "{}: {:#}", path.display(), c.err().unwrap());
             }
             n += 1;

@@ -1,4 +1,4 @@
-//! Registration checked against the images (`instgs_vk::verify`): on a rendered scene of copies
+//! Registration checked against the images (`instgs_vk::instancing::verify`): on a rendered scene of copies
 //! of one coloured object and one object that only resembles it, the copies are accepted, the
 //! other is refused and stays plain (the instanced scene renders like the plain one over its
 //! pixels), a group left with one instance stays plain whole, and a flipped pose of a copy
@@ -7,13 +7,13 @@ mod common;
 
 use common::*;
 use glam::Vec3;
-use instgs_vk::camera::Camera;
-use instgs_vk::raster::{GpuScene, Rasterizer};
+use instgs_vk::instancing::template::{instantiate, InstanceOptions, RenderCheck};
+use instgs_vk::instancing::verify::ImageCheck;
+use instgs_vk::model::camera::Camera;
+use instgs_vk::model::scene::Scene;
 use instgs_vk::register::Sim3;
-use instgs_vk::scene::Scene;
+use instgs_vk::render::raster::{GpuScene, Rasterizer};
 use instgs_vk::segment::InstanceGroup;
-use instgs_vk::template::{instantiate, InstanceOptions, RenderCheck};
-use instgs_vk::verify::ImageCheck;
 use nalgebra::{Rotation3, Vector3};
 
 /// Surface samples of an asymmetric object about 0.8 units across (an ellipsoid body, a head,
@@ -173,7 +173,7 @@ fn a_flipped_or_shrunk_pose_fails_the_render_check() {
     let mut check = ImageCheck::new(&gpu, &k, cameras(12), None).unwrap();
     let (one, two) = (instgs_vk::segment::subset(&plain, &labels, 1), instgs_vk::segment::subset(&plain, &labels, 2));
     let truth = poses[1].compose(&poses[0].inverse());
-    let a = instgs_vk::template::Acceptance::default();
+    let a = instgs_vk::instancing::template::Acceptance::default();
     let good = check.score(&two, &one, 1, &truth).unwrap().expect("visible");
     assert_eq!(good.failure(&a), None, "{good:?}");
     let centre = poses[1].translation;

@@ -21,11 +21,11 @@ use std::collections::BTreeMap;
 use std::path::PathBuf;
 
 use anyhow::{bail, Context, Result};
+use instgs_vk::gpu::kernels::Kernels;
 use instgs_vk::gpu::{Gpu, GpuOptions};
-use instgs_vk::kernels::Kernels;
+use instgs_vk::instancing::template::{self, GroundTruthPose, InstanceOptions, RenderCheck};
+use instgs_vk::model::scene::Scene;
 use instgs_vk::register::{centroid, Sim3};
-use instgs_vk::scene::Scene;
-use instgs_vk::template::{self, GroundTruthPose, InstanceOptions, RenderCheck};
 use rand::{Rng, SeedableRng};
 
 #[derive(Clone, Copy, Debug)]
@@ -164,7 +164,7 @@ struct Tally {
 fn equivalent(
     gpu: &std::sync::Arc<Gpu>,
     k: &std::sync::Arc<Kernels>,
-    cams: &[instgs_vk::camera::Camera],
+    cams: &[instgs_vk::model::camera::Camera],
     check: &mut dyn RenderCheck,
     scene: &Scene,
     labels: &[u32],
@@ -175,7 +175,7 @@ fn equivalent(
     let own = instgs_vk::segment::subset(scene, labels, r.id);
     let truth = gt[&r.reference].object_to_world.compose(&gt[&r.id].object_to_world.inverse());
     let by_truth = template::transform_gaussians(&reference, &template::sim3_to_similarity(&truth.inverse()));
-    let mut alike = instgs_vk::verify::ImageCheck::new(gpu, k, cams.to_vec(), None)?;
+    let mut alike = instgs_vk::instancing::verify::ImageCheck::new(gpu, k, cams.to_vec(), None)?;
     if alike.score(&reference, &by_truth, r.id, &r.relative)?.is_some_and(|s| s.iou >= 0.95 && s.psnr >= 30.0) {
         return Ok(true);
     }
@@ -201,7 +201,7 @@ fn main() -> Result<()> {
             _ => bail!("unknown option {k}"),
         }
     }
-    let scene = instgs_vk::scene::read_ply(&run.join("point_cloud.ply"))?;
+    let scene = instgs_vk::model::scene::read_ply(&run.join("point_cloud.ply"))?;
     let labels = template::read_labels(&run.join("labels.json"), scene.len())?;
     let groups_path = data.join("instances.json");
     let groups = instgs_vk::segment::read_groups(&groups_path)?;
@@ -230,7 +230,8 @@ fn main() -> Result<()> {
         let n_seeds = if matches!(case, Case::AsSegmented) { 1 } else { seeds };
         for seed in 0..n_seeds {
             let (s, l, gt) = perturb(&scene, &labels, &truth, case, up, seed);
-            let mut check = instgs_vk::verify::ImageCheck::new(&gpu, &k, cams.clone(), Some(masks.clone()))?;
+            let mut check =
+                instgs_vk::instancing::verify::ImageCheck::new(&gpu, &k, cams.clone(), Some(masks.clone()))?;
             let o = InstanceOptions::default();
             let (_, reports) =
                 template::instantiate(&s, &l, &groups, &o, Some(&mut check as &mut dyn RenderCheck), |_| {})?;

@@ -4,10 +4,10 @@ use std::path::PathBuf;
 use std::sync::{Arc, OnceLock};
 
 use glam::{Mat4, Vec3};
-use instgs_vk::camera::Camera;
+use instgs_vk::gpu::kernels::{KernelPolicy, Kernels};
 use instgs_vk::gpu::{Gpu, GpuOptions};
-use instgs_vk::kernels::{KernelPolicy, Kernels};
-use instgs_vk::scene::Scene;
+use instgs_vk::model::camera::Camera;
+use instgs_vk::model::scene::Scene;
 
 /// The device with validation layers (synchronization validation included) on: `INSTGS_DEVICE`
 /// where set (as the CLI), else the default choice (a real GPU over a CPU device).
@@ -162,7 +162,7 @@ pub fn random_quat(rng: &mut Rng) -> glam::Quat {
 }
 
 /// A small template around the origin (radius ~0.4).
-pub fn template(rng: &mut Rng, n: usize, deg: u32) -> instgs_vk::scene::Scene {
+pub fn template(rng: &mut Rng, n: usize, deg: u32) -> instgs_vk::model::scene::Scene {
     let mut t = random_scene(rng, n, deg);
     for m in &mut t.means {
         *m = m.map(|v| 0.3 * v);
@@ -180,7 +180,7 @@ pub fn random_instanced(
     deg: u32,
     background: usize,
     groups: &[(usize, usize)],
-) -> instgs_vk::instance::InstancedScene {
+) -> instgs_vk::model::instanced::InstancedScene {
     let mut bg = random_scene(rng, background, deg);
     bg.sh_degree = deg;
     let groups = groups
@@ -189,9 +189,9 @@ pub fn random_instanced(
         .map(|(g, &(t, k))| {
             let template = template(rng, t, deg);
             let instances = (0..k)
-                .map(|i| instgs_vk::instance::Instance {
+                .map(|i| instgs_vk::model::instanced::Instance {
                     id: format!("{}", i + 1),
-                    transform: instgs_vk::instance::Similarity::from_parts(
+                    transform: instgs_vk::model::instanced::Similarity::from_parts(
                         random_quat(rng),
                         rng.range(0.6, 1.5),
                         Vec3::new(rng.range(-1.0, 1.0), rng.range(-0.8, 0.8), rng.range(-1.0, 1.0)),
@@ -199,16 +199,16 @@ pub fn random_instanced(
                 })
                 .collect::<Vec<_>>();
             let n = t * k;
-            let mut offsets = instgs_vk::instance::Offsets::zeros(n);
+            let mut offsets = instgs_vk::model::instanced::Offsets::zeros(n);
             for p in 0..n {
                 offsets.d_means[p] = [0.0; 3].map(|_| 0.03 * rng.normal());
                 offsets.d_sh0[p] = [0.0; 3].map(|_| 0.2 * rng.normal());
                 offsets.d_opacities[p] = 0.5 * rng.normal();
             }
-            instgs_vk::instance::Group { name: format!("group{g}"), template, instances, offsets }
+            instgs_vk::model::instanced::Group { name: format!("group{g}"), template, instances, offsets }
         })
         .collect();
-    instgs_vk::instance::InstancedScene { sh_degree: deg, background: bg, groups }
+    instgs_vk::model::instanced::InstancedScene { sh_degree: deg, background: bg, groups }
 }
 
 /// Environment that pins a spawned `instgs-vk` to lavapipe with one thread, where the machine

@@ -15,8 +15,8 @@ use anyhow::{anyhow, bail, Context, Result};
 use half::f16;
 use serde::{Deserialize, Serialize};
 
-use crate::instance::{mat4_from_rows, mat4_to_rows, Group, Instance, InstancedScene, Offsets, Similarity};
-use crate::scene::Scene;
+use crate::model::instanced::{mat4_from_rows, mat4_to_rows, Group, Instance, InstancedScene, Offsets, Similarity};
+use crate::model::scene::Scene;
 
 pub const MAGIC: &[u8; 8] = b"INSTGS\0\0";
 pub const VERSION: u32 = 1;
@@ -32,7 +32,7 @@ pub enum Dtype {
     F16,
     /// Section type: bytes.
     U8,
-    /// Offset storage: product-quantised (`crate::codes`): sections `d_codes` (u8, [K, T, 2]),
+    /// Offset storage: product-quantised (`crate::formats::pq8`): sections `d_codes` (u8, [K, T, 2]),
     /// `d_codebook_dp` (f32, [256, 3]) and `d_codebook_dc` (f32, [256, 4]).
     Pq8,
 }
@@ -135,8 +135,8 @@ pub fn to_bytes(scene: &InstancedScene, offset_dtype: Dtype) -> Vec<u8> {
     for (i, g) in scene.groups.iter().enumerate() {
         let (k, t) = (g.instances.len(), g.template.len());
         if offset_dtype == Dtype::Pq8 {
-            let c = crate::codes::OffsetCodes::encode(&g.offsets, i as u64);
-            let n = crate::codes::CODES;
+            let c = crate::formats::pq8::OffsetCodes::encode(&g.offsets, i as u64);
+            let n = crate::formats::pq8::CODES;
             push(format!("group/{i}/d_codes"), Dtype::U8, vec![k, t, 2], c.codes.concat(), &mut data);
             push(
                 format!("group/{i}/d_codebook_dp"),
@@ -304,13 +304,13 @@ pub fn from_bytes(bytes: &[u8], what: &str) -> Result<InstancedScene> {
             let (k, t) = (g.instances.len(), g.template_gaussians);
             let v3 = |a: &[f32]| a.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect();
             let offsets = if h.offset_dtype == Dtype::Pq8 {
-                let n = crate::codes::CODES;
+                let n = crate::formats::pq8::CODES;
                 let shapes = [vec![k, t, 2], vec![n, 3], vec![n, 4]];
                 let mut arrays = Vec::new();
                 for ((suffix, dtype), shape) in CODE_SECTIONS.into_iter().zip(shapes) {
                     arrays.push(secs.get(&format!("group/{i}/{suffix}"), &shape, dtype)?);
                 }
-                crate::codes::OffsetCodes {
+                crate::formats::pq8::OffsetCodes {
                     codes: arrays[0].chunks_exact(2).map(|c| [c[0] as u8, c[1] as u8]).collect(),
                     dp: v3(&arrays[1]),
                     dc: arrays[2].chunks_exact(4).map(|c| [c[0], c[1], c[2], c[3]]).collect(),
@@ -416,23 +416,23 @@ impl AnyScene {
     }
 
     /// The scene on the device (an instanced scene stays compact).
-    pub fn upload(&self, gpu: &std::sync::Arc<crate::gpu::Gpu>) -> Result<crate::raster::GpuScene> {
+    pub fn upload(&self, gpu: &std::sync::Arc<crate::gpu::Gpu>) -> Result<crate::render::raster::GpuScene> {
         match self {
-            AnyScene::Plain(s) => crate::raster::GpuScene::new(gpu, s),
-            AnyScene::Instanced(s) => crate::raster::GpuScene::instanced(gpu, s),
+            AnyScene::Plain(s) => crate::render::raster::GpuScene::new(gpu, s),
+            AnyScene::Instanced(s) => crate::render::raster::GpuScene::instanced(gpu, s),
         }
     }
 
     /// The scene on the device for viewing: an instanced scene with per-frame culling and level
-    /// of detail as `cfg` says (`crate::lod`); a plain scene as [`AnyScene::upload`].
+    /// of detail as `cfg` says (`crate::render::lod`); a plain scene as [`AnyScene::upload`].
     pub fn upload_for_rendering(
         &self,
         gpu: &std::sync::Arc<crate::gpu::Gpu>,
-        cfg: &crate::lod::RenderConfig,
-    ) -> Result<crate::raster::GpuScene> {
+        cfg: &crate::render::lod::RenderConfig,
+    ) -> Result<crate::render::raster::GpuScene> {
         match self {
-            AnyScene::Plain(s) => crate::raster::GpuScene::new(gpu, s),
-            AnyScene::Instanced(s) => crate::raster::GpuScene::instanced_for_rendering(gpu, s, cfg),
+            AnyScene::Plain(s) => crate::render::raster::GpuScene::new(gpu, s),
+            AnyScene::Instanced(s) => crate::render::raster::GpuScene::instanced_for_rendering(gpu, s, cfg),
         }
     }
 }

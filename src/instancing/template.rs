@@ -21,12 +21,12 @@ use anyhow::{bail, Context, Result};
 use glam::{Mat3, Quat, Vec3};
 use kiddo::SquaredEuclidean;
 
-use crate::instance::{quat_mul, Group, Instance, InstancedScene, Offsets, ShRotation, Similarity};
+use crate::model::instanced::{quat_mul, Group, Instance, InstancedScene, Offsets, ShRotation, Similarity};
+use crate::model::scene::{Scene, SH_C0};
 use crate::register::{
     candidates, centroid, farthest_point_sample, median_spacing, object_size, reverse_fitness, voxel_downsample,
     RegisterOptions, Sim3,
 };
-use crate::scene::{Scene, SH_C0};
 use crate::segment::InstanceGroup;
 use crate::train::{knn_log_scales, logit, sigmoid};
 
@@ -261,7 +261,7 @@ impl RenderScore {
     }
 }
 
-/// Renders a pose check ([`crate::verify::ImageCheck`] on the GPU; tests may bring their own).
+/// Renders a pose check ([`crate::instancing::verify::ImageCheck`] on the GPU; tests may bring their own).
 pub trait RenderCheck {
     /// `reference` and `instance`: the two instances' Gaussians in world space; `x`: instance
     /// world → reference world. None when the instance shows in no view.

@@ -87,7 +87,7 @@ pub struct Gaussian {
 
 impl Gaussian {
     /// Gaussian `i` of a scene.
-    pub fn of_scene(s: &crate::scene::Scene, i: usize) -> Gaussian {
+    pub fn of_scene(s: &crate::model::scene::Scene, i: usize) -> Gaussian {
         let k = s.sh_coeffs() * 3;
         Gaussian {
             mean: s.means[i].map(f64::from),
@@ -138,7 +138,7 @@ impl Splat {
     }
 
     /// The GPU/CPU forward's f32 values of Gaussian `i`.
-    pub fn of_projected(p: &crate::cpu::Projected, i: usize) -> Splat {
+    pub fn of_projected(p: &crate::render::reference::forward::Projected, i: usize) -> Splat {
         let (x, c, r) = (p.xys[i], p.conics[i], p.colors[i]);
         Splat {
             xy: x.map(f64::from),

@@ -21,11 +21,11 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use anyhow::{anyhow, bail, Context, Result};
-use instgs_vk::config::{BackgroundKeep, PipelineConfig};
 use instgs_vk::dataset::Dataset;
+use instgs_vk::formats::instgs::AnyScene;
+use instgs_vk::gpu::kernels::Kernels;
 use instgs_vk::gpu::Gpu;
-use instgs_vk::instgs::AnyScene;
-use instgs_vk::kernels::Kernels;
+use instgs_vk::train::config::{BackgroundKeep, PipelineConfig};
 use instgs_vk::train::{self, INTERRUPTED};
 use instgs_vk::util::{Progress, ProgressMode};
 use serde::{Deserialize, Serialize};
@@ -401,7 +401,7 @@ impl Ctx<'_> {
                             f.write_all(&bytes)
                         })?;
                     } else {
-                        instgs_vk::scene::write_ply(&instgs_vk::formats::read_scene(p)?, &to)?;
+                        instgs_vk::model::scene::write_ply(&instgs_vk::formats::read_scene(p)?, &to)?;
                     }
                     eprintln!("{}: plain scene from {}", run.join("point_cloud.ply").display(), p.display());
                     return Ok(!interrupted());
@@ -409,7 +409,7 @@ impl Ctx<'_> {
                 self.train(run, None, &self.cfg.plain, s, hooked)
             }
             Stage::Segment => {
-                let scene = instgs_vk::scene::read_ply(&run.join("point_cloud.ply"))?;
+                let scene = instgs_vk::model::scene::read_ply(&run.join("point_cloud.ply"))?;
                 let per_frame = self.mask_ids == MaskIds::PerFrame;
                 let seg = crate::segment_scene(
                     self.gpu,
@@ -435,13 +435,13 @@ impl Ctx<'_> {
             }
             Stage::Instance => {
                 let c = &self.cfg.instance;
-                let opts = instgs_vk::template::InstanceOptions {
+                let opts = instgs_vk::instancing::template::InstanceOptions {
                     init: clap::ValueEnum::from_str(&c.init, true).map_err(|e| anyhow!("instance.init: {e}"))?,
                     with_scale: !c.rigid,
                     use_colour: c.colour,
                     colour_weight: c.colour_weight,
                     seed: c.seed,
-                    accept: instgs_vk::template::Acceptance {
+                    accept: instgs_vk::instancing::template::Acceptance {
                         min_fitness: c.min_fitness,
                         scale_tolerance: c.scale_tolerance,
                         min_render_iou: c.min_render_iou,
@@ -451,9 +451,9 @@ impl Ctx<'_> {
                     ..Default::default()
                 };
                 let dtype = match c.offset_dtype.as_str() {
-                    "f16" => instgs_vk::instgs::Dtype::F16,
-                    "pq8" => instgs_vk::instgs::Dtype::Pq8,
-                    _ => instgs_vk::instgs::Dtype::F32,
+                    "f16" => instgs_vk::formats::instgs::Dtype::F16,
+                    "pq8" => instgs_vk::formats::instgs::Dtype::Pq8,
+                    _ => instgs_vk::formats::instgs::Dtype::F32,
                 };
                 let (groups, truth) = match self.mask_ids {
                     MaskIds::Global => {
@@ -469,16 +469,16 @@ impl Ctx<'_> {
                         MaskIds::PerFrame => None,
                     };
                     let cams = self.ds.train.iter().map(|v| v.camera.clone()).collect();
-                    Some(instgs_vk::verify::ImageCheck::new(self.gpu, self.k, cams, masks)?)
+                    Some(instgs_vk::instancing::verify::ImageCheck::new(self.gpu, self.k, cams, masks)?)
                 } else {
                     None
                 };
                 let views = &self.ds.train;
                 let bg = self.cfg.plain.background;
                 let (gpu, k) = (self.gpu, self.k);
-                let mut rule = |scene: &instgs_vk::scene::Scene, labels: &[u32], sig: &[f32]| {
+                let mut rule = |scene: &instgs_vk::model::scene::Scene, labels: &[u32], sig: &[f32]| {
                     let (ranking, protected) =
-                        instgs_vk::compact::protect_outlines(scene, labels, sig, c.outline_fraction);
+                        instgs_vk::instancing::compact::protect_outlines(scene, labels, sig, c.outline_fraction);
                     match c.background_keep {
                         BackgroundKeep::Fraction(f) => Ok((
                             f,
@@ -486,7 +486,7 @@ impl Ctx<'_> {
                             serde_json::json!({"fixed": f, "outline_fraction": c.outline_fraction, "protected": protected}),
                         )),
                         BackgroundKeep::Auto(_) => {
-                            let b = instgs_vk::compact::background_budget(
+                            let b = instgs_vk::instancing::compact::background_budget(
                                 gpu,
                                 k,
                                 scene,
@@ -512,7 +512,7 @@ impl Ctx<'_> {
                     &opts,
                     dtype,
                     Some((&run.join("significance.bin"), &mut rule)),
-                    check.as_mut().map(|c| c as &mut dyn instgs_vk::template::RenderCheck),
+                    check.as_mut().map(|c| c as &mut dyn instgs_vk::instancing::template::RenderCheck),
                     None,
                     &run.join("init.instgs"),
                 );
@@ -526,7 +526,7 @@ impl Ctx<'_> {
                 }
             }
             Stage::Joint => {
-                let init = instgs_vk::instgs::read(&run.join("init.instgs"))?;
+                let init = instgs_vk::formats::instgs::read(&run.join("init.instgs"))?;
                 let dir = run.join("joint");
                 if !self.train(&dir, Some(init), &self.cfg.joint, s, hooked)? {
                     return Ok(false);
@@ -538,7 +538,7 @@ impl Ctx<'_> {
             Stage::Eval => self.eval(),
             Stage::Bench => {
                 let cams: Vec<_> = self.views().iter().map(|v| v.camera.clone()).collect();
-                let render = instgs_vk::lod::RenderConfig::load(None)?;
+                let render = instgs_vk::render::lod::RenderConfig::load(None)?;
                 let a = run.join("scene.instgs");
                 let b = run.join("point_cloud.ply");
                 let v = crate::bench_scenes(
@@ -572,8 +572,8 @@ impl Ctx<'_> {
     fn train(
         &self,
         out: &Path,
-        init: Option<instgs_vk::instance::InstancedScene>,
-        cfg: &instgs_vk::config::Config,
+        init: Option<instgs_vk::model::instanced::InstancedScene>,
+        cfg: &instgs_vk::train::config::Config,
         s: Stage,
         hooked: bool,
     ) -> Result<bool> {
@@ -601,7 +601,7 @@ impl Ctx<'_> {
         let bg = self.cfg.plain.background;
         let views = self.views();
         let split = if self.ds.test.is_empty() { "train" } else { "test" };
-        let mut r = instgs_vk::raster::Rasterizer::new(self.gpu, self.k)?;
+        let mut r = instgs_vk::render::raster::Rasterizer::new(self.gpu, self.k)?;
         let n_images = self.cfg.eval.images.min(views.len());
         // Evenly spread views for the pictures.
         let pick: Vec<usize> = (0..n_images).map(|i| i * views.len() / n_images.max(1)).collect();

@@ -534,7 +534,7 @@ fn normalise_colours(c: &[[f64; 3]]) -> Vec<[f64; 3]> {
 }
 
 /// Every distinct pose hypothesis for `source` onto `target`, the most plausible first (at
-/// least one): a caller that checks poses against the data ([`crate::template::instantiate`])
+/// least one): a caller that checks poses against the data ([`crate::instancing::template::instantiate`])
 /// takes the first that passes.
 ///
 /// With scale, the source is first scaled by the clouds' size ratio s₀ ([`object_size`]), so

@@ -12,13 +12,13 @@ use std::sync::Arc;
 use anyhow::{bail, Result};
 use gpu_allocator::MemoryLocation;
 
-use crate::camera::Camera;
-use crate::gpu::{Buffer, CommandBuffer, Gpu, Recorder, Timer};
-use crate::instance::{InstancedScene, Offsets};
-use crate::kernels::{
+use crate::gpu::kernels::{
     bits_for, record_scan, record_sort, scan_blocks_for, sort_hist_for, Counts, Kernels, Scan, SortBuffers,
 };
-use crate::scene::Scene;
+use crate::gpu::{Buffer, CommandBuffer, Gpu, Recorder, Timer};
+use crate::model::camera::Camera;
+use crate::model::instanced::{InstancedScene, Offsets};
+use crate::model::scene::Scene;
 use crate::shared::*;
 
 /// Near and far planes (camera z) used for culling, as gsplat's defaults.
@@ -72,7 +72,7 @@ pub struct GpuInstancing {
     pub d_means: Buffer,
     pub d_sh0: Buffer,
     pub d_opacities: Buffer,
-    /// Product-quantised offsets (`crate::codes`; placeholders unless `codes`): 16 bits per
+    /// Product-quantised offsets (`crate::formats::pq8`; placeholders unless `codes`): 16 bits per
     /// pair, and per group 512 codebook entries (vec4).
     pub d_codes: Buffer,
     pub codebooks: Buffer,
@@ -181,10 +181,10 @@ pub fn instancing_tables(scene: &InstancedScene) -> (Vec<GroupInfo>, Vec<Instanc
             level_row_first: one(row),
             level_rows: one(t),
             level_pair_first: one(splat - nb),
-            bound: crate::lod::bound(&g.template),
+            bound: crate::render::lod::bound(&g.template),
             ..Default::default()
         });
-        let maxo = crate::lod::max_offsets(&g.offsets, t);
+        let maxo = crate::render::lod::max_offsets(&g.offsets, t);
         xforms.extend(g.instances.iter().zip(&maxo).map(|(i, &m)| xform(&i.transform, m)));
         max_offsets.extend(maxo);
         splat += t * k;
@@ -193,7 +193,7 @@ pub fn instancing_tables(scene: &InstancedScene) -> (Vec<GroupInfo>, Vec<Instanc
     (groups, xforms, max_offsets)
 }
 
-fn xform(x: &crate::instance::Similarity, max_offset: f32) -> InstanceXform {
+fn xform(x: &crate::model::instanced::Similarity, max_offset: f32) -> InstanceXform {
     InstanceXform {
         transform: x.render_mat4().to_cols_array_2d(),
         quat: x.quat_wxyz(),
@@ -236,22 +236,22 @@ impl GpuScene {
     }
 
     /// An instanced scene for viewing: instances culled per frame and, with `cfg.lod.enabled`,
-    /// every template's coarser levels built and uploaded too (`crate::lod`).
+    /// every template's coarser levels built and uploaded too (`crate::render::lod`).
     pub fn instanced_for_rendering(
         gpu: &Arc<Gpu>,
         scene: &InstancedScene,
-        cfg: &crate::lod::RenderConfig,
+        cfg: &crate::render::lod::RenderConfig,
     ) -> Result<GpuScene> {
         let (mut groups, xforms, max_offsets) = instancing_tables(scene);
         let mut rows = scene_rows(scene);
         let mut offsets = all_offsets(scene);
         // Offsets that are product-quantised already (a pq8 file) stay so on the device.
-        let books: Option<Vec<crate::codes::OffsetCodes>> =
-            scene.groups.iter().map(|g| crate::codes::OffsetCodes::exact(&g.offsets)).collect();
+        let books: Option<Vec<crate::formats::pq8::OffsetCodes>> =
+            scene.groups.iter().map(|g| crate::formats::pq8::OffsetCodes::exact(&g.offsets)).collect();
         let mut codes: Vec<[u8; 2]> = books.iter().flatten().flat_map(|b| b.codes.iter().copied()).collect();
         let fractions: &[f32] = if cfg.lod.enabled { &cfg.lod.fractions } else { &[] };
         for (gi, (info, g)) in groups.iter_mut().zip(&scene.groups).enumerate() {
-            let levels = crate::lod::build_levels(&g.template, &g.offsets, g.instances.len(), fractions);
+            let levels = crate::render::lod::build_levels(&g.template, &g.offsets, g.instances.len(), fractions);
             for (l, (t, o)) in levels.into_iter().enumerate() {
                 if let Some(b) = &books {
                     // Coarser levels' merged offsets take their nearest codes.
@@ -382,7 +382,7 @@ impl GpuScene {
     }
 
     /// Replaces the instance transforms (instance order: groups, then instances).
-    pub fn write_transforms(&self, gpu: &Arc<Gpu>, transforms: &[crate::instance::Similarity]) -> Result<()> {
+    pub fn write_transforms(&self, gpu: &Arc<Gpu>, transforms: &[crate::model::instanced::Similarity]) -> Result<()> {
         if transforms.len() != self.inst.instances {
             bail!("{} transforms for {} instances", transforms.len(), self.inst.instances);
         }
@@ -474,7 +474,7 @@ pub struct Frame {
 /// Everything a test needs to check each pass against its CPU twin.
 pub struct FrameState {
     /// The preprocess pass's per-Gaussian output.
-    pub projected: crate::cpu::Projected,
+    pub projected: crate::render::reference::forward::Projected,
     pub depth_keys: Vec<u32>,
     pub depth_ids: Vec<u32>,
     pub isect_offsets: Vec<u32>,
@@ -987,7 +987,7 @@ impl Rasterizer {
         let m = counts[COUNT_ISECT as usize] as usize;
         let tiles = (im.width.div_ceil(TILE_SIZE) * im.height.div_ceil(TILE_SIZE)) as usize;
         Ok(FrameState {
-            projected: crate::cpu::Projected {
+            projected: crate::render::reference::forward::Projected {
                 xys: gpu.read(&g.xys, n)?,
                 conics: gpu.read(&g.conics, n)?,
                 colors: gpu.read(&g.colors, n)?,

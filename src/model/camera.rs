@@ -268,13 +268,13 @@ fn orbit(o: &Orbit, n: usize, width: u32, height: u32) -> Vec<Camera> {
 }
 
 /// An orbit framing the scene's robust bounds (2nd–98th percentile of the means).
-pub fn orbit_around(scene: &crate::scene::Scene, n: usize, up: UpAxis, width: u32, height: u32) -> Vec<Camera> {
+pub fn orbit_around(scene: &crate::model::scene::Scene, n: usize, up: UpAxis, width: u32, height: u32) -> Vec<Camera> {
     orbit_around_points(&scene.means, n, up, width, height)
 }
 
 /// [`orbit_around`] for splat means.
 pub fn orbit_around_points(means: &[[f32; 3]], n: usize, up: UpAxis, width: u32, height: u32) -> Vec<Camera> {
-    let (lo, hi) = crate::scene::robust_bounds(means, 0.02);
+    let (lo, hi) = crate::model::scene::robust_bounds(means, 0.02);
     let center = 0.5 * (lo + hi);
     let radius = (0.5 * (hi - lo).length()).max(1e-3);
     let fov_x = 50.0f32;

@@ -22,11 +22,11 @@ use glam::{Mat3, Quat, Vec3};
 use nalgebra::{Matrix3, SymmetricEigen};
 use serde::{Deserialize, Serialize};
 
-use crate::instance::Offsets;
-use crate::scene::Scene;
+use crate::model::instanced::Offsets;
+use crate::model::scene::Scene;
 use crate::shared::*;
 
-pub const RENDER_TOML: &str = include_str!("../configs/render.toml");
+pub const RENDER_TOML: &str = include_str!("../../configs/render.toml");
 
 /// `configs/render.toml`.
 #[derive(Clone, Debug, Deserialize, Serialize, PartialEq)]

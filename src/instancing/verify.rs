@@ -1,4 +1,4 @@
-//! The render check of a registered pose ([`crate::template::RenderCheck`]) on the GPU: the
+//! The render check of a registered pose ([`crate::instancing::template::RenderCheck`]) on the GPU: the
 //! reference instance's Gaussians, placed by the pose where the instance stands, and the
 //! instance's own Gaussians are each rendered alone (over black) from the training cameras that
 //! see the instance best, and compared ([`compare`]): the placed silhouette (alpha > 0.5) with
@@ -16,13 +16,13 @@ use std::sync::Arc;
 
 use anyhow::Result;
 
-use crate::camera::Camera;
+use crate::gpu::kernels::Kernels;
 use crate::gpu::Gpu;
-use crate::kernels::Kernels;
-use crate::raster::{GpuScene, Rasterizer};
+use crate::instancing::template::{sim3_to_similarity, transform_gaussians, RenderCheck, RenderScore};
+use crate::model::camera::Camera;
+use crate::model::scene::Scene;
 use crate::register::Sim3;
-use crate::scene::Scene;
-use crate::template::{sim3_to_similarity, transform_gaussians, RenderCheck, RenderScore};
+use crate::render::raster::{GpuScene, Rasterizer};
 
 /// An RGBA render (rgb over black, a = final transmittance), row-major.
 type Pixel = [f32; 4];

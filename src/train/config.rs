@@ -6,9 +6,9 @@ use std::path::Path;
 use anyhow::{anyhow, bail, Context, Result};
 use serde::{Deserialize, Serialize};
 
-pub const DEFAULT_TOML: &str = include_str!("../configs/default.toml");
-pub const INSTANCED_TOML: &str = include_str!("../configs/instanced.toml");
-pub const PIPELINE_TOML: &str = include_str!("../configs/pipeline.toml");
+pub const DEFAULT_TOML: &str = include_str!("../../configs/default.toml");
+pub const INSTANCED_TOML: &str = include_str!("../../configs/instanced.toml");
+pub const PIPELINE_TOML: &str = include_str!("../../configs/pipeline.toml");
 
 #[derive(Clone, Debug, Deserialize, Serialize, PartialEq)]
 #[serde(deny_unknown_fields)]
@@ -191,14 +191,14 @@ pub struct InstanceStage {
     pub colour_weight: f64,
     pub seed: u64,
     pub offset_dtype: String,
-    /// "auto" (the quality budget, crate::compact) or a fixed fraction in (0, 1].
+    /// "auto" (the quality budget, crate::instancing::compact) or a fixed fraction in (0, 1].
     pub background_keep: BackgroundKeep,
     /// The budget: training-view PSNR (dB) the pruned plain scene may lose before the joint
     /// optimisation.
     pub background_budget_db: f64,
     /// Background Gaussians within this fraction of an instance's size rank first.
     pub outline_fraction: f64,
-    /// Acceptance of registered poses (crate::template::Acceptance).
+    /// Acceptance of registered poses (crate::instancing::template::Acceptance).
     pub min_fitness: f64,
     pub scale_tolerance: f64,
     pub render_check: bool,

@@ -16,12 +16,15 @@
 //! of exactly 0 or 1 — an infinite logit, which splat-transform and spz-js write into PLYs for
 //! fully opaque splats — are clamped to ±ln 1019 (the centre of the outer halves of the outer
 //! 8-bit bins, the rule of our compressed-PLY reader); NaN anywhere stays an error.
+
+pub mod instgs;
+pub mod pq8;
 use std::io::Read;
 use std::path::{Path, PathBuf};
 
 use anyhow::{anyhow, bail, Context, Result};
 
-use crate::scene::{Scene, SH_C0};
+use crate::model::scene::{Scene, SH_C0};
 
 /// An opacity logit's bound when the stored opacity is exactly 0 or 1: ln(1019).
 pub const OPACITY_LOGIT_LIMIT: f32 = 6.926_577;
@@ -149,11 +152,11 @@ fn is_sog_meta(path: &Path) -> bool {
 }
 
 /// Reads a plain scene in any format we read (an `.instgs` file is refused: it is instanced,
-/// see [`crate::instgs::AnyScene`]).
+/// see [`crate::formats::instgs::AnyScene`]).
 pub fn read_scene(path: &Path) -> Result<Scene> {
     let what = path.display().to_string();
     let scene = match detect(path)? {
-        Format::Ply => return crate::scene::read_ply(path),
+        Format::Ply => return crate::model::scene::read_ply(path),
         Format::Spz => {
             let bytes = std::fs::read(path).with_context(|| format!("{what}: cannot read"))?;
             read_spz(&what, &bytes)?
@@ -176,9 +179,9 @@ pub fn read_scene(path: &Path) -> Result<Scene> {
 pub fn write_scene(scene: &Scene, out: &Path) -> Result<()> {
     let name = out.file_name().map(|n| n.to_string_lossy().to_ascii_lowercase()).unwrap_or_default();
     if name.ends_with(".compressed.ply") {
-        crate::scene::write_compressed_ply(scene, out)
+        crate::model::scene::write_compressed_ply(scene, out)
     } else if name.ends_with(".ply") {
-        crate::scene::write_ply(scene, out)
+        crate::model::scene::write_ply(scene, out)
     } else if name.ends_with(".spz") {
         write_spz(scene, out)
     } else if name.ends_with("meta.json") {

@@ -9,7 +9,7 @@ use std::collections::HashMap;
 
 use rand::{Rng, SeedableRng};
 
-use crate::instance::Offsets;
+use crate::model::instanced::Offsets;
 
 /// Codebook entries per part.
 pub const CODES: usize = 256;

@@ -16,10 +16,10 @@ use std::sync::Arc;
 use anyhow::{bail, Context, Result};
 
 use crate::dataset::View;
+use crate::gpu::kernels::Kernels;
 use crate::gpu::Gpu;
-use crate::kernels::Kernels;
-use crate::raster::{GpuScene, Grads, Rasterizer};
-use crate::scene::Scene;
+use crate::model::scene::Scene;
+use crate::render::raster::{GpuScene, Grads, Rasterizer};
 use crate::shared::{SegArgs, MAX_GROUPS, WG_SIZE};
 
 /// A dataset's groups file (`instances.json`): groups of instance ids. Extra fields ignored.
@@ -286,7 +286,7 @@ pub fn instance_iou(
 ) -> Result<Vec<f64>> {
     let mut s = scene.clone();
     s.sh_degree = 0;
-    let c0 = crate::scene::SH_C0;
+    let c0 = crate::model::scene::SH_C0;
     s.sh = (0..scene.len()).flat_map(|i| [if labels[i] == id { 0.5 / c0 } else { -0.5 / c0 }; 3]).collect();
     let gs = GpuScene::new(gpu, &s)?;
     let mut r = Rasterizer::new(gpu, k)?;

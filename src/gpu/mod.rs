@@ -8,6 +8,8 @@
 //! [`Gpu::take_validation_messages`]) and echoed to stderr. `INSTGS_POISON=1` fills every new
 //! device-local storage buffer with 0xffffffff (a NaN as f32, the largest u32), so a run that
 //! reads memory nothing wrote differs from one without it (tests compare the two).
+
+pub mod kernels;
 use std::collections::BTreeMap;
 use std::ffi::{c_void, CStr, CString};
 use std::mem::ManuallyDrop;

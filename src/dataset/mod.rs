@@ -14,7 +14,7 @@ use std::path::{Path, PathBuf};
 use anyhow::{anyhow, bail, Context, Result};
 use glam::{Mat3, Mat4, Quat, Vec3};
 
-use crate::camera::{load_transforms_with_images, Camera};
+use crate::model::camera::{load_transforms_with_images, Camera};
 
 /// Largest distortion displacement (pixels, at the image corners) treated as none.
 pub const MAX_IGNORED_DISTORTION_PX: f32 = 0.5;
@@ -526,7 +526,7 @@ pub fn dataset_cameras_with_images(path: &Path, split: &str) -> Result<Vec<(Came
         bail!("split '{split}': expected train, test or all");
     }
     if path.is_file() {
-        return crate::camera::load_transforms_with_images(path);
+        return crate::model::camera::load_transforms_with_images(path);
     }
     if path.join("transforms_train.json").exists() {
         let names = if split == "all" { vec!["train", "val", "test"] } else { vec![split] };
@@ -534,7 +534,7 @@ pub fn dataset_cameras_with_images(path: &Path, split: &str) -> Result<Vec<(Came
         for n in names {
             let f = path.join(format!("transforms_{n}.json"));
             if f.exists() || split != "all" {
-                cams.extend(crate::camera::load_transforms_with_images(&f)?);
+                cams.extend(crate::model::camera::load_transforms_with_images(&f)?);
             }
         }
         Ok(cams)

@@ -13,12 +13,12 @@ use anyhow::{bail, Result};
 use kiddo::SquaredEuclidean;
 
 use crate::dataset::View;
+use crate::gpu::kernels::Kernels;
 use crate::gpu::Gpu;
-use crate::kernels::Kernels;
-use crate::raster::{GpuScene, Rasterizer};
+use crate::instancing::template::prune_background;
+use crate::model::scene::Scene;
 use crate::register::{object_size, tree};
-use crate::scene::Scene;
-use crate::template::prune_background;
+use crate::render::raster::{GpuScene, Rasterizer};
 
 /// Training views rendered per trial at most (evenly spread over the split).
 pub const BUDGET_VIEWS: usize = 8;

@@ -1,14 +1,14 @@
 //! The training loss and Adam on the GPU: recording of the `loss_*` and `adam` kernels and the
-//! buffers they use. CPU twins in [`crate::grad`].
+//! buffers they use. CPU twins in [`crate::render::reference::backward`].
 use std::sync::Arc;
 
 use anyhow::{bail, Result};
 use ash::vk;
 use gpu_allocator::MemoryLocation;
 
+use crate::gpu::kernels::Kernels;
 use crate::gpu::{Buffer, Gpu, Recorder};
-use crate::kernels::Kernels;
-use crate::raster::{GpuScene, Grads};
+use crate::render::raster::{GpuScene, Grads};
 use crate::shared::*;
 
 /// Inria's weight of the D-SSIM term: L = (1 − λ) L1 + λ (1 − SSIM).

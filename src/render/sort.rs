@@ -4,8 +4,8 @@ use std::sync::Arc;
 
 use anyhow::{bail, Result};
 
+use crate::gpu::kernels::{record_sort, sort_hist_for, Counts, Kernels, SortBuffers};
 use crate::gpu::{Buffer, CommandBuffer, Gpu, Timer};
-use crate::kernels::{record_sort, sort_hist_for, Counts, Kernels, SortBuffers};
 use crate::shared::COUNT_SORT;
 
 pub struct GpuSort {

@@ -14,6 +14,10 @@
 //! (Inria skips it for the replaced tensors). The screen-size prune is off by default, as in
 //! effect in Inria (its radii are zeroed just before they are read, so it never fires); when on
 //! (`max_screen_size > 0`) it uses the radii seen since the last densification.
+
+pub mod config;
+pub mod optim;
+pub mod plot;
 use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -25,16 +29,18 @@ use glam::Vec3;
 use rand::{Rng, SeedableRng};
 use rand_distr::{Distribution, StandardNormal};
 
-use crate::config::Config;
 use crate::dataset::{Dataset, View};
+use crate::gpu::kernels::Kernels;
 use crate::gpu::{CommandBuffer, Gpu};
-use crate::instance::{
+use crate::model::instanced::{
     xform_from_params, xform_param_grads, xform_params, Group, Instance, InstancedScene, Offsets, Similarity,
 };
-use crate::kernels::Kernels;
-use crate::optim::{offset_buffers, param_buffers, record_adam, record_loss, AdamState, LearningRates, LossBufs};
-use crate::raster::{GpuScene, Grads, Rasterizer};
-use crate::scene::{Scene, SH_C0};
+use crate::model::scene::{Scene, SH_C0};
+use crate::render::raster::{GpuScene, Grads, Rasterizer};
+use crate::train::config::Config;
+use crate::train::optim::{
+    offset_buffers, param_buffers, record_adam, record_loss, AdamState, LearningRates, LossBufs,
+};
 use crate::util::{Progress, ProgressMode};
 
 /// Parameters per Gaussian of the five parameter groups (means, scales, quats, opacities, sh).
@@ -140,8 +146,8 @@ impl TrainState {
 
     /// A fresh state for joint optimisation of an instanced scene.
     pub fn instanced(scene: &InstancedScene) -> TrainState {
-        let rows = crate::raster::scene_rows(scene);
-        let offsets = crate::raster::all_offsets(scene);
+        let rows = crate::render::raster::scene_rows(scene);
+        let offsets = crate::render::raster::all_offsets(scene);
         let n = rows.len();
         let st = strides(rows.sh_degree);
         let zeros = |k: usize| vec![0.0f32; n * st[k]];
@@ -170,7 +176,7 @@ impl TrainState {
                         instances: g
                             .instances
                             .iter()
-                            .map(|i| (i.id.clone(), crate::instance::mat4_to_rows(i.transform.to_mat4())))
+                            .map(|i| (i.id.clone(), crate::model::instanced::mat4_to_rows(i.transform.to_mat4())))
                             .collect(),
                     })
                     .collect(),
@@ -214,7 +220,7 @@ impl TrainState {
                     .iter()
                     .map(|(id, m)| {
                         let what = format!("group {:?} instance {id:?}", g.name);
-                        let transform = Similarity::from_mat4(crate::instance::mat4_from_rows(m), &what)?;
+                        let transform = Similarity::from_mat4(crate::model::instanced::mat4_from_rows(m), &what)?;
                         Ok(Instance { id: id.clone(), transform })
                     })
                     .collect::<Result<_>>()?,
@@ -361,7 +367,7 @@ pub fn densify(st: &TrainState, cfg: &Config, extent: f32, rng: &mut rand_pcg::P
     // Split children: positions sampled from the parent, scales / (0.8 · 2).
     for (j, &i) in splits.iter().enumerate() {
         let s = Vec3::from(st.scene.scales[i]).exp();
-        let r = crate::cpu::quat_to_mat(st.scene.quats[i]);
+        let r = crate::render::reference::forward::quat_to_mat(st.scene.quats[i]);
         for c in 0..2 {
             let z: [f32; 3] = [0, 1, 2].map(|_| StandardNormal.sample(rng));
             let p = r * (Vec3::from(z) * s) + Vec3::from(st.scene.means[i]);
@@ -595,7 +601,7 @@ impl Trainer {
                     for g in &mut l.groups {
                         for inst in &mut g.instances {
                             let x = xform_from_params(it.next().expect("one parameter set per instance"));
-                            inst.1 = crate::instance::mat4_to_rows(x.to_mat4());
+                            inst.1 = crate::model::instanced::mat4_to_rows(x.to_mat4());
                         }
                     }
                 }
@@ -660,7 +666,7 @@ impl Trainer {
 impl Trainer {
     /// Adam on the instance transforms (host side, f64, the twin of `adam.comp`) at the
     /// `lr.transform_*` rates; then the new transforms go to the device.
-    fn step_transforms(&mut self, cfg: &crate::config::LrConfig, step: u64) -> Result<()> {
+    fn step_transforms(&mut self, cfg: &crate::train::config::LrConfig, step: u64) -> Result<()> {
         use crate::shared::XFORM_GRAD_TERMS;
         let n = self.xforms[0].len();
         let terms: Vec<f32> = self.gpu.read(&self.grads.xforms, n * XFORM_GRAD_TERMS as usize)?;
@@ -671,14 +677,20 @@ impl Trainer {
             for (range, rate) in
                 [(0..4, cfg.transform_rotation), (4..7, cfg.transform_translation), (7..8, cfg.transform_scale)]
             {
-                let a = crate::grad::AdamStep {
+                let a = crate::render::reference::backward::AdamStep {
                     lr: rate as f64,
-                    beta1: crate::optim::BETA1,
-                    beta2: crate::optim::BETA2,
-                    eps: crate::optim::EPS as f64,
+                    beta1: crate::train::optim::BETA1,
+                    beta2: crate::train::optim::BETA2,
+                    eps: crate::train::optim::EPS as f64,
                     step,
                 };
-                crate::grad::adam(&mut p[range.clone()], &g[range.clone()], &mut m[range.clone()], &mut v[range], a);
+                crate::render::reference::backward::adam(
+                    &mut p[range.clone()],
+                    &g[range.clone()],
+                    &mut m[range.clone()],
+                    &mut v[range],
+                    a,
+                );
             }
             self.xforms[0][i] = p.map(|x| x as f32);
             self.xforms[1][i] = m.map(|x| x as f32);
@@ -712,7 +724,7 @@ pub fn evaluate(
     scene: &GpuScene,
     views: &[View],
     background: [f32; 3],
-    mut each: impl FnMut(&View, &crate::raster::Frame) -> Result<()>,
+    mut each: impl FnMut(&View, &crate::render::raster::Frame) -> Result<()>,
 ) -> Result<Evaluation> {
     let mut per = Vec::new();
     for v in views {
@@ -723,7 +735,7 @@ pub fn evaluate(
         per.push(ViewScore {
             name: v.camera.name.clone(),
             psnr: crate::util::psnr(&f.image, &v.image),
-            ssim: crate::grad::ssim(&a, &b, w, h),
+            ssim: crate::render::reference::backward::ssim(&a, &b, w, h),
         });
         each(v, &f)?;
     }
@@ -902,20 +914,20 @@ impl RunOptions {
 }
 
 /// Whether iteration `it` densifies the scene (plain runs; never the last iteration).
-fn densifies(d: &crate::config::DensifyConfig, it: u64) -> bool {
+fn densifies(d: &crate::train::config::DensifyConfig, it: u64) -> bool {
     it < d.until_iter && it > d.from_iter && it % d.interval == 0
 }
 
 /// Whether iteration `it` resets the opacities (plain runs; never the last iteration).
-fn resets_opacities(d: &crate::config::DensifyConfig, it: u64) -> bool {
+fn resets_opacities(d: &crate::train::config::DensifyConfig, it: u64) -> bool {
     d.opacity_reset_interval > 0 && it % d.opacity_reset_interval == 0 && it < d.until_iter
 }
 
 /// The figure of a run's metrics with its schedule's events (`curves.png`).
-pub fn curves(rows: &[MetricsRow], cfg: &Config, plain: bool, ds: &Dataset) -> crate::plot::Curves {
+pub fn curves(rows: &[MetricsRow], cfg: &Config, plain: bool, ds: &Dataset) -> crate::train::plot::Curves {
     let d = &cfg.densify;
     let kind = if plain { "Plain 3DGS training" } else { "Joint optimisation of the instanced scene" };
-    crate::plot::Curves {
+    crate::train::plot::Curves {
         title: format!(
             "{kind}: {} iterations, {} training views, {} held-out views",
             cfg.iterations,
@@ -1172,10 +1184,12 @@ pub fn run(gpu: &Arc<Gpu>, k: &Arc<Kernels>, ds: &Dataset, cfg: &Config, opts: &
         write_metrics(&rows)?;
     }
     match state.to_instanced()? {
-        Some(inst) => crate::instgs::write(&inst, &opts.out.join("scene.instgs"), crate::instgs::Dtype::F32)?,
-        None => crate::scene::write_ply(&state.scene, &opts.out.join("point_cloud.ply"))?,
+        Some(inst) => {
+            crate::formats::instgs::write(&inst, &opts.out.join("scene.instgs"), crate::formats::instgs::Dtype::F32)?
+        }
+        None => crate::model::scene::write_ply(&state.scene, &opts.out.join("point_cloud.ply"))?,
     }
-    crate::plot::write(&curves(&rows, cfg, state.layout.is_none(), ds), &opts.out.join("curves.png"))?;
+    crate::train::plot::write(&curves(&rows, cfg, state.layout.is_none(), ds), &opts.out.join("curves.png"))?;
     let secs = t0.elapsed().as_secs_f64();
     Ok(RunSummary {
         iterations: done,

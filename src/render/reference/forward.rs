@@ -2,7 +2,7 @@
 //! same order (f32), used by the tests to check every kernel and the whole image.
 use glam::{Mat3, Vec2, Vec3, Vec4};
 
-use crate::scene::Scene;
+use crate::model::scene::Scene;
 use crate::shared::{FrameParams, MAX_GROUPS, SCAN_BLOCK, TILE_SIZE, WG_SIZE};
 
 /// Per-Gaussian output of the preprocess pass (GPU buffers of the same names). A culled
@@ -28,7 +28,7 @@ const SH_C3: [f32; 7] =
 /// SH basis values for unit direction `d` up to degree `deg` (Inria's constants and signs).
 pub fn sh_basis(d: Vec3, deg: u32) -> [f32; 16] {
     let mut b = [0.0f32; 16];
-    b[0] = crate::scene::SH_C0;
+    b[0] = crate::model::scene::SH_C0;
     if deg < 1 {
         return b;
     }

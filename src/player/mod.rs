@@ -11,6 +11,8 @@
 //!
 //! Cameras are OpenCV (x right, y down, z forward), as everywhere in this crate; the player's
 //! camera has no roll (its horizon stays level with the up axis).
+
+pub mod overlay;
 use std::collections::HashSet;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -27,11 +29,11 @@ use winit::event_loop::{ActiveEventLoop, ControlFlow, EventLoop};
 use winit::keyboard::{KeyCode, PhysicalKey};
 use winit::window::{Window, WindowId};
 
-use crate::camera::Camera;
+use crate::formats::instgs::AnyScene;
+use crate::gpu::kernels::Kernels;
 use crate::gpu::{Buffer, CommandBuffer, Gpu, GpuOptions};
-use crate::instgs::AnyScene;
-use crate::kernels::Kernels;
-use crate::raster::{GpuScene, Rasterizer};
+use crate::model::camera::Camera;
+use crate::render::raster::{GpuScene, Rasterizer};
 use crate::shared::*;
 
 /// The player's camera: a target point, a distance and yaw/pitch of the eye about the up axis.
@@ -58,7 +60,7 @@ impl ViewCamera {
     /// target where the viewing ray passes closest to `centre`. `up` is the world's up axis.
     pub fn from_camera(start: &Camera, centre: Vec3, up: Vec3) -> ViewCamera {
         let up = up.normalize();
-        let (e1, e2) = crate::camera::horizontal_axes(up);
+        let (e1, e2) = crate::model::camera::horizontal_axes(up);
         let c2w = start.viewmat.inverse();
         let eye = c2w.w_axis.truncate();
         let forward = c2w.z_axis.truncate().normalize();
@@ -88,7 +90,15 @@ impl ViewCamera {
 
     /// The camera for a `width` × `height` image (square pixels, centred principal point).
     pub fn camera(&self, width: u32, height: u32) -> Camera {
-        crate::camera::level_camera("view".into(), self.eye(), -self.eye_dir(), self.up, width, height, self.fov_x)
+        crate::model::camera::level_camera(
+            "view".into(),
+            self.eye(),
+            -self.eye_dir(),
+            self.up,
+            width,
+            height,
+            self.fov_x,
+        )
     }
 
     /// Turns the eye around the target.
@@ -131,7 +141,7 @@ pub struct PlayerOptions {
     /// Where screenshots (windowed) or frames (headless) go.
     pub out: Option<PathBuf>,
     /// Culling and level of detail of instanced scenes.
-    pub render: crate::lod::RenderConfig,
+    pub render: crate::render::lod::RenderConfig,
 }
 
 /// Backgrounds the B key cycles through.
@@ -258,7 +268,7 @@ struct Running {
     _k: Arc<Kernels>,
     gpu: Arc<Gpu>,
     window: Arc<Window>,
-    overlay: Option<crate::overlay::Overlay>,
+    overlay: Option<crate::player::overlay::Overlay>,
     overlay_buf: Buffer,
     overlay_dirty: bool,
     last_title: Instant,
@@ -407,7 +417,7 @@ impl App {
         if run.overlay_dirty || run.overlay.is_none() && self.opts.overlay {
             run.overlay = self.opts.overlay.then(|| {
                 let fps = run.fps.map_or("-".into(), |f| format!("{f:.1}"));
-                crate::overlay::draw(&[
+                crate::player::overlay::draw(&[
                     format!("{fps} FPS | GPU {gpu_ms:.2} MS"),
                     format!("{} SPLATS | {}X{}{}", splat_count(self.scene.splats()), extent.width, extent.height, lod),
                 ])
@@ -709,7 +719,7 @@ impl Presenter {
         &mut self,
         index: u32,
         image: &Buffer,
-        overlay: Option<(&crate::overlay::Overlay, &Buffer)>,
+        overlay: Option<(&crate::player::overlay::Overlay, &Buffer)>,
         screenshot: bool,
     ) -> Result<Option<(u32, u32, Vec<u8>)>> {
         let gpu = self.gpu.clone();
@@ -917,10 +927,10 @@ mod tests {
 
     #[test]
     fn view_camera_reproduces_a_level_start_camera() {
-        let cams = crate::camera::Orbit {
+        let cams = crate::model::camera::Orbit {
             center: Vec3::new(0.3, -0.2, 0.1),
             distance: 4.0,
-            up: crate::camera::UpAxis::NegY,
+            up: crate::model::camera::UpAxis::NegY,
             elevation_deg: 25.0,
             fov_x_deg: 50.0,
         }
@@ -937,8 +947,13 @@ mod tests {
 
     #[test]
     fn orbit_keeps_the_target_and_look_keeps_the_eye() {
-        let c =
-            crate::camera::orbit_around_points(&[[0.0; 3], [1.0, 1.0, 1.0]], 1, crate::camera::UpAxis::PosZ, 64, 48);
+        let c = crate::model::camera::orbit_around_points(
+            &[[0.0; 3], [1.0, 1.0, 1.0]],
+            1,
+            crate::model::camera::UpAxis::PosZ,
+            64,
+            48,
+        );
         let mut v = ViewCamera::from_camera(&c[0], Vec3::splat(0.5), Vec3::Z);
         let t = v.target;
         v.orbit(0.3, 0.2);
