@@ -41,4 +41,7 @@ pub mod instancing;
 pub mod register;
 pub mod segment;
 
+pub mod bench;
+pub mod pipeline;
+
 pub mod player;

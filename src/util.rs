@@ -22,6 +22,12 @@ pub fn write_atomic(path: &Path, f: impl FnOnce(&mut std::fs::File) -> std::io::
     result.with_context(|| format!("{}: cannot write", path.display()))
 }
 
+/// Writes `v` as JSON, atomically.
+pub fn write_json(path: &Path, v: &serde_json::Value, pretty: bool) -> Result<()> {
+    let text = if pretty { serde_json::to_string_pretty(v)? } else { serde_json::to_string(v)? };
+    write_atomic(path, |f| f.write_all(text.as_bytes()))
+}
+
 /// Saves RGBA float pixels (row-major, rgb used, clamped to [0, 1]) as an 8-bit RGB PNG.
 pub fn save_png(path: &Path, width: u32, height: u32, rgba: &[[f32; 4]]) -> Result<()> {
     let mut bytes = Vec::with_capacity(rgba.len() * 3);

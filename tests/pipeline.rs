@@ -5,10 +5,10 @@
 //! gives the same results bit for bit with every new device buffer poisoned. Validation on.
 use std::path::{Path, PathBuf};
 
+use instgs_vk::pipeline::STAGES;
+
 mod common;
 use common::*;
-
-const STAGES: [&str; 6] = ["plain", "segment", "instance", "joint", "eval", "bench"];
 
 /// A tiny schedule: short plain training with densification, short joint optimisation.
 const TINY: &str = "iterations = 60\ntest_interval = 30\ncheckpoint_interval = 20\n\
@@ -67,17 +67,17 @@ fn a_run_interrupted_in_every_stage_resumes_and_finishes() {
     let whole = base.join("whole");
     let o = run_bin(&args(d, whole.to_str().unwrap(), c), &[]);
     assert!(o.ok, "{}", o.stderr);
-    for s in STAGES {
+    for s in STAGES.map(|s| s.name()) {
         assert!(o.stderr.contains(&format!("{s}] finished")), "{s} did not finish:\n{}", o.stderr);
     }
 
     let parts = base.join("parts");
     let p = parts.to_str().unwrap();
-    for (i, s) in STAGES.iter().enumerate() {
+    for (i, s) in STAGES.map(|s| s.name()).iter().enumerate() {
         let o = run_bin(&args(d, p, c), &[("INSTGS_INTERRUPT_IN", s)]);
         assert!(!o.ok && o.stderr.contains(&format!("interrupted in stage {s}")), "{s}:\n{}", o.stderr);
         assert!(o.stderr.contains("run the same command again to resume"), "{}", o.stderr);
-        for (j, t) in STAGES.iter().enumerate() {
+        for (j, t) in STAGES.map(|s| s.name()).iter().enumerate() {
             assert_eq!(stage_done(&parts, t), j < i, "after interrupting {s}: stage {t}");
         }
         let report = std::fs::read_to_string(parts.join("report.md")).unwrap();
@@ -86,7 +86,7 @@ fn a_run_interrupted_in_every_stage_resumes_and_finishes() {
     // The training stages stopped half-way with a checkpoint and went on from it.
     let o = run_bin(&args(d, p, c), &[]);
     assert!(o.ok, "{}", o.stderr);
-    for s in STAGES {
+    for s in STAGES.map(|s| s.name()) {
         assert!(stage_done(&parts, s), "{s}");
     }
     for (dir, n) in [(parts.clone(), 60), (parts.join("joint"), 20)] {

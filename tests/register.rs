@@ -6,11 +6,11 @@ mod common;
 
 use common::*;
 use glam::Vec3;
+use instgs_vk::dataset::masks::InstanceGroup;
 use instgs_vk::instancing::template::{instantiate, InstanceOptions, TemplateInit};
 use instgs_vk::register::{
     farthest_point_sample, fpfh, normals, register, umeyama, voxel_downsample, RegisterOptions, Sim3,
 };
-use instgs_vk::segment::InstanceGroup;
 use nalgebra::{Rotation3, Vector3};
 
 /// Surface samples of an asymmetric object about 0.8 units across: an ellipsoid body, a head

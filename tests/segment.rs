@@ -221,7 +221,7 @@ fn association_recovers_instances_from_scrambled_per_frame_ids() {
 
 #[test]
 fn mask_and_category_files_are_checked() {
-    use instgs_vk::segment::{load_frame_categories, read_mask};
+    use instgs_vk::dataset::masks::{load_frame_categories, read_mask};
     let d = tempdir("seg_masks");
     let masks = d.join("masks").join("train");
     std::fs::create_dir_all(&masks).unwrap();

@@ -7,13 +7,13 @@ mod common;
 
 use common::*;
 use glam::Vec3;
+use instgs_vk::dataset::masks::InstanceGroup;
 use instgs_vk::instancing::template::{instantiate, InstanceOptions, RenderCheck};
 use instgs_vk::instancing::verify::ImageCheck;
 use instgs_vk::model::camera::Camera;
 use instgs_vk::model::scene::Scene;
 use instgs_vk::register::Sim3;
 use instgs_vk::render::raster::{GpuScene, Rasterizer};
-use instgs_vk::segment::InstanceGroup;
 use nalgebra::{Rotation3, Vector3};
 
 /// Surface samples of an asymmetric object about 0.8 units across (an ellipsoid body, a head,

@@ -204,10 +204,10 @@ fn main() -> Result<()> {
     let scene = instgs_vk::model::scene::read_ply(&run.join("point_cloud.ply"))?;
     let labels = template::read_labels(&run.join("labels.json"), scene.len())?;
     let groups_path = data.join("instances.json");
-    let groups = instgs_vk::segment::read_groups(&groups_path)?;
+    let groups = instgs_vk::dataset::masks::read_groups(&groups_path)?;
     let truth = template::read_ground_truth(&groups_path)?.context("instances.json has no ground-truth poses")?;
     let ds = instgs_vk::dataset::load(&data, &instgs_vk::dataset::LoadOptions { downscale, background: [0.0; 3] })?;
-    let masks = instgs_vk::segment::load_masks(&data, "train", &ds.train)?;
+    let masks = instgs_vk::dataset::masks::load_masks(&data, "train", &ds.train)?;
     let gpu = Gpu::new(&GpuOptions::from_env(None))?;
     let k = Kernels::new(&gpu)?;
     let cams: Vec<_> = ds.train.iter().map(|v| v.camera.clone()).collect();

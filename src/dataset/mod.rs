@@ -8,6 +8,8 @@
 //! Camera models: PINHOLE and SIMPLE_PINHOLE; SIMPLE_RADIAL, RADIAL and OPENCV whose distortion
 //! moves no image corner by more than [`MAX_IGNORED_DISTORTION_PX`] are used as pinholes with a
 //! warning; others are refused (undistort with `colmap image_undistorter`).
+
+pub mod masks;
 use std::io::{BufRead, Read};
 use std::path::{Path, PathBuf};
 
@@ -561,4 +563,21 @@ pub fn dataset_cameras_with_images(path: &Path, split: &str) -> Result<Vec<(Came
 /// [`dataset_cameras_with_images`] without the image files.
 pub fn dataset_cameras(path: &Path, split: &str) -> Result<Vec<Camera>> {
     Ok(dataset_cameras_with_images(path, split)?.into_iter().map(|(c, _)| c).collect())
+}
+
+/// `instgs-vk cameras`: the cameras of `data`'s `split` as a transforms.json (OpenGL c2w,
+/// per-frame intrinsics, absolute image paths).
+pub fn export_cameras(data: &Path, split: &str, out: &Path) -> Result<()> {
+    let cams = crate::dataset::dataset_cameras_with_images(data, split)?;
+    if cams.is_empty() {
+        bail!("{}: the {split} split has no cameras", data.display());
+    }
+    let images: Vec<String> = cams
+        .iter()
+        .map(|(_, p)| std::fs::canonicalize(p).unwrap_or_else(|_| p.clone()).display().to_string())
+        .collect();
+    let cams: Vec<Camera> = cams.into_iter().map(|(c, _)| c).collect();
+    crate::util::write_json(out, &crate::model::camera::transforms_json(&cams, &images), true)?;
+    eprintln!("wrote {} ({} cameras)", out.display(), cams.len());
+    Ok(())
 }

@@ -17,6 +17,7 @@
 //! fully opaque splats — are clamped to ±ln 1019 (the centre of the outer halves of the outer
 //! 8-bit bins, the rule of our compressed-PLY reader); NaN anywhere stays an error.
 
+pub mod info;
 pub mod instgs;
 pub mod pq8;
 use std::io::Read;
@@ -990,4 +991,27 @@ fn palette(vectors: &[&[f32]], dim: usize, k: usize) -> (Vec<f32>, Vec<u32>) {
         }
     }
     (centres, labels)
+}
+
+/// `instgs-vk convert`: `path` (any readable scene) to `out`, the format chosen by `out`'s name
+/// ([`write_scene`]); an instanced scene to `.json` writes its scene graph.
+pub fn convert(path: &Path, out: &Path) -> Result<()> {
+    let scene = crate::formats::instgs::AnyScene::read(path)?;
+    let name = out.file_name().map(|n| n.to_string_lossy().to_ascii_lowercase()).unwrap_or_default();
+    match (&scene, name.ends_with(".json") && !name.ends_with("meta.json")) {
+        (crate::formats::instgs::AnyScene::Instanced(s), true) => {
+            let text = serde_json::to_string_pretty(&crate::model::instanced::scene_graph(s))?;
+            crate::util::write_atomic(out, |f| {
+                use std::io::Write;
+                f.write_all(text.as_bytes())
+            })?;
+        }
+        (crate::formats::instgs::AnyScene::Plain(_), true) => {
+            bail!("{}: a scene graph (.json) comes from an instanced scene; {} is plain", out.display(), path.display())
+        }
+        (crate::formats::instgs::AnyScene::Plain(s), false) => crate::formats::write_scene(s, out)?,
+        (crate::formats::instgs::AnyScene::Instanced(s), false) => crate::formats::write_scene(&s.expand(), out)?,
+    }
+    eprintln!("wrote {}", out.display());
+    Ok(())
 }

@@ -291,3 +291,10 @@ pub fn record_sort(
 pub fn bits_for(n: u32) -> u32 {
     (32 - n.saturating_sub(1).leading_zeros()).max(1)
 }
+
+/// The device (`--device`, `INSTGS_DEVICE`, else the best one) and every kernel on it.
+pub fn open_device(device: Option<String>) -> Result<(Arc<Gpu>, Arc<Kernels>)> {
+    let gpu = crate::gpu::Gpu::new(&crate::gpu::GpuOptions::from_env(device))?;
+    let k = Kernels::new(&gpu)?;
+    Ok((gpu, k))
+}

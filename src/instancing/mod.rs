@@ -1,6 +1,7 @@
 //! From segmented instances to an instanced scene: templates and per-instance transforms
 //! ([`template`]), the render check of every registered pose ([`verify`]), and background
 //! compaction ([`compact`]).
+pub mod build;
 pub mod compact;
 pub mod template;
 pub mod verify;

@@ -21,13 +21,13 @@ use anyhow::{bail, Context, Result};
 use glam::{Mat3, Quat, Vec3};
 use kiddo::SquaredEuclidean;
 
+use crate::dataset::masks::InstanceGroup;
 use crate::model::instanced::{quat_mul, Group, Instance, InstancedScene, Offsets, ShRotation, Similarity};
 use crate::model::scene::{Scene, SH_C0};
 use crate::register::{
     candidates, centroid, farthest_point_sample, median_spacing, object_size, reverse_fitness, voxel_downsample,
     RegisterOptions, Sim3,
 };
-use crate::segment::InstanceGroup;
 use crate::train::{knn_log_scales, logit, sigmoid};
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]

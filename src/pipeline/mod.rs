@@ -14,20 +14,22 @@
 //! `RUN/report.md` is rewritten after every stage. A re-run skips finished stages, continues
 //! the training stages from their checkpoints and redoes an unfinished other stage from its start
 //! (they write their results atomically, so a result file is always whole).
+pub mod report;
+
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::Ordering;
 use std::sync::Arc;
 use std::time::Instant;
 
+use crate::dataset::Dataset;
+use crate::formats::instgs::AnyScene;
+use crate::gpu::kernels::Kernels;
+use crate::gpu::Gpu;
+use crate::train::config::{BackgroundKeep, PipelineConfig};
+use crate::train::{self, INTERRUPTED};
+use crate::util::{Progress, ProgressMode};
 use anyhow::{anyhow, bail, Context, Result};
-use instgs_vk::dataset::Dataset;
-use instgs_vk::formats::instgs::AnyScene;
-use instgs_vk::gpu::kernels::Kernels;
-use instgs_vk::gpu::Gpu;
-use instgs_vk::train::config::{BackgroundKeep, PipelineConfig};
-use instgs_vk::train::{self, INTERRUPTED};
-use instgs_vk::util::{Progress, ProgressMode};
 use serde::{Deserialize, Serialize};
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, clap::ValueEnum)]
@@ -119,9 +121,9 @@ fn check_masks(data: &Path, ds: &Dataset) -> Result<MaskIds> {
             missing[..missing.len().min(3)].join(", ")
         );
     }
-    let masks = instgs_vk::segment::load_masks(data, "train", &ds.train)?;
+    let masks = crate::dataset::masks::load_masks(data, "train", &ds.train)?;
     if ids == MaskIds::Global {
-        let groups = instgs_vk::segment::read_groups(&groups_file)?;
+        let groups = crate::dataset::masks::read_groups(&groups_file)?;
         let mut seen = std::collections::BTreeSet::new();
         for m in &masks {
             seen.extend(m.iter().copied());
@@ -179,7 +181,7 @@ impl State {
     }
 
     fn write(&self, run: &Path) -> Result<()> {
-        crate::write_json(&State::path(run), &serde_json::to_value(self)?, true)
+        crate::util::write_json(&State::path(run), &serde_json::to_value(self)?, true)
     }
 
     fn done(&self, s: Stage) -> bool {
@@ -250,13 +252,13 @@ pub fn run(a: PipelineArgs) -> Result<()> {
         }
     }
     let until = a.until.unwrap_or(Stage::Bench);
-    let load = instgs_vk::dataset::LoadOptions { downscale: a.downscale, background: cfg.plain.background };
-    let ds = instgs_vk::dataset::load(&a.data, &load)?;
+    let load = crate::dataset::LoadOptions { downscale: a.downscale, background: cfg.plain.background };
+    let ds = crate::dataset::load(&a.data, &load)?;
     let what = ds.describe(&a.data)?;
     let mask_ids = check_masks(&a.data, &ds)?;
     if let Some(p) = &a.init_ply {
         // Read now: a bad file is refused before anything runs.
-        instgs_vk::formats::read_scene(p)?;
+        crate::formats::read_scene(p)?;
     }
     std::fs::create_dir_all(&a.out).with_context(|| format!("{}: cannot create", a.out.display()))?;
     let run = a.out.as_path();
@@ -268,7 +270,7 @@ pub fn run(a: PipelineArgs) -> Result<()> {
     for s in STAGES.iter().copied().filter(|&s| s <= until && a.from.is_none_or(|f| s < f)) {
         if let Some(r) = state.stages.get(s.name()) {
             let mut recorded = settings(s, &a, &defaults)?;
-            instgs_vk::util::json_overlay(&mut recorded, &r.settings);
+            crate::util::json_overlay(&mut recorded, &r.settings);
             if recorded != settings(s, &a, &cfg)? {
                 bail!(
                     "{}: stage {} was run with other settings (data, --downscale, --init or its configuration); redo it and what follows with --from {}, or choose another --out",
@@ -290,7 +292,7 @@ pub fn run(a: PipelineArgs) -> Result<()> {
         }
         state.write(run)?;
     }
-    let (gpu, k) = crate::open_device(a.device.clone())?;
+    let (gpu, k) = crate::gpu::kernels::open_device(a.device.clone())?;
     eprintln!(
         "{}: {what}, instance masks ({}); {}",
         a.data.display(),
@@ -323,11 +325,11 @@ pub fn run(a: PipelineArgs) -> Result<()> {
                 rec.done = true;
                 state.write(run)?;
                 eprintln!("{}finished in {:.1} s", s.label(), t0.elapsed().as_secs_f64());
-                crate::report::write(run, &a, &State::read(run)?.summary())?;
+                report::write(run, &a, &State::read(run)?.summary())?;
             }
             Ok(false) => {
                 state.write(run)?;
-                crate::report::write(run, &a, &state.summary())?;
+                report::write(run, &a, &state.summary())?;
                 bail!(
                     "interrupted in stage {} (results of earlier stages and training checkpoints are kept); run the same command again to resume",
                     s.name()
@@ -394,14 +396,14 @@ impl Ctx<'_> {
             Stage::Plain => {
                 if let Some(p) = &self.a.init_ply {
                     let to = run.join("point_cloud.ply");
-                    if instgs_vk::formats::detect(p)? == instgs_vk::formats::Format::Ply {
+                    if crate::formats::detect(p)? == crate::formats::Format::Ply {
                         let bytes = std::fs::read(p).with_context(|| format!("{}: cannot read", p.display()))?;
-                        instgs_vk::util::write_atomic(&to, |f| {
+                        crate::util::write_atomic(&to, |f| {
                             use std::io::Write;
                             f.write_all(&bytes)
                         })?;
                     } else {
-                        instgs_vk::model::scene::write_ply(&instgs_vk::formats::read_scene(p)?, &to)?;
+                        crate::model::scene::write_ply(&crate::formats::read_scene(p)?, &to)?;
                     }
                     eprintln!("{}: plain scene from {}", run.join("point_cloud.ply").display(), p.display());
                     return Ok(!interrupted());
@@ -409,9 +411,9 @@ impl Ctx<'_> {
                 self.train(run, None, &self.cfg.plain, s, hooked)
             }
             Stage::Segment => {
-                let scene = instgs_vk::model::scene::read_ply(&run.join("point_cloud.ply"))?;
+                let scene = crate::model::scene::read_ply(&run.join("point_cloud.ply"))?;
                 let per_frame = self.mask_ids == MaskIds::PerFrame;
-                let seg = crate::segment_scene(
+                let seg = crate::segment::run::segment_scene(
                     self.gpu,
                     self.k,
                     &scene,
@@ -425,23 +427,23 @@ impl Ctx<'_> {
                 if interrupted() {
                     return Ok(false);
                 }
-                crate::write_json(&run.join("segment.json"), &seg.summary, true)?;
-                instgs_vk::util::write_atomic(&run.join("significance.bin"), |f| {
+                crate::util::write_json(&run.join("segment.json"), &seg.summary, true)?;
+                crate::util::write_atomic(&run.join("significance.bin"), |f| {
                     use std::io::Write;
                     f.write_all(bytemuck::cast_slice(&seg.significance))
                 })?;
-                crate::write_json(&run.join("labels.json"), &seg.doc, false)?;
+                crate::util::write_json(&run.join("labels.json"), &seg.doc, false)?;
                 Ok(true)
             }
             Stage::Instance => {
                 let c = &self.cfg.instance;
-                let opts = instgs_vk::instancing::template::InstanceOptions {
+                let opts = crate::instancing::template::InstanceOptions {
                     init: clap::ValueEnum::from_str(&c.init, true).map_err(|e| anyhow!("instance.init: {e}"))?,
                     with_scale: !c.rigid,
                     use_colour: c.colour,
                     colour_weight: c.colour_weight,
                     seed: c.seed,
-                    accept: instgs_vk::instancing::template::Acceptance {
+                    accept: crate::instancing::template::Acceptance {
                         min_fitness: c.min_fitness,
                         scale_tolerance: c.scale_tolerance,
                         min_render_iou: c.min_render_iou,
@@ -451,9 +453,9 @@ impl Ctx<'_> {
                     ..Default::default()
                 };
                 let dtype = match c.offset_dtype.as_str() {
-                    "f16" => instgs_vk::formats::instgs::Dtype::F16,
-                    "pq8" => instgs_vk::formats::instgs::Dtype::Pq8,
-                    _ => instgs_vk::formats::instgs::Dtype::F32,
+                    "f16" => crate::formats::instgs::Dtype::F16,
+                    "pq8" => crate::formats::instgs::Dtype::Pq8,
+                    _ => crate::formats::instgs::Dtype::F32,
                 };
                 let (groups, truth) = match self.mask_ids {
                     MaskIds::Global => {
@@ -465,20 +467,22 @@ impl Ctx<'_> {
                 let mut check = if c.render_check {
                     // Masks select the views only where their ids are the labels' ids.
                     let masks = match self.mask_ids {
-                        MaskIds::Global => Some(instgs_vk::segment::load_masks(&self.a.data, "train", &self.ds.train)?),
+                        MaskIds::Global => {
+                            Some(crate::dataset::masks::load_masks(&self.a.data, "train", &self.ds.train)?)
+                        }
                         MaskIds::PerFrame => None,
                     };
                     let cams = self.ds.train.iter().map(|v| v.camera.clone()).collect();
-                    Some(instgs_vk::instancing::verify::ImageCheck::new(self.gpu, self.k, cams, masks)?)
+                    Some(crate::instancing::verify::ImageCheck::new(self.gpu, self.k, cams, masks)?)
                 } else {
                     None
                 };
                 let views = &self.ds.train;
                 let bg = self.cfg.plain.background;
                 let (gpu, k) = (self.gpu, self.k);
-                let mut rule = |scene: &instgs_vk::model::scene::Scene, labels: &[u32], sig: &[f32]| {
+                let mut rule = |scene: &crate::model::scene::Scene, labels: &[u32], sig: &[f32]| {
                     let (ranking, protected) =
-                        instgs_vk::instancing::compact::protect_outlines(scene, labels, sig, c.outline_fraction);
+                        crate::instancing::compact::protect_outlines(scene, labels, sig, c.outline_fraction);
                     match c.background_keep {
                         BackgroundKeep::Fraction(f) => Ok((
                             f,
@@ -486,7 +490,7 @@ impl Ctx<'_> {
                             serde_json::json!({"fixed": f, "outline_fraction": c.outline_fraction, "protected": protected}),
                         )),
                         BackgroundKeep::Auto(_) => {
-                            let b = instgs_vk::instancing::compact::background_budget(
+                            let b = crate::instancing::compact::background_budget(
                                 gpu,
                                 k,
                                 scene,
@@ -504,7 +508,7 @@ impl Ctx<'_> {
                         }
                     }
                 };
-                let r = crate::instance(
+                let r = crate::instancing::build::instance(
                     &run.join("point_cloud.ply"),
                     &run.join("labels.json"),
                     &groups,
@@ -512,13 +516,13 @@ impl Ctx<'_> {
                     &opts,
                     dtype,
                     Some((&run.join("significance.bin"), &mut rule)),
-                    check.as_mut().map(|c| c as &mut dyn instgs_vk::instancing::template::RenderCheck),
+                    check.as_mut().map(|c| c as &mut dyn crate::instancing::template::RenderCheck),
                     None,
                     &run.join("init.instgs"),
                 );
                 match r {
                     Ok(v) => {
-                        crate::write_json(&run.join("instance.json"), &v, true)?;
+                        crate::util::write_json(&run.join("instance.json"), &v, true)?;
                         Ok(true)
                     }
                     Err(_) if interrupted() => Ok(false),
@@ -526,7 +530,7 @@ impl Ctx<'_> {
                 }
             }
             Stage::Joint => {
-                let init = instgs_vk::formats::instgs::read(&run.join("init.instgs"))?;
+                let init = crate::formats::instgs::read(&run.join("init.instgs"))?;
                 let dir = run.join("joint");
                 if !self.train(&dir, Some(init), &self.cfg.joint, s, hooked)? {
                     return Ok(false);
@@ -538,10 +542,10 @@ impl Ctx<'_> {
             Stage::Eval => self.eval(),
             Stage::Bench => {
                 let cams: Vec<_> = self.views().iter().map(|v| v.camera.clone()).collect();
-                let render = instgs_vk::render::lod::RenderConfig::load(None)?;
+                let render = crate::render::lod::RenderConfig::load(None)?;
                 let a = run.join("scene.instgs");
                 let b = run.join("point_cloud.ply");
-                let v = crate::bench_scenes(
+                let v = crate::bench::bench_scenes(
                     self.gpu,
                     self.k,
                     (&a, AnyScene::read(&a)?, &render),
@@ -554,14 +558,14 @@ impl Ctx<'_> {
                 if interrupted() {
                     return Ok(false);
                 }
-                crate::write_json(&run.join("bench.json"), &v, true)?;
+                crate::util::write_json(&run.join("bench.json"), &v, true)?;
                 Ok(true)
             }
         }
     }
 
     /// The held-out views (the training views when the dataset holds none out).
-    fn views(&self) -> &[instgs_vk::dataset::View] {
+    fn views(&self) -> &[crate::dataset::View] {
         if self.ds.test.is_empty() {
             &self.ds.train
         } else {
@@ -572,8 +576,8 @@ impl Ctx<'_> {
     fn train(
         &self,
         out: &Path,
-        init: Option<instgs_vk::model::instanced::InstancedScene>,
-        cfg: &instgs_vk::train::config::Config,
+        init: Option<crate::model::instanced::InstancedScene>,
+        cfg: &crate::train::config::Config,
         s: Stage,
         hooked: bool,
     ) -> Result<bool> {
@@ -601,7 +605,7 @@ impl Ctx<'_> {
         let bg = self.cfg.plain.background;
         let views = self.views();
         let split = if self.ds.test.is_empty() { "train" } else { "test" };
-        let mut r = instgs_vk::render::raster::Rasterizer::new(self.gpu, self.k)?;
+        let mut r = crate::render::raster::Rasterizer::new(self.gpu, self.k)?;
         let n_images = self.cfg.eval.images.min(views.len());
         // Evenly spread views for the pictures.
         let pick: Vec<usize> = (0..n_images).map(|i| i * views.len() / n_images.max(1)).collect();
@@ -609,7 +613,7 @@ impl Ctx<'_> {
         // The split's masks, where it has them: PSNR over instance pixels (any id but 0) and
         // background pixels separately, to see where the two scenes differ.
         let masks = if self.a.data.join("masks").join(split).is_dir() {
-            instgs_vk::segment::load_masks(&self.a.data, split, views)
+            crate::dataset::masks::load_masks(&self.a.data, split, views)
                 .map_err(|e| eprintln!("warning: {e:#}; PSNR over instance and background pixels left out"))
                 .ok()
         } else {
@@ -633,7 +637,7 @@ impl Ctx<'_> {
                 if let Some(m) = &masks {
                     let m = &m[index];
                     for (k, object) in [true, false].into_iter().enumerate() {
-                        if let Some(db) = instgs_vk::util::psnr_where(&f.image, &v.image, |i| (m[i] != 0) == object) {
+                        if let Some(db) = crate::util::psnr_where(&f.image, &v.image, |i| (m[i] != 0) == object) {
                             regions[k].0 += db;
                             regions[k].1 += 1;
                         }
@@ -662,9 +666,9 @@ impl Ctx<'_> {
                     let v = &views[*i];
                     let plain = plain_frames.get(i).ok_or_else(|| anyhow!("missing plain render"))?;
                     let (w, h) = (v.camera.width as usize, v.camera.height as usize);
-                    let err = instgs_vk::util::error_image(img, &v.image);
-                    let strip = instgs_vk::util::side_by_side(&[&v.image, plain, img, &err], w, h);
-                    crate::save_png(&dir.join(format!("{view_name}.png")), 4 * w as u32, h as u32, &strip)?;
+                    let err = crate::util::error_image(img, &v.image);
+                    let strip = crate::util::side_by_side(&[&v.image, plain, img, &err], w, h);
+                    crate::util::save_png(&dir.join(format!("{view_name}.png")), 4 * w as u32, h as u32, &strip)?;
                 }
             }
             let per: Vec<_> =
@@ -686,7 +690,74 @@ impl Ctx<'_> {
             v[name] = r;
         }
         v["images"] = pick.iter().map(|&i| format!("images/{}.png", views[i].camera.name)).collect();
-        crate::write_json(&run.join("eval.json"), &v, true)?;
+        crate::util::write_json(&run.join("eval.json"), &v, true)?;
         Ok(true)
     }
+}
+
+/// What `instgs-vk train` was asked.
+pub struct TrainRequest {
+    /// The dataset folder (NeRF-synthetic or COLMAP, with `masks/train/` for InstGS).
+    pub data: PathBuf,
+    pub downscale: u32,
+    pub out: PathBuf,
+    /// A plain scene to start the pipeline from, or an `.instgs` for joint optimisation only.
+    pub init: Option<PathBuf>,
+    pub config: Option<PathBuf>,
+    pub iterations: Option<u64>,
+    pub resume: bool,
+    pub quiet: bool,
+    pub from: Option<Stage>,
+    pub until: Option<Stage>,
+    pub device: Option<String>,
+}
+
+/// `instgs-vk train`: the whole InstGS pipeline where the dataset has instance masks (and `init`
+/// is not already instanced); else one training session — plain 3DGS, or joint optimisation
+/// from an `.instgs` `init`.
+pub fn train(t: TrainRequest) -> Result<()> {
+    let is_instgs = match t.init.as_deref() {
+        Some(p) => crate::formats::detect(p)? == crate::formats::Format::Instgs,
+        None => false,
+    };
+    if has_masks(&t.data) && !is_instgs {
+        return run(PipelineArgs {
+            data: t.data,
+            downscale: t.downscale,
+            out: t.out,
+            init_ply: t.init,
+            config: t.config,
+            iterations: t.iterations,
+            from: t.from,
+            until: t.until,
+            progress: !t.quiet,
+            device: t.device,
+        });
+    }
+    if t.from.is_some() || t.until.is_some() {
+        bail!(
+            "--from and --until choose pipeline stages, and {} has no instance masks (masks/train/)",
+            t.data.display()
+        );
+    }
+    if t.init.is_some() && !is_instgs {
+        bail!(
+            "--init with a plain scene starts the InstGS pipeline, which needs instance masks: {} has no masks/train/ (see the README, 'Bringing your own masks')",
+            t.data.display()
+        );
+    }
+    if t.init.is_none() {
+        eprintln!("{}: no instance masks (masks/train/): training plain 3DGS only", t.data.display());
+    }
+    crate::train::session::train(
+        t.device,
+        &t.data,
+        t.downscale,
+        &t.out,
+        t.init.as_deref(),
+        t.config.as_deref(),
+        t.iterations,
+        t.resume,
+        t.quiet,
+    )
 }

@@ -267,7 +267,7 @@ pub fn write(run: &Path, a: &PipelineArgs, stages: &[(Stage, bool, f64)]) -> Res
             let _ = writeln!(md, "{name}:\n\n![{name}]({p})\n");
         }
     }
-    instgs_vk::util::write_atomic(&run.join("report.md"), |f| {
+    crate::util::write_atomic(&run.join("report.md"), |f| {
         use std::io::Write;
         f.write_all(md.as_bytes())
     })

@@ -921,6 +921,45 @@ fn choose_present_mode(modes: &[vk::PresentModeKHR], vsync: bool) -> vk::Present
     vk::PresentModeKHR::FIFO
 }
 
+/// `instgs-vk view`: the player, in a window or headless (`frames` frames to `out`), starting from
+/// camera `camera` of the `cameras` dataset or file (`split`), else an orbit camera.
+pub fn view(
+    opts: crate::player::PlayerOptions,
+    cameras: Option<&Path>,
+    (camera, split): (usize, &str),
+    up: crate::model::camera::UpAxis,
+    headless: bool,
+) -> Result<()> {
+    use crate::player::{run_headless, run_window, ViewCamera};
+    if opts.width == 0 || opts.height == 0 {
+        bail!("--width and --height must be at least 1");
+    }
+    if opts.frames == Some(0) {
+        bail!("--frames must be at least 1");
+    }
+    let scene = AnyScene::read(&opts.scene_path)?;
+    let means = scene.means();
+    let (lo, hi) = crate::model::scene::robust_bounds(&means, 0.02);
+    let centre = 0.5 * (lo + hi);
+    let start = match cameras {
+        Some(path) => {
+            let cams = crate::dataset::dataset_cameras(path, split)?;
+            let n = cams.len();
+            cams.into_iter()
+                .nth(camera)
+                .ok_or_else(|| anyhow::anyhow!("{}: --camera {camera} is out of range ({n} cameras)", path.display()))?
+        }
+        None => crate::model::camera::orbit_around_points(&means, 1, up, opts.width, opts.height).remove(0),
+    };
+    let start = ViewCamera::from_camera(&start, centre, up.vector());
+    drop(means);
+    if headless {
+        run_headless(&opts, &scene, start)
+    } else {
+        run_window(opts, scene, start)
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

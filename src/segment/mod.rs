@@ -9,103 +9,21 @@
 //! (a masked loss with unit residual: what a Gaussian contributes there, whatever the colours).
 //! GSeg is linear in the mask, so GSeg(1 − M) = GSeg(1) − GSeg(M): per view one pass over all
 //! pixels plus one per visible instance. Views are streamed; the scores live on the GPU.
+pub mod run;
+
 use std::collections::BTreeMap;
-use std::path::Path;
+
 use std::sync::Arc;
 
-use anyhow::{bail, Context, Result};
+use anyhow::{bail, Result};
 
+use crate::dataset::masks::InstanceGroup;
 use crate::dataset::View;
 use crate::gpu::kernels::Kernels;
 use crate::gpu::Gpu;
 use crate::model::scene::Scene;
 use crate::render::raster::{GpuScene, Grads, Rasterizer};
 use crate::shared::{SegArgs, MAX_GROUPS, WG_SIZE};
-
-/// A dataset's groups file (`instances.json`): groups of instance ids. Extra fields ignored.
-#[derive(Clone, Debug, PartialEq)]
-pub struct InstanceGroup {
-    pub name: String,
-    pub ids: Vec<u32>,
-}
-
-#[derive(serde::Deserialize)]
-struct GroupsFile {
-    groups: Vec<GroupEntry>,
-}
-
-#[derive(serde::Deserialize)]
-struct GroupEntry {
-    name: String,
-    instances: Vec<InstanceEntry>,
-}
-
-#[derive(serde::Deserialize)]
-struct InstanceEntry {
-    id: u32,
-}
-
-/// Reads `instances.json`; ids must be positive (0 is the background) and unique.
-pub fn read_groups(path: &Path) -> Result<Vec<InstanceGroup>> {
-    let what = path.display();
-    let text = std::fs::read_to_string(path).with_context(|| format!("{what}: cannot read"))?;
-    let f: GroupsFile = serde_json::from_str(&text)
-        .with_context(|| format!("{what}: not a groups file ({{groups: [{{name, instances: [{{id}}]}}]}})"))?;
-    let mut seen = std::collections::BTreeSet::new();
-    let groups: Vec<InstanceGroup> = f
-        .groups
-        .into_iter()
-        .map(|g| InstanceGroup { name: g.name, ids: g.instances.iter().map(|i| i.id).collect() })
-        .collect();
-    for g in &groups {
-        for &id in &g.ids {
-            if id == 0 {
-                bail!("{what}: group {:?} uses id 0, the background's", g.name);
-            }
-            if !seen.insert(id) {
-                bail!("{what}: instance id {id} appears twice");
-            }
-        }
-    }
-    Ok(groups)
-}
-
-/// Reads one mask (8- or 16-bit grey PNG of instance ids, 0 = background) of `width`×`height`.
-/// A mask an integer factor f larger in both dimensions (the image was loaded with
-/// `--downscale f`) is subsampled at each f×f block's centre pixel, so ids stay ids.
-pub fn read_mask(path: &Path, width: u32, height: u32) -> Result<Vec<u16>> {
-    let what = path.display();
-    let img = image::open(path).with_context(|| format!("{what}: cannot read mask"))?;
-    let (w, h) = (img.width(), img.height());
-    let img: Vec<u16> = match img {
-        image::DynamicImage::ImageLuma8(m) => m.pixels().map(|p| p.0[0] as u16).collect(),
-        image::DynamicImage::ImageLuma16(m) => m.pixels().map(|p| p.0[0]).collect(),
-        other => bail!("{what}: a mask must be 8- or 16-bit greyscale, not {:?}", other.color()),
-    };
-    if (w, h) == (width, height) {
-        return Ok(img);
-    }
-    let f = w / width.max(1);
-    if f > 1 && (w, h) == (f * width, f * height) {
-        let c = f / 2;
-        return Ok((0..height)
-            .flat_map(|y| (0..width).map(move |x| ((y * f + c) * w + x * f + c) as usize))
-            .map(|i| img[i])
-            .collect());
-    }
-    bail!("{what}: mask is {w}x{h}, its image {width}x{height}");
-}
-
-/// The masks of `views` (`masks/<split>/<image name>.png` under `data`), resized views refused.
-pub fn load_masks(data: &Path, split: &str, views: &[View]) -> Result<Vec<Vec<u16>>> {
-    views
-        .iter()
-        .map(|v| {
-            let name = v.path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
-            read_mask(&data.join("masks").join(split).join(&name), v.camera.width, v.camera.height)
-        })
-        .collect()
-}
 
 /// Per-Gaussian results: the instance id (0 = background) and g per instance.
 pub struct Segmentation {
@@ -306,50 +224,6 @@ pub fn instance_iou(
     Ok(out)
 }
 
-/// The distinct non-zero ids of a mask, ascending.
-fn mask_ids(m: &[u16]) -> Vec<u16> {
-    let mut ids: Vec<u16> = m.iter().copied().filter(|&x| x != 0).collect();
-    ids.sort_unstable();
-    ids.dedup();
-    ids
-}
-
-/// Per-frame mask categories for masks whose ids mean nothing across frames (e.g. from SAM):
-/// `masks/<split>/<image stem>.json` = `{"<mask id>": "<category>", ...}`; every id in the mask
-/// needs a category.
-pub fn load_frame_categories(
-    data: &Path,
-    split: &str,
-    views: &[View],
-    masks: &[Vec<u16>],
-) -> Result<Vec<BTreeMap<u16, String>>> {
-    views
-        .iter()
-        .zip(masks)
-        .map(|(v, m)| {
-            let stem = v.path.file_stem().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
-            let path = data.join("masks").join(split).join(format!("{stem}.json"));
-            let what = path.display();
-            let text = std::fs::read_to_string(&path)
-                .with_context(|| format!("{what}: cannot read the frame's mask categories"))?;
-            let raw: BTreeMap<String, String> = serde_json::from_str(&text)
-                .with_context(|| format!("{what}: not a {{\"<mask id>\": \"<category>\"}} object"))?;
-            let mut cats = BTreeMap::new();
-            for (id, cat) in raw {
-                let n: u16 = id.parse().with_context(|| format!("{what}: {id:?} is not a mask id (1..65535)"))?;
-                if n == 0 {
-                    bail!("{what}: id 0 is the background and takes no category");
-                }
-                cats.insert(n, cat);
-            }
-            if let Some(id) = mask_ids(m).iter().find(|id| !cats.contains_key(id)) {
-                bail!("{what}: mask id {id} of {} has no category", v.path.display());
-            }
-            Ok(cats)
-        })
-        .collect()
-}
-
 /// Parameters of [`associate`].
 #[derive(Clone, Debug)]
 pub struct AssociateOptions {
@@ -420,7 +294,8 @@ pub fn associate(
         bail!("{} views, {} masks, {} category maps", views.len(), masks.len(), categories.len());
     }
     let n = scene.len();
-    let frame_ids: Vec<Vec<u32>> = masks.iter().map(|m| mask_ids(m).into_iter().map(u32::from).collect()).collect();
+    let frame_ids: Vec<Vec<u32>> =
+        masks.iter().map(|m| crate::dataset::masks::mask_ids(m).into_iter().map(u32::from).collect()).collect();
     let slots = frame_ids.iter().map(Vec::len).max().unwrap_or(0) + 1;
     let mut scorer = Scorer::new(gpu, k, scene, slots)?;
     // Lifted masks: (view, id, category, claimed Gaussians); seen Gaussians per view.

@@ -16,8 +16,10 @@
 //! (`max_screen_size > 0`) it uses the radii seen since the last densification.
 
 pub mod config;
+pub mod eval;
 pub mod optim;
 pub mod plot;
+pub mod session;
 use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};

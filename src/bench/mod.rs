@@ -1,0 +1,349 @@
+//! `instgs-vk bench`: GPU-timestamped frame times (medians, p90), memory and file sizes of a
+//! scene, and with a second scene interleaved A B A B ratios and image agreement, as JSON.
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+use anyhow::{anyhow, bail, Context, Result};
+
+use crate::formats::instgs::AnyScene;
+use crate::gpu::kernels::Kernels;
+use crate::gpu::{Gpu, GpuOptions};
+use crate::model::camera::Camera;
+use crate::render::frames::{collect, print_passes, setup, FrameSpec, Setup};
+use crate::render::lod::RenderConfig;
+use crate::render::raster::{GpuScene, Rasterizer};
+use crate::util::{median, percentile, write_json, Progress, ProgressMode};
+
+/// One scene of a bench run: its own rasterizer (buffers sized for it) and samples.
+struct BenchScene {
+    path: PathBuf,
+    scene: AnyScene,
+    gs: GpuScene,
+    r: Rasterizer,
+    per_pass: Vec<(String, Vec<f64>)>,
+    frame_ms: Vec<f64>,
+    isects: Vec<f64>,
+    visible: Vec<f64>,
+}
+
+impl BenchScene {
+    fn new(gpu: &Arc<Gpu>, k: &Arc<Kernels>, path: &Path, scene: AnyScene, cfg: &RenderConfig) -> Result<BenchScene> {
+        let gs = scene.upload_for_rendering(gpu, cfg).with_context(|| path.display().to_string())?;
+        let r = Rasterizer::new(gpu, k)?;
+        Ok(BenchScene {
+            path: path.to_path_buf(),
+            scene,
+            gs,
+            r,
+            per_pass: Vec::new(),
+            frame_ms: Vec::new(),
+            isects: Vec::new(),
+            visible: Vec::new(),
+        })
+    }
+
+    fn frame(&mut self, cam: &Camera, background: [f32; 3], timed: bool) -> Result<()> {
+        let f = self.r.render_resident(&self.gs, cam, background)?;
+        if timed {
+            self.frame_ms.push(f.passes.iter().map(|p| p.1).sum::<f64>());
+            collect(&mut self.per_pass, &f.passes);
+            self.isects.push(f.intersections as f64);
+            self.visible.push(f.visible as f64);
+        }
+        Ok(())
+    }
+
+    /// Prints the table and returns the JSON object of this scene.
+    fn report(&self) -> Result<serde_json::Value> {
+        let fm = median(&self.frame_ms);
+        let p90 = percentile(&self.frame_ms, 0.9);
+        let file_bytes = std::fs::metadata(&self.path)?.len();
+        let sorts = sort_comparison(&self.r, &self.per_pass)?;
+        println!("scene            {}", self.path.display());
+        println!("splats           {}", self.scene.splats());
+        println!("visible (median) {}", median(&self.visible));
+        println!("intersections    {}", median(&self.isects));
+        println!("frame (median)   {fm:.3} ms  ({:.1} FPS); p90 {p90:.3} ms", 1000.0 / fm);
+        println!("scene GPU bytes  {}", self.gs.gpu_bytes());
+        println!("frame GPU bytes  {}", self.r.frame_gpu_bytes());
+        println!("file bytes       {file_bytes}");
+        print_passes(&self.per_pass);
+        println!("GPU sort vs sort_unstable on the last frame's own keys (ms):");
+        for c in &sorts {
+            println!(
+                "  {:<11} {:>8} keys  GPU {:>8.2}  sort_unstable {:>7.2}  ratio {:.2}x",
+                c.name,
+                c.keys,
+                c.gpu_ms,
+                c.cpu_ms,
+                c.gpu_ms / c.cpu_ms
+            );
+        }
+        let passes: serde_json::Map<String, serde_json::Value> =
+            self.per_pass.iter().map(|(n, v)| (n.clone(), serde_json::json!(median(v)))).collect();
+        Ok(serde_json::json!({
+            "scene": self.path.display().to_string(),
+            "splats": self.scene.splats(),
+            "visible": median(&self.visible),
+            "intersections": median(&self.isects),
+            "frame_ms_median": fm,
+            "frame_ms_p90": p90,
+            "fps_median": 1000.0 / fm,
+            "scene_gpu_bytes": self.gs.gpu_bytes(),
+            "frame_gpu_bytes": self.r.frame_gpu_bytes(),
+            "file_bytes": file_bytes,
+            "passes": passes,
+            "sorts": sorts.iter().map(|c| serde_json::json!({
+                "name": c.name, "keys": c.keys, "gpu_ms": c.gpu_ms, "sort_unstable_ms": c.cpu_ms,
+                "ratio": c.gpu_ms / c.cpu_ms,
+            })).collect::<Vec<_>>(),
+        }))
+    }
+}
+
+/// Median over i of a[i] / b[i].
+fn paired_median(a: &[f64], b: &[f64]) -> f64 {
+    median(&a.iter().zip(b).map(|(x, y)| x / y).collect::<Vec<_>>())
+}
+
+/// 2×2 box filter of a (2w)×(2h) image.
+fn box_down2(img: &[[f32; 4]], w: usize, h: usize) -> Vec<[f32; 4]> {
+    let mut out = vec![[0.0f32; 4]; w * h];
+    for y in 0..h {
+        for x in 0..w {
+            let px = |dx: usize, dy: usize| img[(2 * y + dy) * 2 * w + 2 * x + dx];
+            let s = [px(0, 0), px(1, 0), px(0, 1), px(1, 1)];
+            out[y * w + x] = std::array::from_fn(|c| 0.25 * s.iter().map(|p| p[c]).sum::<f32>());
+        }
+    }
+    out
+}
+
+/// The process's resident set (Linux /proc/self/status VmRSS), if known.
+fn cpu_rss_bytes() -> Option<u64> {
+    let status = std::fs::read_to_string("/proc/self/status").ok()?;
+    let line = status.lines().find(|l| l.starts_with("VmRSS:"))?;
+    let kb: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kb * 1024)
+}
+
+#[allow(clippy::too_many_arguments)]
+/// `instgs-vk bench`: renders `view`'s scene (and `compare`'s, interleaved) `frames` times per
+/// camera after `warmup` untimed frames; prints the tables and writes `json`.
+pub fn bench(
+    device: Option<String>,
+    view: &FrameSpec,
+    frames: usize,
+    warmup: usize,
+    cfg: &RenderConfig,
+    compare: Option<(&Path, RenderConfig)>,
+    json: Option<&Path>,
+) -> Result<()> {
+    if frames == 0 {
+        bail!("--frames must be at least 1");
+    }
+    let Setup { gpu, k, scene, cams } = setup(device, view)?;
+    let b = compare.map(|(p, c)| AnyScene::read(p).map(|s| (p, s, c))).transpose()?;
+    let v = bench_scenes(
+        &gpu,
+        &k,
+        (&view.scene, scene, cfg),
+        b,
+        &cams,
+        (frames, warmup),
+        view.background,
+        ("bench: ", ProgressMode::Auto),
+    )?;
+    if let Some(path) = json {
+        write_json(path, &v, true)?;
+    }
+    Ok(())
+}
+
+/// Renders scene A (and B, interleaved A B A B …) from `cams`, prints the tables and returns
+/// the JSON report (A's numbers; with B also `compare`, `ratios` A over B and image agreement).
+#[allow(clippy::too_many_arguments)]
+pub fn bench_scenes(
+    gpu: &Arc<Gpu>,
+    k: &Arc<Kernels>,
+    a: (&Path, AnyScene, &RenderConfig),
+    b: Option<(&Path, AnyScene, RenderConfig)>,
+    cams: &[Camera],
+    (frames, warmup): (usize, usize),
+    background: [f32; 3],
+    progress: (&str, ProgressMode),
+) -> Result<serde_json::Value> {
+    let cfg = a.2;
+    let mut runs = vec![BenchScene::new(gpu, k, a.0, a.1, cfg)?];
+    if let Some((p, scene, bcfg)) = b {
+        runs.push(BenchScene::new(gpu, k, p, scene, &bcfg)?);
+    }
+    // Interleaved (A B A B …) so that clock and thermal drift hit both scenes alike.
+    let mut bar = Progress::new(progress.0, "view", "views/s", cams.len() as u64, 0, progress.1);
+    for (i, cam) in cams.iter().enumerate() {
+        for _ in 0..warmup {
+            for run in runs.iter_mut() {
+                run.frame(cam, background, false)?;
+            }
+        }
+        for _ in 0..frames {
+            for run in runs.iter_mut() {
+                run.frame(cam, background, true)?;
+            }
+        }
+        bar.set(i as u64 + 1, "");
+    }
+    bar.finish();
+    let mut reports = Vec::new();
+    for (i, run) in runs.iter().enumerate() {
+        if i > 0 {
+            println!();
+        }
+        reports.push(run.report()?);
+    }
+    let rss = cpu_rss_bytes();
+    println!();
+    println!("allocator bytes  {} (everything the allocator holds)", gpu.allocated_bytes());
+    if let Some(rss) = rss {
+        println!("CPU RSS          {rss} bytes (the process)");
+    }
+    let mut v = reports[0].clone();
+    v["device"] = gpu.info.name.clone().into();
+    v["width"] = cams[0].width.into();
+    v["height"] = cams[0].height.into();
+    v["views"] = cams.len().into();
+    v["frames"] = frames.into();
+    v["allocated_gpu_bytes"] = gpu.allocated_bytes().into();
+    v["cpu_rss_bytes"] = rss.into();
+    if let Some(b) = reports.get(1) {
+        let ratio = |key: &str| {
+            let (x, y) = (reports[0][key].as_f64().unwrap_or(f64::NAN), b[key].as_f64().unwrap_or(f64::NAN));
+            x / y
+        };
+        let ratios = serde_json::json!({
+            // Timing ratios pair each frame of A with the frame of B rendered right after it
+            // (same camera, same machine state) and take the median of those ratios.
+            "fps": paired_median(&runs[1].frame_ms, &runs[0].frame_ms),
+            "frame_ms": paired_median(&runs[0].frame_ms, &runs[1].frame_ms),
+            "scene_gpu_bytes": ratio("scene_gpu_bytes"),
+            "frame_gpu_bytes": ratio("frame_gpu_bytes"),
+            "file_bytes": ratio("file_bytes"),
+            "intersections": ratio("intersections"),
+        });
+        println!(
+            "A over B: FPS {:.3}x (median of paired frames), scene GPU bytes {:.3}x, file bytes {:.3}x, frame GPU bytes {:.3}x ({} interleaved frames each)",
+            ratios["fps"].as_f64().unwrap_or(f64::NAN),
+            ratios["scene_gpu_bytes"].as_f64().unwrap_or(f64::NAN),
+            ratios["file_bytes"].as_f64().unwrap_or(f64::NAN),
+            ratios["frame_gpu_bytes"].as_f64().unwrap_or(f64::NAN),
+            runs[0].frame_ms.len()
+        );
+        v["compare"] = b.clone();
+        v["ratios"] = ratios;
+        // Image agreement, outside the timed frames: A's frames against B's, and both against
+        // an antialiased reference, B rendered at twice the resolution and box-filtered 2×2.
+        // Identical images count as 100 dB.
+        let db = |a: &[[f32; 4]], b: &[[f32; 4]]| crate::util::psnr(a, b).min(100.0);
+        let (mut ab, mut a_ref, mut b_ref) = (Vec::new(), Vec::new(), Vec::new());
+        if let [a, b] = &mut runs[..] {
+            for cam in cams {
+                let fa = a.r.render(&a.gs, cam, background)?;
+                let fb = b.r.render(&b.gs, cam, background)?;
+                let big = b.r.render(&b.gs, &cam.resized(2 * cam.width, 2 * cam.height), background)?;
+                let reference = box_down2(&big.image, cam.width as usize, cam.height as usize);
+                ab.push(db(&fa.image, &fb.image));
+                a_ref.push(db(&fa.image, &reference));
+                b_ref.push(db(&fb.image, &reference));
+            }
+        }
+        let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len() as f64;
+        let worst = ab.iter().copied().fold(f64::INFINITY, f64::min);
+        println!("A against B: PSNR {:.2} dB mean, {worst:.2} dB worst view", mean(&ab));
+        println!(
+            "against B at 2x resolution, box-filtered: A {:.2} dB, B {:.2} dB (A - B {:+.2} dB)",
+            mean(&a_ref),
+            mean(&b_ref),
+            mean(&a_ref) - mean(&b_ref)
+        );
+        v["psnr_a_vs_b"] = serde_json::json!({ "mean": mean(&ab), "min": worst, "views": ab });
+        v["psnr_vs_reference"] = serde_json::json!({ "a": mean(&a_ref), "b": mean(&b_ref) });
+    }
+    v["render"] = serde_json::to_value(cfg)?;
+    Ok(v)
+}
+
+/// Median milliseconds of Rust's sort_unstable on (key, value) pairs, by key.
+fn time_sort_unstable(keys: &[u32], vals: &[u32], repeats: usize) -> f64 {
+    let mut times = Vec::new();
+    for _ in 0..repeats.max(1) {
+        let mut pairs: Vec<(u32, u32)> = keys.iter().copied().zip(vals.iter().copied()).collect();
+        let t = std::time::Instant::now();
+        pairs.sort_unstable_by_key(|p| p.0);
+        times.push(t.elapsed().as_secs_f64() * 1e3);
+        std::hint::black_box(&pairs);
+    }
+    median(&times)
+}
+
+struct SortComparison {
+    name: &'static str,
+    keys: usize,
+    gpu_ms: f64,
+    cpu_ms: f64,
+}
+
+/// The GPU's depth and tile sorts (median pass times) against Rust's sort_unstable of the same
+/// (key, value) pairs, rebuilt from the last frame's GPU state in the order the GPU sorted them.
+fn sort_comparison(r: &Rasterizer, per_pass: &[(String, Vec<f64>)]) -> Result<Vec<SortComparison>> {
+    use crate::render::reference;
+    let st = r.read_state()?;
+    let proj = st.projected;
+    let depth_ids: Vec<u32> = (0..proj.depths.len() as u32).filter(|&i| proj.tiles_touched[i as usize] > 0).collect();
+    let depth_keys: Vec<u32> = depth_ids.iter().map(|&i| proj.depths[i as usize].to_bits()).collect();
+    let fp = r.last_frame_params().ok_or_else(|| anyhow!("no frame rendered"))?;
+    let (tile_keys, tile_ids) = reference::forward::emit(&fp, &proj, &st.depth_ids);
+    let gpu = |name: &str| per_pass.iter().find(|(n, _)| n == name).map_or(f64::NAN, |(_, v)| median(v));
+    Ok(vec![
+        SortComparison {
+            name: "depth_sort",
+            keys: depth_keys.len(),
+            gpu_ms: gpu("depth_sort"),
+            cpu_ms: time_sort_unstable(&depth_keys, &depth_ids, 5),
+        },
+        SortComparison {
+            name: "tile_sort",
+            keys: tile_keys.len(),
+            gpu_ms: gpu("tile_sort"),
+            cpu_ms: time_sort_unstable(&tile_keys, &tile_ids, 5),
+        },
+    ])
+}
+
+/// `instgs-vk bench-sort`: the GPU radix sort against `sort_unstable` on `n` fixed pseudo-random
+/// keys of `bits` bits.
+pub fn bench_sort(device: Option<String>, n: usize, bits: u32, repeats: usize) -> Result<()> {
+    if n == 0 || !(1..=32).contains(&bits) {
+        bail!("--keys must be at least 1 and --bits in 1..32");
+    }
+    let gpu = Gpu::new(&GpuOptions::from_env(device))?;
+    eprintln!("device: {}", gpu.describe());
+    let k = Kernels::new(&gpu)?;
+    // A fixed xorshift stream: the same keys every run.
+    let mut s = 0x9e37_79b9_7f4a_7c15u64;
+    let mask = if bits == 32 { u32::MAX } else { (1u32 << bits) - 1 };
+    let keys: Vec<u32> = (0..n)
+        .map(|_| {
+            s ^= s << 13;
+            s ^= s >> 7;
+            s ^= s << 17;
+            (s >> 32) as u32 & mask
+        })
+        .collect();
+    let vals: Vec<u32> = (0..n as u32).collect();
+    let mut sorter = crate::render::sort::GpuSort::new(&gpu, &k, n)?;
+    let sorted = sorter.sort(&keys, &vals, bits, repeats)?;
+    let gpu_ms = sorted.gpu_ms.ok_or_else(|| anyhow!("the device has no timestamps"))?;
+    let cpu_ms = time_sort_unstable(&keys, &vals, repeats);
+    println!("keys {n}, bits {bits}: GPU radix sort {gpu_ms:.2} ms, sort_unstable (key,value) {cpu_ms:.2} ms, GPU/CPU {:.2}x", gpu_ms / cpu_ms);
+    Ok(())
+}

@@ -1,0 +1,138 @@
+//! Instance masks and groups of a dataset: `instances.json` (groups of instance ids), one 8- or
+//! 16-bit id mask per view under `masks/<split>/` (0 = background), and, for masks whose ids mean
+//! nothing across frames, per-frame categories `masks/<split>/<image stem>.json`.
+use std::collections::BTreeMap;
+use std::path::Path;
+
+use anyhow::{bail, Context, Result};
+
+use crate::dataset::View;
+
+/// A dataset's groups file (`instances.json`): groups of instance ids. Extra fields ignored.
+#[derive(Clone, Debug, PartialEq)]
+pub struct InstanceGroup {
+    pub name: String,
+    pub ids: Vec<u32>,
+}
+
+#[derive(serde::Deserialize)]
+struct GroupsFile {
+    groups: Vec<GroupEntry>,
+}
+
+#[derive(serde::Deserialize)]
+struct GroupEntry {
+    name: String,
+    instances: Vec<InstanceEntry>,
+}
+
+#[derive(serde::Deserialize)]
+struct InstanceEntry {
+    id: u32,
+}
+
+/// Reads `instances.json`; ids must be positive (0 is the background) and unique.
+pub fn read_groups(path: &Path) -> Result<Vec<InstanceGroup>> {
+    let what = path.display();
+    let text = std::fs::read_to_string(path).with_context(|| format!("{what}: cannot read"))?;
+    let f: GroupsFile = serde_json::from_str(&text)
+        .with_context(|| format!("{what}: not a groups file ({{groups: [{{name, instances: [{{id}}]}}]}})"))?;
+    let mut seen = std::collections::BTreeSet::new();
+    let groups: Vec<InstanceGroup> = f
+        .groups
+        .into_iter()
+        .map(|g| InstanceGroup { name: g.name, ids: g.instances.iter().map(|i| i.id).collect() })
+        .collect();
+    for g in &groups {
+        for &id in &g.ids {
+            if id == 0 {
+                bail!("{what}: group {:?} uses id 0, the background's", g.name);
+            }
+            if !seen.insert(id) {
+                bail!("{what}: instance id {id} appears twice");
+            }
+        }
+    }
+    Ok(groups)
+}
+
+/// Reads one mask (8- or 16-bit grey PNG of instance ids, 0 = background) of `width`×`height`.
+/// A mask an integer factor f larger in both dimensions (the image was loaded with
+/// `--downscale f`) is subsampled at each f×f block's centre pixel, so ids stay ids.
+pub fn read_mask(path: &Path, width: u32, height: u32) -> Result<Vec<u16>> {
+    let what = path.display();
+    let img = image::open(path).with_context(|| format!("{what}: cannot read mask"))?;
+    let (w, h) = (img.width(), img.height());
+    let img: Vec<u16> = match img {
+        image::DynamicImage::ImageLuma8(m) => m.pixels().map(|p| p.0[0] as u16).collect(),
+        image::DynamicImage::ImageLuma16(m) => m.pixels().map(|p| p.0[0]).collect(),
+        other => bail!("{what}: a mask must be 8- or 16-bit greyscale, not {:?}", other.color()),
+    };
+    if (w, h) == (width, height) {
+        return Ok(img);
+    }
+    let f = w / width.max(1);
+    if f > 1 && (w, h) == (f * width, f * height) {
+        let c = f / 2;
+        return Ok((0..height)
+            .flat_map(|y| (0..width).map(move |x| ((y * f + c) * w + x * f + c) as usize))
+            .map(|i| img[i])
+            .collect());
+    }
+    bail!("{what}: mask is {w}x{h}, its image {width}x{height}");
+}
+
+/// The masks of `views` (`masks/<split>/<image name>.png` under `data`), resized views refused.
+pub fn load_masks(data: &Path, split: &str, views: &[View]) -> Result<Vec<Vec<u16>>> {
+    views
+        .iter()
+        .map(|v| {
+            let name = v.path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+            read_mask(&data.join("masks").join(split).join(&name), v.camera.width, v.camera.height)
+        })
+        .collect()
+}
+
+/// The distinct non-zero ids of a mask, ascending.
+pub fn mask_ids(m: &[u16]) -> Vec<u16> {
+    let mut ids: Vec<u16> = m.iter().copied().filter(|&x| x != 0).collect();
+    ids.sort_unstable();
+    ids.dedup();
+    ids
+}
+
+/// Per-frame mask categories for masks whose ids mean nothing across frames (e.g. from SAM):
+/// `masks/<split>/<image stem>.json` = `{"<mask id>": "<category>", ...}`; every id in the mask
+/// needs a category.
+pub fn load_frame_categories(
+    data: &Path,
+    split: &str,
+    views: &[View],
+    masks: &[Vec<u16>],
+) -> Result<Vec<BTreeMap<u16, String>>> {
+    views
+        .iter()
+        .zip(masks)
+        .map(|(v, m)| {
+            let stem = v.path.file_stem().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+            let path = data.join("masks").join(split).join(format!("{stem}.json"));
+            let what = path.display();
+            let text = std::fs::read_to_string(&path)
+                .with_context(|| format!("{what}: cannot read the frame's mask categories"))?;
+            let raw: BTreeMap<String, String> = serde_json::from_str(&text)
+                .with_context(|| format!("{what}: not a {{\"<mask id>\": \"<category>\"}} object"))?;
+            let mut cats = BTreeMap::new();
+            for (id, cat) in raw {
+                let n: u16 = id.parse().with_context(|| format!("{what}: {id:?} is not a mask id (1..65535)"))?;
+                if n == 0 {
+                    bail!("{what}: id 0 is the background and takes no category");
+                }
+                cats.insert(n, cat);
+            }
+            if let Some(id) = mask_ids(m).iter().find(|id| !cats.contains_key(id)) {
+                bail!("{what}: mask id {id} of {} has no category", v.path.display());
+            }
+            Ok(cats)
+        })
+        .collect()
+}

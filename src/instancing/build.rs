@@ -1,0 +1,237 @@
+//! Building an instanced scene: from a segmented plain scene (`instgs-vk instance`: optional
+//! background pruning, templates, verified transforms, the report) or from templates and a scene
+//! graph (`instgs-vk compose`).
+use std::path::{Path, PathBuf};
+
+use anyhow::{bail, Context, Result};
+
+use crate::formats::instgs::{self, Dtype};
+use crate::gpu::kernels::open_device;
+use crate::instancing::template::{InstanceOptions, RenderCheck};
+use crate::instancing::verify::ImageCheck;
+use crate::model::scene::read_ply;
+use crate::util::write_json;
+
+/// Chooses the kept background fraction: (scene, labels, significance) → (fraction, ranking
+/// per Gaussian, what was decided as JSON).
+pub type KeepRule<'a> =
+    dyn FnMut(&crate::model::scene::Scene, &[u32], &[f32]) -> Result<(f64, Vec<f32>, serde_json::Value)> + 'a;
+
+#[allow(clippy::too_many_arguments)]
+/// Builds `out` from a segmented plain scene: optional background pruning (`prune`: the
+/// significance file and the keep rule), templates and verified transforms
+/// ([`template::instantiate`]), pose errors against ground truth; prints a line per instance
+/// and returns (and writes to `report`) the JSON report.
+pub fn instance(
+    scene_path: &Path,
+    labels: &Path,
+    groups_path: &Path,
+    truth_path: Option<&Path>,
+    opts: &crate::instancing::template::InstanceOptions,
+    dtype: instgs::Dtype,
+    prune: Option<(&Path, &mut KeepRule)>,
+    check: Option<&mut dyn crate::instancing::template::RenderCheck>,
+    report: Option<&Path>,
+    out: &Path,
+) -> Result<serde_json::Value> {
+    use crate::instancing::template;
+    let scene = crate::formats::read_scene(scene_path)?;
+    let labels = template::read_labels(labels, scene.len())?;
+    let groups = crate::dataset::masks::read_groups(groups_path)?;
+    // Background pruning (the pipeline's `instance.background_keep`): the background Gaussians
+    // ranked by `rule` from significance.bin (f32 per Gaussian, written by `segment`) stay.
+    let mut pruned = serde_json::Value::Null;
+    let (scene, labels) = match prune {
+        Some((sig_path, rule)) => {
+            let bytes = std::fs::read(sig_path).with_context(|| format!("{}: cannot read", sig_path.display()))?;
+            if bytes.len() != 4 * scene.len() {
+                bail!("{}: {} bytes, expected 4 per Gaussian ({})", sig_path.display(), bytes.len(), scene.len());
+            }
+            let sig: Vec<f32> = bytes.chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect();
+            let before = labels.iter().filter(|&&l| l == 0).count();
+            let (keep, ranking, how) = rule(&scene, &labels, &sig)?;
+            let (s, l, dropped) = template::prune_background(&scene, &labels, &ranking, keep)?;
+            eprintln!("background: kept {} of {before} Gaussians ({:.1} %)", before - dropped, 100.0 * keep);
+            pruned = serde_json::json!({"keep": keep, "before": before, "dropped": dropped, "rule": how});
+            (s, l)
+        }
+        None => (scene, labels),
+    };
+    let check_ran = check.is_some();
+    let (inst, reports) = template::instantiate(&scene, &labels, &groups, opts, check, |line| eprintln!("{line}"))?;
+    if crate::train::INTERRUPTED.load(std::sync::atomic::Ordering::SeqCst) {
+        bail!("interrupted before {} was written", out.display());
+    }
+    instgs::write(&inst, out, dtype)?;
+    let truth = match truth_path {
+        Some(p) => template::read_ground_truth(p)?,
+        None => None,
+    };
+    let mut rows = Vec::new();
+    for r in &reports {
+        let mut row = serde_json::json!({
+            "group": r.group, "id": r.id, "reference": r.reference, "gaussians": r.gaussians,
+            "status": r.status.name(), "reason": r.status.reason(),
+            "fitness": r.check.fitness, "fitness_reverse": r.check.fitness_reverse,
+            "scale": r.relative.scale, "scale_ratio": r.check.scale_ratio,
+            "poses_tried": r.tried, "shape_ambiguous": r.shape_ambiguous,
+        });
+        let mut line = format!(
+            "{} {} ({}): {} Gaussians, fitness {:.2} / {:.2}, scale {:.4}",
+            r.group,
+            r.id,
+            r.status.name(),
+            r.gaussians,
+            r.check.fitness,
+            r.check.fitness_reverse,
+            r.relative.scale
+        );
+        if let Some(s) = &r.render {
+            row["render_iou"] = s.iou.into();
+            row["render_psnr"] = s.psnr.into();
+            row["render_views"] = s.views.into();
+            line += &format!(", render IoU {:.2} PSNR {:.1} dB ({} views)", s.iou, s.psnr, s.views);
+        }
+        if let Some(t) = &truth {
+            if let (Some(a), Some(b)) = (t.get(&r.reference), t.get(&r.id)) {
+                let (rot, trans, scale) = template::pose_error(&r.relative, a, b);
+                line += &format!(
+                    "; against {}: rotation {rot:.3}°, translation {:.3} % of the size, scale {:+.3} %",
+                    groups_path.display(),
+                    100.0 * trans,
+                    100.0 * scale
+                );
+                row["rotation_error_deg"] = rot.into();
+                row["translation_error_fraction"] = trans.into();
+                row["scale_error_fraction"] = scale.into();
+            }
+        }
+        if let Some(why) = r.status.reason() {
+            line += &format!("\n    {}: {why}", r.status.name());
+        }
+        println!("{line}");
+        rows.push(row);
+    }
+    println!(
+        "{}: {} groups, {} template Gaussians, {} background, {} splats ({:?} templates)",
+        out.display(),
+        inst.groups.len(),
+        inst.groups.iter().map(|g| g.template.len()).sum::<usize>(),
+        inst.background.len(),
+        inst.splats(),
+        opts.init
+    );
+    let v = serde_json::json!({
+        "init": format!("{:?}", opts.init).to_lowercase(),
+        "colour": opts.use_colour,
+        "acceptance": serde_json::to_value(&opts.accept)?,
+        "render_check": check_ran,
+        "template_gaussians": inst.groups.iter().map(|g| g.template.len()).sum::<usize>(),
+        "background_gaussians": inst.background.len(),
+        "splats": inst.splats(),
+        "background_pruning": pruned,
+        "instances": rows,
+    });
+    if let Some(path) = report {
+        write_json(path, &v, true)?;
+    }
+    Ok(v)
+}
+
+/// `instgs-vk compose`: an instanced scene from named template PLYs (`NAME=FILE`), a scene graph
+/// and an optional background; `random_offsets` (amplitude, seed) adds test offsets.
+pub fn compose(
+    templates: &[String],
+    graph: &Path,
+    background: Option<&Path>,
+    random_offsets: Option<(f32, u64)>,
+    dtype: Dtype,
+    out: &Path,
+) -> Result<()> {
+    let mut loaded = Vec::new();
+    for t in templates {
+        let Some((name, file)) = t.split_once('=') else {
+            bail!("--template {t:?}: expected NAME=FILE.ply");
+        };
+        loaded.push((name.to_string(), crate::formats::read_scene(Path::new(file))?));
+    }
+    let graph = crate::model::instanced::read_scene_graph(graph)?;
+    let background = background.map(read_ply).transpose()?;
+    let scene = crate::model::instanced::compose(loaded, graph, background, random_offsets)?;
+    instgs::write(&scene, out, dtype)?;
+    eprintln!(
+        "wrote {}: {} groups, {} splats from {} parameter rows",
+        out.display(),
+        scene.groups.len(),
+        scene.splats(),
+        scene.rows()
+    );
+    Ok(())
+}
+
+/// What `instgs-vk instance` was asked.
+pub struct InstanceRequest {
+    /// The trained plain scene.
+    pub scene: PathBuf,
+    /// labels.json (or .bin) from `segment`.
+    pub labels: PathBuf,
+    /// The dataset: its `instances.json` names the groups unless `groups` is given; its training
+    /// views (and masks) drive the render check.
+    pub data: PathBuf,
+    /// A groups file (from `segment --per-frame-ids`) instead of `data/instances.json`; then no
+    /// ground-truth pose errors are printed.
+    pub groups: Option<PathBuf>,
+    pub opts: InstanceOptions,
+    pub offset_dtype: Dtype,
+    /// The JSON report.
+    pub report: Option<PathBuf>,
+    /// Image downscale factor of the render check.
+    pub downscale: u32,
+    /// Check every registered pose by rendering against the training views (where there are any).
+    pub render_check: bool,
+    pub out: PathBuf,
+}
+
+/// `instgs-vk instance`: [`instance`] with the render check built from the dataset's training
+/// views (and global-id masks, where `data/masks/train/` exists).
+pub fn instance_command(device: Option<String>, req: &InstanceRequest) -> Result<()> {
+    let data = &req.data;
+    let groups_file = req.groups.clone().unwrap_or_else(|| data.join("instances.json"));
+    let truth = req.groups.is_none().then_some(groups_file.as_path());
+    let has_views = data.join("transforms_train.json").exists() || data.join("sparse").is_dir();
+    let mut check = if !req.render_check || !has_views {
+        None
+    } else {
+        let load = crate::dataset::LoadOptions { downscale: req.downscale, background: [0.0; 3] };
+        let ds = crate::dataset::load(data, &load)?;
+        let masks = match req.groups {
+            None if data.join("masks").join("train").is_dir() => {
+                Some(crate::dataset::masks::load_masks(data, "train", &ds.train)?)
+            }
+            _ => None,
+        };
+        let (gpu, k) = open_device(device)?;
+        let cams = ds.train.iter().map(|v| v.camera.clone()).collect();
+        Some(ImageCheck::new(&gpu, &k, cams, masks)?)
+    };
+    let check = check.as_mut().map(|c| c as &mut dyn RenderCheck);
+    instance(
+        &req.scene,
+        &req.labels,
+        &groups_file,
+        truth,
+        &req.opts,
+        req.offset_dtype,
+        None,
+        check,
+        req.report.as_deref(),
+        &req.out,
+    )?;
+    if req.render_check && !has_views {
+        eprintln!(
+            "note: {} holds no training views (transforms_train.json or sparse/): the poses were checked by geometry alone",
+            data.display()
+        );
+    }
+    Ok(())
+}
