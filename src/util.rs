@@ -119,21 +119,6 @@ pub fn duration(secs: f64) -> String {
     }
 }
 
-/// The median of `v` (the upper one of an even count; NaN when empty).
-pub fn median(v: &[f64]) -> f64 {
-    percentile(v, 0.5)
-}
-
-/// The `q`-quantile of `v` (nearest rank, q in [0, 1]; NaN when empty).
-pub fn percentile(v: &[f64], q: f64) -> f64 {
-    let mut v = v.to_vec();
-    v.sort_by(f64::total_cmp);
-    if v.is_empty() {
-        return f64::NAN;
-    }
-    v[((v.len() - 1) as f64 * q).round() as usize]
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -162,9 +162,9 @@ fn compose_info_convert_and_render_an_instanced_scene() {
     let mut tpl = template(&mut rng, 300, 2);
     tpl.opacities.iter_mut().for_each(|o| *o = o.max(0.0));
     let tpl_path = d.join("mug.ply");
-    instgs_vk::model::scene::write_ply(&tpl, &tpl_path).unwrap();
+    instgs_vk::formats::ply::write_ply(&tpl, &tpl_path).unwrap();
     let bg_path = d.join("floor.ply");
-    instgs_vk::model::scene::write_ply(&random_scene(&mut rng, 50, 2), &bg_path).unwrap();
+    instgs_vk::formats::ply::write_ply(&random_scene(&mut rng, 50, 2), &bg_path).unwrap();
     // The prototype's convention: instance 1 is the template frame; others map world → template.
     let graph = serde_json::json!([{"template_id": "mug", "instances": [
         {"instance_id": "1", "transform": [[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]},
@@ -314,7 +314,7 @@ fn instance_turns_a_labelled_plain_scene_into_an_instanced_one() {
         labels.push(0);
     }
     let ply = d.join("plain.ply");
-    instgs_vk::model::scene::write_ply(&plain, &ply).unwrap();
+    instgs_vk::formats::ply::write_ply(&plain, &ply).unwrap();
     let labels_path = d.join("labels.json");
     std::fs::write(&labels_path, serde_json::json!({"ids": [1, 2], "labels": labels}).to_string()).unwrap();
     let groups = serde_json::json!({"groups": [{"name": "blob", "instances": [{"id": 1}, {"id": 2}]}]});

@@ -6,9 +6,10 @@ mod common;
 use std::path::Path;
 
 use common::{assert_clean, gpu, shared_data};
+use instgs_vk::formats::ply::{read_ply, write_compressed_ply};
 use instgs_vk::formats::{self, Format};
 use instgs_vk::model::camera::{orbit_around, UpAxis};
-use instgs_vk::model::scene::{read_ply, write_compressed_ply, Scene};
+use instgs_vk::model::scene::Scene;
 use instgs_vk::render::raster::{GpuScene, Rasterizer};
 use instgs_vk::util::psnr;
 
@@ -123,7 +124,7 @@ fn spz_writer_round_trips_within_its_quantisation() {
     for name in ["biker.ply", "fruit_drops_minimal.ply"] {
         let source = read_ply(&shared_data(&format!("splats/{name}"))).unwrap();
         let out = tmp(&format!("{name}.spz"));
-        formats::write_spz(&source, &out).unwrap();
+        formats::spz::write_spz(&source, &out).unwrap();
         let back = formats::read_scene(&out).unwrap();
         let e = max_errors(&source, &back);
         eprintln!("{name} through .spz: errors {e:?}");
@@ -139,7 +140,7 @@ fn spz_writer_round_trips_within_its_quantisation() {
         // Writing what we read back moves nothing by more than rounding: the quantisation is
         // stable under itself.
         let again = tmp(&format!("{name}.2.spz"));
-        formats::write_spz(&back, &again).unwrap();
+        formats::spz::write_spz(&back, &again).unwrap();
         let e2 = max_errors(&back, &formats::read_scene(&again).unwrap());
         assert!(e2.iter().all(|&v| v <= 2e-3), "{name}: a second round trip moved {e2:?}");
     }
@@ -149,7 +150,7 @@ fn spz_writer_round_trips_within_its_quantisation() {
 fn splat_writer_round_trips_within_its_quantisation() {
     let source = read_ply(&shared_data("splats/guitar.ply")).unwrap();
     let out = tmp("guitar.splat");
-    formats::write_splat(&source, &out).unwrap();
+    formats::splat::write_splat(&source, &out).unwrap();
     assert_eq!(formats::detect(&out).unwrap(), Format::Splat);
     let back = formats::read_scene(&out).unwrap();
     let e = max_errors(&source, &back);
@@ -180,13 +181,13 @@ fn infinite_opacity_logits_are_clamped_and_nan_refused() {
     s.opacities[3] = f32::INFINITY;
     s.opacities[4] = f32::NEG_INFINITY;
     let out = tmp("inf.ply");
-    instgs_vk::model::scene::write_ply(&s, &out).unwrap();
+    instgs_vk::formats::ply::write_ply(&s, &out).unwrap();
     let back = formats::read_scene(&out).unwrap();
-    assert_eq!(back.opacities[3], formats::OPACITY_LOGIT_LIMIT);
-    assert_eq!(back.opacities[4], -formats::OPACITY_LOGIT_LIMIT);
-    assert!((formats::OPACITY_LOGIT_LIMIT - 1019f32.ln()).abs() < 1e-5);
+    assert_eq!(back.opacities[3], formats::quant::OPACITY_LOGIT_LIMIT);
+    assert_eq!(back.opacities[4], -formats::quant::OPACITY_LOGIT_LIMIT);
+    assert!((formats::quant::OPACITY_LOGIT_LIMIT - 1019f32.ln()).abs() < 1e-5);
     s.opacities[3] = f32::NAN;
-    instgs_vk::model::scene::write_ply(&s, &out).unwrap();
+    instgs_vk::formats::ply::write_ply(&s, &out).unwrap();
     let e = format!("{:#}", formats::read_scene(&out).unwrap_err());
     assert!(e.contains("inf.ply") && e.contains("non-finite opacity"), "{e}");
 }
@@ -246,7 +247,7 @@ fn sog_writer_round_trips_within_its_quantisation() {
     // fruit_drops: SH degree 3 (the palette), 4.7k Gaussians.
     let source = read_ply(&shared_data("splats/fruit_drops_minimal.ply")).unwrap();
     let out = tmp("sog/meta.json");
-    formats::write_sog(&source, &out).unwrap();
+    formats::sog::write_sog(&source, &out).unwrap();
     assert_eq!(formats::detect(out.parent().unwrap()).unwrap(), Format::Sog);
     let back = formats::read_scene(&out).unwrap();
     let e = max_errors(&source, &back);

@@ -40,8 +40,8 @@ fn sh_rotation_turns_view_dependent_colour_with_the_instance() {
             }
             for _ in 0..20 {
                 let d = Vec3::new(rng.normal(), rng.normal(), rng.normal()).normalize();
-                let world = instgs_vk::render::reference::forward::sh_basis(d, deg);
-                let template = instgs_vk::render::reference::forward::sh_basis(q.inverse() * d, deg);
+                let world = instgs_vk::math::sh_basis(d, deg);
+                let template = instgs_vk::math::sh_basis(q.inverse() * d, deg);
                 for ch in 0..3 {
                     let want: f32 = (0..c).map(|k| template[k] * sh[k * 3 + ch]).sum();
                     let got: f32 = (0..c).map(|k| world[k] * rotated[k * 3 + ch]).sum();

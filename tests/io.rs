@@ -1,8 +1,9 @@
 //! Scene files: PLY round trips, ASCII and big-endian input, SuperSplat compressed PLY.
 mod common;
 use common::*;
+use instgs_vk::formats::ply::{read_ply, write_ply};
 use instgs_vk::model::camera::{orbit_around, UpAxis};
-use instgs_vk::model::scene::{read_ply, write_ply, Scene};
+use instgs_vk::model::scene::Scene;
 use instgs_vk::render::raster::{GpuScene, Rasterizer};
 use instgs_vk::util::psnr;
 

@@ -142,7 +142,7 @@ fn culling_is_lossless() {
 fn level_of_detail_keeps_distant_guitars() {
     let (gpu, k) = gpu();
     let demo = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("demo/guitar.compressed.ply");
-    let guitar = instgs_vk::model::scene::read_ply(&demo).unwrap();
+    let guitar = instgs_vk::formats::ply::read_ply(&demo).unwrap();
     let (lo, hi) = guitar.robust_bounds(0.0);
     let size = (hi - lo).length();
     let mut rng = Rng::new(2);

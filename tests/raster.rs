@@ -3,8 +3,9 @@
 mod common;
 use common::*;
 use glam::Vec3;
+use instgs_vk::formats::ply::read_ply;
 use instgs_vk::model::camera::{orbit_around, Camera, UpAxis};
-use instgs_vk::model::scene::{read_ply, Scene};
+use instgs_vk::model::scene::Scene;
 use instgs_vk::render::raster::{frame_params, GpuScene, Rasterizer};
 use instgs_vk::render::reference;
 use instgs_vk::shared::*;

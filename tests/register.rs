@@ -231,7 +231,7 @@ fn instantiate_recovers_instances_and_builds_templates() {
         assert!(g.offsets.d_means.iter().all(|d| Vec3::from(*d).length() <= 0.05));
         let expanded = inst.expand();
         let orig: Vec<[f64; 3]> = scene.means.iter().map(|m| m.map(|c| c as f64)).collect();
-        let tree = instgs_vk::register::tree(&orig);
+        let tree = instgs_vk::math::tree(&orig);
         let mean_err = expanded.means[3000..]
             .iter()
             .map(|m| tree.nearest_one::<kiddo::SquaredEuclidean>(&m.map(|c| c as f64)).distance.sqrt() as f32)
@@ -276,7 +276,7 @@ fn instantiate_reports_bad_labels() {
 fn point_trees_take_clouds_with_many_equal_coordinates() {
     // A flat floor (z = 0 exactly) on a quantised grid: kiddo alone refuses it.
     let pts: Vec<[f64; 3]> = (0..4000).map(|i| [(i % 50) as f64 * 0.01, (i / 50) as f64 * 0.01, 0.0]).collect();
-    let t = instgs_vk::register::tree(&pts);
+    let t = instgs_vk::math::tree(&pts);
     let mut rng = Rng::new(8);
     for _ in 0..200 {
         let q = [rng.range(0.0, 0.5) as f64, rng.range(0.0, 0.8) as f64, rng.range(-0.1, 0.1) as f64];

@@ -54,7 +54,7 @@ fn known_scene(
             for id in 1..=3u32 {
                 let mut s = plain.clone();
                 s.sh_degree = 0;
-                let c0 = instgs_vk::model::scene::SH_C0;
+                let c0 = instgs_vk::math::SH_C0_F32;
                 s.sh = truth.iter().flat_map(|&l| [if l == id { 0.5 / c0 } else { -0.5 / c0 }; 3]).collect();
                 let gs = instgs_vk::render::raster::GpuScene::new(gpu, &s).unwrap();
                 let f = instgs_vk::render::raster::Rasterizer::new(gpu, k)

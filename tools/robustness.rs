@@ -201,7 +201,7 @@ fn main() -> Result<()> {
             _ => bail!("unknown option {k}"),
         }
     }
-    let scene = instgs_vk::model::scene::read_ply(&run.join("point_cloud.ply"))?;
+    let scene = instgs_vk::formats::ply::read_ply(&run.join("point_cloud.ply"))?;
     let labels = template::read_labels(&run.join("labels.json"), scene.len())?;
     let groups_path = data.join("instances.json");
     let groups = instgs_vk::dataset::masks::read_groups(&groups_path)?;

@@ -5,14 +5,15 @@ use std::sync::Arc;
 
 use anyhow::{anyhow, bail, Context, Result};
 
-use crate::formats::instgs::AnyScene;
+use crate::formats::AnyScene;
 use crate::gpu::kernels::Kernels;
 use crate::gpu::{Gpu, GpuOptions};
+use crate::math::{median, percentile};
 use crate::model::camera::Camera;
 use crate::render::frames::{collect, print_passes, setup, FrameSpec, Setup};
 use crate::render::lod::RenderConfig;
 use crate::render::raster::{GpuScene, Rasterizer};
-use crate::util::{median, percentile, write_json, Progress, ProgressMode};
+use crate::util::{write_json, Progress, ProgressMode};
 
 /// One scene of a bench run: its own rasterizer (buffers sized for it) and samples.
 struct BenchScene {

@@ -6,10 +6,10 @@ use std::path::{Path, PathBuf};
 use anyhow::{bail, Context, Result};
 
 use crate::formats::instgs::{self, Dtype};
+use crate::formats::ply::read_ply;
 use crate::gpu::kernels::open_device;
 use crate::instancing::template::{InstanceOptions, RenderCheck};
 use crate::instancing::verify::ImageCheck;
-use crate::model::scene::read_ply;
 use crate::util::write_json;
 
 /// Chooses the kept background fraction: (scene, labels, significance) → (fraction, ranking

@@ -16,8 +16,9 @@ use crate::dataset::View;
 use crate::gpu::kernels::Kernels;
 use crate::gpu::Gpu;
 use crate::instancing::template::prune_background;
+use crate::math::tree;
 use crate::model::scene::Scene;
-use crate::register::{object_size, tree};
+use crate::register::object_size;
 use crate::render::raster::{GpuScene, Rasterizer};
 
 /// Training views rendered per trial at most (evenly spread over the split).

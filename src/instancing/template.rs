@@ -22,13 +22,15 @@ use glam::{Mat3, Quat, Vec3};
 use kiddo::SquaredEuclidean;
 
 use crate::dataset::masks::InstanceGroup;
+use crate::math::SH_C0_F32;
+use crate::math::{logit, sigmoid};
 use crate::model::instanced::{quat_mul, Group, Instance, InstancedScene, Offsets, ShRotation, Similarity};
-use crate::model::scene::{Scene, SH_C0};
+use crate::model::scene::Scene;
 use crate::register::{
     candidates, centroid, farthest_point_sample, median_spacing, object_size, reverse_fitness, voxel_downsample,
     RegisterOptions, Sim3,
 };
-use crate::train::{knn_log_scales, logit, sigmoid};
+use crate::train::knn_log_scales;
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
 pub enum TemplateInit {
@@ -399,7 +401,7 @@ pub fn instantiate(
                     idx = (0..p.len()).collect();
                 }
                 let c = p.sh_coeffs() * 3;
-                let rgb = |i: usize| std::array::from_fn(|a| (0.5 + SH_C0 * p.sh[i * c + a]).max(0.01) as f64);
+                let rgb = |i: usize| std::array::from_fn(|a| (0.5 + SH_C0_F32 * p.sh[i * c + a]).max(0.01) as f64);
                 (idx.iter().map(|&i| to_f64(p.means[i])).collect(), idx.iter().map(|&i| rgb(i)).collect())
             })
             .unzip();
@@ -736,7 +738,7 @@ fn nearest_offsets(template: &Scene, instances: &[Instance], parts: &[Scene], ca
     let mut o = Offsets::zeros(t * instances.len());
     let c = template.sh_coeffs() * 3;
     for (k, (inst, part)) in instances.iter().zip(parts).enumerate() {
-        let tree = crate::register::tree(&part.means.iter().map(|m| to_f64(*m)).collect::<Vec<_>>());
+        let tree = crate::math::tree(&part.means.iter().map(|m| to_f64(*m)).collect::<Vec<_>>());
         let x = inst.transform;
         for j in 0..t {
             let w = x.rotation * (Vec3::from(template.means[j]) * x.scale) + x.translation;

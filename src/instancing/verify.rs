@@ -163,5 +163,5 @@ pub fn compare(views: &[Compared], id: u32) -> RenderScore {
             f64::INFINITY
         }
     };
-    RenderScore { views: views.len(), iou: crate::util::median(&ious), psnr }
+    RenderScore { views: views.len(), iou: crate::math::median(&ious), psnr }
 }

@@ -357,11 +357,9 @@ impl ShRotation {
                 let (lo, n) = (l * l, 2 * l + 1);
                 // With Y(Rᵀd) = D·Y(d) (band l): A[i][m] = Y_m(d_i), B[i][m] = Y_m(Rᵀd_i), so
                 // B = A·Dᵀ, and cᵀY(Rᵀd) = (Dᵀc)ᵀY(d): c′ = Dᵀ·c.
-                let a = DMatrix::from_fn(N, n, |i, m| {
-                    crate::render::reference::backward::sh_basis_grad(dirs[i], degree).0[lo + m]
-                });
+                let a = DMatrix::from_fn(N, n, |i, m| crate::math::sh_basis_grad(dirs[i], degree).0[lo + m]);
                 let b = DMatrix::from_fn(N, n, |i, m| {
-                    crate::render::reference::backward::sh_basis_grad(r.transpose() * dirs[i], degree).0[lo + m]
+                    crate::math::sh_basis_grad(r.transpose() * dirs[i], degree).0[lo + m]
                 });
                 let dt = a.svd(true, true).solve(&b, 1e-12).expect("SVD of the SH basis at fixed directions");
                 (0..n * n).map(|e| dt[(e / n, e % n)]).collect()
@@ -535,7 +533,7 @@ pub fn xform_param_grads(params: &[f32; 8], terms: &[f32]) -> [f64; 8] {
     let qn = q / len;
     let t: Vec<f64> = terms.iter().map(|&v| v as f64).collect();
     let v_r = glam::DMat3::from_cols_slice(&t[4..13]);
-    let v_qn = crate::render::reference::backward::rotation_vjp(qn, v_r) + glam::DVec4::new(t[13], t[14], t[15], t[16]);
+    let v_qn = crate::math::rotation_vjp(qn, v_r) + glam::DVec4::new(t[13], t[14], t[15], t[16]);
     let v_q = (v_qn - qn * qn.dot(v_qn)) / len;
     [v_q.x, v_q.y, v_q.z, v_q.w, t[0], t[1], t[2], t[3]]
 }

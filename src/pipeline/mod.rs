@@ -15,6 +15,9 @@
 //! the training stages from their checkpoints and redoes an unfinished other stage from its start
 //! (they write their results atomically, so a result file is always whole).
 pub mod report;
+pub mod stage;
+
+pub use stage::{PipelineArgs, Stage, STAGES};
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -23,7 +26,7 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use crate::dataset::Dataset;
-use crate::formats::instgs::AnyScene;
+use crate::formats::AnyScene;
 use crate::gpu::kernels::Kernels;
 use crate::gpu::Gpu;
 use crate::train::config::{BackgroundKeep, PipelineConfig};
@@ -31,45 +34,6 @@ use crate::train::{self, INTERRUPTED};
 use crate::util::{Progress, ProgressMode};
 use anyhow::{anyhow, bail, Context, Result};
 use serde::{Deserialize, Serialize};
-
-#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, clap::ValueEnum)]
-pub enum Stage {
-    /// Plain 3DGS training (or the --init PLY).
-    Plain,
-    /// Gradient-driven instance segmentation.
-    Segment,
-    /// Registration and template initialisation.
-    Instance,
-    /// Joint optimisation of templates, offsets and background.
-    Joint,
-    /// Held-out PSNR/SSIM of plain and InstGS, side-by-side images.
-    Eval,
-    /// Frame times and memory, InstGS against plain.
-    Bench,
-}
-
-pub const STAGES: [Stage; 6] = [Stage::Plain, Stage::Segment, Stage::Instance, Stage::Joint, Stage::Eval, Stage::Bench];
-
-impl Stage {
-    pub fn name(self) -> &'static str {
-        match self {
-            Stage::Plain => "plain",
-            Stage::Segment => "segment",
-            Stage::Instance => "instance",
-            Stage::Joint => "joint",
-            Stage::Eval => "eval",
-            Stage::Bench => "bench",
-        }
-    }
-
-    fn number(self) -> usize {
-        STAGES.iter().position(|&s| s == self).unwrap_or(0) + 1
-    }
-
-    fn label(self) -> String {
-        format!("[{}/{} {}] ", self.number(), STAGES.len(), self.name())
-    }
-}
 
 /// Whether `data` has instance masks (`masks/train/`): the pipeline runs, else plain training.
 pub fn has_masks(data: &Path) -> bool {
@@ -187,20 +151,6 @@ impl State {
     fn done(&self, s: Stage) -> bool {
         self.stages.get(s.name()).is_some_and(|r| r.done)
     }
-}
-
-pub struct PipelineArgs {
-    pub data: PathBuf,
-    pub downscale: u32,
-    pub out: PathBuf,
-    /// A plain scene trained elsewhere: the plain stage copies it instead of training.
-    pub init_ply: Option<PathBuf>,
-    pub config: Option<PathBuf>,
-    pub iterations: Option<u64>,
-    pub from: Option<Stage>,
-    pub until: Option<Stage>,
-    pub progress: bool,
-    pub device: Option<String>,
 }
 
 /// `INSTGS_INTERRUPT_IN=<stage>` (tests): the run behaves as if Ctrl-C arrived in that stage —
@@ -403,7 +353,7 @@ impl Ctx<'_> {
                             f.write_all(&bytes)
                         })?;
                     } else {
-                        crate::model::scene::write_ply(&crate::formats::read_scene(p)?, &to)?;
+                        crate::formats::ply::write_ply(&crate::formats::read_scene(p)?, &to)?;
                     }
                     eprintln!("{}: plain scene from {}", run.join("point_cloud.ply").display(), p.display());
                     return Ok(!interrupted());
@@ -411,7 +361,7 @@ impl Ctx<'_> {
                 self.train(run, None, &self.cfg.plain, s, hooked)
             }
             Stage::Segment => {
-                let scene = crate::model::scene::read_ply(&run.join("point_cloud.ply"))?;
+                let scene = crate::formats::ply::read_ply(&run.join("point_cloud.ply"))?;
                 let per_frame = self.mask_ids == MaskIds::PerFrame;
                 let seg = crate::segment::run::segment_scene(
                     self.gpu,

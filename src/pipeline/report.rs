@@ -5,7 +5,7 @@ use std::path::Path;
 
 use anyhow::Result;
 
-use crate::pipeline::{PipelineArgs, Stage, STAGES};
+use crate::pipeline::stage::{PipelineArgs, Stage, STAGES};
 
 fn read(run: &Path, file: &str) -> Option<serde_json::Value> {
     serde_json::from_str(&std::fs::read_to_string(run.join(file)).ok()?).ok()

@@ -29,7 +29,7 @@ use winit::event_loop::{ActiveEventLoop, ControlFlow, EventLoop};
 use winit::keyboard::{KeyCode, PhysicalKey};
 use winit::window::{Window, WindowId};
 
-use crate::formats::instgs::AnyScene;
+use crate::formats::AnyScene;
 use crate::gpu::kernels::Kernels;
 use crate::gpu::{Buffer, CommandBuffer, Gpu, GpuOptions};
 use crate::model::camera::Camera;

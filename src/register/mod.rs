@@ -10,6 +10,7 @@
 //! and rayon, no similarity ICP), `fast-gicp` (C++ GICP bindings, no FPFH) and `fricp` (ICP only).
 //! None does FPFH + RANSAC + scaled ICP well, so that logic lives here on top of `kiddo` (k-d
 //! trees) and `nalgebra` (SVD, symmetric eigen).
+use crate::math::tree;
 use std::collections::HashMap;
 
 use anyhow::{bail, Result};
@@ -145,35 +146,6 @@ fn voxel_downsample_with(
         sums[i].2 += 1;
     }
     sums.into_iter().map(|(s, v, n)| (s.map(|c| c / n as f64), v.map(|c| c / n as f64))).unzip()
-}
-
-/// A k-d tree of `points` for nearest-neighbour queries (items = indices). `kiddo`'s trees panic
-/// when more points than a bucket holds share a coordinate on one axis (a flat floor, quantised
-/// positions of a compressed PLY): then the tree is built on copies moved by at most 1e-9 of
-/// the cloud's extent per axis (a fixed pattern per index); callers that need exact distances
-/// recompute them from the points.
-pub fn tree<const K: usize>(points: &[[f64; K]]) -> ImmutableKdTree<f64, u32, K, 32> {
-    let crowded = (0..K).any(|a| {
-        let mut v: Vec<f64> = points.iter().map(|p| p[a]).collect();
-        v.sort_by(f64::total_cmp);
-        v.chunk_by(|x, y| x == y).any(|run| run.len() >= 16)
-    });
-    if !crowded {
-        return ImmutableKdTree::new_from_slice(points);
-    }
-    let extent = points.iter().flatten().fold(0.0f64, |m, c| m.max(c.abs())).max(1e-30);
-    let moved: Vec<[f64; K]> = points
-        .iter()
-        .enumerate()
-        .map(|(i, p)| {
-            let h = (i as u64 + 1).wrapping_mul(0x9E37_79B9_7F4A_7C15);
-            std::array::from_fn(|a| {
-                let u = (h.rotate_left(13 * a as u32) & 0xFFFF) as f64 / 65535.0 - 0.5;
-                p[a] + 2e-9 * extent * u
-            })
-        })
-        .collect();
-    ImmutableKdTree::new_from_slice(&moved)
 }
 
 /// Unit normals from the covariance of the neighbours within `radius` (at most `max_nn`,

@@ -5,12 +5,13 @@ use std::sync::Arc;
 
 use anyhow::{bail, Context, Result};
 
-use crate::formats::instgs::AnyScene;
+use crate::formats::AnyScene;
 use crate::gpu::kernels::Kernels;
 use crate::gpu::{Gpu, GpuOptions};
+use crate::math::median;
 use crate::model::camera::{self, Camera, UpAxis};
 use crate::render::raster::Rasterizer;
-use crate::util::{median, save_png};
+use crate::util::save_png;
 
 /// What `render` and `bench` draw: a scene from a set of cameras over a background colour.
 pub struct FrameSpec {

@@ -15,6 +15,7 @@
 //!
 //! Selection (per frame, on the GPU: `instance_select.comp`, CPU twin [`select_instance`]): see
 //! the kernel's header. Training never uses either: it renders every pair.
+use crate::math::{quat_to_mat, sigmoid};
 use std::collections::HashMap;
 
 use anyhow::{bail, Context, Result};
@@ -101,14 +102,6 @@ fn merge(base: &mut toml::Table, user: toml::Table) {
             }
         }
     }
-}
-
-fn sigmoid(x: f32) -> f32 {
-    1.0 / (1.0 + (-x).exp())
-}
-
-fn rotation(q: [f32; 4]) -> Mat3 {
-    Mat3::from_quat(Quat::from_xyzw(q[1], q[2], q[3], q[0]).normalize())
 }
 
 /// Template-space bounding sphere (centre, radius) of the Gaussians' 3σ extents.
@@ -225,7 +218,7 @@ pub fn merge_clusters(t: &Scene, offsets: &Offsets, instances: usize, clusters: 
         let mut cov = Matrix3::<f64>::zeros();
         let mut covered = 0.0f64;
         for (&i, &wi) in members.iter().zip(&w) {
-            let r = rotation(t.quats[i]);
+            let r = quat_to_mat(t.quats[i]);
             let s = scale(i);
             let rm = Matrix3::from_fn(|a, b| r.col(b)[a] as f64);
             let s2 = Matrix3::from_diagonal(&nalgebra::Vector3::new(

@@ -204,7 +204,7 @@ pub fn instance_iou(
 ) -> Result<Vec<f64>> {
     let mut s = scene.clone();
     s.sh_degree = 0;
-    let c0 = crate::model::scene::SH_C0;
+    let c0 = crate::math::SH_C0_F32;
     s.sh = (0..scene.len()).flat_map(|i| [if labels[i] == id { 0.5 / c0 } else { -0.5 / c0 }; 3]).collect();
     let gs = GpuScene::new(gpu, &s)?;
     let mut r = Rasterizer::new(gpu, k)?;

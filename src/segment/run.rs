@@ -58,7 +58,7 @@ pub fn segment(
             let part = crate::segment::subset(&scene, &seg.labels, id);
             let name = if id == 0 { "background.ply".to_string() } else { format!("instance_{id}.ply") };
             if !part.is_empty() {
-                crate::model::scene::write_ply(&part, &dir.join(name))?;
+                crate::formats::ply::write_ply(&part, &dir.join(name))?;
             }
         }
     }

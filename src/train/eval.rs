@@ -4,7 +4,7 @@ use std::path::Path;
 
 use anyhow::{bail, Context, Result};
 
-use crate::formats::instgs::AnyScene;
+use crate::formats::AnyScene;
 use crate::gpu::kernels::open_device;
 use crate::render::raster::Rasterizer;
 use crate::util::{save_png, Progress, ProgressMode};

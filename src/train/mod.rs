@@ -34,10 +34,12 @@ use rand_distr::{Distribution, StandardNormal};
 use crate::dataset::{Dataset, View};
 use crate::gpu::kernels::Kernels;
 use crate::gpu::{CommandBuffer, Gpu};
+use crate::math::SH_C0_F32;
+use crate::math::{logit, sigmoid};
 use crate::model::instanced::{
     xform_from_params, xform_param_grads, xform_params, Group, Instance, InstancedScene, Offsets, Similarity,
 };
-use crate::model::scene::{Scene, SH_C0};
+use crate::model::scene::Scene;
 use crate::render::raster::{GpuScene, Grads, Rasterizer};
 use crate::train::config::Config;
 use crate::train::optim::{
@@ -61,14 +63,6 @@ fn scene_from_params(p: [Vec<f32>; 5], sh_degree: u32) -> Scene {
         sh,
         sh_degree,
     }
-}
-
-pub(crate) fn logit(p: f32) -> f32 {
-    (p / (1.0 - p)).ln()
-}
-
-pub(crate) fn sigmoid(x: f32) -> f32 {
-    1.0 / (1.0 + (-x).exp())
 }
 
 /// How an instanced run's parameter rows and offsets form groups (the data lives in
@@ -369,7 +363,7 @@ pub fn densify(st: &TrainState, cfg: &Config, extent: f32, rng: &mut rand_pcg::P
     // Split children: positions sampled from the parent, scales / (0.8 · 2).
     for (j, &i) in splits.iter().enumerate() {
         let s = Vec3::from(st.scene.scales[i]).exp();
-        let r = crate::render::reference::forward::quat_to_mat(st.scene.quats[i]);
+        let r = crate::math::quat_to_mat(st.scene.quats[i]);
         for c in 0..2 {
             let z: [f32; 3] = [0, 1, 2].map(|_| StandardNormal.sample(rng));
             let p = r * (Vec3::from(z) * s) + Vec3::from(st.scene.means[i]);
@@ -412,7 +406,7 @@ pub fn reset_opacity(st: &mut TrainState) {
 /// clamped at 1e-7 squared distance).
 pub fn knn_log_scales(points: &[[f32; 3]]) -> Vec<f32> {
     let points: Vec<[f64; 3]> = points.iter().map(|p| p.map(|c| c as f64)).collect();
-    let tree = crate::register::tree(&points);
+    let tree = crate::math::tree(&points);
     points
         .iter()
         .enumerate()
@@ -459,7 +453,7 @@ pub fn initial_scene(ds: &Dataset, cfg: &Config) -> Scene {
         s.opacities.push(logit(cfg.init.opacity));
         for k in 0..coeffs {
             for c in 0..3 {
-                s.sh.push(if k == 0 { (pc.colors[i][c] - 0.5) / SH_C0 } else { 0.0 });
+                s.sh.push(if k == 0 { (pc.colors[i][c] - 0.5) / SH_C0_F32 } else { 0.0 });
             }
         }
     }
@@ -1189,7 +1183,7 @@ pub fn run(gpu: &Arc<Gpu>, k: &Arc<Kernels>, ds: &Dataset, cfg: &Config, opts: &
         Some(inst) => {
             crate::formats::instgs::write(&inst, &opts.out.join("scene.instgs"), crate::formats::instgs::Dtype::F32)?
         }
-        None => crate::model::scene::write_ply(&state.scene, &opts.out.join("point_cloud.ply"))?,
+        None => crate::formats::ply::write_ply(&state.scene, &opts.out.join("point_cloud.ply"))?,
     }
     crate::train::plot::write(&curves(&rows, cfg, state.layout.is_none(), ds), &opts.out.join("curves.png"))?;
     let secs = t0.elapsed().as_secs_f64();

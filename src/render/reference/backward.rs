@@ -2,77 +2,10 @@
 //! product (`preprocess_backward`), compositing and its backward (`blend_backward`), the
 //! L1 + D-SSIM loss with its image gradient (`loss_*`), and Adam (`adam`). The tests check the
 //! kernels against these and these against central finite differences.
+use crate::math::{rotation, rotation_vjp, sh_basis_grad};
 use glam::{DMat2, DMat3, DMat4, DVec2, DVec3, DVec4};
 
 use crate::shared::{FrameParams, TILE_SIZE};
-
-const SH_C0: f64 = 0.282_094_791_773_878_14;
-const SH_C1: f64 = 0.488_602_511_902_919_9;
-const SH_C2: [f64; 5] = [
-    1.092_548_430_592_079_2,
-    -1.092_548_430_592_079_2,
-    0.315_391_565_252_520_05,
-    -1.092_548_430_592_079_2,
-    0.546_274_215_296_039_6,
-];
-const SH_C3: [f64; 7] = [
-    -0.590_043_589_926_643_5,
-    2.890_611_442_640_554,
-    -0.457_045_799_464_465_8,
-    0.373_176_332_590_115_4,
-    -0.457_045_799_464_465_8,
-    1.445_305_721_320_277,
-    -0.590_043_589_926_643_5,
-];
-
-/// SH basis and its derivative with respect to the (unnormalised-treated) direction.
-pub fn sh_basis_grad(d: DVec3, deg: u32) -> ([f64; 16], [DVec3; 16]) {
-    let mut b = [0.0; 16];
-    let mut g = [DVec3::ZERO; 16];
-    b[0] = SH_C0;
-    if deg < 1 {
-        return (b, g);
-    }
-    let (x, y, z) = (d.x, d.y, d.z);
-    b[1] = -SH_C1 * y;
-    b[2] = SH_C1 * z;
-    b[3] = -SH_C1 * x;
-    g[1] = DVec3::new(0.0, -SH_C1, 0.0);
-    g[2] = DVec3::new(0.0, 0.0, SH_C1);
-    g[3] = DVec3::new(-SH_C1, 0.0, 0.0);
-    if deg < 2 {
-        return (b, g);
-    }
-    let (xx, yy, zz, xy, yz, xz) = (x * x, y * y, z * z, x * y, y * z, x * z);
-    b[4] = SH_C2[0] * xy;
-    b[5] = SH_C2[1] * yz;
-    b[6] = SH_C2[2] * (2.0 * zz - xx - yy);
-    b[7] = SH_C2[3] * xz;
-    b[8] = SH_C2[4] * (xx - yy);
-    g[4] = SH_C2[0] * DVec3::new(y, x, 0.0);
-    g[5] = SH_C2[1] * DVec3::new(0.0, z, y);
-    g[6] = SH_C2[2] * DVec3::new(-2.0 * x, -2.0 * y, 4.0 * z);
-    g[7] = SH_C2[3] * DVec3::new(z, 0.0, x);
-    g[8] = SH_C2[4] * DVec3::new(2.0 * x, -2.0 * y, 0.0);
-    if deg < 3 {
-        return (b, g);
-    }
-    b[9] = SH_C3[0] * y * (3.0 * xx - yy);
-    b[10] = SH_C3[1] * xy * z;
-    b[11] = SH_C3[2] * y * (4.0 * zz - xx - yy);
-    b[12] = SH_C3[3] * z * (2.0 * zz - 3.0 * xx - 3.0 * yy);
-    b[13] = SH_C3[4] * x * (4.0 * zz - xx - yy);
-    b[14] = SH_C3[5] * z * (xx - yy);
-    b[15] = SH_C3[6] * x * (xx - 3.0 * yy);
-    g[9] = SH_C3[0] * DVec3::new(6.0 * xy, 3.0 * xx - 3.0 * yy, 0.0);
-    g[10] = SH_C3[1] * DVec3::new(yz, xz, xy);
-    g[11] = SH_C3[2] * DVec3::new(-2.0 * xy, 4.0 * zz - xx - 3.0 * yy, 8.0 * yz);
-    g[12] = SH_C3[3] * DVec3::new(-6.0 * xz, -6.0 * yz, 6.0 * zz - 3.0 * xx - 3.0 * yy);
-    g[13] = SH_C3[4] * DVec3::new(4.0 * zz - 3.0 * xx - yy, -2.0 * xy, 8.0 * xz);
-    g[14] = SH_C3[5] * DVec3::new(2.0 * xz, -2.0 * yz, xx - yy);
-    g[15] = SH_C3[6] * DVec3::new(3.0 * xx - 3.0 * yy, -6.0 * xy, 0.0);
-    (b, g)
-}
 
 /// One Gaussian's parameters (as stored: log scales, raw wxyz quaternion, opacity logit, SH
 /// coefficients `[k][channel]` flattened).
@@ -177,35 +110,6 @@ fn proj(fp: &FrameParams) -> Proj {
         lim: [(width - cx) / fx + 0.3 * tx, cx / fx + 0.3 * tx, (height - cy) / fy + 0.3 * ty, cy / fy + 0.3 * ty],
         campos: DVec3::new(fp.campos[0] as f64, fp.campos[1] as f64, fp.campos[2] as f64),
     }
-}
-
-/// Rotation matrix of a unit (w, x, y, z) quaternion.
-pub fn rotation(q: DVec4) -> DMat3 {
-    let (w, x, y, z) = (q.x, q.y, q.z, q.w);
-    DMat3::from_cols(
-        DVec3::new(1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y + w * z), 2.0 * (x * z - w * y)),
-        DVec3::new(2.0 * (x * y - w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z + w * x)),
-        DVec3::new(2.0 * (x * z + w * y), 2.0 * (y * z - w * x), 1.0 - 2.0 * (x * x + y * y)),
-    )
-}
-
-/// Vector-Jacobian product of the rotation matrix of a unit (w, x, y, z) quaternion `q`
-/// (`rotation`, without the normalisation): dL/dq from dL/dR.
-pub fn rotation_vjp(q: DVec4, v_r: DMat3) -> DVec4 {
-    // g[row][col]
-    let gm = |row: usize, col: usize| v_r.col(col)[row];
-    let (w, x, y, z) = (q.x, q.y, q.z, q.w);
-    DVec4::new(
-        -z * gm(0, 1) + y * gm(0, 2) + z * gm(1, 0) - x * gm(1, 2) - y * gm(2, 0) + x * gm(2, 1),
-        y * gm(0, 1) + z * gm(0, 2) + y * gm(1, 0) - 2.0 * x * gm(1, 1) - w * gm(1, 2) + z * gm(2, 0) + w * gm(2, 1)
-            - 2.0 * x * gm(2, 2),
-        -2.0 * y * gm(0, 0) + x * gm(0, 1) + w * gm(0, 2) + x * gm(1, 0) + z * gm(1, 2) - w * gm(2, 0) + z * gm(2, 1)
-            - 2.0 * y * gm(2, 2),
-        -2.0 * z * gm(0, 0) - w * gm(0, 1) + x * gm(0, 2) + w * gm(1, 0) - 2.0 * z * gm(1, 1)
-            + y * gm(1, 2)
-            + x * gm(2, 0)
-            + y * gm(2, 1),
-    ) * 2.0
 }
 
 /// The intermediate values of one projection, shared by forward and VJP.

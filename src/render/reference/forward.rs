@@ -1,6 +1,7 @@
 //! The CPU twin of the forward rasterizer: one function per GPU pass, the same rules in the
 //! same order (f32), used by the tests to check every kernel and the whole image.
-use glam::{Mat3, Vec2, Vec3, Vec4};
+use crate::math::{quat_to_mat, sh_basis};
+use glam::{Mat3, Vec2, Vec3};
 
 use crate::model::scene::Scene;
 use crate::shared::{FrameParams, MAX_GROUPS, SCAN_BLOCK, TILE_SIZE, WG_SIZE};
@@ -18,56 +19,6 @@ pub struct Projected {
     /// Half-extents in pixels along x and y.
     pub radii: Vec<[u32; 2]>,
     pub tiles_touched: Vec<u32>,
-}
-
-const SH_C1: f32 = 0.488_602_52;
-const SH_C2: [f32; 5] = [1.092_548_4, -1.092_548_4, 0.315_391_57, -1.092_548_4, 0.546_274_2];
-const SH_C3: [f32; 7] =
-    [-0.590_043_6, 2.890_611_4, -0.457_045_8, 0.373_176_33, -0.457_045_8, 1.445_305_7, -0.590_043_6];
-
-/// SH basis values for unit direction `d` up to degree `deg` (Inria's constants and signs).
-pub fn sh_basis(d: Vec3, deg: u32) -> [f32; 16] {
-    let mut b = [0.0f32; 16];
-    b[0] = crate::model::scene::SH_C0;
-    if deg < 1 {
-        return b;
-    }
-    let (x, y, z) = (d.x, d.y, d.z);
-    b[1] = -SH_C1 * y;
-    b[2] = SH_C1 * z;
-    b[3] = -SH_C1 * x;
-    if deg < 2 {
-        return b;
-    }
-    let (xx, yy, zz, xy, yz, xz) = (x * x, y * y, z * z, x * y, y * z, x * z);
-    b[4] = SH_C2[0] * xy;
-    b[5] = SH_C2[1] * yz;
-    b[6] = SH_C2[2] * (2.0 * zz - xx - yy);
-    b[7] = SH_C2[3] * xz;
-    b[8] = SH_C2[4] * (xx - yy);
-    if deg < 3 {
-        return b;
-    }
-    b[9] = SH_C3[0] * y * (3.0 * xx - yy);
-    b[10] = SH_C3[1] * xy * z;
-    b[11] = SH_C3[2] * y * (4.0 * zz - xx - yy);
-    b[12] = SH_C3[3] * z * (2.0 * zz - 3.0 * xx - 3.0 * yy);
-    b[13] = SH_C3[4] * x * (4.0 * zz - xx - yy);
-    b[14] = SH_C3[5] * z * (xx - yy);
-    b[15] = SH_C3[6] * x * (xx - 3.0 * yy);
-    b
-}
-
-/// Rotation matrix of a (w, x, y, z) quaternion, normalised first.
-pub fn quat_to_mat(q: [f32; 4]) -> Mat3 {
-    let q = Vec4::from(q);
-    let q = q / q.length();
-    let (w, x, y, z) = (q.x, q.y, q.z, q.w);
-    Mat3::from_cols(
-        Vec3::new(1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y + w * z), 2.0 * (x * z - w * y)),
-        Vec3::new(2.0 * (x * y - w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z + w * x)),
-        Vec3::new(2.0 * (x * z + w * y), 2.0 * (y * z - w * x), 1.0 - 2.0 * (x * x + y * y)),
-    )
 }
 
 /// The tiles [lo, hi) holding a pixel centre within `radius` (per axis) of `xy`: conservative,
