@@ -26,7 +26,7 @@ layout(std430, binding = 1) readonly buffer RangesBuf { uvec2 v[]; } ranges;
 layout(std430, binding = 2) readonly buffer IsectIdsBuf { uint v[]; } isect_ids;
 layout(std430, binding = 3) readonly buffer XysBuf { vec2 v[]; } xys;
 layout(std430, binding = 4) readonly buffer ConicsBuf { vec4 v[]; } conics;
-layout(std430, binding = 5) readonly buffer ColorsBuf { vec4 v[]; } colors;
+layout(std430, binding = 5) readonly buffer ColorsBuf { vec4 v[]; } colours;
 layout(std430, binding = 6) writeonly buffer OutImageBuf { vec4 v[]; } out_image;
 layout(std430, binding = 7) writeonly buffer LastBuf { uint v[]; } last;
 layout(std430, binding = 8) readonly buffer TileCostsBuf { uint v[]; } tile_costs;
@@ -129,7 +129,7 @@ void main() {
             uint g = isect_ids.v[start + k];
             s_xy[k] = xys.v[g];
             s_conic[k] = conics.v[g];
-            s_rgb[k] = colors.v[g].rgb;
+            s_rgb[k] = colours.v[g].rgb;
         }
         barrier();
         uint count = min(BATCH, range.y - start);

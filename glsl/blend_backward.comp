@@ -8,7 +8,7 @@
 // where S_i is the colour blended behind splat i. Where alpha hit its 0.99 clamp it carries no
 // gradient to the opacity or the 2D Gaussian (gsplat). Outputs are the gradients with respect to
 // the preprocess outputs, indexed by Gaussian: v_xys (pixels), v_conics (a, b, c of
-// power = -(a dx^2 + c dy^2) / 2 - b dx dy), v_colors and v_opacities (the activated opacity).
+// power = -(a dx^2 + c dy^2) / 2 - b dx dy), v_colours and v_splat_opacities (the activated opacity).
 // Each invocation sums its pixels, the subgroup sums its invocations, and one lane adds the total
 // to the outputs with float atomics (or the CAS fallback, see atomic_add.glsl).
 // Each invocation visits only the rows a splat reaches (splat_reach), none where the splat
@@ -30,14 +30,14 @@ layout(std430, binding = 1) readonly buffer RangesBuf { uvec2 v[]; } ranges;
 layout(std430, binding = 2) readonly buffer IsectIdsBuf { uint v[]; } isect_ids;
 layout(std430, binding = 3) readonly buffer XysBuf { vec2 v[]; } xys;
 layout(std430, binding = 4) readonly buffer ConicsBuf { vec4 v[]; } conics;
-layout(std430, binding = 5) readonly buffer ColorsBuf { vec4 v[]; } colors;
+layout(std430, binding = 5) readonly buffer ColorsBuf { vec4 v[]; } colours;
 layout(std430, binding = 6) readonly buffer OutImageBuf { vec4 v[]; } out_image;
 layout(std430, binding = 7) readonly buffer LastBuf { uint v[]; } last;
 layout(std430, binding = 8) readonly buffer VImageBuf { vec4 v[]; } v_image;
 layout(std430, binding = 9) buffer VXysBuf { GRAD_T v[]; } v_xys;
 layout(std430, binding = 10) buffer VConicsBuf { GRAD_T v[]; } v_conics;
-layout(std430, binding = 11) buffer VColorsBuf { GRAD_T v[]; } v_colors;
-layout(std430, binding = 12) buffer VOpacitiesBuf { GRAD_T v[]; } v_opacities;
+layout(std430, binding = 11) buffer VColorsBuf { GRAD_T v[]; } v_colours;
+layout(std430, binding = 12) buffer VOpacitiesBuf { GRAD_T v[]; } v_splat_opacities;
 layout(std430, binding = 13) readonly buffer TileCostsBuf { uint v[]; } tile_costs;
 
 const uint BATCH = TILE_SIZE * TILE_SIZE;
@@ -128,10 +128,10 @@ void splat_backward(uint n, uint g, vec2 xy, vec4 co, vec3 rgb) {
             ATOMIC_ADD_F(v_conics.v, 3 * g, g_conic.x);
             ATOMIC_ADD_F(v_conics.v, 3 * g + 1, g_conic.y);
             ATOMIC_ADD_F(v_conics.v, 3 * g + 2, g_conic.z);
-            ATOMIC_ADD_F(v_colors.v, 3 * g, g_rgb.x);
-            ATOMIC_ADD_F(v_colors.v, 3 * g + 1, g_rgb.y);
-            ATOMIC_ADD_F(v_colors.v, 3 * g + 2, g_rgb.z);
-            ATOMIC_ADD_F(v_opacities.v, g, g_op);
+            ATOMIC_ADD_F(v_colours.v, 3 * g, g_rgb.x);
+            ATOMIC_ADD_F(v_colours.v, 3 * g + 1, g_rgb.y);
+            ATOMIC_ADD_F(v_colours.v, 3 * g + 2, g_rgb.z);
+            ATOMIC_ADD_F(v_splat_opacities.v, g, g_op);
         }
     }
 }
@@ -181,7 +181,7 @@ void main() {
             s_id[k] = g;
             s_xy[k] = xys.v[g];
             s_conic[k] = conics.v[g];
-            s_rgb[k] = colors.v[g].rgb;
+            s_rgb[k] = colours.v[g].rgb;
         }
         barrier();
         if (CROWDED_TILES == 0) {

@@ -27,7 +27,7 @@ layout(std430, binding = 4) readonly buffer OpacitiesBuf { float v[]; } opacitie
 layout(std430, binding = 5) readonly buffer ShBuf { vec4 v[]; } sh;
 layout(std430, binding = 6) writeonly buffer XysBuf { vec2 v[]; } xys;
 layout(std430, binding = 7) writeonly buffer ConicsBuf { vec4 v[]; } conics;
-layout(std430, binding = 8) writeonly buffer ColorsBuf { vec4 v[]; } colors;
+layout(std430, binding = 8) writeonly buffer ColorsBuf { vec4 v[]; } colours;
 layout(std430, binding = 9) writeonly buffer DepthsBuf { float v[]; } depths;
 layout(std430, binding = 10) writeonly buffer RadiiBuf { uvec2 v[]; } radii;
 layout(std430, binding = 11) writeonly buffer TilesTouchedBuf { uint v[]; } tiles_touched;
@@ -155,7 +155,7 @@ void preprocess(uint i) {
 
     xys.v[i] = xy;
     conics.v[i] = co;
-    colors.v[i] = vec4(rgb, 0.0);
+    colours.v[i] = vec4(rgb, 0.0);
     depths.v[i] = t.z;
     radii.v[i] = radius;
     tiles_touched.v[i] = touched;

@@ -1,15 +1,15 @@
 #version 450
 // Backward of `preprocess`, one invocation per parameter row: from the gradients with respect to
-// the projected splats (v_xys, v_conics, v_colors, v_opacities, written by blend_backward) to
-// the gradients of the scene parameters: grad_means, grad_scales (log), grad_quats (raw, before
-// normalisation), grad_opacities (logit) and grad_sh (every stored coefficient; zero above the
+// the projected splats (v_xys, v_conics, v_colours, v_splat_opacities, written by blend_backward) to
+// the gradients of the scene parameters: v_means, v_scales (log), v_quats (raw, before
+// normalisation), v_opacities (logit) and v_sh (every stored coefficient; zero above the
 // evaluated degree). Culled splats pass no gradient. Maths as Inria's backward.cu and gsplat's
 // VJPs, except that the Jacobian clamp is differentiated exactly (a clamped x/z passes no
 // gradient to t.x, and d/dz follows the clamped value) and the SH colour passes gradient to the
 // mean through the view direction.
 // Instancing (paper Eq. 7-9): a template row loops over its group's K instances, computes each
-// expanded splat's gradient g_ik, writes the offset gradients 1:1 (grad_d_means = dL/dmean,
-// grad_d_sh0 = dL/dDC, grad_d_opacities = dL/dlogit, which includes the sigmoid's derivative)
+// expanded splat's gradient g_ik, writes the offset gradients 1:1 (v_d_means = dL/dmean,
+// v_d_sh0 = dL/dDC, v_d_opacities = dL/dlogit, which includes the sigmoid's derivative)
 // and sums J_k^T g_ik into the template's gradient in registers: means s R^T, log-scales 1,
 // quaternions q_T^-1 * (the transpose of left multiplication by the unit q_T), logit 1, SH 1
 // (the direction is already in template space). No atomics: a row owns its sums.
@@ -36,19 +36,19 @@ layout(std430, binding = 6) readonly buffer RadiiBuf { uvec2 v[]; } radii;
 layout(std430, binding = 7) readonly buffer TilesTouchedBuf { uint v[]; } tiles_touched;
 layout(std430, binding = 8) readonly buffer VXysBuf { vec2 v[]; } v_xys;
 layout(std430, binding = 9) readonly buffer VConicsBuf { float v[]; } v_conics;
-layout(std430, binding = 10) readonly buffer VColorsBuf { float v[]; } v_colors;
-layout(std430, binding = 11) readonly buffer VOpacitiesBuf { float v[]; } v_opacities;
-layout(std430, binding = 12) writeonly buffer GradMeansBuf { float v[]; } grad_means;
-layout(std430, binding = 13) writeonly buffer GradScalesBuf { float v[]; } grad_scales;
-layout(std430, binding = 14) writeonly buffer GradQuatsBuf { vec4 v[]; } grad_quats;
-layout(std430, binding = 15) writeonly buffer GradOpacitiesBuf { float v[]; } grad_opacities;
-layout(std430, binding = 16) writeonly buffer GradShBuf { vec4 v[]; } grad_sh;
+layout(std430, binding = 10) readonly buffer VColorsBuf { float v[]; } v_colours;
+layout(std430, binding = 11) readonly buffer VOpacitiesBuf { float v[]; } v_splat_opacities;
+layout(std430, binding = 12) writeonly buffer GradMeansBuf { float v[]; } v_means;
+layout(std430, binding = 13) writeonly buffer GradScalesBuf { float v[]; } v_scales;
+layout(std430, binding = 14) writeonly buffer GradQuatsBuf { vec4 v[]; } v_quats;
+layout(std430, binding = 15) writeonly buffer GradOpacitiesBuf { float v[]; } v_opacities;
+layout(std430, binding = 16) writeonly buffer GradShBuf { vec4 v[]; } v_sh;
 layout(std430, binding = 17) buffer Grad2dAccumBuf { float v[]; } grad2d_accum;
 layout(std430, binding = 18) buffer Grad2dCountBuf { uint v[]; } grad2d_count;
 layout(std430, binding = 19) buffer MaxRadiiBuf { uint v[]; } max_radii;
-layout(std430, binding = 20) writeonly buffer GradDMeansBuf { float v[]; } grad_d_means;
-layout(std430, binding = 21) writeonly buffer GradDSh0Buf { float v[]; } grad_d_sh0;
-layout(std430, binding = 22) writeonly buffer GradDOpacitiesBuf { float v[]; } grad_d_opacities;
+layout(std430, binding = 20) writeonly buffer GradDMeansBuf { float v[]; } v_d_means;
+layout(std430, binding = 21) writeonly buffer GradDSh0Buf { float v[]; } v_d_sh0;
+layout(std430, binding = 22) writeonly buffer GradDOpacitiesBuf { float v[]; } v_d_opacities;
 layout(std430, binding = 30) writeonly buffer XformTermsBuf { float v[]; } xform_terms;
 layout(std430, binding = 31) readonly buffer VisibleIdsBuf { uint v[]; } visible_ids;
 layout(constant_id = 1) const uint VISIBLE_ROWS = 0;
@@ -168,7 +168,7 @@ bool splat_backward(uint i, uint row, Expanded e, out vec3 v_p, out vec3 v_ls, o
         rgb += basis[k] * coef[k];
     }
     rgb += 0.5;
-    vec3 v_rgb = vec3(v_colors.v[3 * i], v_colors.v[3 * i + 1], v_colors.v[3 * i + 2]);
+    vec3 v_rgb = vec3(v_colours.v[3 * i], v_colours.v[3 * i + 1], v_colours.v[3 * i + 2]);
     v_rgb *= vec3(greaterThan(rgb, vec3(0.0)));
     v_dir_t = vec3(0.0);
     for (uint k = 0; k < nb; k++) {
@@ -182,7 +182,7 @@ bool splat_backward(uint i, uint row, Expanded e, out vec3 v_p, out vec3 v_ls, o
     v_ls = v_s * s;
     v_dc = basis[0] * v_rgb;
     float o = 1.0 / (1.0 + exp(-e.logit));
-    v_logit = v_opacities.v[i] * o * (1.0 - o);
+    v_logit = v_splat_opacities.v[i] * o * (1.0 - o);
 
     grad2d_accum.v[i] += length(vxy * vec2(0.5 * float(frame.p.width), 0.5 * float(frame.p.height)));
     grad2d_count.v[i] += 1;
@@ -229,13 +229,13 @@ void backward(uint r) {
             go = v_logit;
         } else {
             uint p = ref.pair;
-            grad_d_means.v[3 * p] = v_p.x;
-            grad_d_means.v[3 * p + 1] = v_p.y;
-            grad_d_means.v[3 * p + 2] = v_p.z;
-            grad_d_sh0.v[3 * p] = v_dc.x;
-            grad_d_sh0.v[3 * p + 1] = v_dc.y;
-            grad_d_sh0.v[3 * p + 2] = v_dc.z;
-            grad_d_opacities.v[p] = v_logit;
+            v_d_means.v[3 * p] = v_p.x;
+            v_d_means.v[3 * p + 1] = v_p.y;
+            v_d_means.v[3 * p + 2] = v_p.z;
+            v_d_sh0.v[3 * p] = v_dc.x;
+            v_d_sh0.v[3 * p + 1] = v_dc.y;
+            v_d_sh0.v[3 * p + 2] = v_dc.z;
+            v_d_opacities.v[p] = v_logit;
             InstanceXform x = xforms.v[ref.xform];
             if (frame.p.xform_grads != 0) {
                 vec3 m_t = vec3(means.v[3 * r], means.v[3 * r + 1], means.v[3 * r + 2]);
@@ -263,26 +263,26 @@ void backward(uint r) {
             go += v_logit;
         }
     }
-    grad_means.v[3 * r] = gm.x;
-    grad_means.v[3 * r + 1] = gm.y;
-    grad_means.v[3 * r + 2] = gm.z;
-    grad_scales.v[3 * r] = gs.x;
-    grad_scales.v[3 * r + 1] = gs.y;
-    grad_scales.v[3 * r + 2] = gs.z;
-    grad_quats.v[r] = gq;
-    grad_opacities.v[r] = go;
+    v_means.v[3 * r] = gm.x;
+    v_means.v[3 * r + 1] = gm.y;
+    v_means.v[3 * r + 2] = gm.z;
+    v_scales.v[3 * r] = gs.x;
+    v_scales.v[3 * r + 1] = gs.y;
+    v_scales.v[3 * r + 2] = gs.z;
+    v_quats.v[r] = gq;
+    v_opacities.v[r] = go;
     // Every stored coefficient of the row (zero above the evaluated degree): the whole vec4s,
     // and before and after them the floats of vec4s shared with the neighbouring rows.
     uint n = frame.p.sh_coeffs * 3;
     uint off = r * n;
     uint head = min((4 - (off & 3)) & 3, n);
     uint quads = (n - head) / 4;
-    for (uint j = 0; j < head; j++) grad_sh.v[(off + j) / 4][(off + j) & 3] = acc_sh[j];
+    for (uint j = 0; j < head; j++) v_sh.v[(off + j) / 4][(off + j) & 3] = acc_sh[j];
     for (uint q = 0; q < quads; q++) {
         uint j = head + 4 * q;
-        grad_sh.v[(off + j) / 4] = vec4(acc_sh[j], acc_sh[j + 1], acc_sh[j + 2], acc_sh[j + 3]);
+        v_sh.v[(off + j) / 4] = vec4(acc_sh[j], acc_sh[j + 1], acc_sh[j + 2], acc_sh[j + 3]);
     }
-    for (uint j = head + 4 * quads; j < n; j++) grad_sh.v[(off + j) / 4][(off + j) & 3] = acc_sh[j];
+    for (uint j = head + 4 * quads; j < n; j++) v_sh.v[(off + j) / 4][(off + j) & 3] = acc_sh[j];
 }
 
 void main() {

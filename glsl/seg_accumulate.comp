@@ -3,17 +3,17 @@
 // per-splat score to scores[slot * count + i] with a weight (1 for an instance mask M, -alpha for
 // the pass over all pixels; GSeg(1 - M) = GSeg(1) - GSeg(M) since the score is linear in the
 // mask). The score is the colour gradient of L = sum over the mask's pixels of mean(rgb), read
-// from blend_backward's v_colors: the sum of the splat's blending weights T alpha over the mask.
+// from blend_backward's v_colours: the sum of the splat's blending weights T alpha over the mask.
 #include "common.glsl"
 layout(local_size_x = WG_SIZE) in;
 layout(push_constant) uniform Push { SegArgs a; } push;
-layout(std430, binding = 0) readonly buffer VColorsBuf { float v[]; } v_colors;
+layout(std430, binding = 0) readonly buffer VColorsBuf { float v[]; } v_colours;
 layout(std430, binding = 1) buffer ScoresBuf { float v[]; } scores;
 
 void main() {
     uint n = push.a.count;
     for (uint i = gl_GlobalInvocationID.x; i < n; i += gl_NumWorkGroups.x * WG_SIZE) {
-        float s = (v_colors.v[3 * i] + v_colors.v[3 * i + 1] + v_colors.v[3 * i + 2]) / 3.0;
+        float s = (v_colours.v[3 * i] + v_colours.v[3 * i + 1] + v_colours.v[3 * i + 2]) / 3.0;
         scores.v[push.a.slot * n + i] += push.a.weight * s;
     }
 }

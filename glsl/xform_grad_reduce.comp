@@ -7,7 +7,7 @@ layout(local_size_x = WG_SIZE) in;
 layout(std430, binding = 0) readonly buffer FrameBuf { FrameParams p; } frame;
 layout(std430, binding = 1) readonly buffer GroupsBuf { GroupInfo v[]; } groups;
 layout(std430, binding = 2) readonly buffer XformTermsBuf { float v[]; } xform_terms;
-layout(std430, binding = 3) writeonly buffer GradXformsBuf { float v[]; } grad_xforms;
+layout(std430, binding = 3) writeonly buffer GradXformsBuf { float v[]; } v_xforms;
 
 shared float partial[WG_SIZE];
 
@@ -27,7 +27,7 @@ void main() {
             if (lid < w) partial[lid] += partial[lid + w];
             barrier();
         }
-        if (lid == 0) grad_xforms.v[inst * XFORM_GRAD_TERMS + c] = partial[0];
+        if (lid == 0) v_xforms.v[inst * XFORM_GRAD_TERMS + c] = partial[0];
         barrier();
     }
 }

@@ -45,4 +45,5 @@ pub mod segment;
 pub mod bench;
 pub mod pipeline;
 
+#[cfg(feature = "player")]
 pub mod player;

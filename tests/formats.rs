@@ -10,7 +10,8 @@ use instgs_vk::formats::ply::{read_ply, write_compressed_ply};
 use instgs_vk::formats::{self, Format};
 use instgs_vk::model::camera::{orbit_around, UpAxis};
 use instgs_vk::model::scene::Scene;
-use instgs_vk::render::raster::{GpuScene, Rasterizer};
+use instgs_vk::render::raster::Rasterizer;
+use instgs_vk::render::upload::GpuScene;
 use instgs_vk::util::psnr;
 
 /// The worst PSNR over 4 orbit views (320×240) of `b` against `a`.

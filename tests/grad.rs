@@ -9,11 +9,13 @@ use common::*;
 use glam::Vec3;
 use instgs_vk::gpu::kernels::{KernelPolicy, Kernels};
 use instgs_vk::model::scene::Scene;
-use instgs_vk::render::raster::{frame_params, GpuScene, Grads, Rasterizer};
+use instgs_vk::render::raster::backward::Grads;
+use instgs_vk::render::raster::{frame_params, Rasterizer};
 use instgs_vk::render::reference::{
     self,
     backward::{Gaussian, Splat},
 };
+use instgs_vk::render::upload::GpuScene;
 
 fn assert_close(what: &str, analytic: f64, numeric: f64, rel: f64, abs: f64) {
     assert!(
@@ -55,7 +57,7 @@ fn projection_vjp_matches_finite_differences() {
                 s.flat().iter().zip(v.flat()).map(|(a, b)| a * b).sum::<f64>()
             };
             let raw = reference::backward::project(&fp, &g);
-            if raw.color.iter().any(|&c| c.abs() < 1e-3) {
+            if raw.colour.iter().any(|&c| c.abs() < 1e-3) {
                 continue;
             }
             for p in 0..x.len() {
@@ -87,7 +89,7 @@ fn random_splats(rng: &mut Rng, n: usize, w: u32, h: u32, opaque: bool) -> Vec<S
                 xy: [rng.range(-4.0, w as f32 + 4.0) as f64, rng.range(-4.0, h as f32 + 4.0) as f64],
                 conic: [c / det, -b / det, a / det],
                 opacity: if opaque { rng.range(0.9, 0.985) } else { rng.range(0.05, 0.9) } as f64,
-                color: [rng.f32() as f64, rng.f32() as f64, rng.f32() as f64],
+                colour: [rng.f32() as f64, rng.f32() as f64, rng.f32() as f64],
             }
         })
         .collect()
@@ -173,7 +175,7 @@ fn check_backward(k: &Arc<Kernels>, scene: &Scene, cam: &instgs_vk::model::camer
     let grads = Grads::new(&gpu, &gs).unwrap();
     gpu.submit_and_wait(|rec| {
         grads.record_reset_stats(rec);
-        for b in [&grads.means, &grads.scales, &grads.quats, &grads.opacities, &grads.sh] {
+        for b in [&grads.v_means, &grads.v_scales, &grads.v_quats, &grads.v_opacities, &grads.v_sh] {
             rec.fill(b, instgs_vk::render::raster::POISON);
         }
         r.record_backward(rec, &gs, &v_buf, &grads)
@@ -195,16 +197,16 @@ fn check_backward(k: &Arc<Kernels>, scene: &Scene, cam: &instgs_vk::model::camer
     let got = [
         read(&grads.v_xys, 2 * n),
         read(&grads.v_conics, 3 * n),
-        read(&grads.v_opacities, n),
-        read(&grads.v_colors, 3 * n),
+        read(&grads.v_splat_opacities, n),
+        read(&grads.v_colours, 3 * n),
     ];
     let wanted: [Vec<f64>; 4] = [
         want.iter().flat_map(|s| s.xy).collect(),
         want.iter().flat_map(|s| s.conic).collect(),
         want.iter().map(|s| s.opacity).collect(),
-        want.iter().flat_map(|s| s.color).collect(),
+        want.iter().flat_map(|s| s.colour).collect(),
     ];
-    for (name, (g, w)) in ["v_xys", "v_conics", "v_opacities", "v_colors"].iter().zip(got.iter().zip(&wanted)) {
+    for (name, (g, w)) in ["v_xys", "v_conics", "v_splat_opacities", "v_colours"].iter().zip(got.iter().zip(&wanted)) {
         let e = rel_err(g, w);
         assert!(e < 2e-3, "{name}: relative error {e:e} (policy {:?})", k.policy);
         assert!(w.iter().any(|v| *v != 0.0), "{name}: all zero");
@@ -216,15 +218,15 @@ fn check_backward(k: &Arc<Kernels>, scene: &Scene, cam: &instgs_vk::model::camer
             xy: [got[0][2 * i], got[0][2 * i + 1]],
             conic: [got[1][3 * i], got[1][3 * i + 1], got[1][3 * i + 2]],
             opacity: got[2][i],
-            color: [got[3][3 * i], got[3][3 * i + 1], got[3][3 * i + 2]],
+            colour: [got[3][3 * i], got[3][3 * i + 1], got[3][3 * i + 2]],
         })
         .collect();
     let coeffs = scene.sh_coeffs();
-    let g_means = read(&grads.means, 3 * n);
-    let g_scales = read(&grads.scales, 3 * n);
-    let g_quats = read(&grads.quats, 4 * n);
-    let g_opac = read(&grads.opacities, n);
-    let g_sh = read(&grads.sh, 3 * coeffs * n);
+    let g_means = read(&grads.v_means, 3 * n);
+    let g_scales = read(&grads.v_scales, 3 * n);
+    let g_quats = read(&grads.v_quats, 4 * n);
+    let g_opac = read(&grads.v_opacities, n);
+    let g_sh = read(&grads.v_sh, 3 * coeffs * n);
     let counts: Vec<u32> = gpu.read(&grads.grad2d_count, n).unwrap();
     let mut want_flat = Vec::new();
     let mut got_flat = Vec::new();
@@ -326,7 +328,7 @@ fn backward_with_a_lower_active_sh_degree() {
         r.record_backward(rec, &gs, &v_buf, &grads)
     })
     .unwrap();
-    let g_sh: Vec<f32> = gpu.read(&grads.sh, 48 * scene.len()).unwrap();
+    let g_sh: Vec<f32> = gpu.read(&grads.v_sh, 48 * scene.len()).unwrap();
     let mut nonzero_low = false;
     for i in 0..scene.len() {
         let c = &g_sh[48 * i..48 * (i + 1)];

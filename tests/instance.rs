@@ -11,11 +11,13 @@ use instgs_vk::model::instanced::{
     quat_mul, xform_from_params, xform_param_grads, xform_params, InstancedScene, Offsets, ShRotation,
 };
 use instgs_vk::model::scene::Scene;
-use instgs_vk::render::raster::{GpuScene, Grads, Rasterizer};
+use instgs_vk::render::raster::backward::Grads;
+use instgs_vk::render::raster::Rasterizer;
 use instgs_vk::render::reference::{
     self,
     backward::{Gaussian, Splat},
 };
+use instgs_vk::render::upload::GpuScene;
 use instgs_vk::util::psnr;
 
 fn camera(w: u32, h: u32) -> Camera {
@@ -127,7 +129,17 @@ fn gpu_grads(scene: &InstancedScene, cam: &Camera, v_image: &[[f32; 4]]) -> (Sce
     let g = Grads::new(&gpu, &gs).unwrap();
     gpu.submit_and_wait(|rec| {
         g.record_reset_stats(rec);
-        for b in [&g.means, &g.scales, &g.quats, &g.opacities, &g.sh, &g.d_means, &g.d_sh0, &g.d_opacities, &g.xforms] {
+        for b in [
+            &g.v_means,
+            &g.v_scales,
+            &g.v_quats,
+            &g.v_opacities,
+            &g.v_sh,
+            &g.v_d_means,
+            &g.v_d_sh0,
+            &g.v_d_opacities,
+            &g.v_xforms,
+        ] {
             rec.fill(b, instgs_vk::render::raster::POISON);
         }
         r.record_backward(rec, &gs, &v, &g)
@@ -137,18 +149,18 @@ fn gpu_grads(scene: &InstancedScene, cam: &Camera, v_image: &[[f32; 4]]) -> (Sce
     let n = gs.rows;
     let c = scene.background.sh_coeffs();
     let rows = Scene {
-        means: gpu.read(&g.means, n).unwrap(),
-        scales: gpu.read(&g.scales, n).unwrap(),
-        quats: gpu.read(&g.quats, n).unwrap(),
-        opacities: gpu.read(&g.opacities, n).unwrap(),
-        sh: gpu.read(&g.sh, n * c * 3).unwrap(),
+        means: gpu.read(&g.v_means, n).unwrap(),
+        scales: gpu.read(&g.v_scales, n).unwrap(),
+        quats: gpu.read(&g.v_quats, n).unwrap(),
+        opacities: gpu.read(&g.v_opacities, n).unwrap(),
+        sh: gpu.read(&g.v_sh, n * c * 3).unwrap(),
         sh_degree: scene.sh_degree,
     };
     let pairs = gs.inst.pairs;
     let (dm, dc, dop): (Vec<[f32; 3]>, Vec<[f32; 3]>, Vec<f32>) = (
-        gpu.read(&g.d_means, pairs).unwrap(),
-        gpu.read(&g.d_sh0, pairs).unwrap(),
-        gpu.read(&g.d_opacities, pairs).unwrap(),
+        gpu.read(&g.v_d_means, pairs).unwrap(),
+        gpu.read(&g.v_d_sh0, pairs).unwrap(),
+        gpu.read(&g.v_d_opacities, pairs).unwrap(),
     );
     let mut offsets = Vec::new();
     let mut at = 0;
@@ -161,7 +173,7 @@ fn gpu_grads(scene: &InstancedScene, cam: &Camera, v_image: &[[f32; 4]]) -> (Sce
         });
         at += m;
     }
-    let terms = gpu.read(&g.xforms, gs.inst.instances * instgs_vk::shared::XFORM_GRAD_TERMS as usize).unwrap();
+    let terms = gpu.read(&g.v_xforms, gs.inst.instances * instgs_vk::shared::XFORM_GRAD_TERMS as usize).unwrap();
     (rows, offsets, terms)
 }
 
@@ -218,11 +230,11 @@ fn instanced_gradients_equal_expanded_gradients_mapped_back() {
         let n = ge.rows;
         let c = expanded.sh_coeffs();
         let g_exp = Scene {
-            means: gpu.read(&g.means, n).unwrap(),
-            scales: gpu.read(&g.scales, n).unwrap(),
-            quats: gpu.read(&g.quats, n).unwrap(),
-            opacities: gpu.read(&g.opacities, n).unwrap(),
-            sh: gpu.read(&g.sh, n * c * 3).unwrap(),
+            means: gpu.read(&g.v_means, n).unwrap(),
+            scales: gpu.read(&g.v_scales, n).unwrap(),
+            quats: gpu.read(&g.v_quats, n).unwrap(),
+            opacities: gpu.read(&g.v_opacities, n).unwrap(),
+            sh: gpu.read(&g.v_sh, n * c * 3).unwrap(),
             sh_degree: deg,
         };
         let mapped = scene.map_expanded_grads(&g_exp);

@@ -4,7 +4,8 @@ use common::*;
 use instgs_vk::formats::ply::{read_ply, write_ply};
 use instgs_vk::model::camera::{orbit_around, UpAxis};
 use instgs_vk::model::scene::Scene;
-use instgs_vk::render::raster::{GpuScene, Rasterizer};
+use instgs_vk::render::raster::Rasterizer;
+use instgs_vk::render::upload::GpuScene;
 use instgs_vk::util::psnr;
 
 fn bits(s: &Scene) -> Vec<u32> {

@@ -9,7 +9,8 @@ use glam::Vec3;
 use instgs_vk::model::camera::Camera;
 use instgs_vk::model::instanced::{Group, InstancedScene, Offsets};
 use instgs_vk::render::lod::{build_levels, select_instance, RenderConfig};
-use instgs_vk::render::raster::{GpuScene, Rasterizer};
+use instgs_vk::render::raster::Rasterizer;
+use instgs_vk::render::upload::GpuScene;
 use instgs_vk::shared::*;
 use instgs_vk::util::psnr;
 

@@ -8,7 +8,8 @@ use instgs_vk::render::reference;
 use std::sync::Arc;
 
 use instgs_vk::gpu::Gpu;
-use instgs_vk::render::raster::{GpuScene, Grads};
+use instgs_vk::render::raster::backward::Grads;
+use instgs_vk::render::upload::GpuScene;
 use instgs_vk::shared::*;
 use instgs_vk::train::optim::{
     adam_parts, record_adam, record_loss, AdamState, LearningRates, LossBufs, BETA1, BETA2, EPS,
@@ -190,7 +191,7 @@ fn adam_case(gpu: &Arc<Gpu>, k: &Kernels, rng: &mut Rng, n: usize, degree: u32) 
     let mut m: Vec<Vec<f64>> = params.iter().map(|p| vec![0.0; p.len()]).collect();
     let mut v = m.clone();
     for step in 1..=3u64 {
-        let gbufs = [&grads.means, &grads.scales, &grads.quats, &grads.opacities, &grads.sh];
+        let gbufs = [&grads.v_means, &grads.v_scales, &grads.v_quats, &grads.v_opacities, &grads.v_sh];
         let mut g32s = Vec::new();
         for (i, b) in gbufs.iter().enumerate() {
             let g: Vec<f32> = (0..params[i].len()).map(|_| rng.normal() * 0.01).collect();

@@ -1,6 +1,7 @@
 //! The player: `present.comp` against its CPU twin, and the window itself under `xvfb-run` on
 //! whatever Vulkan device there is (lavapipe in CI): frames presented, a screenshot taken from
 //! the presented swapchain image, equal to the offscreen (headless) render of the same camera.
+#![cfg(feature = "player")]
 mod common;
 use std::path::{Path, PathBuf};
 use std::process::Command;

@@ -6,8 +6,9 @@ use glam::Vec3;
 use instgs_vk::formats::ply::read_ply;
 use instgs_vk::model::camera::{orbit_around, Camera, UpAxis};
 use instgs_vk::model::scene::Scene;
-use instgs_vk::render::raster::{frame_params, GpuScene, Rasterizer};
+use instgs_vk::render::raster::{frame_params, Rasterizer};
 use instgs_vk::render::reference;
+use instgs_vk::render::upload::GpuScene;
 use instgs_vk::shared::*;
 use instgs_vk::util::psnr;
 
@@ -58,7 +59,7 @@ fn check_passes_with(
         let fields: [Field; 4] = [
             ("xy", &want.xys[i], &got.xys[i], 1e-5, 1e-3),
             ("conic", &want.conics[i], &got.conics[i], 2e-3, 1e-6),
-            ("colour", &want.colors[i][..3], &got.colors[i][..3], 1e-4, 1e-5),
+            ("colour", &want.colours[i][..3], &got.colours[i][..3], 1e-4, 1e-5),
             ("depth", std::slice::from_ref(&want.depths[i]), std::slice::from_ref(&got.depths[i]), 1e-6, 1e-6),
         ];
         for (name, w, g, rel, abs) in fields {
@@ -193,7 +194,7 @@ fn images_match_cpu_twin_on_real_splats() {
 
 #[test]
 fn buffers_past_max_storage_buffer_range_are_refused() {
-    use instgs_vk::render::raster::check_scene_fits;
+    use instgs_vk::render::upload::check_scene_fits;
     let mib128 = 128 << 20;
     // 1M Gaussians at SH degree 3: a 192 MB SH buffer.
     let e = check_scene_fits(1_000_000, 1_000_000, 3, mib128).unwrap_err().to_string();

@@ -56,7 +56,7 @@ fn known_scene(
                 s.sh_degree = 0;
                 let c0 = instgs_vk::math::SH_C0_F32;
                 s.sh = truth.iter().flat_map(|&l| [if l == id { 0.5 / c0 } else { -0.5 / c0 }; 3]).collect();
-                let gs = instgs_vk::render::raster::GpuScene::new(gpu, &s).unwrap();
+                let gs = instgs_vk::render::upload::GpuScene::new(gpu, &s).unwrap();
                 let f = instgs_vk::render::raster::Rasterizer::new(gpu, k)
                     .unwrap()
                     .render(&gs, &v.camera, [0.0; 3])
@@ -134,7 +134,7 @@ fn segmentation_scores_match_the_cpu_twin() {
     let alpha = 0.8;
     let seg = segment(&gpu, &k, &scene, &[view], std::slice::from_ref(&mask), &[1, 2], alpha).unwrap();
     let mut r = instgs_vk::render::raster::Rasterizer::new(&gpu, &k).unwrap();
-    r.render(&instgs_vk::render::raster::GpuScene::new(&gpu, &scene).unwrap(), &camera, [0.0; 3]).unwrap();
+    r.render(&instgs_vk::render::upload::GpuScene::new(&gpu, &scene).unwrap(), &camera, [0.0; 3]).unwrap();
     let st = r.read_state().unwrap();
     let fp = r.last_frame_params().unwrap();
     let splats: Vec<_> = (0..scene.len())
@@ -144,7 +144,7 @@ fn segmentation_scores_match_the_cpu_twin() {
         let v: Vec<[f64; 3]> = mask.iter().map(|&m| if keep(m) { [1.0; 3] } else { [0.0; 3] }).collect();
         instgs_vk::render::reference::backward::blend_backward(&fp, &st.ranges, &st.isect_ids, &splats, &v)
             .iter()
-            .map(|s| s.color.iter().sum::<f64>() / 3.0)
+            .map(|s| s.colour.iter().sum::<f64>() / 3.0)
             .collect()
     };
     let all = gseg(&|_| true);

@@ -76,7 +76,7 @@ fn colmap_text_and_binary_models_agree() {
         imgs += &format!("{} {} {} {}\n1.0 2.0 -1\n", i + 1, q.join(" "), im.camera_id, im.name);
     }
     let mut pts = String::from("# POINT3D_ID X Y Z R G B ERROR TRACK[]\n");
-    for (i, (p, c)) in bin.points.positions.iter().zip(&bin.points.colors).enumerate() {
+    for (i, (p, c)) in bin.points.positions.iter().zip(&bin.points.colours).enumerate() {
         let rgb = c.map(|v| (v * 255.0).round() as u8);
         pts += &format!("{} {:?} {:?} {:?} {} {} {} 0.5 1 0\n", i + 1, p[0], p[1], p[2], rgb[0], rgb[1], rgb[2]);
     }

@@ -13,7 +13,8 @@ use instgs_vk::instancing::verify::ImageCheck;
 use instgs_vk::model::camera::Camera;
 use instgs_vk::model::scene::Scene;
 use instgs_vk::register::Sim3;
-use instgs_vk::render::raster::{GpuScene, Rasterizer};
+use instgs_vk::render::raster::Rasterizer;
+use instgs_vk::render::upload::GpuScene;
 use nalgebra::{Rotation3, Vector3};
 
 /// Surface samples of an asymmetric object about 0.8 units across (an ellipsoid body, a head,

@@ -95,7 +95,7 @@ fn main() -> Result<()> {
     );
     for i in kept {
         let [x, y, z] = pc.positions[i];
-        let [r, g, b] = pc.colors[i].map(|c| (c * 255.0).round() as u8);
+        let [r, g, b] = pc.colours[i].map(|c| (c * 255.0).round() as u8);
         ply += &format!("{x} {y} {z} {r} {g} {b}\n");
     }
     std::fs::write(a.dst.join("points3d.ply"), ply)?;

@@ -23,7 +23,8 @@ use std::path::PathBuf;
 use anyhow::{bail, Context, Result};
 use instgs_vk::gpu::kernels::Kernels;
 use instgs_vk::gpu::{Gpu, GpuOptions};
-use instgs_vk::instancing::template::{self, GroundTruthPose, InstanceOptions, RenderCheck};
+use instgs_vk::instancing::pose_error::GroundTruthPose;
+use instgs_vk::instancing::template::{self, InstanceOptions, RenderCheck};
 use instgs_vk::model::scene::Scene;
 use instgs_vk::register::{centroid, Sim3};
 use rand::{Rng, SeedableRng};
@@ -205,7 +206,8 @@ fn main() -> Result<()> {
     let labels = template::read_labels(&run.join("labels.json"), scene.len())?;
     let groups_path = data.join("instances.json");
     let groups = instgs_vk::dataset::masks::read_groups(&groups_path)?;
-    let truth = template::read_ground_truth(&groups_path)?.context("instances.json has no ground-truth poses")?;
+    let truth = instgs_vk::instancing::pose_error::read_ground_truth(&groups_path)?
+        .context("instances.json has no ground-truth poses")?;
     let ds = instgs_vk::dataset::load(&data, &instgs_vk::dataset::LoadOptions { downscale, background: [0.0; 3] })?;
     let masks = instgs_vk::dataset::masks::load_masks(&data, "train", &ds.train)?;
     let gpu = Gpu::new(&GpuOptions::from_env(None))?;
@@ -237,7 +239,8 @@ fn main() -> Result<()> {
                 template::instantiate(&s, &l, &groups, &o, Some(&mut check as &mut dyn RenderCheck), |_| {})?;
             for r in reports.iter().filter(|r| r.id != r.reference) {
                 t.instances += 1;
-                let (rot, trans, scale) = template::pose_error(&r.relative, &gt[&r.reference], &gt[&r.id]);
+                let (rot, trans, scale) =
+                    instgs_vk::instancing::pose_error::pose_error(&r.relative, &gt[&r.reference], &gt[&r.id]);
                 let err = trans.max(scale.abs());
                 match r.status.name() {
                     "accepted" => {

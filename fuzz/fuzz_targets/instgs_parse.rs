@@ -5,9 +5,9 @@
 use libfuzzer_sys::fuzz_target;
 
 fuzz_target!(|data: &[u8]| {
-    if let Ok(scene) = instgs_vk::instgs::from_bytes(data, "fuzz") {
+    if let Ok(scene) = instgs_vk::formats::instgs::from_bytes(data, "fuzz") {
         // What parses is a valid scene that writes back and reads again to the same scene.
-        let bytes = instgs_vk::instgs::to_bytes(&scene, instgs_vk::instgs::Dtype::F32);
-        assert_eq!(instgs_vk::instgs::from_bytes(&bytes, "fuzz").unwrap(), scene);
+        let bytes = instgs_vk::formats::instgs::to_bytes(&scene, instgs_vk::formats::instgs::Dtype::F32);
+        assert_eq!(instgs_vk::formats::instgs::from_bytes(&bytes, "fuzz").unwrap(), scene);
     }
 });

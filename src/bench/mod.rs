@@ -12,7 +12,8 @@ use crate::math::{median, percentile};
 use crate::model::camera::Camera;
 use crate::render::frames::{collect, print_passes, setup, FrameSpec, Setup};
 use crate::render::lod::RenderConfig;
-use crate::render::raster::{GpuScene, Rasterizer};
+use crate::render::raster::Rasterizer;
+use crate::render::upload::GpuScene;
 use crate::util::{write_json, Progress, ProgressMode};
 
 /// One scene of a bench run: its own rasterizer (buffers sized for it) and samples.

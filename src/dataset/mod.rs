@@ -33,7 +33,7 @@ pub struct View {
 pub struct PointCloud {
     pub positions: Vec<[f32; 3]>,
     /// RGB in [0, 1].
-    pub colors: Vec<[f32; 3]>,
+    pub colours: Vec<[f32; 3]>,
 }
 
 pub struct Dataset {
@@ -177,7 +177,7 @@ pub fn read_points_ply(path: &Path) -> Result<PointCloud> {
         }
         let c = [num(v, "red"), num(v, "green"), num(v, "blue")];
         pc.positions.push([x, y, z]);
-        pc.colors.push(c.map(|c| c.unwrap_or(0.5).clamp(0.0, 1.0)));
+        pc.colours.push(c.map(|c| c.unwrap_or(0.5).clamp(0.0, 1.0)));
     }
     Ok(pc)
 }
@@ -323,7 +323,7 @@ pub fn read_colmap(dir: &Path) -> Result<ColmapModel> {
                     bail!("{}: point {_id} has a non-finite position {p:?}", path.display());
                 }
                 m.points.positions.push(p);
-                m.points.colors.push(c);
+                m.points.colours.push(c);
             }
         }
     } else {
@@ -410,7 +410,7 @@ pub fn read_colmap(dir: &Path) -> Result<ColmapModel> {
                     return Err(bad("points3D.txt", no, "the point's position is not finite"));
                 }
                 m.points.positions.push([f[0], f[1], f[2]]);
-                m.points.colors.push([f[3] / 255.0, f[4] / 255.0, f[5] / 255.0]);
+                m.points.colours.push([f[3] / 255.0, f[4] / 255.0, f[5] / 255.0]);
             }
         }
     }

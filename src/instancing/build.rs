@@ -64,7 +64,7 @@ pub fn instance(
     }
     instgs::write(&inst, out, dtype)?;
     let truth = match truth_path {
-        Some(p) => template::read_ground_truth(p)?,
+        Some(p) => crate::instancing::pose_error::read_ground_truth(p)?,
         None => None,
     };
     let mut rows = Vec::new();
@@ -94,7 +94,7 @@ pub fn instance(
         }
         if let Some(t) = &truth {
             if let (Some(a), Some(b)) = (t.get(&r.reference), t.get(&r.id)) {
-                let (rot, trans, scale) = template::pose_error(&r.relative, a, b);
+                let (rot, trans, scale) = crate::instancing::pose_error::pose_error(&r.relative, a, b);
                 line += &format!(
                     "; against {}: rotation {rot:.3}°, translation {:.3} % of the size, scale {:+.3} %",
                     groups_path.display(),

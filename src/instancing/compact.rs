@@ -19,7 +19,8 @@ use crate::instancing::template::prune_background;
 use crate::math::tree;
 use crate::model::scene::Scene;
 use crate::register::object_size;
-use crate::render::raster::{GpuScene, Rasterizer};
+use crate::render::raster::Rasterizer;
+use crate::render::upload::GpuScene;
 
 /// Training views rendered per trial at most (evenly spread over the split).
 pub const BUDGET_VIEWS: usize = 8;

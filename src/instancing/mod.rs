@@ -3,5 +3,6 @@
 //! compaction ([`compact`]).
 pub mod build;
 pub mod compact;
+pub mod pose_error;
 pub mod template;
 pub mod verify;

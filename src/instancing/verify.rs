@@ -22,7 +22,8 @@ use crate::instancing::template::{sim3_to_similarity, transform_gaussians, Rende
 use crate::model::camera::Camera;
 use crate::model::scene::Scene;
 use crate::register::Sim3;
-use crate::render::raster::{GpuScene, Rasterizer};
+use crate::render::raster::Rasterizer;
+use crate::render::upload::GpuScene;
 
 /// An RGBA render (rgb over black, a = final transmittance), row-major.
 type Pixel = [f32; 4];

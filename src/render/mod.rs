@@ -5,3 +5,4 @@ pub mod lod;
 pub mod raster;
 pub mod reference;
 pub mod sort;
+pub mod upload;

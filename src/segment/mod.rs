@@ -22,7 +22,9 @@ use crate::dataset::View;
 use crate::gpu::kernels::Kernels;
 use crate::gpu::Gpu;
 use crate::model::scene::Scene;
-use crate::render::raster::{GpuScene, Grads, Rasterizer};
+use crate::render::raster::backward::Grads;
+use crate::render::raster::Rasterizer;
+use crate::render::upload::GpuScene;
 use crate::shared::{SegArgs, MAX_GROUPS, WG_SIZE};
 
 /// Per-Gaussian results: the instance id (0 = background) and g per instance.
@@ -168,7 +170,7 @@ impl<'a> Scorer<'a> {
                 let args = SegArgs { count: n as u32, slot, weight: 1.0, _pad0: 0 };
                 rec.dispatch(
                     &k.seg_accumulate,
-                    &[("v_colors", &self.grads.v_colors), ("scores", &self.scores)],
+                    &[("v_colours", &self.grads.v_colours), ("scores", &self.scores)],
                     &args,
                     [(n as u32).div_ceil(WG_SIZE).min(MAX_GROUPS), 1, 1],
                 )?;

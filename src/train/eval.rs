@@ -1,5 +1,7 @@
 //! `instgs-vk eval`: held-out PSNR and SSIM of a scene, per view and mean, with optional
 //! comparison pictures.
+use crate::dataset::View;
+use crate::render::upload::GpuScene;
 use std::path::Path;
 
 use anyhow::{bail, Context, Result};
@@ -42,7 +44,7 @@ pub fn eval(
     }
     let mut bar = Progress::new("eval: ", "view", "views/s", views.len() as u64, 0, ProgressMode::Auto);
     let mut done = 0;
-    let e = crate::train::evaluate(&mut r, &gs, views, background, |v, f| {
+    let e = evaluate(&mut r, &gs, views, background, |v, f| {
         done += 1;
         bar.set(done, "");
         let Some(dir) = out else { return Ok(()) };
@@ -71,4 +73,48 @@ pub fn eval(
         println!("{:<24} PSNR {:7.3} dB  SSIM {:.4}  ({} views)", "mean", e.psnr, e.ssim, e.views.len());
     }
     Ok(())
+}
+
+/// PSNR and SSIM of one view.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ViewScore {
+    pub name: String,
+    pub psnr: f64,
+    pub ssim: f64,
+}
+
+/// Mean PSNR and SSIM over views, and each view's.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Evaluation {
+    pub psnr: f64,
+    pub ssim: f64,
+    pub views: Vec<ViewScore>,
+}
+
+/// Renders `views` from `scene` and scores them against their images; `each` sees every
+/// rendered frame (for writing pictures).
+pub fn evaluate(
+    raster: &mut Rasterizer,
+    scene: &GpuScene,
+    views: &[View],
+    background: [f32; 3],
+    mut each: impl FnMut(&View, &crate::render::raster::Frame) -> Result<()>,
+) -> Result<Evaluation> {
+    let mut per = Vec::new();
+    for v in views {
+        let f = raster.render(scene, &v.camera, background)?;
+        let (w, h) = (v.camera.width as usize, v.camera.height as usize);
+        let a: Vec<[f64; 3]> = f.image.iter().map(|p| [0, 1, 2].map(|c| p[c].clamp(0.0, 1.0) as f64)).collect();
+        let b: Vec<[f64; 3]> = v.image.iter().map(|p| [p[0] as f64, p[1] as f64, p[2] as f64]).collect();
+        per.push(ViewScore {
+            name: v.camera.name.clone(),
+            psnr: crate::util::psnr(&f.image, &v.image),
+            ssim: crate::render::reference::backward::ssim(&a, &b, w, h),
+        });
+        each(v, &f)?;
+    }
+    let n = per.len().max(1) as f64;
+    let psnr = per.iter().map(|p| p.psnr).sum::<f64>() / n;
+    let ssim = per.iter().map(|p| p.ssim).sum::<f64>() / n;
+    Ok(Evaluation { psnr, ssim, views: per })
 }

@@ -8,7 +8,8 @@ use gpu_allocator::MemoryLocation;
 
 use crate::gpu::kernels::Kernels;
 use crate::gpu::{Buffer, Gpu, Recorder};
-use crate::render::raster::{GpuScene, Grads};
+use crate::render::raster::backward::Grads;
+use crate::render::upload::GpuScene;
 use crate::shared::*;
 
 /// Inria's weight of the D-SSIM term: L = (1 − λ) L1 + λ (1 − SSIM).
@@ -192,7 +193,7 @@ pub fn offset_buffers(s: &GpuScene) -> [&Buffer; 3] {
 
 /// The offset gradient buffers in the order of [`offset_buffers`].
 pub fn offset_grad_buffers(g: &Grads) -> [&Buffer; 3] {
-    [&g.d_means, &g.d_sh0, &g.d_opacities]
+    [&g.v_d_means, &g.v_d_sh0, &g.v_d_opacities]
 }
 
 /// The scene's parameter buffers in a fixed order: means, scales, quats, opacities, sh.
@@ -202,7 +203,7 @@ pub fn param_buffers(s: &GpuScene) -> [&Buffer; 5] {
 
 /// The gradient buffers in the order of [`param_buffers`].
 pub fn grad_buffers(g: &Grads) -> [&Buffer; 5] {
-    [&g.means, &g.scales, &g.quats, &g.opacities, &g.sh]
+    [&g.v_means, &g.v_scales, &g.v_quats, &g.v_opacities, &g.v_sh]
 }
 
 /// Adam's constants (Inria: betas (0.9, 0.999), eps 1e-15).

@@ -57,27 +57,27 @@ pub struct Splat {
     /// (a, b, c) of power = -(a dx² + c dy²)/2 - b dx dy.
     pub conic: [f64; 3],
     pub opacity: f64,
-    pub color: [f64; 3],
+    pub colour: [f64; 3],
 }
 
 impl Splat {
     pub fn flat(&self) -> [f64; 9] {
-        let (x, c, o, r) = (self.xy, self.conic, self.opacity, self.color);
+        let (x, c, o, r) = (self.xy, self.conic, self.opacity, self.colour);
         [x[0], x[1], c[0], c[1], c[2], o, r[0], r[1], r[2]]
     }
 
     pub fn from_flat(v: &[f64]) -> Splat {
-        Splat { xy: [v[0], v[1]], conic: [v[2], v[3], v[4]], opacity: v[5], color: [v[6], v[7], v[8]] }
+        Splat { xy: [v[0], v[1]], conic: [v[2], v[3], v[4]], opacity: v[5], colour: [v[6], v[7], v[8]] }
     }
 
     /// The GPU/CPU forward's f32 values of Gaussian `i`.
     pub fn of_projected(p: &crate::render::reference::forward::Projected, i: usize) -> Splat {
-        let (x, c, r) = (p.xys[i], p.conics[i], p.colors[i]);
+        let (x, c, r) = (p.xys[i], p.conics[i], p.colours[i]);
         Splat {
             xy: x.map(f64::from),
             conic: [c[0] as f64, c[1] as f64, c[2] as f64],
             opacity: c[3] as f64,
-            color: [r[0] as f64, r[1] as f64, r[2] as f64],
+            colour: [r[0] as f64, r[1] as f64, r[2] as f64],
         }
     }
 }
@@ -192,7 +192,7 @@ pub fn project(fp: &FrameParams, g: &Gaussian) -> Splat {
         xy: [pr.fx * f.t.x * rz + pr.cx, pr.fy * f.t.y * rz + pr.cy],
         conic: [c / det, -b / det, a / det],
         opacity: 1.0 / (1.0 + (-g.opacity).exp()),
-        color: f.rgb_raw.max(DVec3::ZERO).to_array(),
+        colour: f.rgb_raw.max(DVec3::ZERO).to_array(),
     }
 }
 
@@ -235,17 +235,17 @@ pub fn project_vjp(fp: &FrameParams, g: &Gaussian, v: &Splat) -> Gaussian {
     let v_q = (v_q - f.q * f.q.dot(v_q)) / f.q_len;
 
     let nb = ((fp.sh_degree + 1) * (fp.sh_degree + 1)) as usize;
-    let mut v_rgb = DVec3::from(v.color);
+    let mut v_rgb = DVec3::from(v.colour);
     for ch in 0..3 {
         if f.rgb_raw[ch] <= 0.0 {
             v_rgb[ch] = 0.0;
         }
     }
-    let mut grad_sh = vec![0.0; g.sh.len()];
+    let mut v_sh = vec![0.0; g.sh.len()];
     let mut v_dir = DVec3::ZERO;
     for k in 0..nb {
         let gk = f.basis[k] * v_rgb;
-        grad_sh[3 * k..3 * k + 3].copy_from_slice(&gk.to_array());
+        v_sh[3 * k..3 * k + 3].copy_from_slice(&gk.to_array());
         let ck = DVec3::new(g.sh[3 * k], g.sh[3 * k + 1], g.sh[3 * k + 2]);
         v_dir += f.dbasis[k] * ck.dot(v_rgb);
     }
@@ -256,7 +256,7 @@ pub fn project_vjp(fp: &FrameParams, g: &Gaussian, v: &Splat) -> Gaussian {
         scale: (v_s * f.s).to_array(),
         quat: v_q.to_array(),
         opacity: v.opacity * o * (1.0 - o),
-        sh: grad_sh,
+        sh: v_sh,
     }
 }
 
@@ -287,7 +287,7 @@ pub fn blend(
                 if test_t < 1e-4 {
                     break;
                 }
-                c += DVec3::from(s.color) * alpha * t;
+                c += DVec3::from(s.colour) * alpha * t;
                 t = test_t;
                 lasts[py * w + px] = n as u32 + 1;
             }
@@ -351,10 +351,10 @@ pub fn blend_backward(
             let mut behind = DVec3::ZERO;
             for &(id, alpha, g, d, t_i) in used.iter().rev() {
                 let s = &splats[id];
-                let rgb = DVec3::from(s.color);
+                let rgb = DVec3::from(s.colour);
                 let gr = &mut grads[id];
                 for ch in 0..3 {
-                    gr.color[ch] += alpha * t_i * v_pix[ch];
+                    gr.colour[ch] += alpha * t_i * v_pix[ch];
                 }
                 let v_alpha = t_i * (rgb - behind).dot(v_pix) - t_final / (1.0 - alpha) * bg.dot(v_pix);
                 behind = alpha * rgb + (1.0 - alpha) * behind;

@@ -14,7 +14,7 @@ pub struct Projected {
     /// Conic (a, b, c of the inverse 2D covariance) and opacity.
     pub conics: Vec<[f32; 4]>,
     /// RGB (a unused).
-    pub colors: Vec<[f32; 4]>,
+    pub colours: Vec<[f32; 4]>,
     pub depths: Vec<f32>,
     /// Half-extents in pixels along x and y.
     pub radii: Vec<[u32; 2]>,
@@ -72,7 +72,7 @@ pub fn preprocess(scene: &Scene, fp: &FrameParams) -> Projected {
     let mut p = Projected {
         xys: vec![[0.0; 2]; n],
         conics: vec![[0.0; 4]; n],
-        colors: vec![[0.0; 4]; n],
+        colours: vec![[0.0; 4]; n],
         depths: vec![0.0; n],
         radii: vec![[0; 2]; n],
         tiles_touched: vec![0; n],
@@ -139,7 +139,7 @@ pub fn preprocess(scene: &Scene, fp: &FrameParams) -> Projected {
         let rgb = (rgb + 0.5).max(Vec3::ZERO);
         p.xys[i] = xy;
         p.conics[i] = co;
-        p.colors[i] = [rgb.x, rgb.y, rgb.z, 0.0];
+        p.colours[i] = [rgb.x, rgb.y, rgb.z, 0.0];
         p.depths[i] = t.z;
         p.radii[i] = radius;
         p.tiles_touched[i] = touched;
@@ -271,7 +271,7 @@ pub fn blend(fp: &FrameParams, ranges: &[[u32; 2]], isect_ids: &[u32], p: &Proje
                 if test_t < 0.0001 {
                     break;
                 }
-                c += Vec3::new(p.colors[g][0], p.colors[g][1], p.colors[g][2]) * alpha * t;
+                c += Vec3::new(p.colours[g][0], p.colours[g][1], p.colours[g][2]) * alpha * t;
                 t = test_t;
             }
             let rgb = c + t * bg;

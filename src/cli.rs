@@ -1,0 +1,424 @@
+//! The command line's types (clap): every command, its arguments and their documentation.
+use std::path::PathBuf;
+
+use anyhow::Result;
+use clap::{Args, Parser, Subcommand};
+use instgs_vk::formats::instgs;
+use instgs_vk::model::camera::UpAxis;
+use instgs_vk::pipeline;
+use instgs_vk::render::frames::FrameSpec;
+use instgs_vk::render::lod::RenderConfig;
+
+/// Instanced 3D Gaussian Splatting on Vulkan compute.
+#[derive(Parser)]
+#[command(version, about)]
+pub(crate) struct Cli {
+    /// Vulkan device: index or case-insensitive name substring (default: a real GPU over a CPU
+    /// device). Also INSTGS_DEVICE. INSTGS_VALIDATION=1 turns on the validation layers.
+    #[arg(long, global = true)]
+    pub(crate) device: Option<String>,
+    #[command(subcommand)]
+    pub(crate) cmd: Cmd,
+}
+
+#[derive(Subcommand)]
+pub(crate) enum Cmd {
+    /// Print a scene's Gaussian count, SH degree, bounds and file size; for an .instgs scene
+    /// also its groups, instances (template→world transforms) and the bytes of every part.
+    Info {
+        /// Scene file (.ply: Inria 3DGS or SuperSplat compressed; .instgs).
+        scene: PathBuf,
+        /// Print JSON instead of text.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Render a scene from a camera file or an orbit to PNG files and print per-pass GPU times.
+    Render {
+        #[command(flatten)]
+        view: ViewArgs,
+        /// Output folder: <basename of file_path>.png per camera, view_000.png… for orbits.
+        #[arg(long)]
+        out: PathBuf,
+    },
+    /// Render frames offscreen and report per-pass GPU times (medians), splats and memory.
+    Bench {
+        #[command(flatten)]
+        view: ViewArgs,
+        /// Timed frames per camera.
+        #[arg(long, default_value_t = 5)]
+        frames: usize,
+        /// Untimed frames first.
+        #[arg(long, default_value_t = 1)]
+        warmup: usize,
+        /// A second scene (.ply or .instgs) rendered interleaved with the first (A B A B …)
+        /// from the same cameras; ratios are A over B.
+        #[arg(long)]
+        compare: Option<PathBuf>,
+        /// Also write the results as JSON to this file.
+        #[arg(long)]
+        json: Option<PathBuf>,
+        #[command(flatten)]
+        render: RenderArgs,
+        /// Render the --compare scene exactly (no level of detail) whatever the render config
+        /// says: with the same file as --compare, this measures level of detail against exact
+        /// rendering (frame time ratios and the PSNR of A's frames against B's).
+        #[arg(long, requires = "compare")]
+        compare_exact: bool,
+    },
+    /// The main job. On a dataset with instance masks (DIR/masks/train/): the whole InstGS
+    /// pipeline, plain → segment → instance → joint → eval → bench, into one run folder with a
+    /// report (RUN/report.md); a re-run resumes. Without masks: plain 3DGS training. With
+    /// --init SCENE.instgs: joint optimisation of that instanced scene only.
+    Train {
+        #[command(flatten)]
+        data: DataArgs,
+        /// Run folder. Plain: checkpoint.bin, metrics.csv, curves.png, point_cloud.ply. Pipeline:
+        /// also labels.json, init.instgs, scene.instgs, joint/, eval.json, bench.json, images/,
+        /// pipeline.json and report.md (see the README).
+        #[arg(long)]
+        out: PathBuf,
+        /// SCENE.ply: a plain 3DGS scene trained by any 3DGS tool replaces the plain stage.
+        /// SCENE.instgs: optimise this instanced scene jointly (configs/instanced.toml applies).
+        #[arg(long)]
+        init: Option<PathBuf>,
+        /// Configuration (TOML, only the keys to change): configs/default.toml's keys for plain
+        /// training; a pipeline adds [joint], [segment], [instance], [eval], [bench]
+        /// (configs/pipeline.toml).
+        #[arg(long)]
+        config: Option<PathBuf>,
+        /// Iterations of the (plain) training (overrides the configuration's).
+        #[arg(long)]
+        iterations: Option<u64>,
+        /// Continue from OUT/checkpoint.bin (plain or joint-only runs; a pipeline always resumes).
+        #[arg(long)]
+        resume: bool,
+        /// Pipeline: redo this stage and the ones after it (their earlier results are replaced).
+        #[arg(long, value_enum)]
+        from: Option<pipeline::Stage>,
+        /// Pipeline: stop after this stage.
+        #[arg(long, value_enum)]
+        until: Option<pipeline::Stage>,
+        /// Print a line every 10 % instead of a progress bar.
+        #[arg(long)]
+        quiet: bool,
+    },
+    /// PSNR and SSIM of a scene on a dataset's held-out (or training) views.
+    Eval {
+        /// Scene file (.ply or .instgs).
+        #[arg(long)]
+        scene: PathBuf,
+        #[command(flatten)]
+        data: DataArgs,
+        /// Which views: test or train.
+        #[arg(long, default_value = "test")]
+        split: String,
+        /// Print JSON: psnr_mean, ssim_mean and a views list.
+        #[arg(long)]
+        json: bool,
+        /// Also write <view>.png renders and <view>_compare.png (ground truth | render | error ×4).
+        #[arg(long)]
+        out: Option<PathBuf>,
+        /// Background colour r,g,b in [0, 1] (as in training).
+        #[arg(long, default_value = "0,0,0", value_parser = parse_rgb)]
+        background: [f32; 3],
+        /// Render as the player does (configs/render.toml: culling and template level of
+        /// detail) instead of exactly, to measure what level of detail costs.
+        #[arg(long)]
+        lod: bool,
+        /// With --lod: a TOML file with keys of configs/render.toml to change.
+        #[arg(long, requires = "lod")]
+        render_config: Option<PathBuf>,
+    },
+    /// Build an instanced scene (.instgs) from template PLYs and a scene graph.
+    Compose {
+        /// NAME=FILE.ply: the template of the scene graph's template_id NAME, in template space
+        /// (the frame of the group's first instance). Repeat per group.
+        #[arg(long = "template", required = true)]
+        templates: Vec<String>,
+        /// The prototype's scene_graph.json: [{template_id, instances: [{instance_id,
+        /// transform}]}], transform = 4×4 row-major world→template (instance 1: identity).
+        #[arg(long)]
+        scene_graph: PathBuf,
+        /// Plain Gaussians around the instances.
+        #[arg(long)]
+        background: Option<PathBuf>,
+        /// Draw every offset (Δp, Δ SH DC, Δ opacity logit) from N(0, SIGMA²).
+        #[arg(long, value_name = "SIGMA")]
+        random_offsets: Option<f32>,
+        /// Seed of --random-offsets.
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+        /// Storage type of the offsets in the file.
+        #[arg(long, value_enum, default_value = "f32")]
+        offset_dtype: OffsetDtype,
+        #[arg(long)]
+        out: PathBuf,
+    },
+    /// Convert a scene between formats, chosen by OUT's name: .ply (Inria), .compressed.ply
+    /// (SuperSplat, with SH), .spz (version 4), DIR/meta.json (SOG version 2), .splat (no SH),
+    /// or .json (an .instgs scene's scene graph). An .instgs scene is expanded first (SH bands rotated per instance).
+    Convert {
+        /// Any scene we read (PLY, compressed PLY, .spz, SOG, .splat, .instgs).
+        scene: PathBuf,
+        /// OUT.ply, OUT.compressed.ply, OUT.spz, DIR/meta.json, OUT.splat or OUT.json.
+        out: PathBuf,
+    },
+    /// Export a dataset's cameras (NeRF-synthetic or COLMAP folder) as a NeRF-synthetic
+    /// transforms JSON: OpenGL camera-to-world matrices, per-frame intrinsics, image paths.
+    Cameras {
+        /// The dataset folder (or a transforms JSON).
+        data: PathBuf,
+        /// train, test or all.
+        #[arg(long, default_value = "all")]
+        split: String,
+        #[arg(long)]
+        out: PathBuf,
+    },
+    /// Gradient-driven instance segmentation of a trained plain scene with the dataset's
+    /// instance masks (masks/<split>/<image>.png, ids grouped by DIR/instances.json).
+    Segment {
+        /// The trained plain scene (.ply).
+        #[arg(long)]
+        scene: PathBuf,
+        /// Dataset folder (NeRF-synthetic layout with masks/ and instances.json).
+        #[arg(long)]
+        data: PathBuf,
+        /// Views whose masks drive the segmentation.
+        #[arg(long, default_value = "train")]
+        split: String,
+        /// Weight of the background-removal term (paper: 0.8).
+        #[arg(long, default_value_t = 0.8)]
+        alpha: f32,
+        /// labels.json ({ids, labels}) or labels.bin (u32 little-endian per Gaussian; 0 = background).
+        #[arg(long)]
+        out: PathBuf,
+        /// Also write one PLY per instance and background.ply here.
+        #[arg(long)]
+        export_dir: Option<PathBuf>,
+        /// The masks' ids mean nothing across frames (e.g. from SAM): each frame's ids are
+        /// associated across views first (view consensus); masks/<split>/<stem>.json gives each
+        /// mask id's category. Needs a .json output, which then carries the associated groups.
+        #[arg(long)]
+        per_frame_ids: bool,
+    },
+    /// Registration and template initialisation (paper §4.2): a segmented plain scene becomes an
+    /// instanced scene (.instgs) ready for joint optimisation (`train --init`).
+    Instance {
+        /// The trained plain scene (.ply) that was segmented.
+        #[arg(long)]
+        scene: PathBuf,
+        /// Its per-Gaussian labels (labels.json or labels.bin from `segment`).
+        #[arg(long)]
+        labels: PathBuf,
+        /// Dataset folder: DIR/instances.json groups the instance ids and names the groups; when
+        /// it carries ground-truth poses, the recovered transforms are checked against them.
+        #[arg(long)]
+        data: PathBuf,
+        /// Group the ids by this file instead of DIR/instances.json (e.g. the labels.json of
+        /// `segment --per-frame-ids`, which carries the associated groups); no ground truth then.
+        #[arg(long)]
+        groups: Option<PathBuf>,
+        /// Template initialisation: max (the largest instance kept whole; measured best), merge
+        /// (the paper's merge-and-sample) or first.
+        #[arg(long, value_enum, default_value = "max")]
+        init: instgs_vk::instancing::template::TemplateInit,
+        /// Rigid registration (no per-instance scale).
+        #[arg(long)]
+        rigid: bool,
+        /// Register by shape alone (no colour-aware ICP).
+        #[arg(long)]
+        geometry_only: bool,
+        /// Weight of colour in the colour-aware ICP: a normalised colour difference of 1 counts
+        /// as 2 registration voxels × this.
+        #[arg(long, default_value_t = 1.0)]
+        colour_weight: f64,
+        /// Seed of RANSAC.
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+        /// Storage type of the offsets in the file.
+        #[arg(long, value_enum, default_value = "f32")]
+        offset_dtype: OffsetDtype,
+        /// Also write a JSON report (per instance: registration and, with ground truth, errors).
+        #[arg(long)]
+        report: Option<PathBuf>,
+        /// Downscale factor of the dataset's training images for the render check.
+        #[arg(long, default_value_t = 1)]
+        downscale: u32,
+        /// Skip the render check (poses are then checked by geometry alone).
+        #[arg(long)]
+        no_render_check: bool,
+        /// Acceptance: both fitnesses at least this.
+        #[arg(long, default_value_t = instgs_vk::instancing::template::Acceptance::default().min_fitness)]
+        min_fitness: f64,
+        /// Acceptance: scale within this relative distance of the clouds' size ratio.
+        #[arg(long, default_value_t = instgs_vk::instancing::template::Acceptance::default().scale_tolerance)]
+        scale_tolerance: f64,
+        /// Acceptance: the render check's median silhouette IoU at least this.
+        #[arg(long, default_value_t = instgs_vk::instancing::template::Acceptance::default().min_render_iou)]
+        min_render_iou: f64,
+        /// Acceptance: the render check's PSNR (dB) at least this.
+        #[arg(long, default_value_t = instgs_vk::instancing::template::Acceptance::default().min_render_psnr)]
+        min_render_psnr: f64,
+        #[arg(long)]
+        out: PathBuf,
+    },
+    #[cfg(feature = "player")]
+    /// The standalone player: a window with the scene, orbit/fly camera and FPS overlay (see
+    /// the README for the controls), or with --headless frames saved to PNG files.
+    View {
+        /// Scene file (.ply: Inria 3DGS or SuperSplat compressed; .instgs).
+        scene: PathBuf,
+        /// Start from a dataset's camera: a transforms_*.json file, or a NeRF-synthetic or
+        /// COLMAP folder. Default: framing the scene's bounds.
+        #[arg(long)]
+        cameras: Option<PathBuf>,
+        /// Which of those cameras.
+        #[arg(long, default_value_t = 0, requires = "cameras")]
+        camera: usize,
+        /// Which cameras of a dataset folder: train, test or all.
+        #[arg(long, default_value = "train", requires = "cameras")]
+        split: String,
+        /// Which world axis is up (orbit and fly moves).
+        #[arg(long, value_enum, default_value = "-y", allow_hyphen_values = true)]
+        up: UpAxis,
+        /// Window (or headless frame) width.
+        #[arg(long, default_value_t = 1280)]
+        width: u32,
+        /// Window (or headless frame) height.
+        #[arg(long, default_value_t = 720)]
+        height: u32,
+        /// Background colour r,g,b in [0, 1] (B cycles black, white, grey).
+        #[arg(long, default_value = "0,0,0", value_parser = parse_rgb)]
+        background: [f32; 3],
+        /// Wait for vertical sync (default: off, immediate or mailbox presentation).
+        #[arg(long)]
+        vsync: bool,
+        /// No FPS overlay (H toggles it).
+        #[arg(long)]
+        no_overlay: bool,
+        /// Exit after N frames (windowed: the last one is saved as a screenshot in --out).
+        #[arg(long)]
+        frames: Option<u64>,
+        /// Folder for screenshots (windowed) or frames (headless).
+        #[arg(long)]
+        out: Option<PathBuf>,
+        /// No window: render --frames N turntable frames offscreen into --out DIR.
+        #[arg(long, requires_all = ["frames", "out"])]
+        headless: bool,
+        #[command(flatten)]
+        render: RenderArgs,
+    },
+    /// Time the GPU radix sort against Rust's sort_unstable on the same random keys.
+    BenchSort {
+        /// Number of keys.
+        #[arg(long, default_value_t = 1_000_000)]
+        keys: usize,
+        /// Key bits to sort (keys are random in 0..2^bits).
+        #[arg(long, default_value_t = 32)]
+        bits: u32,
+        /// Timed GPU repeats (median reported).
+        #[arg(long, default_value_t = 5)]
+        repeats: usize,
+    },
+}
+
+#[derive(Clone, Copy, clap::ValueEnum)]
+pub(crate) enum OffsetDtype {
+    F32,
+    F16,
+    /// Product-quantised: two 8-bit codes per pair into 256-entry codebooks (lossy once).
+    Pq8,
+}
+
+impl From<OffsetDtype> for instgs::Dtype {
+    fn from(d: OffsetDtype) -> instgs::Dtype {
+        match d {
+            OffsetDtype::F32 => instgs::Dtype::F32,
+            OffsetDtype::F16 => instgs::Dtype::F16,
+            OffsetDtype::Pq8 => instgs::Dtype::Pq8,
+        }
+    }
+}
+
+#[derive(Args)]
+pub(crate) struct DataArgs {
+    /// Dataset folder: NeRF-synthetic (transforms_train.json) or COLMAP (sparse/0, images/).
+    #[arg(long)]
+    pub(crate) data: PathBuf,
+    /// Divide the image resolution by this integer factor.
+    #[arg(long, default_value_t = 1)]
+    pub(crate) downscale: u32,
+}
+
+/// How instanced scenes are rendered by `view` and `bench` (configs/render.toml).
+#[derive(Args)]
+pub(crate) struct RenderArgs {
+    /// TOML file with keys of configs/render.toml to change (culling, level of detail).
+    #[arg(long)]
+    pub(crate) render_config: Option<PathBuf>,
+    /// Exact rendering: no template level of detail (instances are still culled, losslessly).
+    #[arg(long)]
+    pub(crate) exact: bool,
+}
+
+impl RenderArgs {
+    pub(crate) fn load(&self) -> Result<RenderConfig> {
+        let cfg = RenderConfig::load(self.render_config.as_deref())?;
+        Ok(if self.exact { cfg.exact() } else { cfg })
+    }
+}
+
+#[derive(Args)]
+pub(crate) struct ViewArgs {
+    /// Scene file (.ply: Inria 3DGS or SuperSplat compressed; .instgs).
+    #[arg(long)]
+    pub(crate) scene: PathBuf,
+    /// The cameras: a transforms_*.json file, a NeRF-synthetic folder or a COLMAP folder.
+    #[arg(long, conflicts_with = "orbit", required_unless_present = "orbit")]
+    pub(crate) cameras: Option<PathBuf>,
+    /// Which cameras of a dataset folder: train, test or all.
+    #[arg(long, default_value = "train", requires = "cameras")]
+    pub(crate) split: String,
+    /// N cameras on an orbit around the scene's bounds.
+    #[arg(long)]
+    pub(crate) orbit: Option<usize>,
+    /// Which world axis is up, for orbits.
+    #[arg(long, value_enum, default_value = "-y", allow_hyphen_values = true)]
+    pub(crate) up: UpAxis,
+    /// Image width (default: the camera file's, 640 for orbits); intrinsics are scaled.
+    #[arg(long)]
+    pub(crate) width: Option<u32>,
+    /// Image height (default: the camera file's, 480 for orbits).
+    #[arg(long)]
+    pub(crate) height: Option<u32>,
+    /// Background colour r,g,b in [0, 1].
+    #[arg(long, default_value = "0,0,0", value_parser = parse_rgb)]
+    pub(crate) background: [f32; 3],
+}
+
+impl ViewArgs {
+    pub(crate) fn spec(self) -> FrameSpec {
+        FrameSpec {
+            scene: self.scene,
+            cameras: self.cameras,
+            split: self.split,
+            orbit: self.orbit,
+            up: self.up,
+            width: self.width,
+            height: self.height,
+            background: self.background,
+        }
+    }
+}
+
+pub(crate) fn parse_rgb(s: &str) -> std::result::Result<[f32; 3], String> {
+    let v: Vec<f32> = s
+        .split(',')
+        .map(|p| p.trim().parse::<f32>().map_err(|_| format!("'{p}' is not a number")))
+        .collect::<std::result::Result<_, _>>()?;
+    match v[..] {
+        [r, g, b] if v.iter().all(|c| (0.0..=1.0).contains(c)) => Ok([r, g, b]),
+        [_, _, _] => Err("components must be in [0, 1]".into()),
+        _ => Err("expected r,g,b".into()),
+    }
+}

@@ -1,0 +1,113 @@
+//! One compute kernel: its pipeline and a descriptor layout reflected from its SPIR-V; buffers
+//! are bound by the GLSL name of their block.
+use std::collections::BTreeMap;
+use std::ffi::CString;
+use std::sync::Arc;
+
+use anyhow::{anyhow, bail, Result};
+use ash::vk;
+
+use crate::gpu::context::Gpu;
+
+/// A compute pipeline whose descriptor layout comes from SPIR-V reflection. Buffers are bound by
+/// the GLSL variable name of their block (`buffer XBuf { ... } name;`), so binding numbers exist
+/// only in the kernel source.
+pub struct Kernel {
+    pub(crate) gpu: Arc<Gpu>,
+    pub name: String,
+    pub(crate) pipeline: vk::Pipeline,
+    pub(crate) layout: vk::PipelineLayout,
+    pub(crate) set_layout: vk::DescriptorSetLayout,
+    pub(crate) bindings: BTreeMap<String, (u32, vk::DescriptorType)>,
+    pub(crate) push_size: u32,
+}
+
+impl Kernel {
+    /// Builds the pipeline; specialization constant 0 is the device's minimum subgroup size.
+    pub fn new(gpu: &Arc<Gpu>, name: &str, spirv: &[u8]) -> Result<Kernel> {
+        Kernel::with_spec(gpu, name, spirv, &[])
+    }
+
+    /// As [`Kernel::new`], with `extra[i]` as the u32 specialization constant `i + 1`.
+    pub fn with_spec(gpu: &Arc<Gpu>, name: &str, spirv: &[u8], extra: &[u32]) -> Result<Kernel> {
+        let refl = rspirv_reflect::Reflection::new_from_spirv(spirv)
+            .map_err(|e| anyhow!("kernel {name}: SPIR-V reflection failed: {e:?}"))?;
+        let sets = refl.get_descriptor_sets().map_err(|e| anyhow!("kernel {name}: reflection: {e:?}"))?;
+        if sets.keys().any(|&s| s != 0) {
+            bail!("kernel {name}: only descriptor set 0 is supported");
+        }
+        let mut bindings = BTreeMap::new();
+        let mut layout_bindings = Vec::new();
+        for (&binding, info) in sets.get(&0).into_iter().flatten() {
+            let ty = match info.ty {
+                rspirv_reflect::DescriptorType::STORAGE_BUFFER => vk::DescriptorType::STORAGE_BUFFER,
+                rspirv_reflect::DescriptorType::UNIFORM_BUFFER => vk::DescriptorType::UNIFORM_BUFFER,
+                other => bail!("kernel {name}: binding {binding} has unsupported descriptor type {other:?}"),
+            };
+            if info.name.is_empty() {
+                bail!("kernel {name}: binding {binding} has no instance name; declare `buffer XBuf {{ ... }} name;`");
+            }
+            bindings.insert(info.name.clone(), (binding, ty));
+            layout_bindings.push(
+                vk::DescriptorSetLayoutBinding::default()
+                    .binding(binding)
+                    .descriptor_type(ty)
+                    .descriptor_count(1)
+                    .stage_flags(vk::ShaderStageFlags::COMPUTE),
+            );
+        }
+        let push_size = refl
+            .get_push_constant_range()
+            .map_err(|e| anyhow!("kernel {name}: reflection: {e:?}"))?
+            .map(|p| p.offset + p.size)
+            .unwrap_or(0);
+        let d = &gpu.device;
+        let words = ash::util::read_spv(&mut std::io::Cursor::new(spirv))?;
+        unsafe {
+            let module = d.create_shader_module(&vk::ShaderModuleCreateInfo::default().code(&words), None)?;
+            let set_layout = d.create_descriptor_set_layout(
+                &vk::DescriptorSetLayoutCreateInfo::default()
+                    .flags(vk::DescriptorSetLayoutCreateFlags::PUSH_DESCRIPTOR_KHR)
+                    .bindings(&layout_bindings),
+                None,
+            )?;
+            let ranges =
+                [vk::PushConstantRange::default().stage_flags(vk::ShaderStageFlags::COMPUTE).offset(0).size(push_size)];
+            let set_layouts = [set_layout];
+            let mut lci = vk::PipelineLayoutCreateInfo::default().set_layouts(&set_layouts);
+            if push_size > 0 {
+                lci = lci.push_constant_ranges(&ranges);
+            }
+            let layout = d.create_pipeline_layout(&lci, None)?;
+            let spec_values: Vec<u32> =
+                std::iter::once(gpu.info.min_subgroup_size).chain(extra.iter().copied()).collect();
+            let spec_data: &[u8] = bytemuck::cast_slice(&spec_values);
+            let spec_entries: Vec<vk::SpecializationMapEntry> = (0..spec_values.len() as u32)
+                .map(|i| vk::SpecializationMapEntry::default().constant_id(i).offset(4 * i).size(4))
+                .collect();
+            let spec = vk::SpecializationInfo::default().map_entries(&spec_entries).data(spec_data);
+            let entry = CString::new("main").unwrap();
+            let stage = vk::PipelineShaderStageCreateInfo::default()
+                .stage(vk::ShaderStageFlags::COMPUTE)
+                .module(module)
+                .name(&entry)
+                .specialization_info(&spec);
+            let pci = [vk::ComputePipelineCreateInfo::default().stage(stage).layout(layout)];
+            let pipeline = d.create_compute_pipelines(vk::PipelineCache::null(), &pci, None);
+            d.destroy_shader_module(module, None);
+            let pipeline = pipeline.map_err(|(_, e)| anyhow!("kernel {name}: pipeline creation failed: {e}"))?[0];
+            Ok(Kernel { gpu: gpu.clone(), name: name.to_string(), pipeline, layout, set_layout, bindings, push_size })
+        }
+    }
+}
+
+impl Drop for Kernel {
+    fn drop(&mut self) {
+        unsafe {
+            let d = &self.gpu.device;
+            d.destroy_pipeline(self.pipeline, None);
+            d.destroy_pipeline_layout(self.layout, None);
+            d.destroy_descriptor_set_layout(self.set_layout, None);
+        }
+    }
+}

@@ -1,0 +1,140 @@
+//! The checkpoint file (`checkpoint.bin`): the whole training state and its config, written
+//! atomically and read back with every size checked.
+use std::io::Write;
+use std::path::{Path, PathBuf};
+
+use anyhow::{anyhow, bail, Context, Result};
+
+use crate::model::instanced::Offsets;
+use crate::train::config::Config;
+
+use crate::train::state::*;
+
+const MAGIC: &[u8; 8] = b"INSTGSCK";
+const VERSION: u32 = 1;
+
+#[derive(serde::Serialize, serde::Deserialize)]
+struct CheckpointHeader {
+    iteration: u64,
+    active_sh_degree: u32,
+    sh_degree: u32,
+    gaussians: usize,
+    /// The run's configuration; keys an older checkpoint lacks take today's defaults.
+    config: serde_json::Value,
+    /// Instanced runs; then the offsets and their moments follow the statistics.
+    #[serde(default)]
+    layout: Option<Layout>,
+}
+
+/// Writes `st` atomically (temporary file + rename) after checking it is finite, so a bad state
+/// never replaces the last good checkpoint.
+pub fn write_checkpoint(path: &Path, st: &TrainState, cfg: &Config) -> Result<()> {
+    st.check_finite().context("checkpoint not written; the last good one is kept")?;
+    let header = serde_json::to_vec(&CheckpointHeader {
+        iteration: st.iteration,
+        active_sh_degree: st.active_sh_degree,
+        sh_degree: st.scene.sh_degree,
+        gaussians: st.scene.len(),
+        config: serde_json::to_value(cfg)?,
+        layout: st.layout.clone(),
+    })?;
+    crate::util::write_atomic(path, |f| {
+        let mut w = std::io::BufWriter::new(f);
+        w.write_all(MAGIC)?;
+        w.write_all(&VERSION.to_le_bytes())?;
+        w.write_all(&(header.len() as u64).to_le_bytes())?;
+        w.write_all(&header)?;
+        let moments = st.exp_avg.iter().chain(&st.exp_avg_sq).map(|v| &v[..]);
+        for arr in st.params().into_iter().chain(moments) {
+            w.write_all(bytemuck::cast_slice(arr))?;
+        }
+        w.write_all(bytemuck::cast_slice(&st.grad2d_accum))?;
+        w.write_all(bytemuck::cast_slice(&st.grad2d_count))?;
+        w.write_all(bytemuck::cast_slice(&st.max_radii))?;
+        let moments = st.offset_exp_avg.iter().chain(&st.offset_exp_avg_sq).map(|v| &v[..]);
+        for arr in st.offset_arrays().into_iter().chain(moments) {
+            w.write_all(bytemuck::cast_slice(arr))?;
+        }
+        for arr in [&st.xform_params, &st.xform_exp_avg, &st.xform_exp_avg_sq] {
+            w.write_all(bytemuck::cast_slice(arr))?;
+        }
+        w.flush()
+    })
+}
+
+/// Reads a checkpoint; returns the state and the configuration it was written with.
+pub fn read_checkpoint(path: &Path) -> Result<(TrainState, Config)> {
+    let what = path.display();
+    let data = std::fs::read(path).with_context(|| format!("{what}: cannot read checkpoint"))?;
+    if data.len() < 20 || &data[..8] != MAGIC {
+        bail!("{what}: not an instgs-vk checkpoint");
+    }
+    let version = u32::from_le_bytes(data[8..12].try_into().unwrap());
+    if version != VERSION {
+        bail!("{what}: checkpoint version {version}, this build reads {VERSION}");
+    }
+    let hlen = u64::from_le_bytes(data[12..20].try_into().unwrap()) as usize;
+    let header: CheckpointHeader = data
+        .get(20..20 + hlen)
+        .and_then(|h| serde_json::from_slice(h).ok())
+        .ok_or_else(|| anyhow!("{what}: damaged checkpoint header"))?;
+    if header.sh_degree > 3 {
+        bail!("{what}: damaged checkpoint header");
+    }
+    let n = header.gaussians;
+    let st = strides(header.sh_degree);
+    let mut pos = 20 + hlen;
+    let mut take = |count: usize| -> Result<&[u8]> {
+        let bytes = count.checked_mul(4).ok_or_else(|| anyhow!("{what}: damaged checkpoint"))?;
+        let s = data.get(pos..pos + bytes).ok_or_else(|| anyhow!("{what}: truncated checkpoint"))?;
+        pos += bytes;
+        Ok(s)
+    };
+    let mut f32s = |count: usize| -> Result<Vec<f32>> { Ok(bytemuck::pod_collect_to_vec(take(count)?)) };
+    let params: Vec<Vec<f32>> = (0..5).map(|k| f32s(n * st[k])).collect::<Result<_>>()?;
+    let m: Vec<Vec<f32>> = (0..5).map(|k| f32s(n * st[k])).collect::<Result<_>>()?;
+    let v: Vec<Vec<f32>> = (0..5).map(|k| f32s(n * st[k])).collect::<Result<_>>()?;
+    let stats = if header.layout.is_some() { 0 } else { n };
+    let accum = f32s(stats)?;
+    let count: Vec<u32> = bytemuck::pod_collect_to_vec(&f32s(stats)?);
+    let radii: Vec<u32> = bytemuck::pod_collect_to_vec(&f32s(stats)?);
+    let pairs = header.layout.as_ref().map_or(0, |l| l.pairs());
+    let ow = [3, 3, 1];
+    let off: Vec<Vec<f32>> = (0..9).map(|k| f32s(pairs * ow[k % 3])).collect::<Result<_>>()?;
+    let instances = header.layout.as_ref().map_or(0, |l| l.groups.iter().map(|g| g.instances.len()).sum());
+    let xf: Vec<Vec<[f32; 8]>> =
+        (0..3).map(|_| Ok(bytemuck::pod_collect_to_vec(&f32s(instances * 8)?))).collect::<Result<_>>()?;
+    if pos != data.len() {
+        bail!("{what}: checkpoint has {} trailing bytes", data.len() - pos);
+    }
+    let to5 = |v: Vec<Vec<f32>>| -> [Vec<f32>; 5] { v.try_into().unwrap() };
+    let state = TrainState {
+        iteration: header.iteration,
+        active_sh_degree: header.active_sh_degree,
+        scene: scene_from_params(to5(params), header.sh_degree),
+        exp_avg: to5(m),
+        exp_avg_sq: to5(v),
+        grad2d_accum: accum,
+        grad2d_count: count,
+        max_radii: radii,
+        layout: header.layout,
+        offsets: Offsets {
+            d_means: bytemuck::pod_collect_to_vec(&off[0]),
+            d_sh0: bytemuck::pod_collect_to_vec(&off[1]),
+            d_opacities: off[2].clone(),
+        },
+        offset_exp_avg: [off[3].clone(), off[4].clone(), off[5].clone()],
+        offset_exp_avg_sq: [off[6].clone(), off[7].clone(), off[8].clone()],
+        xform_params: xf[0].clone(),
+        xform_exp_avg: xf[1].clone(),
+        xform_exp_avg_sq: xf[2].clone(),
+    };
+    state.to_instanced().with_context(|| format!("{what}: damaged instanced checkpoint"))?;
+    let config =
+        Config::from_saved(header.config).with_context(|| format!("{what}: damaged checkpoint configuration"))?;
+    Ok((state, config))
+}
+
+pub fn checkpoint_path(out: &Path) -> PathBuf {
+    out.join("checkpoint.bin")
+}
