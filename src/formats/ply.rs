@@ -536,8 +536,8 @@ pub fn write_compressed_ply(scene: &Scene, path: &Path) -> Result<()> {
             }
             let rgb: [u32; 3] = std::array::from_fn(|ch| pack_unorm(norm(colour(i, ch), clo[ch], chi[ch]), 8));
             let alpha = pack_unorm(1.0 / (1.0 + (-scene.opacities[i]).exp()), 8);
-            let color = rgb[0] << 24 | rgb[1] << 16 | rgb[2] << 8 | alpha;
-            packed.extend_from_slice(&[position, rotation, scale, color]);
+            let colour = rgb[0] << 24 | rgb[1] << 16 | rgb[2] << 8 | alpha;
+            packed.extend_from_slice(&[position, rotation, scale, colour]);
         }
     }
     crate::util::write_atomic(path, |w| {
