@@ -13,7 +13,7 @@
 //! | rendering | [`render`] (upload, rasterizer, backward, sort, level of detail, CPU reference twins) |
 //! | training | [`train`] (3DGS optimisation, densification, checkpoints, evaluation, curves) |
 //! | InstGS stages | [`segment`] → [`register`] → [`instancing`] (templates, checks, compaction) |
-//! | the main job | [`bench`], [`pipeline`] (stages, resume, report) |
+//! | the main job | [`bench`](mod@bench), [`pipeline`] (stages, resume, report) |
 //! | viewing | [`player`] |
 //!
 //! Conventions: world space as stored in the scene; cameras are OpenCV (+X right, +Y down,

@@ -333,7 +333,7 @@ impl Drop for CommandBuffer {
 
 /// Buffers that need commands: poisoned storage, uploads, writes and read-backs.
 impl Gpu {
-    /// A device-local storage buffer (filled with 0xffffffff with [`GpuOptions::poison`]).
+    /// A device-local storage buffer (filled with 0xffffffff with [`GpuOptions::poison`](crate::gpu::GpuOptions::poison)).
     pub fn storage(self: &Arc<Self>, name: &str, size: u64) -> Result<Buffer> {
         let b = self.buffer(
             name,

@@ -20,7 +20,7 @@ pub type KeepRule<'a> =
 #[allow(clippy::too_many_arguments)]
 /// Builds `out` from a segmented plain scene: optional background pruning (`prune`: the
 /// significance file and the keep rule), templates and verified transforms
-/// ([`template::instantiate`]), pose errors against ground truth; prints a line per instance
+/// ([`template::instantiate`](crate::instancing::template::instantiate)), pose errors against ground truth; prints a line per instance
 /// and returns (and writes to `report`) the JSON report.
 pub fn instance(
     scene_path: &Path,

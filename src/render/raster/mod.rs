@@ -95,6 +95,22 @@ struct GaussBufs {
     isect_offsets: Buffer,
 }
 
+impl GaussBufs {
+    /// The per-splat buffers (the depth keys and ids aside).
+    fn per_splat(&self) -> [&Buffer; 8] {
+        [
+            &self.xys,
+            &self.conics,
+            &self.colours,
+            &self.depths,
+            &self.radii,
+            &self.tiles_touched,
+            &self.vis_offsets,
+            &self.isect_offsets,
+        ]
+    }
+}
+
 /// Intersection buffers (capacity `cap`), the scan and sort scratch and the image.
 struct IsectBufs {
     cap: usize,
@@ -242,19 +258,7 @@ impl Rasterizer {
         let mut b =
             self.frame_ub.size + self.counts.counts.size + self.counts.indirect.size + self.readback_counts.size;
         if let Some(g) = &self.gauss {
-            b += [
-                &g.xys,
-                &g.conics,
-                &g.colours,
-                &g.depths,
-                &g.radii,
-                &g.tiles_touched,
-                &g.vis_offsets,
-                &g.isect_offsets,
-            ]
-            .iter()
-            .map(|x| x.size)
-            .sum::<u64>();
+            b += g.per_splat().iter().map(|x| x.size).sum::<u64>();
             b += g.depth_keys.iter().chain(&g.depth_ids).map(|x| x.size).sum::<u64>();
         }
         if let Some(i) = &self.isect {
@@ -370,22 +374,14 @@ impl Rasterizer {
         let poison = self.poison;
         self.cmd.record_timed(self.timer.as_mut(), |rec| {
             if poison {
-                for b in [
-                    &g.xys,
-                    &g.conics,
-                    &g.colours,
-                    &g.depths,
-                    &g.radii,
-                    &g.tiles_touched,
-                    &g.vis_offsets,
-                    &g.isect_offsets,
-                ]
-                .into_iter()
-                .chain(&g.depth_keys)
-                .chain(&g.depth_ids)
-                .chain(&is.keys)
-                .chain(&is.ids)
-                .chain([&im.out_image, &im.last])
+                for b in g
+                    .per_splat()
+                    .into_iter()
+                    .chain(&g.depth_keys)
+                    .chain(&g.depth_ids)
+                    .chain(&is.keys)
+                    .chain(&is.ids)
+                    .chain([&im.out_image, &im.last])
                 {
                     rec.fill(b, POISON);
                 }
