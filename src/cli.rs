@@ -187,7 +187,7 @@ pub(crate) enum Cmd {
         #[arg(long, default_value = "train")]
         split: String,
         /// Weight of the background-removal term (paper: 0.8).
-        #[arg(long, default_value_t = 0.8)]
+        #[arg(long, default_value_t = 0.8, value_parser = parse_alpha)]
         alpha: f32,
         /// labels.json ({ids, labels}) or labels.bin (u32 little-endian per Gaussian; 0 = background).
         #[arg(long)]
@@ -408,6 +408,14 @@ impl ViewArgs {
             height: self.height,
             background: self.background,
         }
+    }
+}
+
+/// `--alpha`: a finite number ≥ 0.
+fn parse_alpha(s: &str) -> std::result::Result<f32, String> {
+    match s.trim().parse::<f32>() {
+        Ok(a) if a.is_finite() && a >= 0.0 => Ok(a),
+        _ => Err(format!("'{s}' is not a finite number ≥ 0")),
     }
 }
 

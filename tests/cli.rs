@@ -348,7 +348,8 @@ fn instance_turns_a_labelled_plain_scene_into_an_instanced_one() {
     let mut odd = labels.clone();
     odd[0] = 9;
     std::fs::write(&labels_path, serde_json::json!({"ids": [1, 2], "labels": odd}).to_string()).unwrap();
-    assert_clear_error(&bad(&labels_path), &["labels [9] are not instances"]);
+    let name = labels_path.file_name().unwrap().to_str().unwrap();
+    assert_clear_error(&bad(&labels_path), &[name, "label 9 is not an instance of"]);
     let none: Vec<u32> = labels.iter().map(|&l| if l == 2 { 0 } else { l }).collect();
     std::fs::write(&labels_path, serde_json::json!({"ids": [1, 2], "labels": none}).to_string()).unwrap();
     assert_clear_error(&bad(&labels_path), &["instance 2 claims no Gaussian"]);
@@ -369,4 +370,69 @@ fn a_closed_output_pipe_ends_quietly() {
     let o = child.wait_with_output().unwrap();
     let stderr = String::from_utf8_lossy(&o.stderr);
     assert!(!stderr.contains("panicked"), "{stderr}");
+}
+
+/// Values checked where they are read (issue 24): a damaged checkpoint, overlapping `.instgs`
+/// sections, a cut-short `.instgs`, a field of view outside (0, π), two cameras writing one
+/// picture, a NaN `--alpha`, a `--downscale` that leaves no image.
+#[test]
+fn values_are_checked_at_the_door() {
+    use instgs_vk::train::config::Config;
+    use instgs_vk::train::{read_checkpoint, write_checkpoint, TrainState};
+    let d = dir("door");
+    let mut rng = Rng::new(24);
+
+    // A checkpoint with a NaN among its parameters is refused when it is read.
+    let ckpt = d.join("checkpoint.bin");
+    write_checkpoint(&ckpt, &TrainState::new(random_scene(&mut rng, 8, 1)), &Config::load(None).unwrap()).unwrap();
+    let mut bytes = std::fs::read(&ckpt).unwrap();
+    let hlen = u64::from_le_bytes(bytes[12..20].try_into().unwrap()) as usize;
+    bytes[20 + hlen..24 + hlen].copy_from_slice(&f32::NAN.to_le_bytes());
+    std::fs::write(&ckpt, &bytes).unwrap();
+    let e = format!("{:#}", read_checkpoint(&ckpt).err().unwrap());
+    assert!(e.contains("checkpoint.bin") && e.contains("non-finite position"), "{e}");
+
+    // An .instgs whose sections share bytes.
+    let scene = random_instanced(&mut rng, 1, 5, &[(4, 2)]);
+    let good = instgs_vk::formats::instgs::to_bytes(&scene, instgs_vk::formats::instgs::Dtype::F32);
+    let hlen = u32::from_le_bytes(good[8..12].try_into().unwrap()) as usize;
+    let mut header: serde_json::Value = serde_json::from_slice(&good[12..12 + hlen]).unwrap();
+    let first = header["sections"][0]["offset"].clone();
+    header["sections"][1]["offset"] = first;
+    let text = serde_json::to_vec(&header).unwrap();
+    let start = (12 + hlen).div_ceil(16) * 16;
+    let mut bad = good[..8].to_vec();
+    bad.extend_from_slice(&(text.len() as u32).to_le_bytes());
+    bad.extend_from_slice(&text);
+    bad.resize((12 + text.len()).div_ceil(16) * 16, 0);
+    bad.extend_from_slice(&good[start..]);
+    let overlap = d.join("overlap.instgs");
+    std::fs::write(&overlap, &bad).unwrap();
+    assert_clear_error(&run(&["info", s(&overlap)]), &["overlap.instgs", "overlap"]);
+
+    let short = d.join("short.instgs");
+    std::fs::write(&short, &good[..10]).unwrap();
+    assert_clear_error(&run(&["info", s(&short)]), &["short.instgs", "cut short"]);
+
+    // Cameras: a field of view of 7 radians; two frames with one image basename.
+    let guitar = shared_data("splats/guitar.ply");
+    let out = d.join("out");
+    let pose = "[[1,0,0,0],[0,1,0,0],[0,0,1,4],[0,0,0,1]]";
+    let wide = d.join("wide.json");
+    std::fs::write(&wide, format!(r#"{{"camera_angle_x": 7.0, "w": 64, "h": 48, "frames": [{{"file_path": "a", "transform_matrix": {pose}}}]}}"#)).unwrap();
+    let o = run(&["render", "--scene", s(&guitar), "--cameras", s(&wide), "--out", s(&out)]);
+    assert_clear_error(&o, &["wide.json", "camera_angle_x"]);
+    let twins = d.join("twins.json");
+    std::fs::write(&twins, format!(r#"{{"camera_angle_x": 0.8, "w": 64, "h": 48, "frames": [{{"file_path": "x/a.png", "transform_matrix": {pose}}}, {{"file_path": "y/a.png", "transform_matrix": {pose}}}]}}"#)).unwrap();
+    let o = run(&["render", "--scene", s(&guitar), "--cameras", s(&twins), "--out", s(&out)]);
+    assert_clear_error(&o, &["twins.json", "two cameras are named \"a\""]);
+    assert!(!out.exists(), "nothing written");
+
+    // Command-line values.
+    let demo = Path::new(env!("CARGO_MANIFEST_DIR")).join("demo/ducks6-mini");
+    let o =
+        run(&["segment", "--scene", s(&guitar), "--data", s(&demo), "--alpha", "NaN", "--out", s(&d.join("l.json"))]);
+    assert!(o.code == Some(2) && o.stderr.contains("--alpha") && o.stderr.contains("finite"), "{}", o.stderr);
+    let o = run(&["eval", "--scene", s(&guitar), "--data", s(&demo), "--downscale", "1000"]);
+    assert_clear_error(&o, &["--downscale 1000", "160x120"]);
 }

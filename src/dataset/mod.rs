@@ -104,6 +104,9 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset> {
     }
 }
 
+/// The smallest image side `--downscale` may leave (one 16×16 tile).
+pub const MIN_IMAGE_SIDE: u32 = 16;
+
 /// Reads an image, checks its size, composites alpha over `background` and downscales.
 fn load_image(path: &Path, width: u32, height: u32, opts: &LoadOptions) -> Result<(Vec<[f32; 4]>, u32, u32)> {
     let img = image::open(path).with_context(|| format!("{}: cannot read image", path.display()))?;
@@ -113,8 +116,16 @@ fn load_image(path: &Path, width: u32, height: u32, opts: &LoadOptions) -> Resul
     let mut rgba = img.to_rgba32f();
     let (mut w, mut h) = (width, height);
     if opts.downscale > 1 {
-        w = (width / opts.downscale).max(1);
-        h = (height / opts.downscale).max(1);
+        w = width / opts.downscale;
+        h = height / opts.downscale;
+        if w < MIN_IMAGE_SIDE || h < MIN_IMAGE_SIDE {
+            bail!(
+                "{}: --downscale {} makes this {width}x{height} image {w}x{h}; at most {} keeps both sides at {MIN_IMAGE_SIDE} pixels or more",
+                path.display(),
+                opts.downscale,
+                width.min(height) / MIN_IMAGE_SIDE
+            );
+        }
         rgba = image::imageops::resize(&rgba, w, h, image::imageops::FilterType::Triangle);
     }
     let bg = opts.background;

@@ -202,8 +202,11 @@ pub fn write(scene: &InstancedScene, path: &Path, offset_dtype: Dtype) -> Result
 
 /// Header and data start of a file's bytes.
 fn split(bytes: &[u8]) -> Result<(Header, &[u8], u64)> {
-    if bytes.len() < 12 || &bytes[..8] != MAGIC {
+    if bytes.len() < 8 || &bytes[..8] != MAGIC {
         bail!("not an .instgs file (no INSTGS magic)");
+    }
+    if bytes.len() < 12 {
+        bail!("cut short: {} bytes, not even the header length after the magic", bytes.len());
     }
     let len = u32::from_le_bytes(bytes[8..12].try_into().unwrap()) as usize;
     if len > MAX_HEADER || 12 + len > bytes.len() {
@@ -291,6 +294,26 @@ pub fn from_bytes(bytes: &[u8], what: &str) -> Result<InstancedScene> {
     let parse = || -> Result<InstancedScene> {
         if h.sh_degree > 3 {
             bail!("header: SH degree {} is not supported (0..3)", h.sh_degree);
+        }
+        // Sections may not share bytes: a file whose sections overlap was not written by us and
+        // would decode one array from another's bytes.
+        let mut spans: Vec<(u64, u64, &str)> = h
+            .sections
+            .iter()
+            .filter(|s| s.bytes > 0)
+            .map(|s| (s.offset, s.offset.saturating_add(s.bytes), s.name.as_str()))
+            .collect();
+        spans.sort();
+        if let Some(w) = spans.windows(2).find(|w| w[1].0 < w[0].1) {
+            bail!(
+                "sections {:?} and {:?} overlap (bytes {}..{} and {}..{})",
+                w[0].2,
+                w[1].2,
+                w[0].0,
+                w[0].1,
+                w[1].0,
+                w[1].1
+            );
         }
         let secs = Sections { list: h.sections.clone(), data };
         let known = 5 * (1 + h.groups.len()) + 3 * h.groups.len();

@@ -36,8 +36,13 @@ pub fn instance(
 ) -> Result<serde_json::Value> {
     use crate::instancing::template;
     let scene = crate::formats::read_scene(scene_path)?;
-    let labels = template::read_labels(labels, scene.len())?;
+    let labels_path = labels;
+    let labels = template::read_labels(labels_path, scene.len())?;
     let groups = crate::dataset::masks::read_groups(groups_path)?;
+    let known: std::collections::BTreeSet<u32> = groups.iter().flat_map(|g| g.ids.iter().copied()).collect();
+    if let Some(l) = labels.iter().find(|&&l| l != 0 && !known.contains(&l)) {
+        bail!("{}: label {l} is not an instance of {}", labels_path.display(), groups_path.display());
+    }
     // Background pruning (the pipeline's `instance.background_keep`): the background Gaussians
     // ranked by `rule` from significance.bin (f32 per Gaussian, written by `segment`) stay.
     let mut pruned = serde_json::Value::Null;

@@ -132,7 +132,8 @@ pub fn load_transforms_with_images(path: &Path) -> Result<Vec<(Camera, std::path
         }
         let fx = match (f.fl_x.or(tf.fl_x), tf.camera_angle_x) {
             (Some(f), _) => f,
-            (None, Some(a)) => 0.5 * w / (0.5 * a).tan(),
+            (None, Some(a)) if a > 0.0 && a < std::f32::consts::PI => 0.5 * w / (0.5 * a).tan(),
+            (None, Some(a)) => bail!("{what}: camera_angle_x {a} is not a field of view in (0, π) radians"),
             (None, None) => bail!("{what}: neither fl_x nor camera_angle_x is given"),
         };
         let fy = f.fl_y.or(tf.fl_y).unwrap_or(fx);

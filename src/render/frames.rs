@@ -85,6 +85,7 @@ pub fn setup(device: Option<String>, view: &FrameSpec) -> Result<Setup> {
 /// `instgs-vk render`: one PNG per camera into `out`, a line per frame, per-pass medians.
 pub fn render(device: Option<String>, view: &FrameSpec, out: &Path) -> Result<()> {
     let Setup { gpu, k, scene, cams } = setup(device, view)?;
+    unique_names(cams.iter().map(|c| c.name.as_str()), view.cameras.as_deref().unwrap_or(&view.scene))?;
     std::fs::create_dir_all(out).with_context(|| format!("{}: cannot create folder", out.display()))?;
     let gs = scene.upload(&gpu).with_context(|| view.scene.display().to_string())?;
     let mut r = Rasterizer::new(&gpu, &k)?;
@@ -129,4 +130,19 @@ pub fn print_passes(per_pass: &[(String, Vec<f64>)]) {
     for (name, v) in per_pass {
         println!("  {name:<12} {:>9.3}", median(v));
     }
+}
+
+/// Refuses camera names that would write one file twice (`<name>.png` per camera): two frames
+/// of `source` with one image basename in different folders, say.
+pub fn unique_names<'a>(names: impl Iterator<Item = &'a str>, source: &Path) -> Result<()> {
+    let mut seen = std::collections::BTreeSet::new();
+    for n in names {
+        if !seen.insert(n) {
+            bail!(
+                "{}: two cameras are named {n:?}; their pictures would overwrite each other (rename one image)",
+                source.display()
+            );
+        }
+    }
+    Ok(())
 }

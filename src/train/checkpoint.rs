@@ -129,6 +129,23 @@ pub fn read_checkpoint(path: &Path) -> Result<(TrainState, Config)> {
         xform_exp_avg: xf[1].clone(),
         xform_exp_avg_sq: xf[2].clone(),
     };
+    // Values checked at the door: a checkpoint with a NaN or infinity in its parameters, Adam
+    // moments, offsets or transforms is damaged (training on it would only spread them).
+    state.scene.validate(&format!("{what}: checkpoint"))?;
+    let moments = state.exp_avg.iter().chain(&state.exp_avg_sq).flatten();
+    let offsets = state.offset_exp_avg.iter().chain(&state.offset_exp_avg_sq).flatten();
+    let deltas = state.offsets.d_means.iter().flatten().chain(state.offsets.d_sh0.iter().flatten());
+    let xforms = state.xform_params.iter().chain(&state.xform_exp_avg).chain(&state.xform_exp_avg_sq).flatten();
+    if !moments
+        .chain(offsets)
+        .chain(deltas)
+        .chain(&state.offsets.d_opacities)
+        .chain(xforms)
+        .chain(&state.grad2d_accum)
+        .all(|v| v.is_finite())
+    {
+        bail!("{what}: damaged checkpoint: a non-finite value in its optimiser state, offsets or transforms");
+    }
     state.to_instanced().with_context(|| format!("{what}: damaged instanced checkpoint"))?;
     let config =
         Config::from_saved(header.config).with_context(|| format!("{what}: damaged checkpoint configuration"))?;

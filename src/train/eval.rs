@@ -40,6 +40,7 @@ pub fn eval(
     .with_context(|| scene_path.display().to_string())?;
     let mut r = Rasterizer::new(&gpu, &k)?;
     if let Some(dir) = out {
+        crate::render::frames::unique_names(views.iter().map(|v| v.camera.name.as_str()), data)?;
         std::fs::create_dir_all(dir).with_context(|| format!("{}: cannot create", dir.display()))?;
     }
     let mut bar = Progress::new("eval: ", "view", "views/s", views.len() as u64, 0, ProgressMode::Auto);
