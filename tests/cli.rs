@@ -392,6 +392,10 @@ fn values_are_checked_at_the_door() {
     let e = format!("{:#}", read_checkpoint(&ckpt).err().unwrap());
     assert!(e.contains("checkpoint.bin") && e.contains("non-finite position"), "{e}");
 
+    // A pipeline table in the configuration of a run that trains one scene.
+    let e = format!("{:#}", Config::from_toml("[joint]\niterations = 5\n", "run.toml").err().unwrap());
+    assert!(e.contains("run.toml") && e.contains("`[joint]` is a pipeline table"), "{e}");
+
     // An .instgs whose sections share bytes.
     let scene = random_instanced(&mut rng, 1, 5, &[(4, 2)]);
     let good = instgs_vk::formats::instgs::to_bytes(&scene, instgs_vk::formats::instgs::Dtype::F32);

@@ -71,6 +71,9 @@ pub struct InitConfig {
     pub opacity: f32,
 }
 
+/// The tables only a pipeline configuration has (`configs/pipeline.toml`).
+const PIPELINE_TABLES: [&str; 5] = ["joint", "segment", "instance", "eval", "bench"];
+
 fn merge(base: &mut toml::Table, over: toml::Table, path: &str) -> Result<()> {
     for (k, v) in over {
         let key = if path.is_empty() { k.clone() } else { format!("{path}.{k}") };
@@ -78,6 +81,9 @@ fn merge(base: &mut toml::Table, over: toml::Table, path: &str) -> Result<()> {
             (Some(toml::Value::Table(b)), toml::Value::Table(o)) => merge(b, o, &key)?,
             (Some(toml::Value::Table(_)), _) => bail!("`{key}` must be a table"),
             (Some(slot), v) => *slot = v,
+            (None, _) if path.is_empty() && PIPELINE_TABLES.contains(&k.as_str()) => bail!(
+                "`[{k}]` is a pipeline table: it applies to a dataset with instance masks (masks/train/), and this run trains one scene (plain 3DGS, or joint optimisation of an --init .instgs); remove the table, or give the dataset masks"
+            ),
             (None, _) => bail!("unknown key `{key}`"),
         }
     }
