@@ -45,10 +45,10 @@ pub(crate) enum Cmd {
         #[command(flatten)]
         view: ViewArgs,
         /// Timed frames per camera.
-        #[arg(long, default_value_t = 5)]
+        #[arg(long, allow_negative_numbers = true, value_parser = positive_usize, default_value_t = 5)]
         frames: usize,
         /// Untimed frames first.
-        #[arg(long, default_value_t = 1)]
+        #[arg(long, allow_negative_numbers = true, value_parser = natural_usize, default_value_t = 1)]
         warmup: usize,
         /// A second scene (.ply or .instgs) rendered interleaved with the first (A B A B …)
         /// from the same cameras; ratios are A over B.
@@ -87,7 +87,7 @@ pub(crate) enum Cmd {
         #[arg(long)]
         config: Option<PathBuf>,
         /// Iterations of the (plain) training (overrides the configuration's).
-        #[arg(long)]
+        #[arg(long, allow_negative_numbers = true, value_parser = positive_u64)]
         iterations: Option<u64>,
         /// Continue from OUT/checkpoint.bin (plain or joint-only runs; a pipeline always resumes).
         #[arg(long)]
@@ -119,7 +119,7 @@ pub(crate) enum Cmd {
         #[arg(long)]
         out: Option<PathBuf>,
         /// Background colour r,g,b in [0, 1] (as in training).
-        #[arg(long, default_value = "0,0,0", value_parser = parse_rgb)]
+        #[arg(long, allow_hyphen_values = true, default_value = "0,0,0", value_parser = parse_rgb)]
         background: [f32; 3],
         /// Render as the player does (configs/render.toml: culling and template level of
         /// detail) instead of exactly, to measure what level of detail costs.
@@ -143,10 +143,10 @@ pub(crate) enum Cmd {
         #[arg(long)]
         background: Option<PathBuf>,
         /// Draw every offset (Δp, Δ SH DC, Δ opacity logit) from N(0, SIGMA²).
-        #[arg(long, value_name = "SIGMA")]
+        #[arg(long, allow_negative_numbers = true, value_parser = non_negative_f32, value_name = "SIGMA")]
         random_offsets: Option<f32>,
         /// Seed of --random-offsets.
-        #[arg(long, default_value_t = 0)]
+        #[arg(long, allow_negative_numbers = true, value_parser = natural_u64, default_value_t = 0)]
         seed: u64,
         /// Storage type of the offsets in the file.
         #[arg(long, value_enum, default_value = "f32")]
@@ -187,7 +187,7 @@ pub(crate) enum Cmd {
         #[arg(long, default_value = "train")]
         split: String,
         /// Weight of the background-removal term (paper: 0.8).
-        #[arg(long, default_value_t = 0.8, value_parser = parse_alpha)]
+        #[arg(long, allow_negative_numbers = true, default_value_t = 0.8, value_parser = non_negative_f32)]
         alpha: f32,
         /// labels.json ({ids, labels}) or labels.bin (u32 little-endian per Gaussian; 0 = background).
         #[arg(long)]
@@ -230,10 +230,10 @@ pub(crate) enum Cmd {
         geometry_only: bool,
         /// Weight of colour in the colour-aware ICP: a normalised colour difference of 1 counts
         /// as 2 registration voxels × this.
-        #[arg(long, default_value_t = 1.0)]
+        #[arg(long, allow_negative_numbers = true, value_parser = non_negative_f64, default_value_t = 1.0)]
         colour_weight: f64,
         /// Seed of RANSAC.
-        #[arg(long, default_value_t = 0)]
+        #[arg(long, allow_negative_numbers = true, value_parser = natural_u64, default_value_t = 0)]
         seed: u64,
         /// Storage type of the offsets in the file.
         #[arg(long, value_enum, default_value = "f32")]
@@ -242,22 +242,22 @@ pub(crate) enum Cmd {
         #[arg(long)]
         report: Option<PathBuf>,
         /// Downscale factor of the dataset's training images for the render check.
-        #[arg(long, default_value_t = 1)]
+        #[arg(long, allow_negative_numbers = true, value_parser = positive_u32, default_value_t = 1)]
         downscale: u32,
         /// Skip the render check (poses are then checked by geometry alone).
         #[arg(long)]
         no_render_check: bool,
         /// Acceptance: both fitnesses at least this.
-        #[arg(long, default_value_t = instgs_vk::instancing::template::Acceptance::default().min_fitness)]
+        #[arg(long, allow_negative_numbers = true, value_parser = unit_f64, default_value_t = instgs_vk::instancing::template::Acceptance::default().min_fitness)]
         min_fitness: f64,
         /// Acceptance: scale within this relative distance of the clouds' size ratio.
-        #[arg(long, default_value_t = instgs_vk::instancing::template::Acceptance::default().scale_tolerance)]
+        #[arg(long, allow_negative_numbers = true, value_parser = non_negative_f64, default_value_t = instgs_vk::instancing::template::Acceptance::default().scale_tolerance)]
         scale_tolerance: f64,
         /// Acceptance: the render check's median silhouette IoU at least this.
-        #[arg(long, default_value_t = instgs_vk::instancing::template::Acceptance::default().min_render_iou)]
+        #[arg(long, allow_negative_numbers = true, value_parser = unit_f64, default_value_t = instgs_vk::instancing::template::Acceptance::default().min_render_iou)]
         min_render_iou: f64,
         /// Acceptance: the render check's PSNR (dB) at least this.
-        #[arg(long, default_value_t = instgs_vk::instancing::template::Acceptance::default().min_render_psnr)]
+        #[arg(long, allow_negative_numbers = true, value_parser = finite_f64, default_value_t = instgs_vk::instancing::template::Acceptance::default().min_render_psnr)]
         min_render_psnr: f64,
         #[arg(long)]
         out: PathBuf,
@@ -273,7 +273,7 @@ pub(crate) enum Cmd {
         #[arg(long)]
         cameras: Option<PathBuf>,
         /// Which of those cameras.
-        #[arg(long, default_value_t = 0, requires = "cameras")]
+        #[arg(long, allow_negative_numbers = true, value_parser = natural_usize, default_value_t = 0, requires = "cameras")]
         camera: usize,
         /// Which cameras of a dataset folder: train, test or all.
         #[arg(long, default_value = "train", requires = "cameras")]
@@ -282,13 +282,13 @@ pub(crate) enum Cmd {
         #[arg(long, value_enum, default_value = "-y", allow_hyphen_values = true)]
         up: UpAxis,
         /// Window (or headless frame) width.
-        #[arg(long, default_value_t = 1280)]
+        #[arg(long, allow_negative_numbers = true, value_parser = positive_u32, default_value_t = 1280)]
         width: u32,
         /// Window (or headless frame) height.
-        #[arg(long, default_value_t = 720)]
+        #[arg(long, allow_negative_numbers = true, value_parser = positive_u32, default_value_t = 720)]
         height: u32,
         /// Background colour r,g,b in [0, 1] (B cycles black, white, grey).
-        #[arg(long, default_value = "0,0,0", value_parser = parse_rgb)]
+        #[arg(long, allow_hyphen_values = true, default_value = "0,0,0", value_parser = parse_rgb)]
         background: [f32; 3],
         /// Wait for vertical sync (default: off, immediate or mailbox presentation).
         #[arg(long)]
@@ -297,7 +297,7 @@ pub(crate) enum Cmd {
         #[arg(long)]
         no_overlay: bool,
         /// Exit after N frames (windowed: the last one is saved as a screenshot in --out).
-        #[arg(long)]
+        #[arg(long, allow_negative_numbers = true, value_parser = positive_u64)]
         frames: Option<u64>,
         /// Folder for screenshots (windowed) or frames (headless).
         #[arg(long)]
@@ -311,13 +311,13 @@ pub(crate) enum Cmd {
     /// Time the GPU radix sort against Rust's sort_unstable on the same random keys.
     BenchSort {
         /// Number of keys.
-        #[arg(long, default_value_t = 1_000_000)]
+        #[arg(long, allow_negative_numbers = true, value_parser = positive_usize, default_value_t = 1_000_000)]
         keys: usize,
         /// Key bits to sort (keys are random in 0..2^bits).
-        #[arg(long, default_value_t = 32)]
+        #[arg(long, allow_negative_numbers = true, value_parser = key_bits, default_value_t = 32)]
         bits: u32,
         /// Timed GPU repeats (median reported).
-        #[arg(long, default_value_t = 5)]
+        #[arg(long, allow_negative_numbers = true, value_parser = positive_usize, default_value_t = 5)]
         repeats: usize,
     },
 }
@@ -346,7 +346,7 @@ pub(crate) struct DataArgs {
     #[arg(long)]
     pub(crate) data: PathBuf,
     /// Divide the image resolution by this integer factor.
-    #[arg(long, default_value_t = 1)]
+    #[arg(long, allow_negative_numbers = true, value_parser = positive_u32, default_value_t = 1)]
     pub(crate) downscale: u32,
 }
 
@@ -380,19 +380,19 @@ pub(crate) struct ViewArgs {
     #[arg(long, default_value = "train", requires = "cameras")]
     pub(crate) split: String,
     /// N cameras on an orbit around the scene's bounds.
-    #[arg(long)]
+    #[arg(long, allow_negative_numbers = true, value_parser = positive_usize)]
     pub(crate) orbit: Option<usize>,
     /// Which world axis is up, for orbits.
     #[arg(long, value_enum, default_value = "-y", allow_hyphen_values = true)]
     pub(crate) up: UpAxis,
     /// Image width (default: the camera file's, 640 for orbits); intrinsics are scaled.
-    #[arg(long)]
+    #[arg(long, allow_negative_numbers = true, value_parser = positive_u32)]
     pub(crate) width: Option<u32>,
     /// Image height (default: the camera file's, 480 for orbits).
-    #[arg(long)]
+    #[arg(long, allow_negative_numbers = true, value_parser = positive_u32)]
     pub(crate) height: Option<u32>,
     /// Background colour r,g,b in [0, 1].
-    #[arg(long, default_value = "0,0,0", value_parser = parse_rgb)]
+    #[arg(long, allow_hyphen_values = true, default_value = "0,0,0", value_parser = parse_rgb)]
     pub(crate) background: [f32; 3],
 }
 
@@ -411,12 +411,61 @@ impl ViewArgs {
     }
 }
 
-/// `--alpha`: a finite number ≥ 0.
-fn parse_alpha(s: &str) -> std::result::Result<f32, String> {
-    match s.trim().parse::<f32>() {
-        Ok(a) if a.is_finite() && a >= 0.0 => Ok(a),
-        _ => Err(format!("'{s}' is not a finite number ≥ 0")),
+/// A whole number in `min..=max`; clap names the flag before the message.
+fn whole(s: &str, min: u64, max: u64) -> std::result::Result<u64, String> {
+    s.trim().parse::<u64>().ok().filter(|v| (min..=max).contains(v)).ok_or_else(|| match max >= u32::MAX as u64 {
+        true => format!("'{s}' is not a whole number ≥ {min}"),
+        false => format!("'{s}' is not a whole number from {min} to {max}"),
+    })
+}
+
+fn positive_u32(s: &str) -> std::result::Result<u32, String> {
+    whole(s, 1, u32::MAX as u64).map(|v| v as u32)
+}
+
+fn positive_u64(s: &str) -> std::result::Result<u64, String> {
+    whole(s, 1, u64::MAX)
+}
+
+fn positive_usize(s: &str) -> std::result::Result<usize, String> {
+    whole(s, 1, usize::MAX as u64).map(|v| v as usize)
+}
+
+fn natural_u64(s: &str) -> std::result::Result<u64, String> {
+    whole(s, 0, u64::MAX)
+}
+
+fn natural_usize(s: &str) -> std::result::Result<usize, String> {
+    whole(s, 0, usize::MAX as u64).map(|v| v as usize)
+}
+
+/// `bench-sort --bits`: 1 to 32.
+fn key_bits(s: &str) -> std::result::Result<u32, String> {
+    whole(s, 1, 32).map(|v| v as u32)
+}
+
+/// A finite number accepted by `ok`, `range` saying which in the message.
+fn number(s: &str, ok: fn(f64) -> bool, range: &str) -> std::result::Result<f64, String> {
+    match s.trim().parse::<f64>() {
+        Ok(v) if v.is_finite() && ok(v) => Ok(v),
+        _ => Err(format!("'{s}' is not {range}")),
     }
+}
+
+fn non_negative_f64(s: &str) -> std::result::Result<f64, String> {
+    number(s, |v| v >= 0.0, "a finite number ≥ 0")
+}
+
+fn non_negative_f32(s: &str) -> std::result::Result<f32, String> {
+    non_negative_f64(s).map(|v| v as f32)
+}
+
+fn unit_f64(s: &str) -> std::result::Result<f64, String> {
+    number(s, |v| (0.0..=1.0).contains(&v), "a number in [0, 1]")
+}
+
+fn finite_f64(s: &str) -> std::result::Result<f64, String> {
+    number(s, |_| true, "a finite number")
 }
 
 pub(crate) fn parse_rgb(s: &str) -> std::result::Result<[f32; 3], String> {

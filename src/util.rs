@@ -121,6 +121,17 @@ pub fn duration(secs: f64) -> String {
 
 #[cfg(test)]
 mod tests {
+    #[test]
+    fn one_line_drops_snippets_and_joins_lines() {
+        let toml = "TOML parse error at line 1, column 3\n  |\n1 | [[[\n  |   ^\nunquoted keys cannot be empty";
+        assert_eq!(super::one_line(toml), "TOML parse error at line 1, column 3; unquoted keys cannot be empty");
+        assert_eq!(
+            super::one_line("invalid type: string \"a\"\nin `iterations`\n"),
+            "invalid type: string \"a\"; in `iterations`"
+        );
+        assert_eq!(super::one_line("plain"), "plain");
+    }
+
     use super::*;
 
     #[test]
@@ -233,4 +244,15 @@ impl Progress {
             b.finish_and_clear();
         }
     }
+}
+
+/// A message on one line, as the binary prints errors: the lines of a multi-line message (a
+/// TOML parse error, say) joined with "; ", source snippets (`1 | text`, `|`, `^^^`) dropped.
+pub fn one_line(message: &str) -> String {
+    let snippet = |l: &str| {
+        let t = l.trim_start_matches(|c: char| c.is_ascii_digit() || c.is_whitespace());
+        t.starts_with('|') || (!l.trim().is_empty() && l.trim().chars().all(|c| c == '^' || c == '-' || c == ' '))
+    };
+    let lines: Vec<&str> = message.lines().filter(|l| !snippet(l)).map(str::trim).filter(|l| !l.is_empty()).collect();
+    lines.join("; ")
 }

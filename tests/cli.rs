@@ -1,5 +1,5 @@
-//! The binary: renders pictures, and bad input ends in one clear error line, exit code != 0,
-//! never a panic or a hang.
+//! The binary: renders pictures, composes, converts and benchmarks scenes; a few readers' checks
+//! at the library level (the bad-input table of every reader and command: tests/bad_input.rs).
 mod common;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
@@ -59,16 +59,6 @@ fn s(p: &Path) -> &str {
     p.to_str().unwrap()
 }
 
-const HEADER: &str = "ply\nformat binary_little_endian 1.0\nelement vertex 1\nproperty float x\nproperty float y\nproperty float z\nproperty float f_dc_0\nproperty float f_dc_1\nproperty float f_dc_2\nproperty float opacity\nproperty float scale_0\nproperty float scale_1\nproperty float scale_2\nproperty float rot_0\nproperty float rot_1\nproperty float rot_2\nproperty float rot_3\nend_header\n";
-
-fn ply_with(header: &str, values: &[f32]) -> Vec<u8> {
-    let mut b = header.as_bytes().to_vec();
-    for v in values {
-        b.extend_from_slice(&v.to_le_bytes());
-    }
-    b
-}
-
 #[test]
 fn render_writes_one_picture_per_orbit_camera() {
     let d = dir("render");
@@ -105,54 +95,6 @@ fn render_writes_one_picture_per_orbit_camera() {
     let v: serde_json::Value = serde_json::from_str(&o.stdout).unwrap();
     assert_eq!(v["gaussians"], 90854);
     assert_eq!(v["sh_degree"], 0);
-}
-
-#[test]
-fn bad_input_ends_in_one_clear_error() {
-    let d = dir("bad");
-    let guitar = shared_data("splats/guitar.ply");
-    let full = std::fs::read(&guitar).unwrap();
-
-    let truncated = d.join("truncated.ply");
-    std::fs::write(&truncated, &full[..full.len() / 3]).unwrap();
-    assert_clear_error(&run(&["info", s(&truncated)]), &["truncated.ply", "truncated"]);
-
-    let nan = d.join("nan.ply");
-    let mut vals = [0.0f32; 14];
-    vals[0] = f32::NAN;
-    vals[10] = 1.0;
-    std::fs::write(&nan, ply_with(HEADER, &vals)).unwrap();
-    assert_clear_error(&run(&["info", s(&nan)]), &["nan.ply", "non-finite position"]);
-
-    let missing = d.join("missing.ply");
-    std::fs::write(&missing, ply_with(&HEADER.replace("property float opacity\n", ""), &[0.0; 13])).unwrap();
-    assert_clear_error(&run(&["info", s(&missing)]), &["missing.ply", "'opacity' is missing"]);
-
-    let empty = d.join("empty.ply");
-    std::fs::write(&empty, HEADER.replace("vertex 1", "vertex 0")).unwrap();
-    assert_clear_error(&run(&["info", s(&empty)]), &["empty.ply", "no Gaussians"]);
-
-    let garbage = d.join("garbage.ply");
-    std::fs::write(&garbage, b"not a ply at all").unwrap();
-    assert_clear_error(&run(&["info", s(&garbage)]), &["garbage.ply"]);
-
-    assert_clear_error(&run(&["info", s(&d.join("absent.ply"))]), &["absent.ply", "cannot open"]);
-
-    let no_frames = d.join("transforms.json");
-    std::fs::write(&no_frames, r#"{"camera_angle_x": 0.8, "w": 64, "h": 48, "frames": []}"#).unwrap();
-    let out = d.join("out");
-    let o = run(&["render", "--scene", s(&guitar), "--cameras", s(&no_frames), "--out", s(&out)]);
-    assert_clear_error(&o, &["transforms.json", "no frames"]);
-
-    let zero = d.join("zero.json");
-    std::fs::write(&zero, r#"{"camera_angle_x": 0.8, "w": 0, "h": 48, "frames": [{"file_path": "a", "transform_matrix": [[1,0,0,0],[0,1,0,0],[0,0,1,4],[0,0,0,1]]}]}"#).unwrap();
-    assert_clear_error(
-        &run(&["render", "--scene", s(&guitar), "--cameras", s(&zero), "--out", s(&out)]),
-        &["zero.json", "empty"],
-    );
-
-    let o = run(&["render", "--scene", s(&guitar), "--orbit", "2", "--width", "0", "--out", s(&out)]);
-    assert_clear_error(&o, &["--width"]);
 }
 
 #[test]
@@ -372,9 +314,9 @@ fn a_closed_output_pipe_ends_quietly() {
     assert!(!stderr.contains("panicked"), "{stderr}");
 }
 
-/// Values checked where they are read (issue 24): a damaged checkpoint, overlapping `.instgs`
-/// sections, a cut-short `.instgs`, a field of view outside (0, π), two cameras writing one
-/// picture, a NaN `--alpha`, a `--downscale` that leaves no image.
+/// Values checked where they are read (issue 24): a damaged checkpoint, a pipeline table in a
+/// plain configuration, overlapping `.instgs` sections, a cut-short `.instgs` (the table of every
+/// reader and command is tests/bad_input.rs).
 #[test]
 fn values_are_checked_at_the_door() {
     use instgs_vk::train::config::Config;
@@ -384,7 +326,8 @@ fn values_are_checked_at_the_door() {
 
     // A checkpoint with a NaN among its parameters is refused when it is read.
     let ckpt = d.join("checkpoint.bin");
-    write_checkpoint(&ckpt, &TrainState::new(random_scene(&mut rng, 8, 1)), &Config::load(None).unwrap()).unwrap();
+    write_checkpoint(&ckpt, &TrainState::new(random_scene(&mut rng, 8, 1)), &Config::load(None).unwrap(), None)
+        .unwrap();
     let mut bytes = std::fs::read(&ckpt).unwrap();
     let hlen = u64::from_le_bytes(bytes[12..20].try_into().unwrap()) as usize;
     bytes[20 + hlen..24 + hlen].copy_from_slice(&f32::NAN.to_le_bytes());
@@ -417,26 +360,4 @@ fn values_are_checked_at_the_door() {
     let short = d.join("short.instgs");
     std::fs::write(&short, &good[..10]).unwrap();
     assert_clear_error(&run(&["info", s(&short)]), &["short.instgs", "cut short"]);
-
-    // Cameras: a field of view of 7 radians; two frames with one image basename.
-    let guitar = shared_data("splats/guitar.ply");
-    let out = d.join("out");
-    let pose = "[[1,0,0,0],[0,1,0,0],[0,0,1,4],[0,0,0,1]]";
-    let wide = d.join("wide.json");
-    std::fs::write(&wide, format!(r#"{{"camera_angle_x": 7.0, "w": 64, "h": 48, "frames": [{{"file_path": "a", "transform_matrix": {pose}}}]}}"#)).unwrap();
-    let o = run(&["render", "--scene", s(&guitar), "--cameras", s(&wide), "--out", s(&out)]);
-    assert_clear_error(&o, &["wide.json", "camera_angle_x"]);
-    let twins = d.join("twins.json");
-    std::fs::write(&twins, format!(r#"{{"camera_angle_x": 0.8, "w": 64, "h": 48, "frames": [{{"file_path": "x/a.png", "transform_matrix": {pose}}}, {{"file_path": "y/a.png", "transform_matrix": {pose}}}]}}"#)).unwrap();
-    let o = run(&["render", "--scene", s(&guitar), "--cameras", s(&twins), "--out", s(&out)]);
-    assert_clear_error(&o, &["twins.json", "two cameras are named \"a\""]);
-    assert!(!out.exists(), "nothing written");
-
-    // Command-line values.
-    let demo = Path::new(env!("CARGO_MANIFEST_DIR")).join("demo/ducks6-mini");
-    let o =
-        run(&["segment", "--scene", s(&guitar), "--data", s(&demo), "--alpha", "NaN", "--out", s(&d.join("l.json"))]);
-    assert!(o.code == Some(2) && o.stderr.contains("--alpha") && o.stderr.contains("finite"), "{}", o.stderr);
-    let o = run(&["eval", "--scene", s(&guitar), "--data", s(&demo), "--downscale", "1000"]);
-    assert_clear_error(&o, &["--downscale 1000", "160x120"]);
 }

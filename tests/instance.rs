@@ -478,6 +478,7 @@ fn rendered_views(scene: &InstancedScene, n: usize, phase: f32) -> Vec<instgs_vk
 fn rendered_dataset(scene: &InstancedScene) -> instgs_vk::dataset::Dataset {
     instgs_vk::dataset::Dataset {
         kind: "nerf-synthetic",
+        dir: "rendered".into(),
         train: rendered_views(scene, 16, 0.0),
         test: rendered_views(scene, 4, 0.3),
         points: None,

@@ -33,9 +33,14 @@ struct InstanceEntry {
 
 /// Reads `instances.json`; ids must be positive (0 is the background) and unique.
 pub fn read_groups(path: &Path) -> Result<Vec<InstanceGroup>> {
-    let what = path.display();
+    let what = path.display().to_string();
     let text = std::fs::read_to_string(path).with_context(|| format!("{what}: cannot read"))?;
-    let f: GroupsFile = serde_json::from_str(&text)
+    groups_from_str(&text, &what)
+}
+
+/// [`read_groups`] on the text of a groups file; `what` names it in errors.
+pub fn groups_from_str(text: &str, what: &str) -> Result<Vec<InstanceGroup>> {
+    let f: GroupsFile = serde_json::from_str(text)
         .with_context(|| format!("{what}: not a groups file ({{groups: [{{name, instances: [{{id}}]}}]}})"))?;
     let mut seen = std::collections::BTreeSet::new();
     let groups: Vec<InstanceGroup> = f
@@ -60,8 +65,15 @@ pub fn read_groups(path: &Path) -> Result<Vec<InstanceGroup>> {
 /// A mask an integer factor f larger in both dimensions (the image was loaded with
 /// `--downscale f`) is subsampled at each f×f block's centre pixel, so ids stay ids.
 pub fn read_mask(path: &Path, width: u32, height: u32) -> Result<Vec<u16>> {
-    let what = path.display();
-    let img = image::open(path).with_context(|| format!("{what}: cannot read mask"))?;
+    let what = path.display().to_string();
+    let bytes = std::fs::read(path).with_context(|| format!("{what}: cannot read mask"))?;
+    mask_from_bytes(&bytes, &what, width, height)
+}
+
+/// [`read_mask`] on a PNG's bytes; `what` names it in errors.
+pub fn mask_from_bytes(bytes: &[u8], what: &str, width: u32, height: u32) -> Result<Vec<u16>> {
+    let img = image::load_from_memory_with_format(bytes, image::ImageFormat::Png)
+        .map_err(|e| anyhow::anyhow!("{what}: cannot read mask: {e}"))?;
     let (w, h) = (img.width(), img.height());
     let img: Vec<u16> = match img {
         image::DynamicImage::ImageLuma8(m) => m.pixels().map(|p| p.0[0] as u16).collect(),

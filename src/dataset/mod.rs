@@ -39,6 +39,8 @@ pub struct PointCloud {
 pub struct Dataset {
     /// "nerf-synthetic" or "colmap".
     pub kind: &'static str,
+    /// The folder it was loaded from, as given.
+    pub dir: PathBuf,
     pub train: Vec<View>,
     pub test: Vec<View>,
     pub points: Option<PointCloud>,
@@ -76,6 +78,35 @@ impl Dataset {
         ))
     }
 
+    /// What a training run depends on in this dataset, recorded in its checkpoints.
+    pub fn identity(&self) -> DatasetIdentity {
+        use sha2::{Digest, Sha256};
+        let mut h = Sha256::new();
+        for (split, views) in [("train", &self.train), ("test", &self.test)] {
+            h.update(split.as_bytes());
+            h.update((views.len() as u64).to_le_bytes());
+            for v in views.iter() {
+                let c = &v.camera;
+                h.update((c.name.len() as u64).to_le_bytes());
+                h.update(c.name.as_bytes());
+                h.update(c.width.to_le_bytes());
+                h.update(c.height.to_le_bytes());
+                for x in [c.fx, c.fy, c.cx, c.cy].iter().chain(&c.viewmat.to_cols_array()) {
+                    h.update(x.to_bits().to_le_bytes());
+                }
+            }
+        }
+        let first = self.train.first().map(|v| (v.camera.width, v.camera.height)).unwrap_or_default();
+        DatasetIdentity {
+            path: self.dir.display().to_string(),
+            cameras: h.finalize().iter().map(|b| format!("{b:02x}")).collect(),
+            train_views: self.train.len(),
+            test_views: self.test.len(),
+            width: first.0,
+            height: first.1,
+        }
+    }
+
     pub fn split(&self, name: &str) -> Result<&[View]> {
         match name {
             "train" => Ok(&self.train),
@@ -85,15 +116,55 @@ impl Dataset {
     }
 }
 
+/// What a training run was trained on: its dataset folder (for messages; a moved dataset is the
+/// same dataset), a SHA-256 of every camera of both splits (name, size, intrinsics, viewmat), the
+/// view counts and the first training image's size after `--downscale`.
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct DatasetIdentity {
+    pub path: String,
+    pub cameras: String,
+    pub train_views: usize,
+    pub test_views: usize,
+    pub width: u32,
+    pub height: u32,
+}
+
+impl DatasetIdentity {
+    /// `None` when `now` is the dataset `self` describes; else what differs, in words.
+    pub fn mismatch(&self, now: &DatasetIdentity) -> Option<String> {
+        let was = format!("{} ({} training / {} test views", self.path, self.train_views, self.test_views);
+        if (self.train_views, self.test_views) != (now.train_views, now.test_views) {
+            Some(format!("{was}); {} has {} training / {} test views", now.path, now.train_views, now.test_views))
+        } else if (self.width, self.height) != (now.width, now.height) {
+            Some(format!(
+                "{was} at {}x{}); {} is {}x{} (another --downscale?)",
+                self.width, self.height, now.path, now.width, now.height
+            ))
+        } else if self.cameras != now.cameras {
+            Some(format!("{was}); the cameras of {} differ", now.path))
+        } else {
+            None
+        }
+    }
+}
+
 /// Loads the dataset in `dir`, detecting its layout.
 pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset> {
     if opts.downscale == 0 {
         bail!("--downscale must be at least 1");
     }
+    match layout(dir)? {
+        "nerf-synthetic" => load_nerf(dir, opts),
+        _ => load_colmap(dir, opts),
+    }
+}
+
+/// The layout of the dataset folder `dir` ("nerf-synthetic" or "colmap"), or why it is none.
+pub fn layout(dir: &Path) -> Result<&'static str> {
     if dir.join("transforms_train.json").exists() {
-        load_nerf(dir, opts)
+        Ok("nerf-synthetic")
     } else if ["cameras.bin", "cameras.txt"].iter().any(|f| dir.join("sparse/0").join(f).exists()) {
-        load_colmap(dir, opts)
+        Ok("colmap")
     } else if !dir.is_dir() {
         bail!("{}: no such directory", dir.display())
     } else {
@@ -159,17 +230,28 @@ fn load_nerf(dir: &Path, opts: &LoadOptions) -> Result<Dataset> {
         if test_file.exists() { load_views(load_transforms_with_images(&test_file)?, opts)? } else { Vec::new() };
     let ply = dir.join("points3d.ply");
     let points = if ply.exists() { Some(read_points_ply(&ply)?) } else { None };
-    Ok(Dataset { kind: "nerf-synthetic", train, test, points })
+    Ok(Dataset { kind: "nerf-synthetic", dir: dir.to_path_buf(), train, test, points })
 }
 
 /// `x y z` and `red green blue` (uchar or float) of a PLY point cloud.
 pub fn read_points_ply(path: &Path) -> Result<PointCloud> {
+    let what = path.display().to_string();
+    let f = std::fs::File::open(path).with_context(|| format!("{what}: cannot open"))?;
+    points_from_reader(std::io::BufReader::new(f), &what)
+}
+
+/// [`read_points_ply`] on bytes in memory; `what` names them in errors.
+pub fn points_from_bytes(bytes: &[u8], what: &str) -> Result<PointCloud> {
+    points_from_reader(bytes, what)
+}
+
+fn points_from_reader<R: BufRead>(r: R, what: &str) -> Result<PointCloud> {
     use ply_rs_bw::parser::Parser;
     use ply_rs_bw::ply::{DefaultElement, Property};
-    let what = path.display();
-    let f = std::fs::File::open(path).with_context(|| format!("{what}: cannot open"))?;
-    let mut r = std::io::BufReader::new(f);
-    let ply = Parser::<DefaultElement>::new().read_ply(&mut r).map_err(|e| anyhow!("{what}: not a PLY file: {e}"))?;
+    let mut r = crate::formats::ply::checked_reader(r, what)?;
+    let ply = Parser::<DefaultElement>::new()
+        .read_ply(&mut r)
+        .map_err(|e| anyhow!("{what}: not a PLY file: {}", e.to_string().lines().next().unwrap_or_default()))?;
     let verts = ply.payload.get("vertex").ok_or_else(|| anyhow!("{what}: no vertex element"))?;
     let num = |e: &DefaultElement, k: &str| -> Option<f32> {
         match e.get(k)? {
@@ -186,9 +268,19 @@ pub fn read_points_ply(path: &Path) -> Result<PointCloud> {
         if !(x.is_finite() && y.is_finite() && z.is_finite()) {
             bail!("{what}: vertex {i} is not finite");
         }
-        let c = [num(v, "red"), num(v, "green"), num(v, "blue")];
+        let mut c = [0.5f32; 3];
+        for (k, name) in ["red", "green", "blue"].iter().enumerate() {
+            if v.contains_key(*name) {
+                let value = num(v, name)
+                    .ok_or_else(|| anyhow!("{what}: vertex property '{name}' must be a uchar, float or double"))?;
+                if !value.is_finite() {
+                    bail!("{what}: vertex {i} has a non-finite {name}");
+                }
+                c[k] = value.clamp(0.0, 1.0);
+            }
+        }
         pc.positions.push([x, y, z]);
-        pc.colours.push(c.map(|c| c.unwrap_or(0.5).clamp(0.0, 1.0)));
+        pc.colours.push(c);
     }
     Ok(pc)
 }
@@ -265,6 +357,13 @@ impl Bin<'_> {
         self.pos = end.ok_or_else(|| anyhow!("{}: truncated at byte {}", self.what, self.pos))? as usize;
         Ok(())
     }
+    /// Refuses bytes after the last entry (a count that disagrees with the data).
+    fn end(&self) -> Result<()> {
+        if self.pos != self.data.len() {
+            bail!("{}: {} bytes follow the last entry the file counts", self.what, self.data.len() - self.pos);
+        }
+        Ok(())
+    }
     fn count(&mut self, item_bytes: u64) -> Result<u64> {
         let n = self.u64()?;
         if n.saturating_mul(item_bytes) > (self.data.len() - self.pos) as u64 {
@@ -282,153 +381,213 @@ fn read_file(path: &Path) -> Result<Vec<u8>> {
     Ok(v)
 }
 
-/// Reads `dir/cameras|images|points3D` (`.bin` preferred, else `.txt`).
+/// Reads `dir/cameras|images|points3D` (`.bin` preferred, else `.txt`; `points3D` optional).
 pub fn read_colmap(dir: &Path) -> Result<ColmapModel> {
-    let bin = dir.join("cameras.bin").exists();
+    let ext = if dir.join("cameras.bin").exists() { "bin" } else { "txt" };
     let mut m = ColmapModel::default();
-    if bin {
-        let path = dir.join("cameras.bin");
-        let data = read_file(&path)?;
-        let mut b = Bin { data: &data, pos: 0, what: path.display().to_string() };
-        for _ in 0..b.count(24)? {
-            let id = b.i32()? as u32;
-            let model_id = b.i32()?;
-            let (w, h) = (b.u64()?, b.u64()?);
-            let &(model, np) = MODELS
-                .get(model_id as usize)
-                .ok_or_else(|| anyhow!("{}: camera {id} has unknown model id {model_id}", b.what))?;
-            let params = (0..np).map(|_| b.f64()).collect::<Result<Vec<_>>>()?;
-            m.cameras.insert(id, ColmapCamera { model: model.into(), width: w as u32, height: h as u32, params });
+    for file in ["cameras", "images", "points3D"] {
+        let path = dir.join(format!("{file}.{ext}"));
+        if file == "points3D" && !path.exists() {
+            continue;
         }
-        let path = dir.join("images.bin");
-        let data = read_file(&path)?;
-        let mut b = Bin { data: &data, pos: 0, what: path.display().to_string() };
-        for _ in 0..b.count(64)? {
-            let _id = b.i32()?;
-            let qvec = [b.f64()?, b.f64()?, b.f64()?, b.f64()?];
-            let tvec = [b.f64()?, b.f64()?, b.f64()?];
-            let camera_id = b.i32()? as u32;
-            let mut name = Vec::new();
-            loop {
-                match b.u8()? {
-                    0 => break,
-                    c => name.push(c),
-                }
-            }
-            let np = b.count(24)?;
-            b.skip(np * 24)?;
-            m.images.push(ColmapImage { qvec, tvec, camera_id, name: String::from_utf8_lossy(&name).into_owned() });
-        }
-        let path = dir.join("points3D.bin");
-        if path.exists() {
-            let data = read_file(&path)?;
-            let mut b = Bin { data: &data, pos: 0, what: path.display().to_string() };
-            for _ in 0..b.count(43)? {
-                let _id = b.u64()?;
-                let p = [b.f64()? as f32, b.f64()? as f32, b.f64()? as f32];
-                let c = [b.u8()?, b.u8()?, b.u8()?].map(|v| v as f32 / 255.0);
-                let _err = b.f64()?;
-                let track = b.count(8)?;
-                b.skip(track * 8)?;
-                if !p.iter().all(|v| v.is_finite()) {
-                    bail!("{}: point {_id} has a non-finite position {p:?}", path.display());
-                }
-                m.points.positions.push(p);
-                m.points.colours.push(c);
-            }
-        }
-    } else {
-        let lines = |name: &str| -> Result<Vec<(usize, String)>> {
-            let path = dir.join(name);
-            let f = std::fs::File::open(&path).with_context(|| format!("{}: cannot read", path.display()))?;
-            let mut out = Vec::new();
-            for (i, l) in std::io::BufReader::new(f).lines().enumerate() {
-                let l = l.with_context(|| format!("{}: line {}", path.display(), i + 1))?;
-                out.push((i + 1, l));
-            }
-            Ok(out)
-        };
-        let bad = |file: &str, line: usize, why: &str| anyhow!("{}: line {line}: {why}", dir.join(file).display());
-        for (no, l) in lines("cameras.txt")? {
-            let t: Vec<&str> = l.split_whitespace().collect();
-            if t.is_empty() || t[0].starts_with('#') {
-                continue;
-            }
-            let parse_err = || bad("cameras.txt", no, "expected CAMERA_ID MODEL WIDTH HEIGHT PARAMS[]");
-            if t.len() < 4 {
-                return Err(parse_err());
-            }
-            let id: u32 = t[0].parse().map_err(|_| parse_err())?;
-            let np = MODELS
-                .iter()
-                .find(|m| m.0 == t[1])
-                .ok_or_else(|| bad("cameras.txt", no, &format!("unknown camera model {}", t[1])))?
-                .1;
-            let params: Vec<f64> =
-                t[4..].iter().map(|v| v.parse()).collect::<Result<_, _>>().map_err(|_| parse_err())?;
-            if params.len() != np {
-                return Err(bad("cameras.txt", no, &format!("{} takes {np} parameters, got {}", t[1], params.len())));
-            }
-            m.cameras.insert(
-                id,
-                ColmapCamera {
-                    model: t[1].into(),
-                    width: t[2].parse().map_err(|_| parse_err())?,
-                    height: t[3].parse().map_err(|_| parse_err())?,
-                    params,
-                },
-            );
-        }
-        let mut expect_points = false;
-        for (no, l) in lines("images.txt")? {
-            if l.trim_start().starts_with('#') {
-                continue;
-            }
-            if expect_points {
-                expect_points = false;
-                continue;
-            }
-            let t: Vec<&str> = l.split_whitespace().collect();
-            if t.is_empty() {
-                continue;
-            }
-            let parse_err = || bad("images.txt", no, "expected IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME");
-            if t.len() < 10 {
-                return Err(parse_err());
-            }
-            let f: Vec<f64> = t[1..8].iter().map(|v| v.parse()).collect::<Result<_, _>>().map_err(|_| parse_err())?;
-            m.images.push(ColmapImage {
-                qvec: [f[0], f[1], f[2], f[3]],
-                tvec: [f[4], f[5], f[6]],
-                camera_id: t[8].parse().map_err(|_| parse_err())?,
-                name: t[9..].join(" "),
-            });
-            expect_points = true;
-        }
-        if dir.join("points3D.txt").exists() {
-            for (no, l) in lines("points3D.txt")? {
-                let t: Vec<&str> = l.split_whitespace().collect();
-                if t.is_empty() || t[0].starts_with('#') {
-                    continue;
-                }
-                let parse_err = || bad("points3D.txt", no, "expected POINT3D_ID X Y Z R G B ERROR TRACK[]");
-                if t.len() < 8 {
-                    return Err(parse_err());
-                }
-                let f: Vec<f32> =
-                    t[1..7].iter().map(|v| v.parse()).collect::<Result<_, _>>().map_err(|_| parse_err())?;
-                if !f[..3].iter().all(|v| v.is_finite()) {
-                    return Err(bad("points3D.txt", no, "the point's position is not finite"));
-                }
-                m.points.positions.push([f[0], f[1], f[2]]);
-                m.points.colours.push([f[3] / 255.0, f[4] / 255.0, f[5] / 255.0]);
-            }
-        }
+        read_colmap_file(&mut m, file, ext == "bin", &read_file(&path)?, &path.display().to_string())?;
     }
     if m.images.is_empty() {
         bail!("{}: the COLMAP model has no registered images", dir.display());
     }
     Ok(m)
+}
+
+/// Adds one COLMAP file (`file` is `cameras`, `images` or `points3D`; binary or text) to `m`;
+/// `what` names it in errors.
+pub fn read_colmap_file(m: &mut ColmapModel, file: &str, binary: bool, data: &[u8], what: &str) -> Result<()> {
+    match (file, binary) {
+        ("cameras", true) => colmap_cameras_bin(m, data, what),
+        ("images", true) => colmap_images_bin(m, data, what),
+        ("points3D", true) => colmap_points_bin(m, data, what),
+        (_, false) => {
+            let text = std::str::from_utf8(data).map_err(|e| anyhow!("{what}: not UTF-8 text: {e}"))?;
+            match file {
+                "cameras" => colmap_cameras_txt(m, text, what),
+                "images" => colmap_images_txt(m, text, what),
+                "points3D" => colmap_points_txt(m, text, what),
+                _ => bail!("{what}: not a COLMAP model file"),
+            }
+        }
+        _ => bail!("{what}: not a COLMAP model file"),
+    }
+}
+
+/// A camera's size and parameters, checked: sides 1..=65535 pixels, finite parameters.
+fn colmap_camera(what: &str, id: u32, model: &str, w: u64, h: u64, params: Vec<f64>) -> Result<ColmapCamera> {
+    if !(1..=65535).contains(&w) || !(1..=65535).contains(&h) {
+        bail!("{what}: camera {id} is {w}x{h} pixels; expected sides of 1 to 65535");
+    }
+    if let Some(v) = params.iter().find(|v| !v.is_finite()) {
+        bail!("{what}: camera {id} has a non-finite parameter {v}");
+    }
+    Ok(ColmapCamera { model: model.into(), width: w as u32, height: h as u32, params })
+}
+
+fn insert_camera(m: &mut ColmapModel, what: &str, id: u32, cam: ColmapCamera) -> Result<()> {
+    if m.cameras.insert(id, cam).is_some() {
+        bail!("{what}: camera {id} is listed twice");
+    }
+    Ok(())
+}
+
+fn colmap_image(what: &str, name: &str, qvec: [f64; 4], tvec: [f64; 3], camera_id: u32) -> Result<ColmapImage> {
+    if !qvec.iter().chain(&tvec).all(|v| v.is_finite()) {
+        bail!("{what}: image {name} has a non-finite pose");
+    }
+    let norm = qvec.iter().map(|v| v * v).sum::<f64>().sqrt();
+    if norm <= 1e-6 {
+        bail!("{what}: image {name} has a zero rotation quaternion");
+    }
+    if name.is_empty() {
+        bail!("{what}: an image has an empty name");
+    }
+    Ok(ColmapImage { qvec, tvec, camera_id, name: name.to_string() })
+}
+
+fn colmap_cameras_bin(m: &mut ColmapModel, data: &[u8], what: &str) -> Result<()> {
+    let mut b = Bin { data, pos: 0, what: what.to_string() };
+    for _ in 0..b.count(24)? {
+        let id = b.i32()? as u32;
+        let model_id = b.i32()?;
+        let (w, h) = (b.u64()?, b.u64()?);
+        let &(model, np) = MODELS
+            .get(model_id as usize)
+            .ok_or_else(|| anyhow!("{what}: camera {id} has unknown model id {model_id}"))?;
+        let params = (0..np).map(|_| b.f64()).collect::<Result<Vec<_>>>()?;
+        insert_camera(m, what, id, colmap_camera(what, id, model, w, h, params)?)?;
+    }
+    b.end()
+}
+
+fn colmap_images_bin(m: &mut ColmapModel, data: &[u8], what: &str) -> Result<()> {
+    let mut b = Bin { data, pos: 0, what: what.to_string() };
+    for _ in 0..b.count(64)? {
+        let _id = b.i32()?;
+        let qvec = [b.f64()?, b.f64()?, b.f64()?, b.f64()?];
+        let tvec = [b.f64()?, b.f64()?, b.f64()?];
+        let camera_id = b.i32()? as u32;
+        let mut name = Vec::new();
+        loop {
+            match b.u8()? {
+                0 => break,
+                c => name.push(c),
+            }
+        }
+        let np = b.count(24)?;
+        b.skip(np * 24)?;
+        let name = String::from_utf8(name).map_err(|_| anyhow!("{what}: an image name is not UTF-8"))?;
+        m.images.push(colmap_image(what, &name, qvec, tvec, camera_id)?);
+    }
+    b.end()
+}
+
+fn colmap_points_bin(m: &mut ColmapModel, data: &[u8], what: &str) -> Result<()> {
+    let mut b = Bin { data, pos: 0, what: what.to_string() };
+    for _ in 0..b.count(43)? {
+        let id = b.u64()?;
+        let p = [b.f64()? as f32, b.f64()? as f32, b.f64()? as f32];
+        let c = [b.u8()?, b.u8()?, b.u8()?].map(|v| v as f32 / 255.0);
+        let _err = b.f64()?;
+        let track = b.count(8)?;
+        b.skip(track * 8)?;
+        if !p.iter().all(|v| v.is_finite()) {
+            bail!("{what}: point {id} has a non-finite position {p:?}");
+        }
+        m.points.positions.push(p);
+        m.points.colours.push(c);
+    }
+    b.end()
+}
+
+/// Numbered lines of a COLMAP text file that carry data (comments and blank lines dropped).
+fn data_lines(text: &str) -> impl Iterator<Item = (usize, Vec<&str>)> {
+    text.lines().enumerate().filter_map(|(i, l)| {
+        let t: Vec<&str> = l.split_whitespace().collect();
+        (!t.is_empty() && !t[0].starts_with('#')).then_some((i + 1, t))
+    })
+}
+
+fn colmap_cameras_txt(m: &mut ColmapModel, text: &str, what: &str) -> Result<()> {
+    for (no, t) in data_lines(text) {
+        let parse_err = || anyhow!("{what}: line {no}: expected CAMERA_ID MODEL WIDTH HEIGHT PARAMS[]");
+        if t.len() < 4 {
+            return Err(parse_err());
+        }
+        let id: u32 = t[0].parse().map_err(|_| parse_err())?;
+        let np = MODELS
+            .iter()
+            .find(|m| m.0 == t[1])
+            .ok_or_else(|| anyhow!("{what}: line {no}: unknown camera model {}", t[1]))?
+            .1;
+        let params: Vec<f64> = t[4..].iter().map(|v| v.parse()).collect::<Result<_, _>>().map_err(|_| parse_err())?;
+        if params.len() != np {
+            bail!("{what}: line {no}: {} takes {np} parameters, got {}", t[1], params.len());
+        }
+        let (w, h) = (t[2].parse().map_err(|_| parse_err())?, t[3].parse().map_err(|_| parse_err())?);
+        let cam = colmap_camera(&format!("{what}: line {no}"), id, t[1], w, h, params)?;
+        insert_camera(m, &format!("{what}: line {no}"), id, cam)?;
+    }
+    Ok(())
+}
+
+fn colmap_images_txt(m: &mut ColmapModel, text: &str, what: &str) -> Result<()> {
+    // Each image takes two lines: its pose, then its 2D points (which may be empty).
+    let mut expect_points = false;
+    for (i, l) in text.lines().enumerate() {
+        let no = i + 1;
+        if l.trim_start().starts_with('#') {
+            continue;
+        }
+        if expect_points {
+            expect_points = false;
+            continue;
+        }
+        let t: Vec<&str> = l.split_whitespace().collect();
+        if t.is_empty() {
+            continue;
+        }
+        let parse_err = || anyhow!("{what}: line {no}: expected IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME");
+        if t.len() < 10 {
+            return Err(parse_err());
+        }
+        let f: Vec<f64> = t[1..8].iter().map(|v| v.parse()).collect::<Result<_, _>>().map_err(|_| parse_err())?;
+        let camera_id = t[8].parse().map_err(|_| parse_err())?;
+        let image = colmap_image(
+            &format!("{what}: line {no}"),
+            &t[9..].join(" "),
+            [f[0], f[1], f[2], f[3]],
+            [f[4], f[5], f[6]],
+            camera_id,
+        )?;
+        m.images.push(image);
+        expect_points = true;
+    }
+    Ok(())
+}
+
+fn colmap_points_txt(m: &mut ColmapModel, text: &str, what: &str) -> Result<()> {
+    for (no, t) in data_lines(text) {
+        let parse_err = || anyhow!("{what}: line {no}: expected POINT3D_ID X Y Z R G B ERROR TRACK[]");
+        if t.len() < 8 {
+            return Err(parse_err());
+        }
+        let f: Vec<f32> = t[1..7].iter().map(|v| v.parse()).collect::<Result<_, _>>().map_err(|_| parse_err())?;
+        if !f[..3].iter().all(|v| v.is_finite()) {
+            bail!("{what}: line {no}: the point's position is not finite");
+        }
+        if !f[3..6].iter().all(|v| (0.0..=255.0).contains(v)) {
+            bail!("{what}: line {no}: the point's colour is not in 0..255");
+        }
+        m.points.positions.push([f[0], f[1], f[2]]);
+        m.points.colours.push([f[3] / 255.0, f[4] / 255.0, f[5] / 255.0]);
+    }
+    Ok(())
 }
 
 /// Pinhole intrinsics (fx, fy, cx, cy) of a COLMAP camera, or an error for models that are not
@@ -527,7 +686,13 @@ fn load_colmap(dir: &Path, opts: &LoadOptions) -> Result<Dataset> {
         }
     }
     let points = (!model.points.positions.is_empty()).then_some(model.points);
-    Ok(Dataset { kind: "colmap", train: load_views(train, opts)?, test: load_views(test, opts)?, points })
+    Ok(Dataset {
+        kind: "colmap",
+        dir: dir.to_path_buf(),
+        train: load_views(train, opts)?,
+        test: load_views(test, opts)?,
+        points,
+    })
 }
 
 /// The cameras of a dataset without loading its images, with their image files: a

@@ -194,9 +194,22 @@ pub fn to_bytes(scene: &InstancedScene, offset_dtype: Dtype) -> Vec<u8> {
 }
 
 /// Writes `scene` to `path` atomically.
+/// Writes `scene` to `path` atomically. Refused, writing nothing, when the file would not read
+/// back: offsets beyond f16's range (±65504) stored as f16 would be infinite.
 pub fn write(scene: &InstancedScene, path: &Path, offset_dtype: Dtype) -> Result<()> {
-    scene.validate(&path.display().to_string())?;
+    let what = path.display().to_string();
+    scene.validate(&what)?;
+    if offset_dtype == Dtype::F16 {
+        let o = scene.groups.iter().map(|g| &g.offsets);
+        let largest = o
+            .flat_map(|o| o.d_means.iter().flatten().chain(o.d_sh0.iter().flatten()).chain(&o.d_opacities))
+            .fold(0.0f32, |m, v| m.max(v.abs()));
+        if largest > f16::MAX.to_f32() {
+            bail!("{what}: not written: an offset of magnitude {largest} does not fit f16 (±65504); store the offsets as f32");
+        }
+    }
     let bytes = to_bytes(scene, offset_dtype);
+    from_bytes(&bytes, &what).context("not written: the file would not read back")?;
     crate::util::write_atomic(path, |f| f.write_all(&bytes))
 }
 

@@ -99,7 +99,8 @@ pub fn detect(path: &Path) -> Result<Format> {
         return Ok(Format::Instgs);
     }
     let first = head.iter().find(|b| !b.is_ascii_whitespace());
-    if first == Some(&b'{') && is_sog_meta(path) {
+    let named_meta = path.file_name().is_some_and(|n| n.eq_ignore_ascii_case("meta.json"));
+    if first == Some(&b'{') && (named_meta || is_sog_meta(path)) {
         return Ok(Format::Sog);
     }
     if ext == "splat" {

@@ -5,12 +5,12 @@
 //! extra properties and elements are ignored. Also SuperSplat's `.compressed.ply` (chunks of
 //! 256 splats with quantisation bounds, packed 32-bit fields, optional 8-bit SH), read and
 //! written.
-use std::io::{BufReader, BufWriter, Write};
+use std::io::{BufRead, BufReader, BufWriter, Read, Write};
 use std::path::Path;
 
 use anyhow::{anyhow, bail, Context, Result};
 use ply_rs_bw::parser::Parser;
-use ply_rs_bw::ply::{ElementDef, Encoding, PropertyAccess, PropertyAccessResult};
+use ply_rs_bw::ply::{ElementDef, Encoding, PropertyAccess, PropertyAccessResult, PropertyType, ScalarType};
 
 use crate::formats::quant::{largest_component, OPACITY_LOGIT_LIMIT};
 use crate::math::SH_C0_F32;
@@ -172,14 +172,110 @@ fn prop_names(e: &ElementDef) -> Vec<&str> {
 pub fn read_ply(path: &Path) -> Result<Scene> {
     let what = path.display().to_string();
     let file = std::fs::File::open(path).with_context(|| format!("{what}: cannot open"))?;
-    let mut reader = ply_rs_bw::parser::Reader::new(BufReader::new(file));
+    from_reader(BufReader::new(file), &what)
+}
+
+/// [`read_ply`] on bytes in memory; `what` names them in errors.
+pub fn from_bytes(bytes: &[u8], what: &str) -> Result<Scene> {
+    from_reader(bytes, what)
+}
+
+/// The longest PLY header read (a 3DGS header with 45 `f_rest` is about 1.5 KB).
+const MAX_HEADER_BYTES: usize = 1 << 20;
+
+/// Reads the PLY header up to `end_header` and refuses an element declared twice, or a property
+/// declared twice in one element (the parser would keep one silently and then misread the
+/// data). Returns a reader that yields the header again, then the data.
+pub fn checked_reader<R: BufRead>(mut r: R, what: &str) -> Result<impl BufRead> {
+    let mut header = Vec::new();
+    let mut elements: Vec<String> = Vec::new();
+    let mut properties: Vec<String> = Vec::new();
+    loop {
+        let start = header.len();
+        let n = r
+            .by_ref()
+            .take((MAX_HEADER_BYTES - start) as u64)
+            .read_until(b'\n', &mut header)
+            .with_context(|| format!("{what}: cannot read"))?;
+        if n == 0 {
+            break; // the parser names what is missing
+        }
+        if header.len() >= MAX_HEADER_BYTES {
+            bail!("{what}: no end_header in the first {MAX_HEADER_BYTES} bytes (not a PLY?)");
+        }
+        let line = String::from_utf8_lossy(&header[start..]);
+        let words: Vec<&str> = line.split_whitespace().collect();
+        match words.as_slice() {
+            ["end_header"] => break,
+            ["element", name, ..] => {
+                if elements.iter().any(|e| e == name) {
+                    bail!("{what}: element '{name}' is declared twice in the header");
+                }
+                elements.push(name.to_string());
+                properties.clear();
+            }
+            ["property", .., name] if words.len() >= 3 => {
+                if properties.iter().any(|p| p == name) {
+                    let element = elements.last().map(String::as_str).unwrap_or("?");
+                    bail!("{what}: property '{name}' of element '{element}' is declared twice in the header");
+                }
+                properties.push(name.to_string());
+            }
+            _ => {}
+        }
+    }
+    Ok(std::io::Cursor::new(header).chain(r))
+}
+
+/// The declared type of a property as the header spells it.
+fn type_name(t: &PropertyType) -> String {
+    fn scalar(s: &ScalarType) -> &'static str {
+        match s {
+            ScalarType::Char => "char",
+            ScalarType::UChar => "uchar",
+            ScalarType::Short => "short",
+            ScalarType::UShort => "ushort",
+            ScalarType::Int => "int",
+            ScalarType::UInt => "uint",
+            ScalarType::Float => "float",
+            ScalarType::Double => "double",
+        }
+    }
+    match t {
+        PropertyType::Scalar(s) => scalar(s).to_string(),
+        PropertyType::List(i, s) => format!("list {} {}", scalar(i), scalar(s)),
+    }
+}
+
+/// Refuses a property of `element` whose declared type is not one of `allowed` (it would be
+/// read as 0 without a word).
+fn expect_type(what: &str, element: &ElementDef, name: &str, allowed: &[ScalarType]) -> Result<()> {
+    if let Some(p) = element.properties.get(name) {
+        let ok = matches!(&p.data_type, PropertyType::Scalar(s) if allowed.contains(s));
+        if !ok {
+            let want: Vec<String> = allowed.iter().map(|s| type_name(&PropertyType::Scalar(s.clone()))).collect();
+            bail!(
+                "{what}: {} property '{name}' is declared {}; expected {}",
+                element.name,
+                type_name(&p.data_type),
+                want.join(" or ")
+            );
+        }
+    }
+    Ok(())
+}
+
+const FLOATS: [ScalarType; 2] = [ScalarType::Float, ScalarType::Double];
+
+fn from_reader<R: BufRead>(reader: R, what: &str) -> Result<Scene> {
+    let mut reader = ply_rs_bw::parser::Reader::new(checked_reader(reader, what)?);
     let header = Parser::<Ignore>::new()
         .read_header(&mut reader)
         .map_err(|e| anyhow!("{what}: not a valid PLY header: {}", first_line(&e.to_string())))?;
     let vertex = header.elements.get("vertex").ok_or_else(|| anyhow!("{what}: the PLY has no 'vertex' element"))?;
     let compressed = header.elements.contains_key("chunk") && vertex.properties.contains_key("packed_position");
     let scene = if compressed {
-        read_compressed(&what, &mut reader, &header)?
+        read_compressed(what, &mut reader, &header)?
     } else {
         let names = prop_names(vertex);
         for p in CORE {
@@ -200,6 +296,11 @@ pub fn read_ply(path: &Path) -> Result<Scene> {
                 bail!("{what}: vertex property 'f_rest_{j}' is missing");
             }
         }
+        for name in &names {
+            if core_slot(name).is_some() {
+                expect_type(what, vertex, name, &FLOATS)?;
+            }
+        }
         let mut rows = Vec::new();
         for (name, def) in &header.elements {
             if name == "vertex" {
@@ -216,14 +317,13 @@ pub fn read_ply(path: &Path) -> Result<Scene> {
     };
     if header.encoding != Encoding::Ascii {
         // Binary files must end where the header says.
-        use std::io::Read;
         let mut extra = [0u8; 1];
         let inner = reader.get_mut();
         if inner.read(&mut extra).unwrap_or(0) != 0 {
             bail!("{what}: data continues past the elements the header declares");
         }
     }
-    scene.validate(&what)?;
+    scene.validate(what)?;
     Ok(scene)
 }
 
@@ -275,6 +375,9 @@ fn read_compressed<R: std::io::BufRead>(
                         bail!("{what}: chunk property '{p}' is missing");
                     }
                 }
+                for p in CHUNK_PROPS {
+                    expect_type(what, def, p, &[ScalarType::Float])?;
+                }
                 chunks = Parser::<ChunkRow>::new().read_payload_for_element(reader, def, header).map_err(err)?;
             }
             "vertex" => {
@@ -282,6 +385,7 @@ fn read_compressed<R: std::io::BufRead>(
                     if !def.properties.contains_key(p) {
                         bail!("{what}: vertex property '{p}' is missing");
                     }
+                    expect_type(what, def, p, &[ScalarType::UInt])?;
                 }
                 packed = Parser::<PackedRow>::new().read_payload_for_element(reader, def, header).map_err(err)?;
             }

@@ -86,11 +86,9 @@ impl Lookup {
     }
 }
 
-/// An RGBA image decoded from a SOG WebP file: (width, height, bytes).
-fn sog_image(dir: &Path, name: &str, count: usize) -> Result<(usize, usize, Vec<u8>)> {
-    let path = dir.join(name);
-    let what = path.display();
-    let bytes = std::fs::read(&path).with_context(|| format!("{what}: cannot read (named by meta.json)"))?;
+/// An RGBA image decoded from a SOG WebP file `name` (bytes from `load`): (width, height, bytes).
+fn sog_image(load: &mut Loader, name: &str, count: usize) -> Result<(usize, usize, Vec<u8>)> {
+    let (what, bytes) = load(name)?;
     let img = image::load_from_memory_with_format(&bytes, image::ImageFormat::WebP)
         .map_err(|e| anyhow!("{what}: not a WebP image: {e}"))?
         .to_rgba8();
@@ -101,15 +99,29 @@ fn sog_image(dir: &Path, name: &str, count: usize) -> Result<(usize, usize, Vec<
     Ok((w, h, img.into_raw()))
 }
 
+/// Reads the file a SOG's `meta.json` names: (its name for messages, its bytes).
+type Loader<'a> = dyn FnMut(&str) -> Result<(String, Vec<u8>)> + 'a;
+
 /// Reads a SOG scene, version 2 or 1: `meta.json` (or its folder) and the WebP images it
 /// names (splat-transform's layouts; version 1 lerps bytes between per-channel bounds where
 /// version 2 has codebooks, and stores the opacity logit itself).
 pub fn read_sog(path: &Path) -> Result<Scene> {
     let meta_path: PathBuf = if path.is_dir() { path.join("meta.json") } else { path.to_path_buf() };
     let what = meta_path.display().to_string();
-    let dir = meta_path.parent().unwrap_or(Path::new("."));
+    let dir = meta_path.parent().unwrap_or(Path::new(".")).to_path_buf();
     let text = std::fs::read_to_string(&meta_path).with_context(|| format!("{what}: cannot read"))?;
-    let meta: SogMeta = serde_json::from_str(&text).map_err(|e| anyhow!("{what}: not a SOG meta.json: {e}"))?;
+    sog_from_meta(&text, &what, &mut |name| {
+        let path = dir.join(name);
+        let bytes =
+            std::fs::read(&path).with_context(|| format!("{}: cannot read (named by meta.json)", path.display()))?;
+        Ok((path.display().to_string(), bytes))
+    })
+}
+
+/// [`read_sog`] from the text of `meta.json` (`what` names it in errors) and `load`, which
+/// returns the file a name in it names.
+pub fn sog_from_meta(text: &str, what: &str, load: &mut Loader) -> Result<Scene> {
+    let meta: SogMeta = serde_json::from_str(text).map_err(|e| anyhow!("{what}: not a SOG meta.json: {e}"))?;
     let v1 = match meta.version {
         Some(2) => false,
         None => true,
@@ -120,29 +132,29 @@ pub fn read_sog(path: &Path) -> Result<Scene> {
     if n == 0 {
         bail!("{what}: the SOG holds no Gaussians");
     }
-    let scale_of = Lookup::new(&what, "scales", &meta.scales, v1, 3)?;
-    let sh0_of = Lookup::new(&what, "sh0", &meta.sh0, v1, if v1 { 4 } else { 3 })?;
+    let scale_of = Lookup::new(what, "scales", &meta.scales, v1, 3)?;
+    let sh0_of = Lookup::new(what, "sh0", &meta.sh0, v1, if v1 { 4 } else { 3 })?;
     let one =
         |c: &SogTable, name: &str| c.files.first().cloned().ok_or_else(|| anyhow!("{what}: \"{name}\" names no file"));
-    let (_, _, lo) = sog_image(dir, &meta.means.files[0], n)?;
-    let (_, _, hi) = sog_image(dir, &meta.means.files[1], n)?;
+    let (_, _, lo) = sog_image(load, &meta.means.files[0], n)?;
+    let (_, _, hi) = sog_image(load, &meta.means.files[1], n)?;
     let quat_file = meta.quats.files.first().ok_or_else(|| anyhow!("{what}: \"quats\" names no file"))?;
-    let (_, _, quats) = sog_image(dir, quat_file, n)?;
-    let (_, _, scales) = sog_image(dir, &one(&meta.scales, "scales")?, n)?;
-    let (_, _, sh0) = sog_image(dir, &one(&meta.sh0, "sh0")?, n)?;
+    let (_, _, quats) = sog_image(load, quat_file, n)?;
+    let (_, _, scales) = sog_image(load, &one(&meta.scales, "scales")?, n)?;
+    let (_, _, sh0) = sog_image(load, &one(&meta.sh0, "sh0")?, n)?;
     // The SH palette: (coefficients, centroids image width, its bytes, labels, entries, lookup).
     let mut palette = None;
     let mut degree = 0;
     if let Some(sh) = &meta.sh_n {
-        let centroids_path = dir.join(&sh.files[0]);
-        let (cw, ch, centroids) = sog_image(dir, &sh.files[0], 0)?;
+        let centroids_path = &sh.files[0];
+        let (cw, ch, centroids) = sog_image(load, &sh.files[0], 0)?;
         let bands = if v1 {
             match cw {
                 192 => 1,
                 512 => 2,
                 960 => 3,
                 _ => {
-                    bail!("{}: {cw} texels wide; SOG version 1 palettes are 192, 512 or 960", centroids_path.display())
+                    bail!("{what}: {centroids_path}: {cw} texels wide; SOG version 1 palettes are 192, 512 or 960")
                 }
             }
         } else {
@@ -154,7 +166,7 @@ pub fn read_sog(path: &Path) -> Result<Scene> {
         if bands > 0 {
             let coeffs = ((bands + 1) * (bands + 1) - 1) as usize;
             if cw != 64 * coeffs {
-                bail!("{}: {cw} texels wide; {bands} bands need {}", centroids_path.display(), 64 * coeffs);
+                bail!("{what}: {centroids_path}: {cw} texels wide; {bands} bands need {}", 64 * coeffs);
             }
             let (count, lookup) = if v1 {
                 let (Some(a), Some(b)) = (sh.mins, sh.maxs) else {
@@ -170,7 +182,7 @@ pub fn read_sog(path: &Path) -> Result<Scene> {
             if count > ch * 64 {
                 bail!("{what}: shN count {count} exceeds its centroids image ({} entries)", ch * 64);
             }
-            let (_, _, labels) = sog_image(dir, &sh.files[1], n)?;
+            let (_, _, labels) = sog_image(load, &sh.files[1], n)?;
             degree = bands;
             palette = Some((coeffs, cw, centroids, labels, count, lookup));
         }

@@ -105,16 +105,21 @@ pub fn load_transforms(path: &Path) -> Result<Vec<Camera>> {
 
 /// As [`load_transforms`], with each frame's image path (which need not exist).
 pub fn load_transforms_with_images(path: &Path) -> Result<Vec<(Camera, std::path::PathBuf)>> {
-    let what = path.display();
+    let what = path.display().to_string();
     let text = std::fs::read_to_string(path).with_context(|| format!("{what}: cannot read"))?;
-    let tf: TransformsFile = serde_json::from_str(&text).map_err(|e| anyhow!("{what}: not a transforms JSON: {e}"))?;
+    transforms_from_str(&text, path.parent().unwrap_or(Path::new(".")), &what)
+}
+
+/// [`load_transforms_with_images`] on the text of a transforms JSON; `dir` is its folder (image
+/// paths are relative to it), `what` names it in errors.
+pub fn transforms_from_str(text: &str, dir: &Path, what: &str) -> Result<Vec<(Camera, std::path::PathBuf)>> {
+    let tf: TransformsFile = serde_json::from_str(text).map_err(|e| anyhow!("{what}: not a transforms JSON: {e}"))?;
     if tf.frames.is_empty() {
         bail!("{what}: no frames");
     }
     let (w, h) = match (tf.w.or(tf.frames[0].w), tf.h.or(tf.frames[0].h)) {
         (Some(w), Some(h)) => (w, h),
         _ => {
-            let dir = path.parent().unwrap_or(Path::new("."));
             let img = image_path(dir, &tf.frames[0].file_path);
             let (w, h) = image::image_dimensions(&img)
                 .with_context(|| format!("{what}: no w/h given and cannot read image {}", img.display()))?;
@@ -151,7 +156,6 @@ pub fn load_transforms_with_images(path: &Path) -> Result<Vec<(Camera, std::path
             .to_string();
         let cam = Camera::from_c2w_opengl(&name, c2w, w.round() as u32, h.round() as u32, intr);
         cam.validate().with_context(|| format!("{what}: frame {k}"))?;
-        let dir = path.parent().unwrap_or(Path::new("."));
         cams.push((cam, image_path(dir, &f.file_path)));
     }
     Ok(cams)

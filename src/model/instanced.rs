@@ -422,7 +422,12 @@ pub fn mat4_to_rows(m: Mat4) -> [[f32; 4]; 4] {
 pub fn read_scene_graph(path: &std::path::Path) -> Result<Vec<(String, Vec<Instance>)>> {
     let what = path.display().to_string();
     let text = std::fs::read_to_string(path).with_context(|| format!("{what}: cannot read"))?;
-    let groups: Vec<SceneGraphGroup> = serde_json::from_str(&text)
+    scene_graph_from_str(&text, &what)
+}
+
+/// [`read_scene_graph`] on a scene graph's text; `what` names it in errors.
+pub fn scene_graph_from_str(text: &str, what: &str) -> Result<Vec<(String, Vec<Instance>)>> {
+    let groups: Vec<SceneGraphGroup> = serde_json::from_str(text)
         .with_context(|| format!("{what}: not a scene graph (a list of {{template_id, instances}})"))?;
     if groups.is_empty() {
         bail!("{what}: no groups");

@@ -22,6 +22,10 @@ pub fn robust_bounds(means: &[[f32; 3]], q: f32) -> (Vec3, Vec3) {
     (Vec3::from(lo), Vec3::from(hi))
 }
 
+/// The largest log-scale a scene may hold: e^20 ≈ 4.9e8 scene units, far past any real
+/// Gaussian; above about 44 the covariance (scale²) overflows f32.
+pub const MAX_LOG_SCALE: f32 = 20.0;
+
 /// A plain 3DGS scene, structure of arrays, N Gaussians.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct Scene {
@@ -84,7 +88,8 @@ impl Scene {
         robust_bounds(&self.means, q)
     }
 
-    /// Checks counts and that every value is finite; `what` names the source in errors.
+    /// Checks the arrays agree in length and every value is usable: finite, quaternions that
+    /// normalise in f32, log-scales at most [`MAX_LOG_SCALE`]; `what` names the source in errors.
     pub fn validate(&self, what: &str) -> Result<()> {
         let n = self.len();
         if n == 0 {
@@ -108,12 +113,21 @@ impl Scene {
             if !self.scales[i].iter().all(|v| v.is_finite()) {
                 return Err(bad("scale", i));
             }
+            if let Some(s) = self.scales[i].iter().find(|&&s| s > MAX_LOG_SCALE) {
+                bail!("{what}: Gaussian {i}'s log-scale {s} exceeds {MAX_LOG_SCALE} (its covariance would overflow f32)");
+            }
             let q = self.quats[i];
             if !q.iter().all(|v| v.is_finite()) {
                 return Err(bad("rotation", i));
             }
+            // Normalised as the kernels do it, in f32: the squared norm must be a normal number
+            // (zero, subnormal or overflowing norms give no rotation).
+            let norm2: f32 = q.iter().map(|v| v * v).sum();
             if q.iter().all(|&v| v == 0.0) {
                 bail!("{what}: Gaussian {i} has a zero rotation quaternion");
+            }
+            if !norm2.is_normal() {
+                bail!("{what}: Gaussian {i}'s rotation quaternion {q:?} cannot be normalised in f32 (norm² = {norm2:e})");
             }
             if !self.opacities[i].is_finite() {
                 return Err(bad("opacity", i));

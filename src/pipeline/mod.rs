@@ -666,6 +666,7 @@ pub struct TrainRequest {
 /// is not already instanced); else one training session — plain 3DGS, or joint optimisation
 /// from an `.instgs` `init`.
 pub fn train(t: TrainRequest) -> Result<()> {
+    crate::dataset::layout(&t.data)?;
     let is_instgs = match t.init.as_deref() {
         Some(p) => crate::formats::detect(p)? == crate::formats::Format::Instgs,
         None => false,

@@ -56,16 +56,22 @@ pub struct LodConfig {
 impl RenderConfig {
     /// The embedded defaults, with the keys of `path` (a TOML file) over them.
     pub fn load(path: Option<&std::path::Path>) -> Result<RenderConfig> {
-        let mut base: toml::Table = toml::from_str(RENDER_TOML).context("configs/render.toml (embedded)")?;
-        if let Some(p) = path {
-            let text = std::fs::read_to_string(p).with_context(|| format!("{}: cannot read", p.display()))?;
-            let user: toml::Table =
-                toml::from_str(&text).with_context(|| format!("{}: not valid TOML", p.display()))?;
-            merge(&mut base, user);
+        match path {
+            Some(p) => {
+                let text = std::fs::read_to_string(p).with_context(|| format!("{}: cannot read", p.display()))?;
+                RenderConfig::from_toml(&text, &p.display().to_string())
+            }
+            None => RenderConfig::from_toml("", "configs/render.toml"),
         }
-        let what = path.map_or("configs/render.toml".to_string(), |p| p.display().to_string());
-        let cfg: RenderConfig = toml::Value::Table(base).try_into().with_context(|| what.clone())?;
-        cfg.validate().with_context(|| what)?;
+    }
+
+    /// The embedded defaults with the keys of `text` (TOML; `what` names it in errors) over them.
+    pub fn from_toml(text: &str, what: &str) -> Result<RenderConfig> {
+        let mut base: toml::Table = toml::from_str(RENDER_TOML).context("configs/render.toml (embedded)")?;
+        let user: toml::Table = toml::from_str(text).with_context(|| format!("{what}: not valid TOML"))?;
+        merge(&mut base, user);
+        let cfg: RenderConfig = toml::Value::Table(base).try_into().with_context(|| what.to_string())?;
+        cfg.validate().with_context(|| what.to_string())?;
         Ok(cfg)
     }
 

@@ -5,6 +5,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{anyhow, bail, Context, Result};
 
+use crate::dataset::DatasetIdentity;
 use crate::model::instanced::Offsets;
 use crate::train::config::Config;
 
@@ -24,11 +25,14 @@ struct CheckpointHeader {
     /// Instanced runs; then the offsets and their moments follow the statistics.
     #[serde(default)]
     layout: Option<Layout>,
+    /// What it was trained on (checkpoints written before this was recorded have none).
+    #[serde(default)]
+    dataset: Option<DatasetIdentity>,
 }
 
 /// Writes `st` atomically (temporary file + rename) after checking it is finite, so a bad state
-/// never replaces the last good checkpoint.
-pub fn write_checkpoint(path: &Path, st: &TrainState, cfg: &Config) -> Result<()> {
+/// never replaces the last good checkpoint; `dataset` is what it was trained on.
+pub fn write_checkpoint(path: &Path, st: &TrainState, cfg: &Config, dataset: Option<&DatasetIdentity>) -> Result<()> {
     st.check_finite().context("checkpoint not written; the last good one is kept")?;
     let header = serde_json::to_vec(&CheckpointHeader {
         iteration: st.iteration,
@@ -37,6 +41,7 @@ pub fn write_checkpoint(path: &Path, st: &TrainState, cfg: &Config) -> Result<()
         gaussians: st.scene.len(),
         config: serde_json::to_value(cfg)?,
         layout: st.layout.clone(),
+        dataset: dataset.cloned(),
     })?;
     crate::util::write_atomic(path, |f| {
         let mut w = std::io::BufWriter::new(f);
@@ -64,8 +69,26 @@ pub fn write_checkpoint(path: &Path, st: &TrainState, cfg: &Config) -> Result<()
 
 /// Reads a checkpoint; returns the state and the configuration it was written with.
 pub fn read_checkpoint(path: &Path) -> Result<(TrainState, Config)> {
-    let what = path.display();
-    let data = std::fs::read(path).with_context(|| format!("{what}: cannot read checkpoint"))?;
+    let data = std::fs::read(path).with_context(|| format!("{}: cannot read checkpoint", path.display()))?;
+    checkpoint_from_bytes(&data, &path.display().to_string())
+}
+
+/// The dataset a checkpoint was trained on (`None` for checkpoints from before it was
+/// recorded), reading only its header.
+pub fn checkpoint_dataset(path: &Path) -> Result<Option<DatasetIdentity>> {
+    use std::io::Read;
+    let what = path.display().to_string();
+    let mut f = std::fs::File::open(path).with_context(|| format!("{what}: cannot read checkpoint"))?;
+    let mut head = [0u8; 20];
+    f.read_exact(&mut head).map_err(|_| anyhow!("{what}: not an instgs-vk checkpoint"))?;
+    let hlen = check_prefix(&head, &what)?;
+    let mut header = Vec::new();
+    f.take(hlen as u64).read_to_end(&mut header).with_context(|| format!("{what}: cannot read checkpoint"))?;
+    Ok(parse_header(&header, hlen, &what)?.dataset)
+}
+
+/// Checks the magic and version; returns the header's length.
+fn check_prefix(data: &[u8], what: &str) -> Result<usize> {
     if data.len() < 20 || &data[..8] != MAGIC {
         bail!("{what}: not an instgs-vk checkpoint");
     }
@@ -73,37 +96,58 @@ pub fn read_checkpoint(path: &Path) -> Result<(TrainState, Config)> {
     if version != VERSION {
         bail!("{what}: checkpoint version {version}, this build reads {VERSION}");
     }
-    let hlen = u64::from_le_bytes(data[12..20].try_into().unwrap()) as usize;
-    let header: CheckpointHeader = data
-        .get(20..20 + hlen)
-        .and_then(|h| serde_json::from_slice(h).ok())
+    let hlen = u64::from_le_bytes(data[12..20].try_into().unwrap());
+    usize::try_from(hlen).ok().filter(|&h| h <= (1 << 30)).ok_or_else(|| anyhow!("{what}: damaged checkpoint header"))
+}
+
+fn parse_header(bytes: &[u8], hlen: usize, what: &str) -> Result<CheckpointHeader> {
+    let header: CheckpointHeader = (bytes.len() == hlen)
+        .then(|| serde_json::from_slice(bytes).ok())
+        .flatten()
         .ok_or_else(|| anyhow!("{what}: damaged checkpoint header"))?;
-    if header.sh_degree > 3 {
+    if header.sh_degree > 3 || header.active_sh_degree > header.sh_degree {
         bail!("{what}: damaged checkpoint header");
     }
+    Ok(header)
+}
+
+/// [`read_checkpoint`] on bytes in memory; `what` names them in errors.
+pub fn checkpoint_from_bytes(data: &[u8], what: &str) -> Result<(TrainState, Config)> {
+    let hlen = check_prefix(data, what)?;
+    let header = parse_header(data.get(20..).and_then(|d| d.get(..hlen)).unwrap_or_default(), hlen, what)?;
     let n = header.gaussians;
     let st = strides(header.sh_degree);
     let mut pos = 20 + hlen;
-    let mut take = |count: usize| -> Result<&[u8]> {
-        let bytes = count.checked_mul(4).ok_or_else(|| anyhow!("{what}: damaged checkpoint"))?;
-        let s = data.get(pos..pos + bytes).ok_or_else(|| anyhow!("{what}: truncated checkpoint"))?;
+    let mut take = |count: Option<usize>| -> Result<&[u8]> {
+        let bytes = count.and_then(|c| c.checked_mul(4)).ok_or_else(|| anyhow!("{what}: damaged checkpoint header"))?;
+        let s = pos
+            .checked_add(bytes)
+            .and_then(|end| data.get(pos..end))
+            .ok_or_else(|| anyhow!("{what}: truncated checkpoint"))?;
         pos += bytes;
         Ok(s)
     };
-    let mut f32s = |count: usize| -> Result<Vec<f32>> { Ok(bytemuck::pod_collect_to_vec(take(count)?)) };
-    let params: Vec<Vec<f32>> = (0..5).map(|k| f32s(n * st[k])).collect::<Result<_>>()?;
-    let m: Vec<Vec<f32>> = (0..5).map(|k| f32s(n * st[k])).collect::<Result<_>>()?;
-    let v: Vec<Vec<f32>> = (0..5).map(|k| f32s(n * st[k])).collect::<Result<_>>()?;
+    let mut f32s = |count: Option<usize>| -> Result<Vec<f32>> { Ok(bytemuck::pod_collect_to_vec(take(count)?)) };
+    let params: Vec<Vec<f32>> = (0..5).map(|k| f32s(n.checked_mul(st[k]))).collect::<Result<_>>()?;
+    let m: Vec<Vec<f32>> = (0..5).map(|k| f32s(n.checked_mul(st[k]))).collect::<Result<_>>()?;
+    let v: Vec<Vec<f32>> = (0..5).map(|k| f32s(n.checked_mul(st[k]))).collect::<Result<_>>()?;
     let stats = if header.layout.is_some() { 0 } else { n };
-    let accum = f32s(stats)?;
-    let count: Vec<u32> = bytemuck::pod_collect_to_vec(&f32s(stats)?);
-    let radii: Vec<u32> = bytemuck::pod_collect_to_vec(&f32s(stats)?);
-    let pairs = header.layout.as_ref().map_or(0, |l| l.pairs());
+    let accum = f32s(Some(stats))?;
+    let count: Vec<u32> = bytemuck::pod_collect_to_vec(&f32s(Some(stats))?);
+    let radii: Vec<u32> = bytemuck::pod_collect_to_vec(&f32s(Some(stats))?);
+    let pairs = match &header.layout {
+        Some(l) => l.pairs().ok_or_else(|| anyhow!("{what}: damaged checkpoint header"))?,
+        None => 0,
+    };
     let ow = [3, 3, 1];
-    let off: Vec<Vec<f32>> = (0..9).map(|k| f32s(pairs * ow[k % 3])).collect::<Result<_>>()?;
-    let instances = header.layout.as_ref().map_or(0, |l| l.groups.iter().map(|g| g.instances.len()).sum());
-    let xf: Vec<Vec<[f32; 8]>> =
-        (0..3).map(|_| Ok(bytemuck::pod_collect_to_vec(&f32s(instances * 8)?))).collect::<Result<_>>()?;
+    let off: Vec<Vec<f32>> = (0..9).map(|k| f32s(pairs.checked_mul(ow[k % 3]))).collect::<Result<_>>()?;
+    let instances = header
+        .layout
+        .as_ref()
+        .map_or(Some(0), |l| l.groups.iter().try_fold(0usize, |a, g| a.checked_add(g.instances.len())));
+    let xf: Vec<Vec<[f32; 8]>> = (0..3)
+        .map(|_| Ok(bytemuck::pod_collect_to_vec(&f32s(instances.and_then(|i| i.checked_mul(8)))?)))
+        .collect::<Result<_>>()?;
     if pos != data.len() {
         bail!("{what}: checkpoint has {} trailing bytes", data.len() - pos);
     }

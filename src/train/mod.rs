@@ -25,7 +25,7 @@ pub mod session;
 pub mod state;
 pub mod trainer;
 
-pub use checkpoint::{checkpoint_path, read_checkpoint, write_checkpoint};
+pub use checkpoint::{checkpoint_dataset, checkpoint_from_bytes, checkpoint_path, read_checkpoint, write_checkpoint};
 pub use densify::{densify, initial_scene, knn_log_scales, reset_opacity, DensifyStats};
 pub use eval::{evaluate, Evaluation, ViewScore};
 pub use state::{Layout, LayoutGroup, TrainState};
@@ -207,8 +207,17 @@ pub fn run(gpu: &Arc<Gpu>, k: &Arc<Kernels>, ds: &Dataset, cfg: &Config, opts: &
     }
     let extent = ds.camera_extent();
     let ckpt = checkpoint_path(&opts.out);
+    let dataset = ds.identity();
     let metrics_path = opts.out.join("metrics.csv");
     let (mut state, mut rows) = if opts.resume {
+        if let Some(was) = checkpoint_dataset(&ckpt)? {
+            if let Some(why) = was.mismatch(&dataset) {
+                bail!(
+                    "{}: the checkpoint was trained on other data: {why}; resume it on its own data, or choose another --out",
+                    ckpt.display()
+                );
+            }
+        }
         let (st, saved) =
             read_checkpoint(&ckpt).with_context(|| "cannot resume (run without --resume to start afresh)")?;
         let same = Config { iterations: cfg.iterations, ..saved.clone() };
@@ -333,7 +342,7 @@ pub fn run(gpu: &Arc<Gpu>, k: &Arc<Kernels>, ds: &Dataset, cfg: &Config, opts: &
         rows.push(row);
         if (cfg.checkpoint_interval > 0 && it % cfg.checkpoint_interval == 0) || final_it {
             state = trainer.download(it)?;
-            write_checkpoint(&ckpt, &state, cfg)?;
+            write_checkpoint(&ckpt, &state, cfg, Some(&dataset))?;
             write_metrics(&rows)?;
         }
         let msg = format!(
@@ -351,7 +360,7 @@ pub fn run(gpu: &Arc<Gpu>, k: &Arc<Kernels>, ds: &Dataset, cfg: &Config, opts: &
     let done = rows.last().map_or(start_it, |r| r.iteration);
     state = trainer.download(done)?;
     if interrupted || done > start_it {
-        write_checkpoint(&ckpt, &state, cfg)?;
+        write_checkpoint(&ckpt, &state, cfg, Some(&dataset))?;
         write_metrics(&rows)?;
     }
     match state.to_instanced()? {

@@ -41,8 +41,12 @@ pub struct LayoutGroup {
 }
 
 impl Layout {
-    pub(crate) fn pairs(&self) -> usize {
-        self.groups.iter().map(|g| g.template_gaussians * g.instances.len()).sum()
+    /// (template Gaussian, instance) pairs, the rows of the offsets; `None` on overflow (a
+    /// damaged checkpoint header).
+    pub(crate) fn pairs(&self) -> Option<usize> {
+        self.groups
+            .iter()
+            .try_fold(0usize, |a, g| g.template_gaussians.checked_mul(g.instances.len()).and_then(|p| a.checked_add(p)))
     }
 }
 

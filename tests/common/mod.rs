@@ -222,6 +222,9 @@ pub fn lavapipe_one_thread_env() -> Option<[(&'static str, &'static str); 2]> {
 /// What a run of the binary left: its exit status and standard error.
 pub struct BinOut {
     pub ok: bool,
+    /// The exit status (None: killed by a signal).
+    #[allow(dead_code)]
+    pub code: Option<i32>,
     pub stderr: String,
 }
 
@@ -257,7 +260,7 @@ pub fn finish_bin(mut child: std::process::Child, what: &str) -> BinOut {
     let status = child.wait().unwrap();
     let stderr = reader.join().unwrap();
     assert!(!stderr.contains("panicked"), "{what} panicked:\n{stderr}");
-    BinOut { ok: status.success(), stderr }
+    BinOut { ok: status.success(), code: status.code(), stderr }
 }
 
 /// Runs `instgs-vk` to the end.

@@ -1,0 +1,643 @@
+//! The bad-input table: every reader and command given input a careless or hostile user would
+//! give ends in exit status 1, exactly one `error:` line naming the file (or the flag) and the
+//! problem, no panic, and no file written (the case's folder holds the same files before and
+//! after). Validation layers are on (`INSTGS_VALIDATION=1`).
+mod common;
+use std::collections::BTreeSet;
+use std::path::{Path, PathBuf};
+
+use common::*;
+
+/// The 3DGS PLY header of `ply_with`: one vertex, the 14 core properties as floats.
+const HEADER: &str = "ply\nformat binary_little_endian 1.0\nelement vertex 1\nproperty float x\nproperty float y\nproperty float z\nproperty float f_dc_0\nproperty float f_dc_1\nproperty float f_dc_2\nproperty float opacity\nproperty float scale_0\nproperty float scale_1\nproperty float scale_2\nproperty float rot_0\nproperty float rot_1\nproperty float rot_2\nproperty float rot_3\nend_header\n";
+
+fn ply_with(header: &str, values: &[f32]) -> Vec<u8> {
+    let mut b = header.as_bytes().to_vec();
+    for v in values {
+        b.extend_from_slice(&v.to_le_bytes());
+    }
+    b
+}
+
+/// One valid Gaussian's 14 core values.
+const ONE: [f32; 14] = [0.0, 0.0, 0.0, 0.5, 0.5, 0.5, 1.0, -3.0, -3.0, -3.0, 1.0, 0.0, 0.0, 0.0];
+
+const POSE: &str = "[[1,0,0,0],[0,1,0,0],[0,0,1,4],[0,0,0,1]]";
+
+fn transforms(head: &str, frames: &[&str]) -> String {
+    let frames: Vec<String> =
+        frames.iter().map(|f| format!(r#"{{"file_path": "{f}", "transform_matrix": {POSE}}}"#)).collect();
+    format!(r#"{{{head} "frames": [{}]}}"#, frames.join(","))
+}
+
+struct Case {
+    name: String,
+    dir: PathBuf,
+    args: Vec<String>,
+    needles: Vec<String>,
+}
+
+struct Table {
+    root: PathBuf,
+    cases: Vec<Case>,
+}
+
+impl Table {
+    /// A fresh folder for a case.
+    fn dir(&self, name: &str) -> PathBuf {
+        let d = self.root.join(name);
+        std::fs::create_dir_all(&d).unwrap();
+        d
+    }
+
+    /// Writes `bytes` to `name` in the case's folder.
+    fn put(&self, case: &str, name: &str, bytes: impl AsRef<[u8]>) -> PathBuf {
+        let p = self.dir(case).join(name);
+        std::fs::create_dir_all(p.parent().unwrap()).unwrap();
+        std::fs::write(&p, bytes).unwrap();
+        p
+    }
+
+    /// A case: `args` (`{d}` is the case's folder), and the words its error line must hold.
+    fn case(&mut self, name: &str, args: &[&str], needles: &[&str]) {
+        let dir = self.dir(name);
+        let d = dir.to_str().unwrap().to_string();
+        self.cases.push(Case {
+            name: name.into(),
+            args: args.iter().map(|a| a.replace("{d}", &d)).collect(),
+            needles: needles.iter().map(|n| n.replace("{d}", &d)).collect(),
+            dir,
+        });
+    }
+}
+
+fn files_under(dir: &Path) -> BTreeSet<PathBuf> {
+    fn walk(d: &Path, out: &mut BTreeSet<PathBuf>) {
+        for e in std::fs::read_dir(d).into_iter().flatten() {
+            let p = e.unwrap().path();
+            if p.is_dir() {
+                walk(&p, out);
+            }
+            out.insert(p);
+        }
+    }
+    let mut s = BTreeSet::new();
+    walk(dir, &mut s);
+    s
+}
+
+/// A copy of the bundled demo dataset, `edit` applied to it.
+fn demo_copy(dir: &Path, edit: impl FnOnce(&Path)) -> PathBuf {
+    let src = Path::new(env!("CARGO_MANIFEST_DIR")).join("demo/ducks6-mini");
+    let to = dir.join("data");
+    fn copy(a: &Path, b: &Path) {
+        std::fs::create_dir_all(b).unwrap();
+        for e in std::fs::read_dir(a).unwrap() {
+            let p = e.unwrap().path();
+            let q = b.join(p.file_name().unwrap());
+            if p.is_dir() {
+                copy(&p, &q);
+            } else {
+                std::fs::copy(&p, &q).unwrap();
+            }
+        }
+    }
+    copy(&src, &to);
+    edit(&to);
+    to
+}
+
+fn colmap_dir(t: &Table, case: &str, cameras: &str, images: &str, points: &str) {
+    t.put(case, "m/sparse/0/cameras.txt", cameras);
+    t.put(case, "m/sparse/0/images.txt", images);
+    t.put(case, "m/sparse/0/points3D.txt", points);
+}
+
+const CAMERAS: &str = "1 PINHOLE 64 48 50 50 32 24\n";
+const IMAGES: &str = "1 1 0 0 0 0 0 3 1 a.png\n\n";
+const POINTS: &str = "1 0 0 0 255 0 0 0.1\n";
+
+#[test]
+fn bad_input_table() {
+    let root = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("bad_input");
+    let _ = std::fs::remove_dir_all(&root);
+    let mut t = Table { root, cases: Vec::new() };
+    let tiny = Path::new(env!("CARGO_MANIFEST_DIR")).join("fuzz/seeds/ply_parse/tiny.ply");
+    let tiny = tiny.to_str().unwrap();
+    let good = std::fs::read(tiny).unwrap();
+
+    // ---- 3DGS PLY (plain and compressed), through `info`.
+    t.put("ply_truncated", "s.ply", &good[..good.len() - 7]);
+    t.case("ply_truncated", &["info", "{d}/s.ply"], &["s.ply", "truncated"]);
+    let mut nan = ONE;
+    nan[0] = f32::NAN;
+    t.put("ply_nan", "s.ply", ply_with(HEADER, &nan));
+    t.case("ply_nan", &["info", "{d}/s.ply"], &["s.ply", "non-finite position"]);
+    t.put("ply_missing", "s.ply", ply_with(&HEADER.replace("property float opacity\n", ""), &ONE[..13]));
+    t.case("ply_missing", &["info", "{d}/s.ply"], &["s.ply", "'opacity' is missing"]);
+    t.put("ply_empty", "s.ply", HEADER.replace("vertex 1", "vertex 0"));
+    t.case("ply_empty", &["info", "{d}/s.ply"], &["s.ply", "no Gaussians"]);
+    t.put("ply_garbage", "s.ply", "not a ply at all");
+    t.case("ply_garbage", &["info", "{d}/s.ply"], &["s.ply", "not a scene file we read (text)"]);
+    t.case("ply_absent", &["info", "{d}/absent.ply"], &["absent.ply", "cannot open"]);
+    let twice = HEADER.replace("end_header\n", "element vertex 1\nproperty float x\nend_header\n");
+    t.put("ply_element_twice", "s.ply", ply_with(&twice, &[ONE.as_slice(), &[0.0]].concat()));
+    t.case("ply_element_twice", &["info", "{d}/s.ply"], &["s.ply", "element 'vertex' is declared twice"]);
+    let twice = HEADER.replace("property float rot_3\n", "property float rot_3\nproperty float x\n");
+    t.put("ply_property_twice", "s.ply", ply_with(&twice, &[ONE.as_slice(), &[0.0]].concat()));
+    t.case(
+        "ply_property_twice",
+        &["info", "{d}/s.ply"],
+        &["s.ply", "property 'x' of element 'vertex' is declared twice"],
+    );
+    t.put("ply_list", "s.ply", ply_with(&HEADER.replace("property float x\n", "property list uchar float x\n"), &[]));
+    t.case(
+        "ply_list",
+        &["info", "{d}/s.ply"],
+        &["s.ply", "'x' is declared list uchar float; expected float or double"],
+    );
+    let mut ints = ply_with(&HEADER.replace("property float opacity", "property int opacity"), &ONE[..6]);
+    ints.extend_from_slice(&3i32.to_le_bytes());
+    ints.extend(ONE[7..].iter().flat_map(|v| v.to_le_bytes()));
+    t.put("ply_int", "s.ply", ints);
+    t.case("ply_int", &["info", "{d}/s.ply"], &["s.ply", "'opacity' is declared int"]);
+    let rest: String = (0..5).map(|j| format!("property float f_rest_{j}\n")).collect();
+    let five = HEADER.replace("end_header\n", &format!("{rest}end_header\n"));
+    t.put("ply_rest_count", "s.ply", ply_with(&five, &[ONE.as_slice(), &[0.0; 5]].concat()));
+    t.case("ply_rest_count", &["info", "{d}/s.ply"], &["s.ply", "5 f_rest properties"]);
+    t.put("ply_trailing", "s.ply", [ply_with(HEADER, &ONE), vec![0; 8]].concat());
+    t.case("ply_trailing", &["info", "{d}/s.ply"], &["s.ply", "data continues past"]);
+    let ascii = HEADER.replace("binary_little_endian", "ascii") + "0 0 0 0.5 0.5 0.5 1 -3 -3 -3 one 0 0 0\n";
+    t.put("ply_ascii_word", "s.ply", ascii);
+    t.case("ply_ascii_word", &["info", "{d}/s.ply"], &["s.ply", "vertex data"]);
+    let compressed =
+        std::fs::read(Path::new(env!("CARGO_MANIFEST_DIR")).join("fuzz/seeds/ply_parse/tiny.compressed.ply")).unwrap();
+    let text = String::from_utf8_lossy(&compressed).into_owned();
+    let swap = |from: &str, to: &str| {
+        let mut b = compressed.clone();
+        let at = text.find(from).unwrap();
+        b.splice(at..at + from.len(), to.bytes());
+        b
+    };
+    t.put("compressed_packed_float", "s.ply", swap("property uint packed_position", "property float packed_position"));
+    t.case(
+        "compressed_packed_float",
+        &["info", "{d}/s.ply"],
+        &["s.ply", "'packed_position' is declared float; expected uint"],
+    );
+    t.put("compressed_chunk_int", "s.ply", swap("property float min_x", "property int min_x  "));
+    t.case("compressed_chunk_int", &["info", "{d}/s.ply"], &["s.ply", "'min_x' is declared int"]);
+    t.put("compressed_no_chunks", "s.ply", swap("element chunk 1", "element chunk 0"));
+    t.case("compressed_no_chunks", &["info", "{d}/s.ply"], &["s.ply", "0 chunks cannot hold 3 splats"]);
+
+    // ---- .spz, .splat, SOG.
+    t.put("spz_gzip_not_spz", "s.spz", [0x1f, 0x8b, 8, 0, 0, 0, 0, 0, 0, 3, 3, 0, 0, 0, 0, 0, 0, 0, 0, 0]);
+    t.case("spz_gzip_not_spz", &["info", "{d}/s.spz"], &["s.spz"]);
+    let spz = std::fs::read(Path::new(env!("CARGO_MANIFEST_DIR")).join("fuzz/seeds/spz_parse/tiny.spz")).unwrap();
+    t.put("spz_truncated", "s.spz", &spz[..spz.len() / 2]);
+    t.case("spz_truncated", &["info", "{d}/s.spz"], &["s.spz"]);
+    t.put("splat_odd_length", "s.splat", [0u8; 33]);
+    t.case("splat_odd_length", &["info", "{d}/s.splat"], &["s.splat", "32-byte rows"]);
+    let mut row = [0u8; 32];
+    row[12..16].copy_from_slice(&(-1.0f32).to_le_bytes());
+    t.put("splat_negative_scale", "s.splat", row);
+    t.case("splat_negative_scale", &["info", "{d}/s.splat"], &["s.splat", "negative or NaN scale"]);
+    t.put("sog_not_json", "meta.json", "{ not json");
+    t.case("sog_not_json", &["info", "{d}/meta.json"], &["meta.json", "not a SOG meta.json"]);
+    let meta = r#"{"version": 3, "count": 1, "means": {"mins": [0,0,0], "maxs": [1,1,1], "files": ["a.webp", "b.webp"]},
+        "scales": {"files": ["s.webp"]}, "quats": {"files": ["q.webp"]}, "sh0": {"files": ["c.webp"]}}"#;
+    t.put("sog_version", "meta.json", meta);
+    t.case("sog_version", &["info", "{d}/meta.json"], &["meta.json", "SOG version 3"]);
+    let meta2 = meta.replace(r#""version": 3"#, r#""version": 2"#).replace(
+        r#""scales": {"files""#,
+        &format!(r#""scales": {{"codebook": [{}], "files""#, vec!["0"; 256].join(",")),
+    );
+    let meta2 = meta2
+        .replace(r#""sh0": {"files""#, &format!(r#""sh0": {{"codebook": [{}], "files""#, vec!["0"; 256].join(",")));
+    t.put("sog_missing_image", "meta.json", meta2);
+    t.case("sog_missing_image", &["info", "{d}/meta.json"], &["a.webp", "cannot read (named by meta.json)"]);
+
+    // ---- .instgs.
+    t.put("instgs_bad_header", "s.instgs", b"INSTGS\0\0\x05\0\0\0{\"a\":");
+    t.case("instgs_bad_header", &["info", "{d}/s.instgs"], &["s.instgs", "malformed JSON header"]);
+    t.put("instgs_cut_short", "s.instgs", b"INSTGS\0\0\x05");
+    t.case("instgs_cut_short", &["info", "{d}/s.instgs"], &["s.instgs", "cut short"]);
+    t.put("instgs_no_magic", "s.instgs", b"PLY no magic here");
+    t.case("instgs_no_magic", &["info", "{d}/s.instgs"], &["s.instgs", "not a scene file we read (text)"]);
+    t.case(
+        "instgs_as_plain",
+        &["segment", "--scene", "{d}/../instgs_bad_header/s.instgs", "--data", "{d}", "--out", "{d}/l.json"],
+        &["s.instgs"],
+    );
+
+    // ---- Cameras (transforms JSON), through `render`.
+    let render = |c: &str| ["render", "--scene", tiny, "--cameras", c, "--out", "{d}/out"].map(String::from);
+    for (name, head, frames, needles) in [
+        ("cameras_no_frames", r#""camera_angle_x": 0.8, "w": 64, "h": 48,"#, vec![], vec!["t.json", "no frames"]),
+        ("cameras_zero_width", r#""camera_angle_x": 0.8, "w": 0, "h": 48,"#, vec!["a"], vec!["t.json", "empty"]),
+        ("cameras_wide", r#""camera_angle_x": 7.0, "w": 64, "h": 48,"#, vec!["a"], vec!["t.json", "camera_angle_x"]),
+        ("cameras_no_focal", r#""w": 64, "h": 48,"#, vec!["a"], vec!["t.json", "neither fl_x nor camera_angle_x"]),
+        (
+            "cameras_twins",
+            r#""camera_angle_x": 0.8, "w": 64, "h": 48,"#,
+            vec!["x/a.png", "y/a.png"],
+            vec!["t.json", "two cameras are named \"a\""],
+        ),
+        ("cameras_not_json", "oops", vec![], vec!["t.json", "not a transforms JSON"]),
+    ] {
+        t.put(name, "t.json", transforms(head, &frames));
+        let args = render("{d}/t.json");
+        t.case(name, &args.iter().map(String::as_str).collect::<Vec<_>>(), &needles);
+    }
+    t.put(
+        "cameras_infinite",
+        "t.json",
+        transforms(r#""camera_angle_x": 0.8, "w": 64, "h": 48,"#, &["a"]).replace("[0,0,1,4]", "[0,0,1,1e39]"),
+    );
+    t.case(
+        "cameras_infinite",
+        &["render", "--scene", tiny, "--cameras", "{d}/t.json", "--out", "{d}/out"],
+        &["t.json"],
+    );
+
+    // ---- COLMAP, through `cameras`.
+    let colmap = [
+        (
+            "colmap_unknown_model",
+            "1 WEIRD 64 48 1 2 3\n",
+            IMAGES,
+            POINTS,
+            "cameras.txt: line 1: unknown camera model WEIRD",
+        ),
+        ("colmap_param_count", "1 PINHOLE 64 48 50 50 32\n", IMAGES, POINTS, "PINHOLE takes 4 parameters, got 3"),
+        (
+            "colmap_camera_twice",
+            "1 PINHOLE 64 48 50 50 32 24\n1 PINHOLE 64 48 50 50 32 24\n",
+            IMAGES,
+            POINTS,
+            "camera 1 is listed twice",
+        ),
+        ("colmap_zero_size", "1 PINHOLE 0 48 50 50 32 24\n", IMAGES, POINTS, "camera 1 is 0x48 pixels"),
+        ("colmap_nan_param", "1 PINHOLE 64 48 nan 50 32 24\n", IMAGES, POINTS, "non-finite parameter"),
+        ("colmap_image_line", CAMERAS, "1 1 0 0 0 0 0 3\n\n", POINTS, "images.txt: line 1: expected IMAGE_ID"),
+        ("colmap_zero_quat", CAMERAS, "1 0 0 0 0 0 0 3 1 a.png\n\n", POINTS, "zero rotation quaternion"),
+        ("colmap_unknown_camera", CAMERAS, "1 1 0 0 0 0 0 3 7 a.png\n\n", POINTS, "refers to camera 7"),
+        (
+            "colmap_nan_point",
+            CAMERAS,
+            IMAGES,
+            "1 nan 0 0 255 0 0 0.1\n",
+            "points3D.txt: line 1: the point's position is not finite",
+        ),
+        ("colmap_colour_range", CAMERAS, IMAGES, "1 0 0 0 300 0 0 0.1\n", "colour is not in 0..255"),
+        ("colmap_no_images", CAMERAS, "# nothing\n", POINTS, "no registered images"),
+        ("colmap_distorted", "1 OPENCV 64 48 50 50 32 24 0.5 0.1 0 0\n", IMAGES, POINTS, "undistort the images first"),
+    ];
+    for (name, cams, imgs, pts, needle) in colmap {
+        colmap_dir(&t, name, cams, imgs, pts);
+        t.case(name, &["cameras", "{d}/m", "--out", "{d}/c.json"], &[needle]);
+    }
+    let mut cam_bin = 1u64.to_le_bytes().to_vec();
+    cam_bin.extend_from_slice(&1i32.to_le_bytes());
+    t.put("colmap_bin_truncated", "m/sparse/0/cameras.bin", &cam_bin);
+    t.put("colmap_bin_truncated", "m/sparse/0/images.bin", 0u64.to_le_bytes());
+    t.case("colmap_bin_truncated", &["cameras", "{d}/m", "--out", "{d}/c.json"], &["cameras.bin", "claims 1 entries"]);
+    let mut trailing = 0u64.to_le_bytes().to_vec();
+    trailing.extend_from_slice(&[1, 2, 3]);
+    t.put("colmap_bin_trailing", "m/sparse/0/cameras.bin", &trailing);
+    t.put("colmap_bin_trailing", "m/sparse/0/images.bin", 0u64.to_le_bytes());
+    t.case(
+        "colmap_bin_trailing",
+        &["cameras", "{d}/m", "--out", "{d}/c.json"],
+        &["cameras.bin", "3 bytes follow the last entry"],
+    );
+
+    // ---- Datasets, through `train` (refused before anything is trained or written).
+    let train = |data: &str| ["train", "--data", data, "--out", "{d}/run", "--iterations", "2"].map(String::from);
+    let strs = |a: &[String]| a.iter().map(|s| s.to_string()).collect::<Vec<_>>();
+    t.case(
+        "dataset_absent",
+        &strs(&train("{d}/nothing")).iter().map(String::as_str).collect::<Vec<_>>(),
+        &["nothing", "no such directory"],
+    );
+    t.dir("dataset_not_one");
+    t.put("dataset_not_one", "empty/readme.txt", "x");
+    t.case(
+        "dataset_not_one",
+        &strs(&train("{d}/empty")).iter().map(String::as_str).collect::<Vec<_>>(),
+        &["empty", "not a dataset"],
+    );
+    type Edit = Box<dyn Fn(&Path)>;
+    let dataset_cases: Vec<(&str, Edit, Vec<&str>, Vec<&str>)> = vec![
+        (
+            "dataset_missing_image",
+            Box::new(|d: &Path| std::fs::remove_file(d.join("train/r_002.png")).unwrap()),
+            vec![],
+            vec!["r_002.png", "is missing"],
+        ),
+        (
+            "dataset_image_size",
+            Box::new(|d: &Path| image::RgbImage::new(20, 20).save(d.join("train/r_002.png")).unwrap()),
+            vec![],
+            vec!["r_002.png", "image is 20x20, the camera says 160x120"],
+        ),
+        (
+            "dataset_downscale",
+            Box::new(|_: &Path| {}),
+            vec!["--downscale", "1000"],
+            vec!["--downscale 1000", "160x120"],
+        ),
+        (
+            "dataset_points_nan",
+            Box::new(|d: &Path| {
+                let mut b = b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\nproperty float z\nend_header\n".to_vec();
+                b.extend_from_slice(b"nan 0 0\n");
+                std::fs::write(d.join("points3d.ply"), b).unwrap()
+            }),
+            vec![],
+            vec!["points3d.ply", "not a PLY file: Line 8"],
+        ),
+        (
+            "dataset_points_list",
+            Box::new(|d: &Path| {
+                let b = b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\nproperty float z\nproperty list uchar uchar red\nend_header\n0 0 0 1 7\n";
+                std::fs::write(d.join("points3d.ply"), b).unwrap()
+            }),
+            vec![],
+            vec!["points3d.ply", "'red' must be a uchar, float or double"],
+        ),
+        (
+            "groups_id_zero",
+            Box::new(|d: &Path| {
+                std::fs::write(d.join("instances.json"), r#"{"groups": [{"name": "duck", "instances": [{"id": 0}]}]}"#)
+                    .unwrap()
+            }),
+            vec![],
+            vec!["instances.json", "uses id 0"],
+        ),
+        (
+            "groups_id_twice",
+            Box::new(|d: &Path| {
+                std::fs::write(
+                    d.join("instances.json"),
+                    r#"{"groups": [{"name": "a", "instances": [{"id": 1}]}, {"name": "b", "instances": [{"id": 1}]}]}"#,
+                )
+                .unwrap()
+            }),
+            vec![],
+            vec!["instances.json", "instance id 1 appears twice"],
+        ),
+        (
+            "mask_size",
+            Box::new(|d: &Path| image::GrayImage::new(7, 5).save(d.join("masks/train/r_002.png")).unwrap()),
+            vec![],
+            vec!["r_002.png", "mask is 7x5, its image 160x120"],
+        ),
+        (
+            "mask_colour",
+            Box::new(|d: &Path| image::RgbImage::new(160, 120).save(d.join("masks/train/r_002.png")).unwrap()),
+            vec![],
+            vec!["r_002.png", "8- or 16-bit greyscale"],
+        ),
+        (
+            "config_unknown_key",
+            Box::new(|d: &Path| std::fs::write(d.join("c.toml"), "iterationz = 5\n").unwrap()),
+            vec!["--config", "{d}/data/c.toml"],
+            vec!["c.toml", "iterationz"],
+        ),
+        (
+            "config_not_toml",
+            Box::new(|d: &Path| std::fs::write(d.join("c.toml"), "[[[\n").unwrap()),
+            vec!["--config", "{d}/data/c.toml"],
+            vec!["c.toml"],
+        ),
+        (
+            "config_wrong_type",
+            Box::new(|d: &Path| std::fs::write(d.join("c.toml"), "iterations = \"many\"\n").unwrap()),
+            vec!["--config", "{d}/data/c.toml"],
+            vec!["c.toml", "iterations"],
+        ),
+    ];
+    for (name, edit, extra, needles) in dataset_cases {
+        let data = demo_copy(&t.dir(name), edit);
+        let mut args = strs(&train(data.to_str().unwrap()));
+        args.extend(extra.iter().map(|s| s.to_string()));
+        t.case(name, &args.iter().map(String::as_str).collect::<Vec<_>>(), &needles);
+    }
+
+    // ---- Checkpoints, through `train --resume` on the demo without masks (plain training).
+    use instgs_vk::dataset::DatasetIdentity;
+    use instgs_vk::train::config::Config;
+    use instgs_vk::train::{write_checkpoint, TrainState};
+    let mut rng = Rng::new(24);
+    let state = TrainState::new(random_scene(&mut rng, 8, 3));
+    let cfg = Config::load(None).unwrap();
+    let plain = |d: &Path| std::fs::remove_dir_all(d.join("masks")).unwrap();
+    for name in ["resume_none", "resume_nan", "resume_other_data", "resume_other_config", "resume_truncated"] {
+        let data = demo_copy(&t.dir(name), plain);
+        let run = t.dir(name).join("run");
+        std::fs::create_dir_all(&run).unwrap();
+        let ckpt = run.join("checkpoint.bin");
+        match name {
+            "resume_none" => {}
+            "resume_other_data" => {
+                let other = DatasetIdentity {
+                    path: "/elsewhere".into(),
+                    cameras: "00".into(),
+                    train_views: 3,
+                    test_views: 1,
+                    width: 64,
+                    height: 48,
+                };
+                write_checkpoint(&ckpt, &state, &cfg, Some(&other)).unwrap();
+            }
+            "resume_other_config" => {
+                let changed = Config { seed: cfg.seed + 1, ..cfg.clone() };
+                write_checkpoint(&ckpt, &state, &changed, None).unwrap();
+            }
+            _ => {
+                write_checkpoint(&ckpt, &state, &cfg, None).unwrap();
+                let mut b = std::fs::read(&ckpt).unwrap();
+                let hlen = u64::from_le_bytes(b[12..20].try_into().unwrap()) as usize;
+                if name == "resume_nan" {
+                    b[20 + hlen + 12..20 + hlen + 16].copy_from_slice(&f32::NAN.to_le_bytes());
+                } else {
+                    b.truncate(b.len() - 5);
+                }
+                std::fs::write(&ckpt, b).unwrap();
+            }
+        }
+        let needles: &[&str] = match name {
+            "resume_none" => &["checkpoint.bin", "cannot read checkpoint"],
+            "resume_nan" => &["checkpoint.bin", "non-finite"],
+            "resume_other_data" => &["checkpoint.bin", "trained on other data: /elsewhere (3 training / 1 test views)"],
+            "resume_other_config" => &["checkpoint.bin", "another configuration"],
+            _ => &["checkpoint.bin", "truncated checkpoint"],
+        };
+        t.case(
+            name,
+            &["train", "--data", data.to_str().unwrap(), "--out", "{d}/run", "--resume", "--iterations", "2"],
+            needles,
+        );
+    }
+    t.put("checkpoint_not_one", "run/checkpoint.bin", "hello");
+    let data = demo_copy(&t.dir("checkpoint_not_one"), plain);
+    t.case(
+        "checkpoint_not_one",
+        &["train", "--data", data.to_str().unwrap(), "--out", "{d}/run", "--resume"],
+        &["checkpoint.bin", "not an instgs-vk checkpoint"],
+    );
+
+    // ---- Labels and scene graphs: `instance`, `compose`.
+    let demo = Path::new(env!("CARGO_MANIFEST_DIR")).join("demo/ducks6-mini");
+    let demo = demo.to_str().unwrap();
+    let instance = |labels: &str| {
+        ["instance", "--scene", tiny, "--labels", labels, "--data", demo, "--out", "{d}/s.instgs"].map(String::from)
+    };
+    for (name, file, bytes, needle) in [
+        ("labels_odd_bytes", "l.bin", vec![0u8; 6], "6 bytes is not a whole number of u32 labels"),
+        ("labels_count", "l.bin", vec![0u8; 8], "2 labels for a scene of 3 Gaussians"),
+        ("labels_not_json", "l.json", b"[1,2".to_vec(), "not a labels file"),
+        ("labels_extension", "l.txt", b"1 2 3".to_vec(), "labels must be .json or .bin"),
+    ] {
+        t.put(name, file, bytes);
+        let args = instance(&format!("{{d}}/{file}"));
+        t.case(name, &args.iter().map(String::as_str).collect::<Vec<_>>(), &[file, needle]);
+    }
+    let compose = |graph: &str| {
+        ["compose", "--template", &format!("t={tiny}"), "--scene-graph", graph, "--out", "{d}/s.instgs"]
+            .map(String::from)
+    };
+    let identity = "[[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]";
+    for (name, graph, needle) in [
+        ("graph_empty", "[]".to_string(), "no groups"),
+        ("graph_not_json", "{".to_string(), "not a scene graph"),
+        ("graph_no_instances", r#"[{"template_id": "t", "instances": []}]"#.to_string(), "has no instances"),
+        (
+            "graph_singular",
+            format!(
+                r#"[{{"template_id": "t", "instances": [{{"instance_id": "1", "transform": {identity}}}, {{"instance_id": "2", "transform": [[0,0,0,0],[0,0,0,0],[0,0,0,0],[0,0,0,1]]}}]}}]"#
+            ),
+            "instance \"2\"",
+        ),
+        (
+            "graph_unknown_template",
+            format!(r#"[{{"template_id": "cup", "instances": [{{"instance_id": "1", "transform": {identity}}}]}}]"#),
+            "cup",
+        ),
+    ] {
+        t.put(name, "g.json", graph);
+        let args = compose("{d}/g.json");
+        t.case(name, &args.iter().map(String::as_str).collect::<Vec<_>>(), &[needle]);
+    }
+    t.put("compose_f16_overflow", "g.json", format!(r#"[{{"template_id": "t", "instances": [{{"instance_id": "1", "transform": {identity}}}, {{"instance_id": "2", "transform": {identity}}}]}}]"#));
+    let mut args = compose("{d}/g.json").to_vec();
+    args.extend(["--random-offsets", "100000", "--offset-dtype", "f16"].map(String::from));
+    t.case(
+        "compose_f16_overflow",
+        &args.iter().map(String::as_str).collect::<Vec<_>>(),
+        &["s.instgs", "does not fit f16"],
+    );
+
+    // ---- Command-line values: our own error naming the flag and the accepted range.
+    let orbit = |flag: &str, v: &str| {
+        ["render", "--scene", tiny, "--orbit", "2", flag, v, "--out", "{d}/out"].map(String::from)
+    };
+    for (name, args, needles) in [
+        (
+            "flag_orbit_negative",
+            orbit("--width", "64").map(|a| if a == "2" { "-3".into() } else { a }).to_vec(),
+            vec!["--orbit", "'-3' is not a whole number ≥ 1"],
+        ),
+        ("flag_width_zero", orbit("--width", "0").to_vec(), vec!["--width", "'0' is not a whole number ≥ 1"]),
+        ("flag_background", orbit("--background", "2,0,0").to_vec(), vec!["--background", "[0, 1]"]),
+        ("flag_background_negative", orbit("--background", "-1,0,0").to_vec(), vec!["--background", "[0, 1]"]),
+        (
+            "flag_downscale_negative",
+            ["train", "--data", demo, "--out", "{d}/run", "--downscale", "-5"].map(String::from).to_vec(),
+            vec!["--downscale", "'-5' is not a whole number ≥ 1"],
+        ),
+        (
+            "flag_iterations_zero",
+            ["train", "--data", demo, "--out", "{d}/run", "--iterations", "0"].map(String::from).to_vec(),
+            vec!["--iterations", "'0'"],
+        ),
+        (
+            "flag_alpha_nan",
+            ["segment", "--scene", tiny, "--data", demo, "--alpha", "NaN", "--out", "{d}/l.json"]
+                .map(String::from)
+                .to_vec(),
+            vec!["--alpha", "'NaN' is not a finite number ≥ 0"],
+        ),
+        (
+            "flag_alpha_negative",
+            ["segment", "--scene", tiny, "--data", demo, "--alpha", "-0.5", "--out", "{d}/l.json"]
+                .map(String::from)
+                .to_vec(),
+            vec!["--alpha", "'-0.5'"],
+        ),
+        (
+            "flag_min_fitness",
+            instance("x.bin").into_iter().chain(["--min-fitness".into(), "1.5".into()]).collect(),
+            vec!["--min-fitness", "[0, 1]"],
+        ),
+        ("flag_bits", ["bench-sort", "--bits", "40"].map(String::from).to_vec(), vec!["--bits", "from 1 to 32"]),
+        (
+            "flag_frames_zero",
+            ["bench", "--scene", tiny, "--orbit", "1", "--frames", "0"].map(String::from).to_vec(),
+            vec!["--frames"],
+        ),
+        (
+            "flag_random_offsets",
+            compose("g.json").into_iter().chain(["--random-offsets".into(), "-1".into()]).collect(),
+            vec!["--random-offsets", "finite number ≥ 0"],
+        ),
+    ] {
+        t.case(name, &args.iter().map(String::as_str).collect::<Vec<_>>(), &needles.to_vec());
+    }
+
+    // ---- Outputs: a writer refuses a name it cannot write.
+    t.case("convert_unknown_extension", &["convert", tiny, "{d}/x.txt"], &["x.txt", ".ply"]);
+
+    // Run the table.
+    assert!(t.cases.len() >= 60, "{} cases", t.cases.len());
+    let mut failures = Vec::new();
+    for c in &t.cases {
+        let before = files_under(&c.dir);
+        let args: Vec<&str> = c.args.iter().map(String::as_str).collect();
+        let o = run_bin(&args, &[("INSTGS_VALIDATION", "1")]);
+        let errors: Vec<&str> = o.stderr.lines().filter(|l| !l.starts_with("device:") && !l.is_empty()).collect();
+        let mut why = Vec::new();
+        if o.code != Some(1) {
+            why.push(format!("exit status {:?}", o.code));
+        }
+        if o.stderr.contains("panicked") {
+            why.push("a panic".into());
+        }
+        // Progress and information lines may come first; the error is one line, the last
+        // (clap's "For more information" hint aside).
+        let clap_hint = |l: &&str| l.starts_with("For more information") || l.starts_with("  tip:");
+        let lines: Vec<&&str> = errors.iter().filter(|l| !clap_hint(l)).collect();
+        let error_lines = lines.iter().filter(|l| l.starts_with("error:")).count();
+        match lines.last() {
+            Some(last) if error_lines == 1 && last.starts_with("error: ") => {
+                for n in &c.needles {
+                    if !last.contains(n.as_str()) {
+                        why.push(format!("no '{n}'"));
+                    }
+                }
+            }
+            _ => why.push(format!("{error_lines} error lines, the last line not one")),
+        }
+        let after = files_under(&c.dir);
+        let new: Vec<_> = after.difference(&before).collect();
+        if !new.is_empty() {
+            why.push(format!("wrote {new:?}"));
+        }
+        if !why.is_empty() {
+            failures.push(format!("{}: {} — stderr: {}", c.name, why.join(", "), o.stderr.trim()));
+        }
+    }
+    eprintln!("{} bad inputs, {} refused as they should be", t.cases.len(), t.cases.len() - failures.len());
+    assert!(failures.is_empty(), "{} case(s) failed:\n{}", failures.len(), failures.join("\n"));
+}
