@@ -302,6 +302,34 @@ fn bad_input_table() {
     t.put("colmap_bin_truncated", "m/sparse/0/cameras.bin", &cam_bin);
     t.put("colmap_bin_truncated", "m/sparse/0/images.bin", 0u64.to_le_bytes());
     t.case("colmap_bin_truncated", &["cameras", "{d}/m", "--out", "{d}/c.json"], &["cameras.bin", "claims 1 entries"]);
+    // points3D.bin with a NaN position (once a panic in the k-d tree of the initial scales).
+    let mut points = 1u64.to_le_bytes().to_vec();
+    points.extend_from_slice(&7u64.to_le_bytes());
+    for v in [f64::NAN, 0.0, 0.0] {
+        points.extend_from_slice(&v.to_le_bytes());
+    }
+    points.extend_from_slice(&[255, 0, 0]);
+    points.extend_from_slice(&0.5f64.to_le_bytes());
+    points.extend_from_slice(&0u64.to_le_bytes());
+    let mut cameras = 1u64.to_le_bytes().to_vec();
+    cameras.extend([1i32, 1].iter().flat_map(|v| v.to_le_bytes()));
+    cameras.extend([64u64, 48].iter().flat_map(|v| v.to_le_bytes()));
+    cameras.extend([50.0f64, 50.0, 32.0, 24.0].iter().flat_map(|v| v.to_le_bytes()));
+    let mut images = 1u64.to_le_bytes().to_vec();
+    images.extend_from_slice(&1i32.to_le_bytes());
+    images.extend([1.0f64, 0.0, 0.0, 0.0, 0.0, 0.0, 3.0].iter().flat_map(|v| v.to_le_bytes()));
+    images.extend_from_slice(&1i32.to_le_bytes());
+    images.extend_from_slice(b"a.png\0");
+    images.extend_from_slice(&0u64.to_le_bytes());
+    t.put("colmap_bin_nan_point", "m/sparse/0/cameras.bin", &cameras);
+    t.put("colmap_bin_nan_point", "m/sparse/0/images.bin", &images);
+    t.put("colmap_bin_nan_point", "m/sparse/0/points3D.bin", &points);
+    t.put("colmap_bin_nan_point", "m/images/a.png", []);
+    t.case(
+        "colmap_bin_nan_point",
+        &["train", "--data", "{d}/m", "--out", "{d}/run"],
+        &["points3D", "non-finite position"],
+    );
     let mut trailing = 0u64.to_le_bytes().to_vec();
     trailing.extend_from_slice(&[1, 2, 3]);
     t.put("colmap_bin_trailing", "m/sparse/0/cameras.bin", &trailing);
@@ -433,6 +461,7 @@ fn bad_input_table() {
     let state = TrainState::new(random_scene(&mut rng, 8, 3));
     let cfg = Config::load(None).unwrap();
     let plain = |d: &Path| std::fs::remove_dir_all(d.join("masks")).unwrap();
+    let demo_dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("demo/ducks6-mini");
     for name in ["resume_none", "resume_nan", "resume_other_data", "resume_other_config", "resume_truncated"] {
         let data = demo_copy(&t.dir(name), plain);
         let run = t.dir(name).join("run");
@@ -480,6 +509,23 @@ fn bad_input_table() {
             needles,
         );
     }
+    // A pipeline pointed at a folder holding another dataset's finished plain run.
+    let other = DatasetIdentity {
+        path: "/elsewhere".into(),
+        cameras: "00".into(),
+        train_views: 24,
+        test_views: 6,
+        width: 160,
+        height: 120,
+    };
+    let run = t.dir("pipeline_other_run").join("run");
+    std::fs::create_dir_all(&run).unwrap();
+    write_checkpoint(&run.join("checkpoint.bin"), &state, &cfg, Some(&other)).unwrap();
+    t.case(
+        "pipeline_other_run",
+        &["train", "--data", demo_dir.to_str().unwrap(), "--out", "{d}/run", "--until", "plain", "--iterations", "2"],
+        &["checkpoint of stage plain was trained on other data: /elsewhere", "the cameras of"],
+    );
     t.put("checkpoint_not_one", "run/checkpoint.bin", "hello");
     let data = demo_copy(&t.dir("checkpoint_not_one"), plain);
     t.case(

@@ -242,6 +242,19 @@ pub fn run(a: PipelineArgs) -> Result<()> {
         }
         state.write(run)?;
     }
+    // A training checkpoint in a stage's folder that this run has not finished is resumed; one
+    // trained on other data (a plain run of another dataset, say) is refused before anything runs.
+    for s in STAGES.iter().copied().filter(|&s| s <= until && !state.done(s)) {
+        if let Some(c) = stage_checkpoint(run, s).filter(|c| c.exists()) {
+            if let Some(why) = train::checkpoint_dataset(&c)?.and_then(|was| was.mismatch(&ds.identity())) {
+                bail!(
+                    "{}: the checkpoint of stage {} was trained on other data: {why}; choose another --out",
+                    c.display(),
+                    s.name()
+                );
+            }
+        }
+    }
     let (gpu, k) = crate::gpu::kernels::open_device(a.device.clone())?;
     eprintln!(
         "{}: {what}, instance masks ({}); {}",
