@@ -1,0 +1,30 @@
+#!/usr/bin/env bash
+# Writes the fuzz targets' seed inputs (fuzz/seeds/<target>/): small valid files of every
+# format, made with the release binary (`cargo build --release` first) and tools/fuzz_seeds.py.
+# Run from the repository root: bash fuzz/make-seeds.sh
+set -euo pipefail
+cd "$(dirname "$0")/.."
+bin=target/release/instgs-vk
+seeds=fuzz/seeds
+tmp=$(mktemp -d)
+trap 'rm -rf "$tmp"' EXIT
+mkdir -p "$seeds"/{ply_parse,points_ply,spz_parse,splat_parse,sog_parse,colmap_parse,json_inputs,config_toml,checkpoint_parse,mask_png}
+# Plain scenes of every format from one three-Gaussian PLY (SH degree 1).
+python3 tools/fuzz_seeds.py scene "$tmp/tiny.ply"
+cp "$tmp/tiny.ply" "$seeds/ply_parse/tiny.ply"
+python3 tools/fuzz_seeds.py ascii-scene "$seeds/ply_parse/tiny_ascii.ply"
+"$bin" convert "$tmp/tiny.ply" "$seeds/ply_parse/tiny.compressed.ply" 2>/dev/null
+"$bin" convert "$tmp/tiny.ply" "$seeds/spz_parse/tiny.spz" 2>/dev/null
+"$bin" convert "$tmp/tiny.ply" "$seeds/splat_parse/tiny.splat" 2>/dev/null
+"$bin" convert "$tmp/tiny.ply" "$tmp/sog/meta.json" 2>/dev/null
+python3 tools/fuzz_seeds.py sog "$tmp/sog/meta.json" "$seeds/sog_parse/tiny.sog-fuzz"
+python3 tools/fuzz_seeds.py points "$seeds/points_ply"
+python3 tools/fuzz_seeds.py colmap "$seeds/colmap_parse"
+python3 tools/fuzz_seeds.py json "$seeds/json_inputs" demo/ducks6-mini
+python3 tools/fuzz_seeds.py configs "$seeds/config_toml" configs
+python3 tools/fuzz_seeds.py mask "$seeds/mask_png"
+# A checkpoint: two iterations on the demo, cut down to its first two Gaussians.
+INSTGS_DEVICE=llvmpipe "$bin" train --data demo/ducks6-mini --out "$tmp/run" --until plain --iterations 2 \
+    --downscale 4 --quiet 2>/dev/null
+python3 tools/fuzz_seeds.py checkpoint "$tmp/run/checkpoint.bin" "$seeds/checkpoint_parse/two.ckpt"
+ls -R "$seeds" | head -60
