@@ -114,7 +114,9 @@ impl Scene {
                 return Err(bad("scale", i));
             }
             if let Some(s) = self.scales[i].iter().find(|&&s| s > MAX_LOG_SCALE) {
-                bail!("{what}: Gaussian {i}'s log-scale {s} exceeds {MAX_LOG_SCALE} (its covariance would overflow f32)");
+                bail!(
+                    "{what}: Gaussian {i}'s log-scale {s} exceeds {MAX_LOG_SCALE} (its covariance would overflow f32)"
+                );
             }
             let q = self.quats[i];
             if !q.iter().all(|v| v.is_finite()) {
@@ -127,7 +129,9 @@ impl Scene {
                 bail!("{what}: Gaussian {i} has a zero rotation quaternion");
             }
             if !norm2.is_normal() {
-                bail!("{what}: Gaussian {i}'s rotation quaternion {q:?} cannot be normalised in f32 (norm² = {norm2:e})");
+                bail!(
+                    "{what}: Gaussian {i}'s rotation quaternion {q:?} cannot be normalised in f32 (norm² = {norm2:e})"
+                );
             }
             if !self.opacities[i].is_finite() {
                 return Err(bad("opacity", i));
