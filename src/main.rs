@@ -150,19 +150,19 @@ fn run(cli: Cli) -> Result<()> {
         }
         Cmd::BenchSort { keys, bits, repeats } => bench::bench_sort(device, keys, bits, repeats),
         Cmd::Train { data, out, init, config, iterations, resume, quiet, from, until } => {
-            pipeline::train(pipeline::TrainRequest {
+            let args = pipeline::PipelineArgs {
                 data: data.data,
                 downscale: data.downscale,
                 out,
                 init,
                 config,
                 iterations,
-                resume,
-                quiet,
                 from,
                 until,
+                progress: !quiet,
                 device,
-            })
+            };
+            pipeline::train(args, resume)
         }
         Cmd::Eval { scene, data, split, json, out, background, lod, render_config } => {
             let render = lod.then(|| RenderConfig::load(render_config.as_deref())).transpose()?;

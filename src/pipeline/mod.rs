@@ -168,7 +168,7 @@ fn settings(s: Stage, a: &PipelineArgs, cfg: &PipelineConfig) -> Result<serde_js
     let data = std::fs::canonicalize(&a.data).unwrap_or_else(|_| a.data.clone());
     let mut v = serde_json::json!({"data": data.display().to_string(), "downscale": a.downscale});
     let own = match s {
-        Stage::Plain => match &a.init_ply {
+        Stage::Plain => match &a.init {
             Some(p) => serde_json::json!({"init": std::fs::canonicalize(p).unwrap_or_else(|_| p.clone())}),
             None => serde_json::to_value(&cfg.plain)?,
         },
@@ -206,7 +206,7 @@ pub fn run(a: PipelineArgs) -> Result<()> {
     let ds = crate::dataset::load(&a.data, &load)?;
     let what = ds.describe(&a.data)?;
     let mask_ids = check_masks(&a.data, &ds)?;
-    if let Some(p) = &a.init_ply {
+    if let Some(p) = &a.init {
         // Read now: a bad file is refused before anything runs.
         crate::formats::read_scene(p)?;
     }
@@ -357,7 +357,7 @@ impl Ctx<'_> {
         let run = self.run_dir();
         match s {
             Stage::Plain => {
-                if let Some(p) = &self.a.init_ply {
+                if let Some(p) = &self.a.init {
                     let to = run.join("point_cloud.ply");
                     if crate::formats::detect(p)? == crate::formats::Format::Ply {
                         let bytes = std::fs::read(p).with_context(|| format!("{}: cannot read", p.display()))?;
@@ -658,70 +658,42 @@ impl Ctx<'_> {
     }
 }
 
-/// What `instgs-vk train` was asked.
-pub struct TrainRequest {
-    /// The dataset folder (NeRF-synthetic or COLMAP, with `masks/train/` for InstGS).
-    pub data: PathBuf,
-    pub downscale: u32,
-    pub out: PathBuf,
-    /// A plain scene to start the pipeline from, or an `.instgs` for joint optimisation only.
-    pub init: Option<PathBuf>,
-    pub config: Option<PathBuf>,
-    pub iterations: Option<u64>,
-    pub resume: bool,
-    pub quiet: bool,
-    pub from: Option<Stage>,
-    pub until: Option<Stage>,
-    pub device: Option<String>,
-}
-
 /// `instgs-vk train`: the whole InstGS pipeline where the dataset has instance masks (and `init`
 /// is not already instanced); else one training session — plain 3DGS, or joint optimisation
-/// from an `.instgs` `init`.
-pub fn train(t: TrainRequest) -> Result<()> {
-    crate::dataset::layout(&t.data)?;
-    let is_instgs = match t.init.as_deref() {
+/// from an `.instgs` `init` — which `resume` continues (a pipeline always resumes).
+pub fn train(a: PipelineArgs, resume: bool) -> Result<()> {
+    crate::dataset::layout(&a.data)?;
+    let is_instgs = match a.init.as_deref() {
         Some(p) => crate::formats::detect(p)? == crate::formats::Format::Instgs,
         None => false,
     };
-    if has_masks(&t.data) && !is_instgs {
-        return run(PipelineArgs {
-            data: t.data,
-            downscale: t.downscale,
-            out: t.out,
-            init_ply: t.init,
-            config: t.config,
-            iterations: t.iterations,
-            from: t.from,
-            until: t.until,
-            progress: !t.quiet,
-            device: t.device,
-        });
+    if has_masks(&a.data) && !is_instgs {
+        return run(a);
     }
-    if t.from.is_some() || t.until.is_some() {
+    if a.from.is_some() || a.until.is_some() {
         bail!(
             "--from and --until choose pipeline stages, and {} has no instance masks (masks/train/)",
-            t.data.display()
+            a.data.display()
         );
     }
-    if t.init.is_some() && !is_instgs {
+    if a.init.is_some() && !is_instgs {
         bail!(
             "--init with a plain scene starts the InstGS pipeline, which needs instance masks: {} has no masks/train/ (see the README, 'Bringing your own masks')",
-            t.data.display()
+            a.data.display()
         );
     }
-    if t.init.is_none() {
-        eprintln!("{}: no instance masks (masks/train/): training plain 3DGS only", t.data.display());
+    if a.init.is_none() {
+        eprintln!("{}: no instance masks (masks/train/): training plain 3DGS only", a.data.display());
     }
     crate::train::session::train(
-        t.device,
-        &t.data,
-        t.downscale,
-        &t.out,
-        t.init.as_deref(),
-        t.config.as_deref(),
-        t.iterations,
-        t.resume,
-        t.quiet,
+        a.device,
+        &a.data,
+        a.downscale,
+        &a.out,
+        a.init.as_deref(),
+        a.config.as_deref(),
+        a.iterations,
+        resume,
+        !a.progress,
     )
 }

@@ -47,8 +47,9 @@ pub struct PipelineArgs {
     pub data: PathBuf,
     pub downscale: u32,
     pub out: PathBuf,
-    /// A plain scene trained elsewhere: the plain stage copies it instead of training.
-    pub init_ply: Option<PathBuf>,
+    /// A scene to start from: a plain scene trained elsewhere (any format we read) replaces the
+    /// plain stage; an `.instgs` makes `train` optimise it jointly, without the pipeline.
+    pub init: Option<PathBuf>,
     pub config: Option<PathBuf>,
     pub iterations: Option<u64>,
     pub from: Option<Stage>,
