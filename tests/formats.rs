@@ -177,20 +177,37 @@ fn splat_writer_round_trips_within_its_quantisation() {
 
 #[test]
 fn infinite_opacity_logits_are_clamped_and_nan_refused() {
-    // A PLY as splat-transform writes fully opaque splats: opacity +inf.
-    let mut s = read_ply(&shared_data("splats/fruit_drops_minimal.ply")).unwrap();
-    s.opacities[3] = f32::INFINITY;
-    s.opacities[4] = f32::NEG_INFINITY;
+    // A PLY as splat-transform writes fully opaque splats: opacity ±inf (our writers refuse to
+    // write such a scene, so the file is made by hand).
+    let props = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "scale_1", "scale_2"];
+    let props: String =
+        props.iter().chain(&["rot_0", "rot_1", "rot_2", "rot_3"]).map(|p| format!("property float {p}\n")).collect();
+    let ply = |opacities: &[f32]| {
+        let mut b =
+            format!("ply\nformat binary_little_endian 1.0\nelement vertex {}\n{props}end_header\n", opacities.len())
+                .into_bytes();
+        for &o in opacities {
+            for v in [0.0, 0.0, 0.0, 0.5, 0.5, 0.5, o, -3.0, -3.0, -3.0, 1.0, 0.0, 0.0, 0.0f32] {
+                b.extend_from_slice(&v.to_le_bytes());
+            }
+        }
+        b
+    };
     let out = tmp("inf.ply");
-    instgs_vk::formats::ply::write_ply(&s, &out).unwrap();
+    std::fs::write(&out, ply(&[0.0, 1.0, f32::INFINITY, f32::NEG_INFINITY])).unwrap();
     let back = formats::read_scene(&out).unwrap();
-    assert_eq!(back.opacities[3], formats::quant::OPACITY_LOGIT_LIMIT);
-    assert_eq!(back.opacities[4], -formats::quant::OPACITY_LOGIT_LIMIT);
+    assert_eq!(back.opacities[2], formats::quant::OPACITY_LOGIT_LIMIT);
+    assert_eq!(back.opacities[3], -formats::quant::OPACITY_LOGIT_LIMIT);
     assert!((formats::quant::OPACITY_LOGIT_LIMIT - 1019f32.ln()).abs() < 1e-5);
-    s.opacities[3] = f32::NAN;
-    instgs_vk::formats::ply::write_ply(&s, &out).unwrap();
+    std::fs::write(&out, ply(&[0.0, f32::NAN])).unwrap();
     let e = format!("{:#}", formats::read_scene(&out).unwrap_err());
     assert!(e.contains("inf.ply") && e.contains("non-finite opacity"), "{e}");
+    // Our writer refuses the NaN scene instead of writing a file the reader refuses.
+    let mut s = back.clone();
+    s.opacities[1] = f32::NAN;
+    let e = format!("{:#}", instgs_vk::formats::ply::write_ply(&s, &tmp("nan.ply")).unwrap_err());
+    assert!(e.contains("nan.ply: not written") && e.contains("non-finite opacity"), "{e}");
+    assert!(!tmp("nan.ply").exists());
 }
 
 #[test]

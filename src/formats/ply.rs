@@ -526,8 +526,10 @@ fn decode_compressed(chunks: &[ChunkRow], packed: &[PackedRow]) -> Scene {
 }
 
 /// Writes `scene` as a binary little-endian Inria 3DGS PLY (zero normals, `f_rest`
-/// channel-major), through a temporary file renamed into place.
+/// channel-major), through a temporary file renamed into place; a scene [`read_ply`] would
+/// refuse (`Scene::validate`) is not written.
 pub fn write_ply(scene: &Scene, path: &Path) -> Result<()> {
+    scene.validate(&format!("{}: not written", path.display()))?;
     let coeffs = scene.sh_coeffs();
     let rest = coeffs - 1;
     let mut header = format!("ply\nformat binary_little_endian 1.0\nelement vertex {}\n", scene.len());
