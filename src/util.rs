@@ -121,18 +121,18 @@ pub fn duration(secs: f64) -> String {
 
 #[cfg(test)]
 mod tests {
+    use super::*;
+
     #[test]
     fn one_line_drops_snippets_and_joins_lines() {
         let toml = "TOML parse error at line 1, column 3\n  |\n1 | [[[\n  |   ^\nunquoted keys cannot be empty";
-        assert_eq!(super::one_line(toml), "TOML parse error at line 1, column 3; unquoted keys cannot be empty");
+        assert_eq!(one_line(toml), "TOML parse error at line 1, column 3; unquoted keys cannot be empty");
         assert_eq!(
-            super::one_line("invalid type: string \"a\"\nin `iterations`\n"),
+            one_line("invalid type: string \"a\"\nin `iterations`\n"),
             "invalid type: string \"a\"; in `iterations`"
         );
-        assert_eq!(super::one_line("plain"), "plain");
+        assert_eq!(one_line("plain"), "plain");
     }
-
-    use super::*;
 
     #[test]
     fn psnr_over_a_region_counts_only_its_pixels() {

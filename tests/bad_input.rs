@@ -59,12 +59,12 @@ impl Table {
     }
 
     /// A case: `args` (`{d}` is the case's folder), and the words its error line must hold.
-    fn case(&mut self, name: &str, args: &[&str], needles: &[&str]) {
+    fn case<S: AsRef<str>>(&mut self, name: &str, args: &[S], needles: &[&str]) {
         let dir = self.dir(name);
         let d = dir.to_str().unwrap().to_string();
         self.cases.push(Case {
             name: name.into(),
-            args: args.iter().map(|a| a.replace("{d}", &d)).collect(),
+            args: args.iter().map(|a| a.as_ref().replace("{d}", &d)).collect(),
             needles: needles.iter().map(|n| n.replace("{d}", &d)).collect(),
             dir,
         });
@@ -247,7 +247,7 @@ fn bad_input_table() {
     ] {
         t.put(name, "t.json", transforms(head, &frames));
         let args = render("{d}/t.json");
-        t.case(name, &args.iter().map(String::as_str).collect::<Vec<_>>(), &needles);
+        t.case(name, &args, &needles);
     }
     t.put(
         "cameras_infinite",
@@ -342,19 +342,10 @@ fn bad_input_table() {
 
     // ---- Datasets, through `train` (refused before anything is trained or written).
     let train = |data: &str| ["train", "--data", data, "--out", "{d}/run", "--iterations", "2"].map(String::from);
-    let strs = |a: &[String]| a.iter().map(|s| s.to_string()).collect::<Vec<_>>();
-    t.case(
-        "dataset_absent",
-        &strs(&train("{d}/nothing")).iter().map(String::as_str).collect::<Vec<_>>(),
-        &["nothing", "no such directory"],
-    );
+    t.case("dataset_absent", &train("{d}/nothing"), &["nothing", "no such directory"]);
     t.dir("dataset_not_one");
     t.put("dataset_not_one", "empty/readme.txt", "x");
-    t.case(
-        "dataset_not_one",
-        &strs(&train("{d}/empty")).iter().map(String::as_str).collect::<Vec<_>>(),
-        &["empty", "not a dataset"],
-    );
+    t.case("dataset_not_one", &train("{d}/empty"), &["empty", "not a dataset"]);
     type Edit = Box<dyn Fn(&Path)>;
     let dataset_cases: Vec<(&str, Edit, Vec<&str>, Vec<&str>)> = vec![
         (
@@ -448,9 +439,9 @@ fn bad_input_table() {
     ];
     for (name, edit, extra, needles) in dataset_cases {
         let data = demo_copy(&t.dir(name), edit);
-        let mut args = strs(&train(data.to_str().unwrap()));
+        let mut args = train(data.to_str().unwrap()).to_vec();
         args.extend(extra.iter().map(|s| s.to_string()));
-        t.case(name, &args.iter().map(String::as_str).collect::<Vec<_>>(), &needles);
+        t.case(name, &args, &needles);
     }
 
     // ---- Checkpoints, through `train --resume` on the demo without masks (plain training).
@@ -548,7 +539,7 @@ fn bad_input_table() {
     ] {
         t.put(name, file, bytes);
         let args = instance(&format!("{{d}}/{file}"));
-        t.case(name, &args.iter().map(String::as_str).collect::<Vec<_>>(), &[file, needle]);
+        t.case(name, &args, &[file, needle]);
     }
     let compose = |graph: &str| {
         ["compose", "--template", &format!("t={tiny}"), "--scene-graph", graph, "--out", "{d}/s.instgs"]
@@ -574,16 +565,12 @@ fn bad_input_table() {
     ] {
         t.put(name, "g.json", graph);
         let args = compose("{d}/g.json");
-        t.case(name, &args.iter().map(String::as_str).collect::<Vec<_>>(), &[needle]);
+        t.case(name, &args, &[needle]);
     }
     t.put("compose_f16_overflow", "g.json", format!(r#"[{{"template_id": "t", "instances": [{{"instance_id": "1", "transform": {identity}}}, {{"instance_id": "2", "transform": {identity}}}]}}]"#));
     let mut args = compose("{d}/g.json").to_vec();
     args.extend(["--random-offsets", "100000", "--offset-dtype", "f16"].map(String::from));
-    t.case(
-        "compose_f16_overflow",
-        &args.iter().map(String::as_str).collect::<Vec<_>>(),
-        &["s.instgs", "does not fit f16"],
-    );
+    t.case("compose_f16_overflow", &args, &["s.instgs", "does not fit f16"]);
 
     // ---- Command-line values: our own error naming the flag and the accepted range.
     let orbit = |flag: &str, v: &str| {
@@ -639,7 +626,7 @@ fn bad_input_table() {
             vec!["--random-offsets", "finite number ≥ 0"],
         ),
     ] {
-        t.case(name, &args.iter().map(String::as_str).collect::<Vec<_>>(), &needles.to_vec());
+        t.case(name, &args, &needles);
     }
 
     // ---- Outputs: a writer refuses a name it cannot write.

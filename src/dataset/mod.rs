@@ -401,19 +401,14 @@ pub fn read_colmap(dir: &Path) -> Result<ColmapModel> {
 /// Adds one COLMAP file (`file` is `cameras`, `images` or `points3D`; binary or text) to `m`;
 /// `what` names it in errors.
 pub fn read_colmap_file(m: &mut ColmapModel, file: &str, binary: bool, data: &[u8], what: &str) -> Result<()> {
+    let text = || std::str::from_utf8(data).map_err(|e| anyhow!("{what}: not UTF-8 text: {e}"));
     match (file, binary) {
         ("cameras", true) => colmap_cameras_bin(m, data, what),
         ("images", true) => colmap_images_bin(m, data, what),
         ("points3D", true) => colmap_points_bin(m, data, what),
-        (_, false) => {
-            let text = std::str::from_utf8(data).map_err(|e| anyhow!("{what}: not UTF-8 text: {e}"))?;
-            match file {
-                "cameras" => colmap_cameras_txt(m, text, what),
-                "images" => colmap_images_txt(m, text, what),
-                "points3D" => colmap_points_txt(m, text, what),
-                _ => bail!("{what}: not a COLMAP model file"),
-            }
-        }
+        ("cameras", false) => colmap_cameras_txt(m, text()?, what),
+        ("images", false) => colmap_images_txt(m, text()?, what),
+        ("points3D", false) => colmap_points_txt(m, text()?, what),
         _ => bail!("{what}: not a COLMAP model file"),
     }
 }
@@ -530,8 +525,9 @@ fn colmap_cameras_txt(m: &mut ColmapModel, text: &str, what: &str) -> Result<()>
             bail!("{what}: line {no}: {} takes {np} parameters, got {}", t[1], params.len());
         }
         let (w, h) = (t[2].parse().map_err(|_| parse_err())?, t[3].parse().map_err(|_| parse_err())?);
-        let cam = colmap_camera(&format!("{what}: line {no}"), id, t[1], w, h, params)?;
-        insert_camera(m, &format!("{what}: line {no}"), id, cam)?;
+        let at = format!("{what}: line {no}");
+        let cam = colmap_camera(&at, id, t[1], w, h, params)?;
+        insert_camera(m, &at, id, cam)?;
     }
     Ok(())
 }
@@ -706,7 +702,8 @@ pub fn dataset_cameras_with_images(path: &Path, split: &str) -> Result<Vec<(Came
     if path.is_file() {
         return crate::model::camera::load_transforms_with_images(path);
     }
-    if path.join("transforms_train.json").exists() {
+    let layout = layout(path).ok();
+    if layout == Some("nerf-synthetic") {
         let names = if split == "all" { vec!["train", "val", "test"] } else { vec![split] };
         let mut cams = Vec::new();
         for n in names {
@@ -716,7 +713,7 @@ pub fn dataset_cameras_with_images(path: &Path, split: &str) -> Result<Vec<(Came
             }
         }
         Ok(cams)
-    } else if ["cameras.bin", "cameras.txt"].iter().any(|f| path.join("sparse/0").join(f).exists()) {
+    } else if layout == Some("colmap") {
         let model = read_colmap(&path.join("sparse/0"))?;
         Ok(colmap_cameras(path, &model)?
             .into_iter()

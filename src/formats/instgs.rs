@@ -193,7 +193,6 @@ pub fn to_bytes(scene: &InstancedScene, offset_dtype: Dtype) -> Vec<u8> {
     out
 }
 
-/// Writes `scene` to `path` atomically.
 /// Writes `scene` to `path` atomically. Refused, writing nothing, when the file would not read
 /// back: offsets beyond f16's range (±65504) stored as f16 would be infinite.
 pub fn write(scene: &InstancedScene, path: &Path, offset_dtype: Dtype) -> Result<()> {

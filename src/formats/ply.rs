@@ -581,6 +581,7 @@ fn pack_unorm(v: f32, bits: u32) -> u32 {
 /// three in 10 bits, colour and opacity 8 bits; SH bands (if any) as an `sh` element of bytes,
 /// channel-major as Inria's `f_rest` (SuperSplat's ±4 range).
 pub fn write_compressed_ply(scene: &Scene, path: &Path) -> Result<()> {
+    scene.validate(&format!("{}: not written", path.display()))?;
     let n = scene.len();
     let coeffs = scene.sh_coeffs();
     let rest = coeffs - 1;

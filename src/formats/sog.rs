@@ -319,6 +319,7 @@ fn write_webp(path: &Path, w: usize, h: usize, rgba: &[u8]) -> Result<()> {
 /// SH bands as a palette of at most [`SOG_PALETTE`] k-means centres (10 Lloyd iterations) whose
 /// coefficients go through a third codebook.
 pub fn write_sog(scene: &Scene, meta: &Path) -> Result<()> {
+    scene.validate(&format!("{}: not written", meta.display()))?;
     let dir = meta.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
     std::fs::create_dir_all(dir).with_context(|| format!("{}: cannot create", dir.display()))?;
     let n = scene.len();

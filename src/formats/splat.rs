@@ -32,6 +32,7 @@ pub fn read_splat(what: &str, bytes: &[u8]) -> Result<Scene> {
 
 /// `scene` as `.splat` (SH bands beyond sh0 are dropped; rotations normalised).
 pub fn write_splat(scene: &Scene, path: &Path) -> Result<()> {
+    scene.validate(&format!("{}: not written", path.display()))?;
     let coeffs = scene.sh_coeffs();
     let mut out = Vec::with_capacity(scene.len() * 32);
     for i in 0..scene.len() {

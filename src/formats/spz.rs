@@ -241,6 +241,7 @@ fn pack_smallest_three(xyzw: [f32; 4]) -> [u8; 4] {
 /// `scene` as a version-4 `.spz` (12 fractional bits; zstd level 12).
 pub fn write_spz(scene: &Scene, path: &Path) -> Result<()> {
     let what = path.display().to_string();
+    scene.validate(&format!("{what}: not written"))?;
     let mut s = scene.clone();
     flip_yz(&mut s);
     let n = s.len();

@@ -122,12 +122,12 @@ impl Scene {
             if !q.iter().all(|v| v.is_finite()) {
                 return Err(bad("rotation", i));
             }
-            // Normalised as the kernels do it, in f32: the squared norm must be a normal number
-            // (zero, subnormal or overflowing norms give no rotation).
-            let norm2: f32 = q.iter().map(|v| v * v).sum();
             if q.iter().all(|&v| v == 0.0) {
                 bail!("{what}: Gaussian {i} has a zero rotation quaternion");
             }
+            // Normalised as the kernels do it, in f32: the squared norm must be a normal number
+            // (subnormal or overflowing norms give no rotation).
+            let norm2: f32 = q.iter().map(|v| v * v).sum();
             if !norm2.is_normal() {
                 bail!(
                     "{what}: Gaussian {i}'s rotation quaternion {q:?} cannot be normalised in f32 (norm² = {norm2:e})"
