@@ -384,9 +384,16 @@ pub fn from_bytes(bytes: &[u8], what: &str) -> Result<InstancedScene> {
 
 /// Reads an `.instgs` file.
 pub fn read(path: &Path) -> Result<InstancedScene> {
+    Ok(read_with_offset_dtype(path)?.0)
+}
+
+/// Reads an `.instgs` file and the storage of its offsets (the player's editor saves in it).
+pub fn read_with_offset_dtype(path: &Path) -> Result<(InstancedScene, Dtype)> {
     let what = path.display().to_string();
     let bytes = std::fs::read(path).with_context(|| format!("{what}: cannot read"))?;
-    from_bytes(&bytes, &what)
+    let scene = from_bytes(&bytes, &what)?;
+    let (header, _, _) = split(&bytes).with_context(|| what.clone())?;
+    Ok((scene, header.offset_dtype))
 }
 
 /// Bytes of every part of a file: header (with padding), background, each group's template and

@@ -359,31 +359,44 @@ impl Gpu {
 
     /// Overwrites the start of `dst` with `data` through a staging buffer and waits.
     pub fn write<T: bytemuck::Pod>(self: &Arc<Self>, dst: &Buffer, data: &[T]) -> Result<()> {
+        self.write_at(dst, 0, data)
+    }
+
+    /// Overwrites `dst` from byte `offset` on with `data` through a staging buffer and waits.
+    pub fn write_at<T: bytemuck::Pod>(self: &Arc<Self>, dst: &Buffer, offset: u64, data: &[T]) -> Result<()> {
         let bytes: &[u8] = bytemuck::cast_slice(data);
         if bytes.is_empty() {
             return Ok(());
+        }
+        if offset.checked_add(bytes.len() as u64).is_none_or(|end| end > dst.size) {
+            bail!("writing {} bytes at {offset} into buffer '{}' of {} bytes", bytes.len(), dst.name, dst.size);
         }
         let mut staging =
             self.buffer("staging-up", bytes.len() as u64, vk::BufferUsageFlags::empty(), MemoryLocation::CpuToGpu)?;
         staging.mapped_mut()?[..bytes.len()].copy_from_slice(bytes);
         self.submit_and_wait(|rec| {
-            rec.copy(&staging, dst, bytes.len() as u64);
+            rec.copy_region(&staging, 0, dst, offset, bytes.len() as u64);
             Ok(())
         })
     }
 
     /// Reads the first `count` elements of `src` back to the host (waits for the GPU).
     pub fn read<T: bytemuck::Pod>(self: &Arc<Self>, src: &Buffer, count: usize) -> Result<Vec<T>> {
+        self.read_at(src, 0, count)
+    }
+
+    /// Reads `count` elements of `src` from byte `offset` on back to the host (waits for the GPU).
+    pub fn read_at<T: bytemuck::Pod>(self: &Arc<Self>, src: &Buffer, offset: u64, count: usize) -> Result<Vec<T>> {
         let bytes = (count * std::mem::size_of::<T>()) as u64;
-        if bytes > src.size {
-            bail!("reading {bytes} bytes from buffer '{}' of {} bytes", src.name, src.size);
+        if offset.checked_add(bytes).is_none_or(|end| end > src.size) {
+            bail!("reading {bytes} bytes at {offset} from buffer '{}' of {} bytes", src.name, src.size);
         }
         if count == 0 {
             return Ok(Vec::new());
         }
         let staging = self.buffer("staging-down", bytes, vk::BufferUsageFlags::empty(), MemoryLocation::GpuToCpu)?;
         self.submit_and_wait(|rec| {
-            rec.copy(src, &staging, bytes);
+            rec.copy_region(src, offset, &staging, 0, bytes);
             Ok(())
         })?;
         let mapped = staging.mapped()?;

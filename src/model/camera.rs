@@ -29,6 +29,20 @@ impl Camera {
         self.viewmat.inverse().w_axis.truncate()
     }
 
+    /// The world-space ray (origin, unit direction) through image point (`u`, `v`) in pixels
+    /// (pixel (0, 0) spans [0, 1)², as in the module docs).
+    pub fn ray(&self, u: f32, v: f32) -> (Vec3, Vec3) {
+        let c2w = self.viewmat.inverse();
+        let d = Vec3::new((u - self.cx) / self.fx, (v - self.cy) / self.fy, 1.0);
+        (c2w.w_axis.truncate(), c2w.transform_vector3(d).normalize())
+    }
+
+    /// The image point (`u`, `v`, depth) of world point `p`; None behind the camera.
+    pub fn project(&self, p: Vec3) -> Option<[f32; 3]> {
+        let c = self.viewmat.transform_point3(p);
+        (c.z > 1e-6).then(|| [self.fx * c.x / c.z + self.cx, self.fy * c.y / c.z + self.cy, c.z])
+    }
+
     /// From an OpenGL camera-to-world matrix.
     pub fn from_c2w_opengl(name: &str, c2w: Mat4, width: u32, height: u32, intr: [f32; 4]) -> Camera {
         let flip = Mat4::from_diagonal(Vec4::new(1.0, -1.0, -1.0, 1.0));

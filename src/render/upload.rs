@@ -14,6 +14,8 @@ use crate::shared::*;
 /// and one-element placeholders (every binding needs a buffer).
 pub struct GpuInstancing {
     pub groups: Buffer,
+    /// The group table as uploaded (levels included).
+    pub group_infos: Vec<GroupInfo>,
     pub xforms: Buffer,
     /// Offsets per (template Gaussian, instance) pair, pair index = splat − num_background:
     /// Δp (3 f32), Δ SH DC (3 f32), Δ opacity logit (f32).
@@ -286,6 +288,7 @@ impl GpuScene {
             num_background,
             inst: GpuInstancing {
                 groups: upload_or_placeholder(gpu, "groups", groups)?,
+                group_infos: groups.to_vec(),
                 xforms: upload_or_placeholder(gpu, "xforms", xforms)?,
                 d_means: upload_or_placeholder(gpu, "d_means", &offsets.d_means)?,
                 d_sh0: upload_or_placeholder(gpu, "d_sh0", &offsets.d_sh0)?,
@@ -322,6 +325,60 @@ impl GpuScene {
         }
         let maxo = |i: usize| self.inst.max_offsets.get(i).copied().unwrap_or(0.0);
         gpu.write(&self.inst.xforms, &transforms.iter().enumerate().map(|(i, x)| xform(x, maxo(i))).collect::<Vec<_>>())
+    }
+
+    /// Moves instance `k` of group `group` in place (the player's editor): its transform becomes
+    /// `transform` and its level-0 Δp `d_means` (T rows); the coarser levels' merged Δp (weighted
+    /// means of level 0's, [`crate::render::lod::merge_clusters`]) are mapped by `linear`, the
+    /// linear part of the edit, as level 0's were. Returns false, changing nothing, where the
+    /// offsets are product-quantised on the device (their codebook is shared by every instance):
+    /// the caller uploads the scene again.
+    pub fn write_instance(
+        &mut self,
+        gpu: &Arc<Gpu>,
+        group: usize,
+        k: usize,
+        transform: &crate::model::instanced::Similarity,
+        d_means: &[[f32; 3]],
+        linear: glam::Mat3,
+    ) -> Result<bool> {
+        let i = &mut self.inst;
+        let Some(g) = i.group_infos.get(group).copied() else { bail!("no group {group} on the device") };
+        if k >= g.instances as usize || d_means.len() != g.rows as usize {
+            bail!(
+                "instance {k} with {} offsets: the device's group {group} has {} instances of {} rows",
+                d_means.len(),
+                g.instances,
+                g.rows
+            );
+        }
+        if i.codes && linear != glam::Mat3::IDENTITY {
+            return Ok(false);
+        }
+        let index = g.instance_first as usize + k;
+        let scale = linear.determinant().cbrt();
+        if let Some(m) = i.max_offsets.get_mut(index) {
+            *m *= scale;
+        }
+        let maxo = i.max_offsets.get(index).copied().unwrap_or(0.0);
+        let stride = std::mem::size_of::<InstanceXform>() as u64;
+        gpu.write_at(&i.xforms, index as u64 * stride, &[xform(transform, maxo)])?;
+        if linear == glam::Mat3::IDENTITY {
+            return Ok(true);
+        }
+        let row = std::mem::size_of::<[f32; 3]>() as u64;
+        for level in 0..g.levels as usize {
+            let (first, rows) = (g.level_pair_first[level] as u64, g.level_rows[level] as u64);
+            let at = (first + k as u64 * rows) * row;
+            if level == 0 {
+                gpu.write_at(&i.d_means, at, d_means)?;
+            } else {
+                let old: Vec<[f32; 3]> = gpu.read_at(&i.d_means, at, rows as usize)?;
+                let new: Vec<[f32; 3]> = old.iter().map(|d| (linear * glam::Vec3::from(*d)).to_array()).collect();
+                gpu.write_at(&i.d_means, at, &new)?;
+            }
+        }
+        Ok(true)
     }
 
     /// (name, buffer) bindings of the instancing tables, as instance.glsl names them.
