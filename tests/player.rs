@@ -181,13 +181,15 @@ fn wait_for(dir: &Path) -> String {
 fn window_resize_recreates_the_swapchain() {
     let dir = out_dir("resize");
     // Resize the window (xdotool; no window manager under Xvfb) once the first swapchain
-    // exists; the player goes on at the new size; P saves a screenshot of that size; Esc quits.
+    // exists; the player goes on at the new size; P saves a screenshot of that size; `]` (turn
+    // the selection) on a plain scene says editing needs an instanced scene; Esc quits.
     let script = format!(
         "timeout 300 {bin} view {scene} --width 320 --height 240 --no-overlay --out {out} 2> {out}/err & \
          {wait_for} 'swapchain 320x240'; \
          w=$(xdotool search --sync --name instgs-vk | head -1); xdotool windowsize --sync $w 200 150; \
          {wait_for} 'swapchain 200x150'; xdotool windowfocus --sync $w; xdotool key p; \
-         {wait_for} screenshot; xdotool key Escape; wait $!",
+         {wait_for} screenshot; xdotool key bracketright; {wait_for} 'editing needs'; \
+         xdotool key Escape; wait $!",
         bin = bin(),
         scene = demo().display(),
         out = dir.display(),
@@ -195,6 +197,9 @@ fn window_resize_recreates_the_swapchain() {
     );
     let err = scripted(&dir, &script);
     assert!(err.contains("swapchain 200x150"), "{err}");
+    // A plain scene is viewed, not edited: an editing key says why.
+    assert!(err.contains("view only: editing needs an instanced scene (.instgs)"), "{err}");
+    assert!(err.contains("editing needs an instanced scene (.instgs);"), "{err}");
     assert_eq!(rgb(&dir.join("screenshot_000.png")).dimensions(), (200, 150));
 }
 
@@ -232,4 +237,143 @@ fn keys_toggle_level_of_detail_and_vsync() {
     let err = scripted(&dir, &script);
     assert!(err.contains("level of detail off"), "{err}");
     assert!(err.contains("vsync on") && err.contains("FIFO"), "{err}");
+}
+
+/// Three guitars side by side (x = −2.5, 0, 2.5) as an instanced scene with random offsets,
+/// and one level camera on an orbit about them (+z up) as a transforms file.
+fn guitar_row(dir: &Path, width: u32, height: u32) -> (PathBuf, PathBuf, instgs_vk::model::camera::Camera) {
+    use instgs_vk::model::camera::{transforms_json, Orbit, UpAxis};
+    let scene = dir.join("row.instgs");
+    let graph = dir.join("graph.json");
+    let instance = |id: &str, x: f32| {
+        format!(r#"{{"instance_id": "{id}", "transform": [[1,0,0,{}],[0,1,0,0],[0,0,1,0],[0,0,0,1]]}}"#, -x)
+    };
+    let text = format!(
+        r#"[{{"template_id": "guitar", "instances": [{}, {}, {}]}}]"#,
+        instance("1", 0.0),
+        instance("2", 2.5),
+        instance("3", -2.5)
+    );
+    std::fs::write(&graph, text).unwrap();
+    let o = Command::new(bin())
+        .args(["compose", "--template", &format!("guitar={}", demo().display()), "--scene-graph"])
+        .args([graph.to_str().unwrap(), "--random-offsets", "0.002", "--out", scene.to_str().unwrap()])
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let cam = Orbit {
+        center: glam::Vec3::new(0.0, -2.0, 0.2),
+        distance: 9.0,
+        up: UpAxis::PosZ,
+        elevation_deg: 35.0,
+        fov_x_deg: 60.0,
+    }
+    .cameras(1, width, height)
+    .remove(0);
+    let cams = dir.join("transforms_edit.json");
+    std::fs::write(&cams, transforms_json(std::slice::from_ref(&cam), &["view".into()]).to_string()).unwrap();
+    (scene, cams, cam)
+}
+
+#[test]
+fn editing_moves_turns_duplicates_deletes_undoes_and_saves() {
+    use glam::{Quat, Vec3};
+    let dir = out_dir("edit");
+    let (w, h) = (320u32, 240u32);
+    let (scene_path, cams, cam) = guitar_row(&dir, w, h);
+    let original_bytes = std::fs::read(&scene_path).unwrap();
+    let original = instgs_vk::formats::instgs::read(&scene_path).unwrap();
+    // Instance 1's centre (its template box centre) on screen, and where the drag ends.
+    let t = &original.groups[0].template;
+    let (lo, hi) = t
+        .means
+        .iter()
+        .fold((Vec3::INFINITY, Vec3::NEG_INFINITY), |(lo, hi), m| (lo.min(Vec3::from(*m)), hi.max(Vec3::from(*m))));
+    let centre = 0.5 * (lo + hi);
+    let [u, v, _] = cam.project(centre).unwrap();
+    let (x0, y0) = (u.round() as i32, v.round() as i32);
+    let (x1, y1) = (x0 + 30, y0 + 12);
+    // Instance 2 on screen (clicked to check that a click picks the instance under it).
+    let [u2, v2, _] = cam.project(centre + Vec3::new(2.5, 0.0, 0.0)).unwrap();
+    let script = format!(
+        "timeout 300 {bin} view {scene} --cameras {cams} --up +z --exact --width {w} --height {h} --out {out} 2> {out}/err & \
+         {wait_for} 'swapchain {w}x{h}'; \
+         win=$(xdotool search --sync --name instgs-vk | head -1); xdotool windowfocus --sync $win; \
+         xdotool mousemove --window $win {x2} {y2} click 1; {wait_for} 'selected instance 2'; \
+         xdotool mousemove --window $win {x0} {y0} click 1; {wait_for} 'selected instance 1 '; \
+         xdotool key p; {wait_for} 'screenshot_000'; \
+         xdotool mousemove --window $win {x0} {y0} mousedown 1; sleep 0.3; \
+         xdotool mousemove --window $win {xm} {ym}; sleep 0.3; xdotool mousemove --window $win {x1} {y1}; sleep 0.3; \
+         xdotool mouseup 1; {wait_for} 'moved instance 1'; \
+         xdotool key bracketright; {wait_for} 'turned by 15'; \
+         xdotool key ctrl+d; {wait_for} 'duplicated instance 1 as 1-copy'; \
+         xdotool key Delete; {wait_for} 'deleted instance 1-copy'; \
+         xdotool key ctrl+z; {wait_for} 'undo: instance back: 1-copy'; \
+         xdotool key ctrl+s; {wait_for} 'saved '; \
+         xdotool key Escape; {wait_for} 'selection cleared'; xdotool key h; \
+         xdotool key p; {wait_for} 'screenshot_001'; xdotool key Escape; wait $!",
+        bin = bin(),
+        scene = scene_path.display(),
+        cams = cams.display(),
+        out = dir.display(),
+        wait_for = wait_for(&dir),
+        x2 = u2.round() as i32,
+        y2 = v2.round() as i32,
+        xm = (x0 + x1) / 2,
+        ym = (y0 + y1) / 2,
+    );
+    let err = scripted(&dir, &script);
+    assert!(!err.contains("unsaved"), "{err}");
+    // The selection is boxed in the overlay.
+    let boxed = rgb(&dir.join("screenshot_000.png"));
+    let outline = boxed.pixels().filter(|p| p.0 == [255, 200, 0]).count();
+    assert!(outline > 100, "no selection outline ({outline} pixels)");
+
+    // The saved file: instance 1 moved on the plane z = centre.z to under the cursor, then
+    // turned 15° about +z through its centre; 1-copy beside it with zero offsets; 2 and 3 as
+    // they were; the original kept as .bak.
+    assert_eq!(std::fs::read(dir.join("row.instgs.bak")).unwrap(), original_bytes);
+    let saved = instgs_vk::formats::instgs::read(&scene_path).unwrap();
+    let g = &saved.groups[0];
+    let ids: Vec<&str> = g.instances.iter().map(|i| i.id.as_str()).collect();
+    assert_eq!(ids, ["1", "1-copy", "2", "3"]);
+    let plane = |x: i32, y: i32| {
+        let (o, d) = cam.ray(x as f32, y as f32);
+        o + d * ((centre.z - o.z) / d.z)
+    };
+    let moved_centre = centre + (plane(x1, y1) - plane(x0, y0));
+    let turn = Quat::from_rotation_z(15f32.to_radians());
+    let x = g.instances[0].transform;
+    // Moved by δ, then turned about the moved centre c₁ = centre + δ: t = c₁ + R·(δ − c₁).
+    let want_t = moved_centre - turn * centre;
+    assert!((x.translation - want_t).length() < 1e-3, "{} vs {want_t}", x.translation);
+    assert!(x.rotation.angle_between(turn) < 1e-4 && (x.scale - 1.0).abs() < 1e-5);
+    let tl = t.len();
+    let turned: Vec<[f32; 3]> =
+        original.groups[0].offsets.d_means[..tl].iter().map(|d| (turn * Vec3::from(*d)).to_array()).collect();
+    let worst = g.offsets.d_means[..tl].iter().zip(&turned).map(|(a, b)| (Vec3::from(*a) - Vec3::from(*b)).length());
+    assert!(worst.fold(0.0f32, f32::max) < 1e-6, "Δp turned with the instance");
+    assert!(g.offsets.d_means[tl..2 * tl].iter().all(|d| *d == [0.0; 3]), "the duplicate has zero offsets");
+    let copy = g.instances[1].transform;
+    assert!(copy.rotation.angle_between(turn) < 1e-4 && (copy.translation.z - x.translation.z).abs() < 1e-5);
+    assert!((copy.translation - x.translation).length() > 0.5, "the duplicate stands beside");
+    for (k, inst) in g.instances[2..].iter().enumerate() {
+        assert_eq!(inst, &original.groups[0].instances[k + 1]);
+        let r = (k + 2) * tl..(k + 3) * tl;
+        assert_eq!(g.offsets.d_means[r.clone()], original.groups[0].offsets.d_means[r.start - tl..r.end - tl]);
+    }
+
+    // The last screenshot (selection cleared, overlay hidden) is `render` of the saved file.
+    let rendered = dir.join("rendered");
+    let o = Command::new(bin())
+        .args(["render", "--scene", scene_path.to_str().unwrap(), "--cameras", cams.to_str().unwrap()])
+        .args(["--out", rendered.to_str().unwrap()])
+        .env("INSTGS_VALIDATION", "1")
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let (shot, frame) = (rgb(&dir.join("screenshot_001.png")), rgb(&rendered.join("view.png")));
+    assert_eq!(shot.dimensions(), frame.dimensions());
+    let worst = shot.as_raw().iter().zip(frame.as_raw()).map(|(a, b)| a.abs_diff(*b)).max().unwrap();
+    assert!(worst <= 1, "screenshot differs from `render` of the saved file by up to {worst}/255");
 }

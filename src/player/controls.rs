@@ -52,6 +52,11 @@ impl ViewCamera {
         (self.e1 * self.yaw.cos() + self.e2 * self.yaw.sin()) * self.pitch.cos() + self.up * self.pitch.sin()
     }
 
+    /// The world's up axis (unit).
+    pub fn up(&self) -> Vec3 {
+        self.up
+    }
+
     pub fn eye(&self) -> Vec3 {
         self.target + self.eye_dir() * self.distance
     }

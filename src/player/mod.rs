@@ -7,12 +7,23 @@
 //! wheel dollies, W/A/S/D move, Q/E go down/up (Shift: 4× faster), R resets the camera, B cycles
 //! the background, L toggles template level of detail (instanced scenes uploaded with it), H
 //! hides the overlay, V toggles vsync, P or F12 saves a screenshot (the presented swapchain
-//! image), Esc quits.
+//! image), F1 lists the keys, Esc quits.
+//!
+//! Editing an instanced scene ([`editor`]): a click selects the instance under the cursor (boxed
+//! in the overlay; a click on the background clears the selection), dragging the selection moves
+//! it on the horizontal plane through its centre (Shift when the drag starts: along the up
+//! axis), `[` / `]` turn it by 15° about the up axis (Shift: 1°), `-` / `=` scale it by 1/1.05 /
+//! 1.05 (Shift: 1.01), Ctrl+D duplicates it, Delete removes it, Ctrl+Z / Ctrl+Y (or
+//! Ctrl+Shift+Z) undo / redo, Ctrl+S saves the `.instgs` (atomically; the first save keeps the
+//! file as it was as `SCENE.instgs.bak`), Esc clears the selection (with unsaved edits, a second
+//! Esc quits). Moves, turns and scales rewrite only the instance's transform and Δp on the
+//! device; duplicate and delete upload the scene again.
 //!
 //! Cameras are OpenCV (x right, y down, z forward), as everywhere in this crate; the player's
 //! camera has no roll (its horizon stays level with the up axis).
 
 pub mod controls;
+pub mod editor;
 pub mod overlay;
 
 pub use controls::ViewCamera;
@@ -23,6 +34,7 @@ use std::time::Instant;
 
 use anyhow::{anyhow, bail, Context, Result};
 use ash::vk;
+use glam::Vec3;
 use raw_window_handle::{HasDisplayHandle, HasWindowHandle};
 use winit::application::ApplicationHandler;
 use winit::event::{ElementState, MouseButton, MouseScrollDelta, WindowEvent};
@@ -30,6 +42,7 @@ use winit::event_loop::{ActiveEventLoop, ControlFlow, EventLoop};
 use winit::keyboard::{KeyCode, PhysicalKey};
 use winit::window::{Window, WindowId};
 
+use crate::formats::instgs::Dtype;
 use crate::formats::AnyScene;
 use crate::gpu::kernels::Kernels;
 use crate::gpu::swapchain::Presenter;
@@ -52,6 +65,52 @@ pub struct PlayerOptions {
     pub out: Option<PathBuf>,
     /// Culling and level of detail of instanced scenes.
     pub render: crate::render::lod::RenderConfig,
+}
+
+/// The selection's box outline colour (RGBA8).
+const SELECTION: [u8; 4] = [255, 200, 0, 255];
+
+/// Corner pairs of a box's 12 edges (corner i: bit 0 x, bit 1 y, bit 2 z).
+const BOX_EDGES: [(usize, usize); 12] =
+    [(0, 1), (2, 3), (4, 5), (6, 7), (0, 2), (1, 3), (4, 6), (5, 7), (0, 4), (1, 5), (2, 6), (3, 7)];
+
+/// What F1 lists.
+const HELP: [&str; 8] = [
+    "LEFT DRAG: ORBIT | RIGHT: LOOK | MIDDLE: PAN | WHEEL: DOLLY",
+    "WASD QE: FLY (SHIFT: FASTER) | R: RESET VIEW | B: BACKGROUND",
+    "L: LEVEL OF DETAIL | V: VSYNC | H: OVERLAY | P: SCREENSHOT",
+    "CLICK: SELECT INSTANCE | DRAG IT: MOVE (SHIFT: UP/DOWN)",
+    "[ ]: TURN 15 DEG (SHIFT: 1) | - =: SCALE 1.05 (SHIFT: 1.01)",
+    "CTRL+D: DUPLICATE | DELETE: REMOVE",
+    "CTRL+Z: UNDO | CTRL+Y: REDO | CTRL+S: SAVE",
+    "ESC: CLEAR SELECTION / QUIT | F1: THESE KEYS",
+];
+
+/// The editor's overlay lines: the selection (id, group, translation, rotation angle, scale),
+/// unsaved edits and the last edit's message.
+fn editor_lines(
+    scene: &crate::model::instanced::InstancedScene,
+    ed: Option<&editor::Editor>,
+    status: Option<&str>,
+) -> Vec<String> {
+    let mut lines = Vec::new();
+    if let Some((g, k)) = ed.and_then(|e| e.selected) {
+        let (group, x) = (&scene.groups[g], &scene.groups[g].instances[k].transform);
+        let t = x.translation;
+        lines.push(format!(
+            "INSTANCE {} ({} OF {}) | GROUP {}",
+            group.instances[k].id,
+            k + 1,
+            group.instances.len(),
+            group.name
+        ));
+        let angle = x.rotation.to_axis_angle().1.to_degrees();
+        lines.push(format!("T {:.2} {:.2} {:.2} | R {angle:.1} | S {:.3}", t.x, t.y, t.z, x.scale));
+    }
+    let unsaved = ed.filter(|e| e.unsaved()).map_or(String::new(), |e| format!("UNSAVED: {} | ", e.edits()));
+    let last: String = status.unwrap_or("F1: KEYS").chars().take(40).collect();
+    lines.push(format!("{unsaved}{last}"));
+    lines
 }
 
 /// Backgrounds the B key cycles through.
@@ -115,16 +174,31 @@ fn report(gpu: &Gpu, frames: u64, gpu_ms: &mut [f64], wall_fps: Option<f64>) -> 
     Ok(())
 }
 
-/// Opens the window and runs until it is closed (or `frames` frames were shown).
-pub fn run_window(opts: PlayerOptions, scene: AnyScene, start: ViewCamera) -> Result<()> {
+/// Opens the window and runs until it is closed (or `frames` frames were shown). An instanced
+/// scene can be edited and is saved with its offsets stored as `offset_dtype` (the file's).
+pub fn run_window(opts: PlayerOptions, scene: AnyScene, offset_dtype: Dtype, start: ViewCamera) -> Result<()> {
     let event_loop = EventLoop::new().map_err(|e| {
         anyhow!(
             "cannot open a window ({e}); without a display use --headless --frames N --out DIR, or run under xvfb-run"
         )
     })?;
+    let editor = match &scene {
+        AnyScene::Instanced(s) => Some(editor::Editor::new(s)),
+        AnyScene::Plain(_) => {
+            eprintln!("view only: editing needs an instanced scene (.instgs)");
+            None
+        }
+    };
     let mut app = App {
         opts,
         scene,
+        editor,
+        offset_dtype,
+        drag: None,
+        press: None,
+        help: false,
+        quit_armed: false,
+        status: None,
         home: start.clone(),
         view: start,
         running: None,
@@ -140,6 +214,9 @@ pub fn run_window(opts: PlayerOptions, scene: AnyScene, start: ViewCamera) -> Re
     if let Some(e) = app.error.take() {
         return Err(e);
     }
+    if app.editor.as_ref().is_some_and(|e| e.unsaved()) {
+        eprintln!("quit with unsaved edits: {} was not changed", app.opts.scene_path.display());
+    }
     let Some(running) = app.running.take() else { bail!("the window never opened") };
     let wall_fps = app.started.map(|t| app.frames.saturating_sub(1) as f64 / t.elapsed().as_secs_f64());
     report(&running.gpu, app.frames, &mut app.gpu_ms, wall_fps)
@@ -153,9 +230,36 @@ struct Input {
     last_tick: Option<Instant>,
 }
 
+/// A drag of the selected instance: its pose when the drag began and where the cursor's ray met
+/// the plane through its centre (or the up axis through it, `vertical`).
+struct Drag {
+    start: editor::Pose,
+    centre: Vec3,
+    anchor: Vec3,
+    vertical: bool,
+}
+
+/// The left button went down: how far the cursor went since (pixels) and the instance picked
+/// there (a release after a short way is a click).
+struct Press {
+    travelled: f64,
+    hit: Option<editor::InstanceRef>,
+}
+
 struct App {
     opts: PlayerOptions,
     scene: AnyScene,
+    /// Editing state (instanced scenes only).
+    editor: Option<editor::Editor>,
+    offset_dtype: Dtype,
+    drag: Option<Drag>,
+    press: Option<Press>,
+    /// F1: the overlay lists the keys.
+    help: bool,
+    /// Esc was pressed once with unsaved edits.
+    quit_armed: bool,
+    /// The last edit's message, shown in the overlay.
+    status: Option<String>,
     home: ViewCamera,
     view: ViewCamera,
     running: Option<Running>,
@@ -178,6 +282,9 @@ struct Running {
     _k: Arc<Kernels>,
     gpu: Arc<Gpu>,
     window: Arc<Window>,
+    /// The text part of the overlay, and what is presented (the text, or with a selection a
+    /// frame-sized image with the text and the selection's box).
+    text: Option<crate::player::overlay::Overlay>,
     overlay: Option<crate::player::overlay::Overlay>,
     overlay_buf: Buffer,
     overlay_dirty: bool,
@@ -217,6 +324,7 @@ impl App {
             _k: k,
             gpu,
             window,
+            text: None,
             overlay: None,
             overlay_buf,
             overlay_dirty: false,
@@ -235,6 +343,9 @@ impl App {
         let dt = self.input.last_tick.map_or(0.0, |t| (now - t).as_secs_f32()).min(0.1);
         self.input.last_tick = Some(now);
         let held = |k: KeyCode| self.input.held.contains(&k) as i32 as f32;
+        if held(KeyCode::ControlLeft) + held(KeyCode::ControlRight) > 0.0 {
+            return;
+        }
         let speed = 0.8 * dt * if held(KeyCode::ShiftLeft) + held(KeyCode::ShiftRight) > 0.0 { 4.0 } else { 1.0 };
         let right = held(KeyCode::KeyD) - held(KeyCode::KeyA);
         let up = held(KeyCode::KeyE) - held(KeyCode::KeyQ);
@@ -253,9 +364,37 @@ impl App {
         if repeat {
             return Ok(());
         }
+        if self.running.is_none() {
+            return Ok(());
+        }
+        if code != KeyCode::Escape {
+            self.quit_armed = false;
+        }
+        if self.edit_key(code)? {
+            return Ok(());
+        }
         let Some(run) = self.running.as_mut() else { return Ok(()) };
         match code {
-            KeyCode::Escape => el.exit(),
+            KeyCode::Escape => {
+                let selected = self.editor.as_ref().and_then(|e| e.selected).is_some();
+                let unsaved = self.editor.as_ref().is_some_and(|e| e.unsaved());
+                if selected {
+                    self.editor.as_mut().unwrap().selected = None;
+                    eprintln!("selection cleared");
+                } else if unsaved && !self.quit_armed {
+                    self.quit_armed = true;
+                    self.say("unsaved edits: Ctrl+S saves, Esc again quits without saving".into());
+                } else {
+                    el.exit();
+                }
+                if let Some(run) = self.running.as_mut() {
+                    run.overlay_dirty = true;
+                }
+            }
+            KeyCode::F1 => {
+                self.help = !self.help;
+                run.overlay_dirty = true;
+            }
             KeyCode::KeyR => self.view = self.home.clone(),
             KeyCode::KeyB => self.background = (self.background + 1) % BACKGROUNDS.len(),
             KeyCode::KeyH => {
@@ -284,7 +423,188 @@ impl App {
         Ok(())
     }
 
-    fn mouse_moved(&mut self, x: f64, y: f64) {
+    /// Prints an editor message and shows it in the overlay.
+    fn say(&mut self, message: String) {
+        eprintln!("{message}");
+        self.status = Some(message);
+    }
+
+    fn modifier(&self, left: KeyCode, right: KeyCode) -> bool {
+        self.input.held.contains(&left) || self.input.held.contains(&right)
+    }
+
+    /// The editing keys; true when `code` was one of them.
+    fn edit_key(&mut self, code: KeyCode) -> Result<bool> {
+        let ctrl = self.modifier(KeyCode::ControlLeft, KeyCode::ControlRight);
+        let shift = self.modifier(KeyCode::ShiftLeft, KeyCode::ShiftRight);
+        let up = self.view.up();
+        let right = {
+            let r = self.view.camera(1, 1).viewmat.inverse().x_axis.truncate();
+            (r - up * r.dot(up)).normalize_or_zero()
+        };
+        let is_edit = matches!(
+            (code, ctrl),
+            (KeyCode::KeyS | KeyCode::KeyZ | KeyCode::KeyY | KeyCode::KeyD, true)
+                | (KeyCode::Delete | KeyCode::Backspace | KeyCode::BracketLeft | KeyCode::BracketRight, _)
+                | (KeyCode::Minus | KeyCode::Equal | KeyCode::NumpadSubtract | KeyCode::NumpadAdd, _)
+        );
+        if !is_edit {
+            return Ok(false);
+        }
+        let (Some(ed), AnyScene::Instanced(scene)) = (self.editor.as_mut(), &mut self.scene) else {
+            let path = self.opts.scene_path.display().to_string();
+            self.say(format!("editing needs an instanced scene (.instgs); {path} is a plain scene"));
+            return Ok(true);
+        };
+        let step = |fine: f32, coarse: f32| if shift { fine } else { coarse };
+        let or_say = |r: Option<(editor::Change, String)>, none: &str| {
+            Some(r.map_or((None, none.to_string()), |(c, m)| (Some(c), m)))
+        };
+        let done: Option<(Option<editor::Change>, String)> = match code {
+            KeyCode::KeyS => {
+                let path = self.opts.scene_path.clone();
+                let message = match ed.save(scene, &path, self.offset_dtype) {
+                    Ok(backup) => {
+                        let kept = backup.map_or(String::new(), |b| format!(" (the original kept as {})", b.display()));
+                        let lossy = match self.offset_dtype {
+                            Dtype::F32 => "",
+                            _ => "; offsets quantised as the file stores them (shown unquantised until reopened)",
+                        };
+                        format!("saved {}{kept}{lossy}", path.display())
+                    }
+                    Err(e) => format!("not saved: {}", crate::util::one_line(&format!("{e:#}"))),
+                };
+                self.say(message);
+                None
+            }
+            KeyCode::KeyZ if !shift => or_say(ed.undo(scene), "nothing to undo"),
+            KeyCode::KeyZ | KeyCode::KeyY => or_say(ed.redo(scene), "nothing to redo"),
+            _ if ed.selected.is_none() => {
+                self.say("select an instance first (click it)".into());
+                None
+            }
+            KeyCode::KeyD => {
+                let (g, k) = ed.selected.unwrap();
+                // Beside the original, to the right on screen: its box's extent along that way.
+                let along = ed.box_corners(scene, g, k).map(|c| c.dot(right));
+                let width = along.iter().fold(f32::NEG_INFINITY, |m, &v| m.max(v))
+                    - along.iter().fold(f32::INFINITY, |m, &v| m.min(v));
+                or_say(ed.duplicate(scene, right * 1.1 * width), "")
+            }
+            KeyCode::Delete | KeyCode::Backspace => match ed.delete(scene) {
+                Ok(r) => or_say(r, ""),
+                Err(e) => Some((None, crate::util::one_line(&format!("{e:#}")))),
+            },
+            KeyCode::BracketLeft => or_say(ed.turn(scene, -step(1.0, 15.0), up), ""),
+            KeyCode::BracketRight => or_say(ed.turn(scene, step(1.0, 15.0), up), ""),
+            KeyCode::Minus | KeyCode::NumpadSubtract => or_say(ed.scale(scene, 1.0 / step(1.01, 1.05)), ""),
+            _ => or_say(ed.scale(scene, step(1.01, 1.05)), ""),
+        };
+        if let Some((change, message)) = done {
+            self.say(message);
+            if let Some(change) = change {
+                self.upload_change(change)?;
+            }
+        }
+        if let Some(run) = self.running.as_mut() {
+            run.overlay_dirty = true;
+        }
+        Ok(true)
+    }
+
+    /// Puts an edit on the device: one instance in place where possible, else the whole scene.
+    fn upload_change(&mut self, change: editor::Change) -> Result<()> {
+        let (Some(run), AnyScene::Instanced(scene)) = (self.running.as_mut(), &self.scene) else { return Ok(()) };
+        if let editor::Change::Instance { group, k, linear } = change {
+            let g = &scene.groups[group];
+            let t = g.template.len();
+            let d_means = &g.offsets.d_means[k * t..(k + 1) * t];
+            let device = editor::device_group(scene, group);
+            if run.gs.write_instance(&run.gpu, device, k, &g.instances[k].transform, d_means, linear)? {
+                return Ok(());
+            }
+        }
+        let level = run.gs.inst.select.map(|a| a.max_level);
+        run.gs = crate::render::upload::GpuScene::instanced_for_rendering(
+            &run.gpu,
+            &editor::renderable(scene),
+            &self.opts.render,
+        )?;
+        if let (Some(a), Some(level)) = (run.gs.inst.select.as_mut(), level) {
+            a.max_level = level;
+        }
+        Ok(())
+    }
+
+    /// The camera of the current window size.
+    fn camera_now(&self) -> Option<crate::model::camera::Camera> {
+        let run = self.running.as_ref()?;
+        let size = run.window.inner_size();
+        (size.width > 0 && size.height > 0).then(|| self.view.camera(size.width, size.height))
+    }
+
+    /// Left button down: a drag of the selection if it is under the cursor, else (on release
+    /// close by) a click.
+    fn left_pressed(&mut self) -> Result<()> {
+        let (Some(cursor), Some(cam)) = (self.input.cursor, self.camera_now()) else { return Ok(()) };
+        let (Some(ed), AnyScene::Instanced(scene)) = (self.editor.as_ref(), &self.scene) else { return Ok(()) };
+        let (o, d) = cam.ray(cursor.0 as f32, cursor.1 as f32);
+        let hit = ed.pick(scene, o, d);
+        self.press = Some(Press { travelled: 0.0, hit });
+        if let (Some((g, k)), true) = (hit, hit == ed.selected) {
+            let centre = ed.centre(scene, g, k);
+            let vertical = self.modifier(KeyCode::ShiftLeft, KeyCode::ShiftRight);
+            if let Some(anchor) = drag_point(centre, self.view.up(), vertical, o, d) {
+                self.drag = Some(Drag { start: ed.pose(scene, g, k), centre, anchor, vertical });
+            }
+        }
+        Ok(())
+    }
+
+    fn left_released(&mut self) -> Result<()> {
+        let press = self.press.take();
+        let (Some(ed), AnyScene::Instanced(scene)) = (self.editor.as_mut(), &self.scene) else { return Ok(()) };
+        if let Some(drag) = self.drag.take() {
+            if let Some(message) = ed.commit_move(scene, drag.start) {
+                self.say(message);
+            }
+        } else if let Some(Press { hit, .. }) = press.filter(|p| p.travelled < 4.0) {
+            ed.selected = hit;
+            match hit {
+                Some((g, k)) => {
+                    let g = &scene.groups[g];
+                    let (id, n) = (&g.instances[k].id, g.instances.len());
+                    eprintln!("selected instance {id} of group {} ({} of {n})", g.name, k + 1);
+                }
+                None => eprintln!("selection cleared"),
+            }
+        }
+        if let Some(run) = self.running.as_mut() {
+            run.overlay_dirty = true;
+        }
+        Ok(())
+    }
+
+    /// While dragging: the selection follows the cursor's ray.
+    fn drag_to(&mut self, x: f64, y: f64) -> Result<()> {
+        let (Some(drag), Some(cam)) = (self.drag.as_ref(), self.camera_now()) else { return Ok(()) };
+        let (o, d) = cam.ray(x as f32, y as f32);
+        let Some(point) = drag_point(drag.centre, self.view.up(), drag.vertical, o, d) else { return Ok(()) };
+        let (Some(ed), AnyScene::Instanced(scene)) = (self.editor.as_mut(), &mut self.scene) else { return Ok(()) };
+        if let Some(change) = ed.preview_move(scene, &drag.start, point - drag.anchor) {
+            self.upload_change(change)?;
+        }
+        Ok(())
+    }
+
+    fn mouse_moved(&mut self, x: f64, y: f64) -> Result<()> {
+        if let (Some(p), Some((px, py))) = (self.press.as_mut(), self.input.cursor) {
+            p.travelled += ((x - px).powi(2) + (y - py).powi(2)).sqrt();
+        }
+        if self.drag.is_some() {
+            self.input.cursor = Some((x, y));
+            return self.drag_to(x, y);
+        }
         if let Some((px, py)) = self.input.cursor {
             let (dx, dy) = ((x - px) as f32 * 0.005, (y - py) as f32 * 0.005);
             let b = &self.input.buttons;
@@ -297,6 +617,7 @@ impl App {
             }
         }
         self.input.cursor = Some((x, y));
+        Ok(())
     }
 
     fn redraw(&mut self, el: &ActiveEventLoop) -> Result<()> {
@@ -324,16 +645,54 @@ impl App {
             Some(_) => " | EXACT",
             None => "",
         };
-        if run.overlay_dirty || run.overlay.is_none() && self.opts.overlay {
-            run.overlay = self.opts.overlay.then(|| {
-                let fps = run.fps.map_or("-".into(), |f| format!("{f:.1}"));
-                crate::player::overlay::draw(&[
-                    format!("{fps} FPS | GPU {gpu_ms:.2} MS"),
-                    format!("{} SPLATS | {}X{}{}", splat_count(self.scene.splats()), extent.width, extent.height, lod),
-                ])
-            });
+        let selected = self.editor.as_ref().and_then(|e| e.selected.map(|s| (e, s)));
+        let boxed = self.opts.overlay && selected.is_some();
+        if run.overlay_dirty || run.text.is_none() && self.opts.overlay || boxed {
+            if run.overlay_dirty || run.text.is_none() {
+                run.text = self.opts.overlay.then(|| {
+                    let fps = run.fps.map_or("-".into(), |f| format!("{f:.1}"));
+                    let mut lines = vec![
+                        format!("{fps} FPS | GPU {gpu_ms:.2} MS"),
+                        format!(
+                            "{} SPLATS | {}X{}{}",
+                            splat_count(self.scene.splats()),
+                            extent.width,
+                            extent.height,
+                            lod
+                        ),
+                    ];
+                    if let AnyScene::Instanced(scene) = &self.scene {
+                        lines.extend(editor_lines(scene, self.editor.as_ref(), self.status.as_deref()));
+                    }
+                    if self.help {
+                        lines.extend(HELP.iter().map(|l| l.to_string()));
+                    }
+                    crate::player::overlay::draw(&lines)
+                });
+            }
+            run.overlay = match (selected, &self.scene) {
+                (Some((ed, (g, k))), AnyScene::Instanced(scene)) if boxed => {
+                    let cam = self.view.camera(extent.width, extent.height);
+                    let c = ed.box_corners(scene, g, k).map(|p| cam.project(p));
+                    let edges = BOX_EDGES.iter().filter_map(|&(a, b)| Some(((c[a]?), (c[b]?))));
+                    let lines: Vec<_> = edges.map(|(a, b)| ([a[0], a[1]], [b[0], b[1]])).collect();
+                    let o = crate::player::overlay::frame(
+                        extent.width,
+                        extent.height,
+                        run.text.as_ref(),
+                        &lines,
+                        SELECTION,
+                    );
+                    Some(o)
+                }
+                _ => run.text.clone(),
+            };
             if let Some(o) = &run.overlay {
-                run.overlay_buf = run.gpu.upload("overlay", &o.texels)?;
+                if run.overlay_buf.size == std::mem::size_of_val(o.texels.as_slice()) as u64 {
+                    run.gpu.write(&run.overlay_buf, &o.texels)?;
+                } else {
+                    run.overlay_buf = run.gpu.upload("overlay", &o.texels)?;
+                }
             }
             run.overlay_dirty = false;
         }
@@ -376,6 +735,21 @@ impl App {
             self.error = Some(e);
         }
         el.exit();
+    }
+}
+
+/// Where the ray o + t·d meets the horizontal plane through `centre` (normal `up`), or with
+/// `vertical` the point of the up axis through `centre` closest to the ray; None when the ray
+/// runs (nearly) parallel to it or meets the plane behind the eye.
+fn drag_point(centre: Vec3, up: Vec3, vertical: bool, o: Vec3, d: Vec3) -> Option<Vec3> {
+    let b = d.dot(up);
+    if vertical {
+        let denom = 1.0 - b * b;
+        let w = centre - o;
+        (denom > 1e-6).then(|| centre + up * ((b * d.dot(w) - up.dot(w)) / denom))
+    } else {
+        let t = (centre - o).dot(up) / b;
+        (b.abs() > 1e-6 && t > 0.0).then(|| o + d * t)
     }
 }
 
@@ -433,12 +807,13 @@ impl ApplicationHandler for App {
                 } else {
                     self.input.buttons.remove(&b);
                 }
-                Ok(())
+                match (b, state) {
+                    (0, ElementState::Pressed) => self.left_pressed(),
+                    (0, ElementState::Released) => self.left_released(),
+                    _ => Ok(()),
+                }
             }
-            WindowEvent::CursorMoved { position, .. } => {
-                self.mouse_moved(position.x, position.y);
-                Ok(())
-            }
+            WindowEvent::CursorMoved { position, .. } => self.mouse_moved(position.x, position.y),
             WindowEvent::MouseWheel { delta, .. } => {
                 let lines = match delta {
                     MouseScrollDelta::LineDelta(_, y) => y,
@@ -482,7 +857,12 @@ pub fn view(
     if opts.frames == Some(0) {
         bail!("--frames must be at least 1");
     }
-    let scene = AnyScene::read(&opts.scene_path)?;
+    let (scene, offset_dtype) = if crate::formats::detect(&opts.scene_path)? == crate::formats::Format::Instgs {
+        let (s, dtype) = crate::formats::instgs::read_with_offset_dtype(&opts.scene_path)?;
+        (AnyScene::Instanced(s), dtype)
+    } else {
+        (AnyScene::read(&opts.scene_path)?, Dtype::F32)
+    };
     let means = scene.means();
     let (lo, hi) = crate::model::scene::robust_bounds(&means, 0.02);
     let centre = 0.5 * (lo + hi);
@@ -501,13 +881,28 @@ pub fn view(
     if headless {
         run_headless(&opts, &scene, start)
     } else {
-        run_window(opts, scene, start)
+        run_window(opts, scene, offset_dtype, start)
     }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn drag_points_lie_on_the_plane_or_the_up_axis() {
+        let (centre, up) = (Vec3::new(1.0, 2.0, 0.5), Vec3::Z);
+        let o = Vec3::new(0.0, -3.0, 4.0);
+        let d = (Vec3::new(2.0, 2.5, 0.0) - o).normalize();
+        let p = drag_point(centre, up, false, o, d).unwrap();
+        assert!((p.z - 0.5).abs() < 1e-5 && (p - o).cross(d).length() < 1e-4);
+        // The up axis through the centre, at the point nearest a ray aimed at (1, 2, 1.5).
+        let d = (Vec3::new(1.0, 2.0, 1.5) - o).normalize();
+        let p = drag_point(centre, up, true, o, d).unwrap();
+        assert!((p - Vec3::new(1.0, 2.0, 1.5)).length() < 1e-4, "{p}");
+        assert!(drag_point(centre, up, false, o, Vec3::X).is_none(), "parallel to the plane");
+        assert!(drag_point(centre, up, true, o, Vec3::Z).is_none(), "parallel to the axis");
+    }
 
     #[test]
     fn splat_counts_read_short() {

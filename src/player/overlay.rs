@@ -1,6 +1,7 @@
-//! The player's text overlay (frame rate, GPU time, splat count): a 5×7 bitmap font drawn on
-//! the CPU into a small RGBA8 image that `present.comp` blends over the frame's top-left corner.
-//! Redrawn a few times per second, so its cost never shows in the frame time.
+//! The player's overlay: text (frame rate, GPU time, splat count, the editor's selection and
+//! keys) in a 5×7 bitmap font drawn on the CPU into a small RGBA8 image that `present.comp`
+//! blends over the frame's top-left corner, redrawn a few times per second; with an instance
+//! selected, a frame-sized image that also holds the selection's box outline.
 
 /// Glyph rows, `#` = ink, 5 columns × 7 rows. Characters without a glyph are drawn blank.
 const FONT: &[(char, [&str; 7])] = &[
@@ -15,6 +16,18 @@ const FONT: &[(char, [&str; 7])] = &[
     ('8', [".###.", "#...#", "#...#", ".###.", "#...#", "#...#", ".###."]),
     ('9', [".###.", "#...#", "#...#", ".####", "....#", "...#.", ".##.."]),
     ('.', [".....", ".....", ".....", ".....", ".....", ".##..", ".##.."]),
+    (',', [".....", ".....", ".....", ".....", ".##..", "..#..", ".#..."]),
+    ('?', [".###.", "#...#", "....#", "...#.", "..#..", ".....", "..#.."]),
+    ('!', ["..#..", "..#..", "..#..", "..#..", "..#..", ".....", "..#.."]),
+    ('\'', ["..#..", "..#..", ".#...", ".....", ".....", ".....", "....."]),
+    ('(', ["...#.", "..#..", ".#...", ".#...", ".#...", "..#..", "...#."]),
+    (')', [".#...", "..#..", "...#.", "...#.", "...#.", "..#..", ".#..."]),
+    ('[', [".###.", ".#...", ".#...", ".#...", ".#...", ".#...", ".###."]),
+    (']', [".###.", "...#.", "...#.", "...#.", "...#.", "...#.", ".###."]),
+    ('+', [".....", "..#..", "..#..", "#####", "..#..", "..#..", "....."]),
+    ('=', [".....", ".....", "#####", ".....", "#####", ".....", "....."]),
+    ('°', [".##..", "#..#.", ".##..", ".....", ".....", ".....", "....."]),
+    ('_', [".....", ".....", ".....", ".....", ".....", ".....", "#####"]),
     (':', [".....", ".##..", ".##..", ".....", ".##..", ".##..", "....."]),
     ('-', [".....", ".....", ".....", "#####", ".....", ".....", "....."]),
     ('/', ["....#", "....#", "...#.", "..#..", ".#...", "#....", "#...."]),
@@ -28,12 +41,14 @@ const FONT: &[(char, [&str; 7])] = &[
     ('G', [".###.", "#...#", "#....", "#.###", "#...#", "#...#", ".####"]),
     ('H', ["#...#", "#...#", "#...#", "#####", "#...#", "#...#", "#...#"]),
     ('I', [".###.", "..#..", "..#..", "..#..", "..#..", "..#..", ".###."]),
+    ('J', ["..###", "...#.", "...#.", "...#.", "...#.", "#..#.", ".##.."]),
     ('K', ["#...#", "#..#.", "#.#..", "##...", "#.#..", "#..#.", "#...#"]),
     ('L', ["#....", "#....", "#....", "#....", "#....", "#....", "#####"]),
     ('M', ["#...#", "##.##", "#.#.#", "#.#.#", "#...#", "#...#", "#...#"]),
     ('N', ["#...#", "#...#", "##..#", "#.#.#", "#..##", "#...#", "#...#"]),
     ('O', [".###.", "#...#", "#...#", "#...#", "#...#", "#...#", ".###."]),
     ('P', ["####.", "#...#", "#...#", "####.", "#....", "#....", "#...."]),
+    ('Q', [".###.", "#...#", "#...#", "#...#", "#.#.#", "#..#.", ".##.#"]),
     ('R', ["####.", "#...#", "#...#", "####.", "#.#..", "#..#.", "#...#"]),
     ('S', [".####", "#....", "#....", ".###.", "....#", "....#", "####."]),
     ('T', ["#####", "..#..", "..#..", "..#..", "..#..", "..#..", "..#.."]),
@@ -42,6 +57,7 @@ const FONT: &[(char, [&str; 7])] = &[
     ('W', ["#...#", "#...#", "#...#", "#.#.#", "#.#.#", "#.#.#", ".#.#."]),
     ('X', ["#...#", "#...#", ".#.#.", "..#..", ".#.#.", "#...#", "#...#"]),
     ('Y', ["#...#", "#...#", ".#.#.", "..#..", "..#..", "..#..", "..#.."]),
+    ('Z', ["#####", "....#", "...#.", "..#..", ".#...", "#....", "#####"]),
 ];
 
 /// Pixels per font pixel.
@@ -52,6 +68,7 @@ const CELL_W: u32 = 6 * SCALE;
 const CELL_H: u32 = 9 * SCALE;
 
 /// An RGBA8 image (packed little-endian `r | g << 8 | b << 16 | a << 24`, straight alpha).
+#[derive(Clone)]
 pub struct Overlay {
     pub width: u32,
     pub height: u32,
@@ -90,6 +107,56 @@ pub fn draw(lines: &[String]) -> Overlay {
     Overlay { width, height, texels }
 }
 
+/// The part of segment a–b inside [0, w] × [0, h] (Liang–Barsky), if any.
+fn clip(a: [f32; 2], b: [f32; 2], w: f32, h: f32) -> Option<([f32; 2], [f32; 2])> {
+    let d = [b[0] - a[0], b[1] - a[1]];
+    let (mut t0, mut t1) = (0.0f32, 1.0f32);
+    for (p, q) in [(-d[0], a[0]), (d[0], w - a[0]), (-d[1], a[1]), (d[1], h - a[1])] {
+        if p == 0.0 {
+            if q < 0.0 {
+                return None;
+            }
+        } else if p < 0.0 {
+            t0 = t0.max(q / p);
+        } else {
+            t1 = t1.min(q / p);
+        }
+    }
+    (t0 <= t1 && t0.is_finite() && t1.is_finite())
+        .then(|| ([a[0] + t0 * d[0], a[1] + t0 * d[1]], [a[0] + t1 * d[0], a[1] + t1 * d[1]]))
+}
+
+/// A `width` × `height` overlay: transparent, `text` in the top-left corner, `lines` (pixel
+/// end points, clipped to the frame) drawn one pixel wide in `colour`.
+pub fn frame(
+    width: u32,
+    height: u32,
+    text: Option<&Overlay>,
+    lines: &[([f32; 2], [f32; 2])],
+    colour: [u8; 4],
+) -> Overlay {
+    let mut texels = vec![0u32; (width * height) as usize];
+    for &(a, b) in lines {
+        let Some((a, b)) = clip(a, b, width as f32, height as f32) else { continue };
+        let steps = (b[0] - a[0]).abs().max((b[1] - a[1]).abs()).ceil().max(1.0) as u32;
+        for i in 0..=steps {
+            let f = i as f32 / steps as f32;
+            let (x, y) = ((a[0] + (b[0] - a[0]) * f).round(), (a[1] + (b[1] - a[1]) * f).round());
+            if x >= 0.0 && y >= 0.0 && (x as u32) < width && (y as u32) < height {
+                texels[(y as u32 * width + x as u32) as usize] = pack(colour);
+            }
+        }
+    }
+    if let Some(t) = text {
+        for y in 0..t.height.min(height) {
+            for x in 0..t.width.min(width) {
+                texels[(y * width + x) as usize] = t.texels[(y * t.width + x) as usize];
+            }
+        }
+    }
+    Overlay { width, height, texels }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -110,5 +177,22 @@ mod tests {
         assert!(ink > 0);
         // The margin stays background.
         assert!((0..o.width).all(|x| o.texels[x as usize] == pack([0, 0, 0, 150])));
+    }
+
+    #[test]
+    fn frame_overlay_clips_lines_and_keeps_the_text() {
+        let text = draw(&["ab".into()]);
+        let o = frame(
+            100,
+            60,
+            Some(&text),
+            &[([-50.0, 30.0], [150.0, 30.0]), ([5.0, -1e9], [5.0, 1e9])],
+            [255, 255, 0, 255],
+        );
+        let yellow = pack([255, 255, 0, 255]);
+        assert!((text.width..100).all(|x| o.texels[(30 * 100 + x) as usize] == yellow));
+        assert!((text.height..60).all(|y| o.texels[(y * 100 + 5) as usize] == yellow));
+        assert_eq!(o.texels[(59 * 100 + 50) as usize], 0, "untouched texels stay transparent");
+        assert_eq!(o.texels[0], text.texels[0]);
     }
 }
