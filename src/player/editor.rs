@@ -358,6 +358,8 @@ impl Editor {
         for (gi, g) in scene.groups.iter().enumerate() {
             let (lo, hi) = self.boxes[gi];
             let t = &g.template;
+            // 3σ of the template's largest Gaussian (template space).
+            let reach = 3.0 * t.scales.iter().flatten().fold(f32::NEG_INFINITY, |m, &v| m.max(v)).exp();
             for (k, inst) in g.instances.iter().enumerate() {
                 let x = &inst.transform;
                 let inv = x.rotation.inverse();
@@ -365,8 +367,7 @@ impl Editor {
                 let (o, d) = (inv * (origin - x.translation) / x.scale, inv * dir / x.scale);
                 let d_means = &g.offsets.d_means[k * t.len()..(k + 1) * t.len()];
                 // Skip instances whose box (grown by their Gaussians and offsets) the ray misses.
-                let grow = d_means.iter().map(|v| Vec3::from(*v).length()).fold(0.0f32, f32::max) / x.scale
-                    + 3.0 * t.scales.iter().flatten().fold(f32::NEG_INFINITY, |m, &v| m.max(v)).exp();
+                let grow = d_means.iter().map(|v| Vec3::from(*v).length()).fold(0.0f32, f32::max) / x.scale + reach;
                 let (blo, bhi) = (lo - Vec3::splat(grow), hi + Vec3::splat(grow));
                 let (ta, tb) = ((blo - o) / d, (bhi - o) / d);
                 let (near, far) = (ta.min(tb).max_element(), ta.max(tb).min_element());
