@@ -293,6 +293,22 @@ fn editing_moves_turns_duplicates_deletes_undoes_and_saves() {
     let [u, v, _] = cam.project(centre).unwrap();
     let (x0, y0) = (u.round() as i32, v.round() as i32);
     let (x1, y1) = (x0 + 30, y0 + 12);
+    // Where the drag puts the centre (the plane z = centre.z under the cursor), on screen: a
+    // Shift-drag from there 25 pixels up lifts the instance along +z.
+    let plane = |x: i32, y: i32| {
+        let (o, d) = cam.ray(x as f32, y as f32);
+        o + d * ((centre.z - o.z) / d.z)
+    };
+    let moved_centre = centre + (plane(x1, y1) - plane(x0, y0));
+    let [u3, v3, _] = cam.project(moved_centre).unwrap();
+    let (x3, y3) = (u3.round() as i32, v3.round() as i32);
+    // The point of the vertical through the moved centre nearest the cursor's ray: its height.
+    let height = |x: i32, y: i32| {
+        let (o, d) = cam.ray(x as f32, y as f32);
+        let (b, w) = (d.z, moved_centre - o);
+        (b * d.dot(w) - w.z) / (1.0 - b * b)
+    };
+    let lift = height(x3, y3 - 25) - height(x3, y3);
     // Instance 2 on screen (clicked to check that a click picks the instance under it).
     let [u2, v2, _] = cam.project(centre + Vec3::new(2.5, 0.0, 0.0)).unwrap();
     let script = format!(
@@ -305,6 +321,9 @@ fn editing_moves_turns_duplicates_deletes_undoes_and_saves() {
          xdotool mousemove --window $win {x0} {y0} mousedown 1; sleep 0.3; \
          xdotool mousemove --window $win {xm} {ym}; sleep 0.3; xdotool mousemove --window $win {x1} {y1}; sleep 0.3; \
          xdotool mouseup 1; {wait_for} 'moved instance 1'; \
+         xdotool keydown shift mousemove --window $win {x3} {y3} mousedown 1; sleep 0.3; \
+         xdotool mousemove --window $win {x3} {y4}; sleep 0.3; xdotool mouseup 1 keyup shift; \
+         {wait_for} 'moved instance 1 by (0.0000, 0.0000'; \
          xdotool key bracketright; {wait_for} 'turned by 15'; \
          xdotool key ctrl+d; {wait_for} 'duplicated instance 1 as 1-copy'; \
          xdotool key Delete; {wait_for} 'deleted instance 1-copy'; \
@@ -320,6 +339,7 @@ fn editing_moves_turns_duplicates_deletes_undoes_and_saves() {
         x2 = u2.round() as i32,
         y2 = v2.round() as i32,
         xm = (x0 + x1) / 2,
+        y4 = y3 - 25,
         ym = (y0 + y1) / 2,
     );
     let err = scripted(&dir, &script);
@@ -329,23 +349,20 @@ fn editing_moves_turns_duplicates_deletes_undoes_and_saves() {
     let outline = boxed.pixels().filter(|p| p.0 == [255, 200, 0]).count();
     assert!(outline > 100, "no selection outline ({outline} pixels)");
 
-    // The saved file: instance 1 moved on the plane z = centre.z to under the cursor, then
-    // turned 15° about +z through its centre; 1-copy beside it with zero offsets; 2 and 3 as
+    // The saved file: instance 1 moved on the plane z = centre.z to under the cursor, lifted
+    // along +z, then turned 15° about +z through its centre; 1-copy beside it with zero offsets; 2 and 3 as
     // they were; the original kept as .bak.
     assert_eq!(std::fs::read(dir.join("row.instgs.bak")).unwrap(), original_bytes);
     let saved = instgs_vk::formats::instgs::read(&scene_path).unwrap();
     let g = &saved.groups[0];
     let ids: Vec<&str> = g.instances.iter().map(|i| i.id.as_str()).collect();
     assert_eq!(ids, ["1", "1-copy", "2", "3"]);
-    let plane = |x: i32, y: i32| {
-        let (o, d) = cam.ray(x as f32, y as f32);
-        o + d * ((centre.z - o.z) / d.z)
-    };
-    let moved_centre = centre + (plane(x1, y1) - plane(x0, y0));
     let turn = Quat::from_rotation_z(15f32.to_radians());
     let x = g.instances[0].transform;
-    // Moved by δ, then turned about the moved centre c₁ = centre + δ: t = c₁ + R·(δ − c₁).
-    let want_t = moved_centre - turn * centre;
+    // Moved by δ on the plane and lifted by l, then turned about its centre c = centre + t:
+    // t' = c + R·(t − c) = c − R·centre.
+    assert!(lift > 0.05, "the Shift-drag lifts ({lift})");
+    let want_t = moved_centre + Vec3::Z * lift - turn * centre;
     assert!((x.translation - want_t).length() < 1e-3, "{} vs {want_t}", x.translation);
     assert!(x.rotation.angle_between(turn) < 1e-4 && (x.scale - 1.0).abs() < 1e-5);
     let tl = t.len();
