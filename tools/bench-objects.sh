@@ -15,17 +15,21 @@ cargo build --release --quiet --examples
 bin=./target/release/instgs-vk
 out=out/bench-objects/$name
 rm -rf "$out"; mkdir -p "$out/data"
-read -r size cx cy cz < <("$bin" info "$template" --json | python3 -c '
+size=$("$bin" info "$template" --json | python3 -c '
 import json, sys
 v = json.load(sys.stdin); lo, hi = v["bounds_min_p2"], v["bounds_max_p98"]
-size = max(h - l for l, h in zip(lo, hi))
-print(size, *[(l + h) / 2 for l, h in zip(lo, hi)])')
+print(max(h - l for l, h in zip(lo, hi)))')
 spacing=$(python3 -c "print(1.6 * $size)")
 python3 tools/grid_scene_graph.py "$k" "$spacing" "$out/truth.json" "$name"
 "$bin" compose --template "$name=$template" --scene-graph "$out/truth.json" \
   --random-offsets 0.002 --seed 1 --out "$out/truth.instgs"
-side=$(python3 -c "import math; print(math.ceil(math.sqrt($k)))")
-read -r gx gy gz dist < <(python3 -c "s=$spacing; d=($side-1)*s/2; print($cx + d, $cy, $cz + d, 1.6 * ($side * s + $size))")
+# The orbit looks at the composed scene's centre (copies turn about the origin, which need not
+# be the template's centre) from 1.3 × its extent.
+"$bin" convert "$out/truth.instgs" "$out/truth.ply" 2> /dev/null
+read -r gx gy gz dist < <("$bin" info "$out/truth.ply" --json | python3 -c '
+import json, sys
+v = json.load(sys.stdin); lo, hi = v["bounds_min_p2"], v["bounds_max_p98"]
+print(*[(l + h) / 2 for l, h in zip(lo, hi)], 1.3 * max(h - l for l, h in zip(lo, hi)))')
 python3 tools/orbit_transforms.py "$out/data" 24 6 "$gx" "$gy" "$gz" "$dist" 30 "$w" "$h" 50
 "$bin" render --scene "$out/truth.instgs" --cameras "$out/data/transforms_train.json" --out "$out/data/train" > /dev/null
 "$bin" render --scene "$out/truth.instgs" --cameras "$out/data/transforms_test.json" --out "$out/data/test" > /dev/null
