@@ -85,6 +85,18 @@ fn windowed(args: &[&str]) -> String {
     err
 }
 
+/// Runs the binary with `args` and `--out out`, validation on; it must succeed.
+fn validated(args: &[&str], out: &Path) {
+    let o = Command::new(bin()).args(args).arg("--out").arg(out).env("INSTGS_VALIDATION", "1").output().unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+}
+
+/// The largest difference of two equally sized images, in 1/255 steps.
+fn worst_difference(a: &image::RgbImage, b: &image::RgbImage) -> u8 {
+    assert_eq!(a.dimensions(), b.dimensions());
+    a.as_raw().iter().zip(b.as_raw()).map(|(x, y)| x.abs_diff(*y)).max().unwrap()
+}
+
 fn rgb(path: &Path) -> image::RgbImage {
     image::open(path).unwrap_or_else(|e| panic!("{}: {e}", path.display())).to_rgb8()
 }
@@ -109,16 +121,9 @@ fn window_screenshot_equals_offscreen_render() {
     assert!(err.contains("swapchain 320x240"), "{err}");
     assert!(err.contains("4 frames: GPU"), "{err}");
     let head = out_dir("headless");
-    let o = Command::new(bin())
-        .args(["view", scene, "--width", "320", "--height", "240", "--headless", "--frames", "1"])
-        .args(["--out", head.to_str().unwrap()])
-        .env("INSTGS_VALIDATION", "1")
-        .output()
-        .unwrap();
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    validated(&["view", scene, "--width", "320", "--height", "240", "--headless", "--frames", "1"], &head);
     let (shot, frame) = (rgb(&win.join("screenshot_000.png")), rgb(&head.join("frame_000.png")));
-    assert_eq!(shot.dimensions(), frame.dimensions());
-    let worst = shot.as_raw().iter().zip(frame.as_raw()).map(|(a, b)| a.abs_diff(*b)).max().unwrap();
+    let worst = worst_difference(&shot, &frame);
     assert!(worst <= 1, "screenshot differs from the offscreen render by up to {worst}/255");
     let lit = frame.as_raw().iter().filter(|&&v| v > 20).count();
     assert!(lit > 1000, "the frame is nearly empty ({lit} lit values)");
@@ -382,15 +387,8 @@ fn editing_moves_turns_duplicates_deletes_undoes_and_saves() {
 
     // The last screenshot (selection cleared, overlay hidden) is `render` of the saved file.
     let rendered = dir.join("rendered");
-    let o = Command::new(bin())
-        .args(["render", "--scene", scene_path.to_str().unwrap(), "--cameras", cams.to_str().unwrap()])
-        .args(["--out", rendered.to_str().unwrap()])
-        .env("INSTGS_VALIDATION", "1")
-        .output()
-        .unwrap();
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    validated(&["render", "--scene", scene_path.to_str().unwrap(), "--cameras", cams.to_str().unwrap()], &rendered);
     let (shot, frame) = (rgb(&dir.join("screenshot_001.png")), rgb(&rendered.join("view.png")));
-    assert_eq!(shot.dimensions(), frame.dimensions());
-    let worst = shot.as_raw().iter().zip(frame.as_raw()).map(|(a, b)| a.abs_diff(*b)).max().unwrap();
+    let worst = worst_difference(&shot, &frame);
     assert!(worst <= 1, "screenshot differs from `render` of the saved file by up to {worst}/255");
 }

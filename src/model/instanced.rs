@@ -84,6 +84,15 @@ impl Similarity {
         [q.w, q.x, q.y, q.z]
     }
 
+    /// self∘b: `b` first, then `self`.
+    pub fn compose(&self, b: &Similarity) -> Similarity {
+        Similarity::from_parts(
+            (self.rotation * b.rotation).normalize(),
+            self.scale * b.scale,
+            self.rotation * (b.translation * self.scale) + self.translation,
+        )
+    }
+
     pub fn inverse(&self) -> Similarity {
         let rotation = self.rotation.inverse();
         let scale = 1.0 / self.scale;

@@ -76,15 +76,6 @@ pub struct Editor {
     boxes: Vec<(Vec3, Vec3)>,
 }
 
-/// Similarity composition a∘b (b first).
-fn compose(a: &Similarity, b: &Similarity) -> Similarity {
-    Similarity::from_parts(
-        (a.rotation * b.rotation).normalize(),
-        a.scale * b.scale,
-        a.rotation * (b.translation * a.scale) + a.translation,
-    )
-}
-
 /// The similarity p ↦ centre + s·R·(p − centre).
 fn about(centre: Vec3, rotation: Quat, scale: f32) -> Similarity {
     Similarity::from_parts(rotation, scale, centre - rotation * (centre * scale))
@@ -185,7 +176,7 @@ impl Editor {
     fn moved(pose: &Pose, e: &Similarity) -> (Pose, Mat3) {
         let linear = Mat3::from_quat(e.rotation) * e.scale;
         let d_means = pose.d_means.iter().map(|d| (linear * Vec3::from(*d)).to_array()).collect();
-        (Pose { transform: compose(e, &pose.transform), d_means }, linear)
+        (Pose { transform: e.compose(&pose.transform), d_means }, linear)
     }
 
     fn push(&mut self, edit: Edit) {
@@ -231,7 +222,7 @@ impl Editor {
             scene,
             group,
             k,
-            &Pose { transform: compose(&e, &start.transform), d_means: start.d_means.clone() },
+            &Pose { transform: e.compose(&start.transform), d_means: start.d_means.clone() },
         );
         Some(Change::Instance { group, k, linear: Mat3::IDENTITY })
     }
@@ -258,7 +249,7 @@ impl Editor {
         let id = (1..).map(|n| format!("{}-copy{}", base.id, if n == 1 { String::new() } else { n.to_string() }));
         let id = id.into_iter().find(|id| !taken(id)).expect("unbounded");
         let e = Similarity::from_parts(Quat::IDENTITY, 1.0, shift);
-        let instance = Instance { id, transform: compose(&e, &base.transform) };
+        let instance = Instance { id, transform: e.compose(&base.transform) };
         let what = format!("duplicated instance {} as {}", base.id, instance.id);
         let offsets = Offsets::zeros(scene.groups[group].template.len());
         Self::insert(scene, group, k + 1, &instance, &offsets);
