@@ -67,8 +67,9 @@ pub(crate) enum Cmd {
     },
     /// The main job. On a dataset with instance masks (DIR/masks/train/): the whole InstGS
     /// pipeline, plain → segment → instance → joint → eval → bench, into one run folder with a
-    /// report (RUN/report.md); a re-run resumes. Without masks: plain 3DGS training. With
-    /// --init SCENE.instgs: joint optimisation of that instanced scene only.
+    /// report (RUN/report.md); a re-run resumes. Without masks: plain 3DGS training, or with
+    /// --discover the pipeline with the instances found without masks. With --init
+    /// SCENE.instgs: joint optimisation of that instanced scene only.
     Train {
         #[command(flatten)]
         data: DataArgs,
@@ -98,6 +99,12 @@ pub(crate) enum Cmd {
         /// Pipeline: stop after this stage.
         #[arg(long, value_enum)]
         until: Option<pipeline::Stage>,
+        /// Pipeline without instance masks: find the instances with `discover` instead of
+        /// segmenting by masks — `auto`, a box `xmin,ymin,zmin,xmax,ymax,zmax`, or one
+        /// training view's mask of one instance (MASK.png, named like the view's image).
+        /// Masks the dataset has are then not used for finding instances.
+        #[arg(long, value_name = "auto|BOX|MASK.png", value_parser = parse_discover)]
+        discover: Option<instgs_vk::discover::run::ExampleSpec>,
         /// Print a line every 10 % instead of a progress bar.
         #[arg(long)]
         quiet: bool,
@@ -261,6 +268,54 @@ pub(crate) enum Cmd {
         min_render_psnr: f64,
         #[arg(long)]
         out: PathBuf,
+    },
+    /// Find repeated objects in a plain scene without per-instance masks: the copies of one
+    /// example (--example, --box) or, with --auto, groups of objects standing on the scene's
+    /// support plane. Writes a labels file and a groups file for `instance` (every copy checked
+    /// as the instance stage checks a pose, the render check against the training views).
+    Discover {
+        /// The trained plain scene (any format `info` reads).
+        #[arg(long)]
+        scene: PathBuf,
+        /// Dataset folder: its training views drive the render check and a mask example; where
+        /// its instances.json carries ground-truth poses, the result is compared with them
+        /// (never used in the search).
+        #[arg(long)]
+        data: PathBuf,
+        /// The example: a label id of --labels, or one instance's mask in one training view
+        /// (a grey PNG named like the view's image, or with --view).
+        #[arg(long, conflicts_with_all = ["auto", "bbox"])]
+        example: Option<String>,
+        /// The example: the Gaussians in xmin,ymin,zmin,xmax,ymax,zmax (world units).
+        #[arg(long = "box", value_name = "XMIN,YMIN,ZMIN,XMAX,YMAX,ZMAX", conflicts_with = "auto")]
+        bbox: Option<String>,
+        /// No example: propose the groups (support plane, clusters on it, registered together).
+        #[arg(long)]
+        auto: bool,
+        /// The labels file of --example ID.
+        #[arg(long)]
+        labels: Option<PathBuf>,
+        /// The training view of --example MASK.png (default: the view whose image has its name).
+        #[arg(long)]
+        view: Option<String>,
+        /// The id in --example MASK.png to take (default: its only non-zero id).
+        #[arg(long)]
+        mask_id: Option<u16>,
+        /// Downscale factor of the training images.
+        #[arg(long, allow_negative_numbers = true, value_parser = positive_u32, default_value_t = 1)]
+        downscale: u32,
+        /// Skip the render check (copies are then checked by geometry alone).
+        #[arg(long)]
+        no_render_check: bool,
+        /// Seed of RANSAC.
+        #[arg(long, allow_negative_numbers = true, value_parser = natural_u64, default_value_t = 0)]
+        seed: u64,
+        /// The labels file written ({ids, labels}).
+        #[arg(long)]
+        out: PathBuf,
+        /// The groups file written (default: groups.json beside --out).
+        #[arg(long)]
+        groups: Option<PathBuf>,
     },
     #[cfg(feature = "player")]
     /// The standalone player: a window with the scene, orbit/fly camera and FPS overlay (see
@@ -478,4 +533,32 @@ pub(crate) fn parse_rgb(s: &str) -> std::result::Result<[f32; 3], String> {
         [_, _, _] => Err("components must be in [0, 1]".into()),
         _ => Err("expected r,g,b".into()),
     }
+}
+
+/// `train --discover`: auto, a box or a mask path.
+fn parse_discover(s: &str) -> std::result::Result<instgs_vk::discover::run::ExampleSpec, String> {
+    use instgs_vk::discover::run::ExampleSpec;
+    if s == "auto" {
+        return Ok(ExampleSpec::Auto);
+    }
+    if s.ends_with(".png") {
+        return Ok(ExampleSpec::Mask { path: s.into(), view: None, id: None });
+    }
+    parse_box(s).map(ExampleSpec::Box).map_err(|e| format!("{e} (or auto, or MASK.png)"))
+}
+
+/// `--box xmin,ymin,zmin,xmax,ymax,zmax`.
+pub(crate) fn parse_box(s: &str) -> std::result::Result<[f64; 6], String> {
+    let v: Vec<f64> = s
+        .split(',')
+        .map(|x| x.trim().parse::<f64>())
+        .collect::<std::result::Result<_, _>>()
+        .map_err(|e| format!("--box {s:?}: {e}"))?;
+    let Ok(b) = <[f64; 6]>::try_from(v.as_slice()) else {
+        return Err(format!("--box {s:?}: six numbers, xmin,ymin,zmin,xmax,ymax,zmax"));
+    };
+    if !b.iter().all(|x| x.is_finite()) || (0..3).any(|a| b[a] >= b[a + 3]) {
+        return Err(format!("--box {s:?}: finite, each min below its max"));
+    }
+    Ok(b)
 }

@@ -42,6 +42,8 @@ pub mod instancing;
 pub mod register;
 pub mod segment;
 
+pub mod discover;
+
 pub mod bench;
 pub mod pipeline;
 

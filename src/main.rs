@@ -117,6 +117,39 @@ fn run(cli: Cli) -> Result<()> {
             };
             instancing::build::instance_command(device, &req)
         }
+        Cmd::Discover {
+            scene,
+            data,
+            example,
+            bbox,
+            auto,
+            labels,
+            view,
+            mask_id,
+            downscale,
+            no_render_check,
+            seed,
+            out,
+            groups,
+        } => {
+            use instgs_vk::discover::run::{discover_command, DiscoverRequest, ExampleSpec};
+            let example = match (example, bbox, auto) {
+                (_, _, true) => ExampleSpec::Auto,
+                (_, Some(b), _) => ExampleSpec::Box(cli::parse_box(&b).map_err(anyhow::Error::msg)?),
+                (Some(e), None, false) => match (e.parse::<u32>(), labels) {
+                    (Ok(id), Some(labels)) => ExampleSpec::Label { labels, id },
+                    (Ok(_), None) => anyhow::bail!("--example {e}: a label id needs --labels FILE"),
+                    (Err(_), _) => ExampleSpec::Mask { path: e.into(), view, id: mask_id },
+                },
+                (None, None, false) => anyhow::bail!("discover needs --example, --box or --auto"),
+            };
+            let mut opts = instgs_vk::discover::DiscoverOptions::default();
+            opts.instance.seed = seed;
+            let groups = groups.unwrap_or_else(|| out.with_file_name("groups.json"));
+            let req =
+                DiscoverRequest { scene, data, example, opts, render_check: !no_render_check, downscale, out, groups };
+            discover_command(device, &req).map(|_| ())
+        }
         #[cfg(feature = "player")]
         Cmd::View {
             scene,
@@ -149,7 +182,7 @@ fn run(cli: Cli) -> Result<()> {
             player::view(opts, cameras.as_deref(), (camera, &split), up, headless)
         }
         Cmd::BenchSort { keys, bits, repeats } => bench::bench_sort(device, keys, bits, repeats),
-        Cmd::Train { data, out, init, config, iterations, resume, quiet, from, until } => {
+        Cmd::Train { data, out, init, config, iterations, resume, quiet, from, until, discover } => {
             let args = pipeline::PipelineArgs {
                 data: data.data,
                 downscale: data.downscale,
@@ -159,6 +192,7 @@ fn run(cli: Cli) -> Result<()> {
                 iterations,
                 from,
                 until,
+                discover,
                 progress: !quiet,
                 device,
             };

@@ -6,7 +6,7 @@ use std::collections::{BTreeMap, BTreeSet};
 use std::path::Path;
 
 /// Top-level modules by layer, lowest first.
-const LAYERS: [&[&str]; 11] = [
+const LAYERS: [&[&str]; 12] = [
     &["math", "util"],
     &["gpu"],
     &["model"],
@@ -15,6 +15,7 @@ const LAYERS: [&[&str]; 11] = [
     &["train"],
     &["segment", "register"],
     &["instancing"],
+    &["discover"],
     &["bench"],
     &["pipeline"],
     &["player"],

@@ -1,7 +1,8 @@
 //! The main job through the binary (`instgs-vk train` on a dataset with instance masks), on the
 //! bundled demo scene at 80×60 with a tiny schedule: a run interrupted in every stage resumes
 //! and finishes (plain results within a tolerance of an uninterrupted run's); a dataset without masks trains plain 3DGS and
-//! says so; masks that do not fit the images are refused before any training; the whole pipeline
+//! says so, or with `--discover auto` runs the pipeline on the instances it finds; masks that
+//! do not fit the images are refused before any training; the whole pipeline
 //! gives the same results bit for bit with every new device buffer poisoned. Validation on.
 use std::path::{Path, PathBuf};
 
@@ -209,6 +210,41 @@ fn a_dataset_without_masks_trains_plain_3dgs_and_says_so() {
         &[],
     );
     assert!(!o.ok && o.stderr.contains("no instance masks"), "{}", o.stderr);
+}
+
+#[test]
+fn without_masks_discover_runs_the_whole_pipeline() {
+    // The demo without its masks and groups file, `--discover auto`, the tiny schedule: every
+    // stage runs, the segment stage writes the discovery's files and the report says how the
+    // instances were found (at 80×60 after 60 iterations it may find none: then the scene
+    // stays plain, which the pipeline must carry through too).
+    let data = demo_copy("discover", |d| {
+        std::fs::remove_dir_all(d.join("masks")).unwrap();
+        std::fs::remove_file(d.join("instances.json")).unwrap();
+    });
+    let base = data.parent().unwrap().to_path_buf();
+    let cfg = base.join("tiny.toml");
+    std::fs::write(&cfg, TINY).unwrap();
+    let run = base.join("run");
+    let (d, r, c) = (data.to_str().unwrap(), run.to_str().unwrap(), cfg.to_str().unwrap());
+    let mut a = args(d, r, c);
+    a.extend(["--discover", "auto"]);
+    let o = run_bin(&a, &[]);
+    assert!(o.ok, "{}", o.stderr);
+    assert!(o.stderr.contains("instances discovered without masks"), "{}", o.stderr);
+    for s in STAGES {
+        assert!(stage_done(&run, s.name()), "stage {} not done", s.name());
+    }
+    for f in ["labels.json", "groups.json", "significance.bin", "scene.instgs", "report.md"] {
+        assert!(run.join(f).exists(), "{f} missing");
+    }
+    let report = std::fs::read_to_string(run.join("report.md")).unwrap();
+    assert!(report.contains("Instances discovered without masks"), "{report}");
+    // A bad --discover value is refused by the argument parser.
+    let mut a = args(d, r, c);
+    a.extend(["--discover", "1,2,3"]);
+    let o = run_bin(&a, &[]);
+    assert!(!o.ok && o.stderr.contains("--box") && o.stderr.contains("auto"), "{}", o.stderr);
 }
 
 /// One `error:` line containing every needle, and no training started (no checkpoint).

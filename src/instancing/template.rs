@@ -93,6 +93,32 @@ impl Default for Acceptance {
     }
 }
 
+impl InstanceOptions {
+    /// Registration settings for a reference object of `size` ([`object_size`]).
+    pub fn register_options(&self, size: f64) -> RegisterOptions {
+        RegisterOptions {
+            voxel: size * self.voxel_fraction,
+            with_scale: self.with_scale,
+            scale_tolerance: self.accept.scale_tolerance,
+            colour_weight: self.colour_weight,
+            seed: self.seed,
+            ..RegisterOptions::for_size(size)
+        }
+    }
+}
+
+/// An instance's registration cloud: the means and base colours (RGB of the SH DC, at least
+/// 0.01) of its Gaussians of opacity ≥ `min_opacity` (all of them when fewer than 16 are).
+pub fn registration_cloud(part: &Scene, min_opacity: f32) -> (Vec<[f64; 3]>, Vec<[f64; 3]>) {
+    let mut idx: Vec<usize> = (0..part.len()).filter(|&i| sigmoid(part.opacities[i]) >= min_opacity).collect();
+    if idx.len() < 16 {
+        idx = (0..part.len()).collect();
+    }
+    let c = part.sh_coeffs() * 3;
+    let rgb = |i: usize| std::array::from_fn(|a| (0.5 + SH_C0_F32 * part.sh[i * c + a]).max(0.01) as f64);
+    (idx.iter().map(|&i| to_f64(part.means[i])).collect(), idx.iter().map(|&i| rgb(i)).collect())
+}
+
 impl Default for InstanceOptions {
     fn default() -> Self {
         InstanceOptions {
@@ -396,31 +422,11 @@ pub fn instantiate(
             }
         }
         let parts: Vec<Scene> = g.ids.iter().map(|id| scene.select(&members[id])).collect();
-        // Registration clouds: the opaque Gaussians' means and base colours (RGB of the SH DC).
         type Clouds = Vec<Vec<[f64; 3]>>;
-        let (opaque, colours): (Clouds, Clouds) = parts
-            .iter()
-            .map(|p| {
-                let mut idx: Vec<usize> = (0..p.len()).filter(|&i| sigmoid(p.opacities[i]) >= o.min_opacity).collect();
-                if idx.len() < 16 {
-                    idx = (0..p.len()).collect();
-                }
-                let c = p.sh_coeffs() * 3;
-                let rgb = |i: usize| std::array::from_fn(|a| (0.5 + SH_C0_F32 * p.sh[i * c + a]).max(0.01) as f64);
-                (idx.iter().map(|&i| to_f64(p.means[i])).collect(), idx.iter().map(|&i| rgb(i)).collect())
-            })
-            .unzip();
+        let (opaque, colours): (Clouds, Clouds) = parts.iter().map(|p| registration_cloud(p, o.min_opacity)).unzip();
         // The reference: the most complete cloud (most opaque Gaussians; ties: the first).
         let r = (0..parts.len()).max_by_key(|&k| (opaque[k].len(), usize::MAX - k)).expect("instances");
-        let size = object_size(&opaque[r]);
-        let reg = RegisterOptions {
-            voxel: size * o.voxel_fraction,
-            with_scale: o.with_scale,
-            scale_tolerance: o.accept.scale_tolerance,
-            colour_weight: o.colour_weight,
-            seed: o.seed,
-            ..RegisterOptions::for_size(size)
-        };
+        let reg = o.register_options(object_size(&opaque[r]));
         // relative[k]: instance k's world → the reference's world; None: not instanced.
         let mut relative: Vec<Option<Sim3>> = vec![None; parts.len()];
         relative[r] = Some(Sim3::identity());
@@ -551,7 +557,7 @@ pub fn instantiate(
 /// if it still passes every check. Returns the pose and the verdict; `report` receives the kept
 /// (or, when refused, the most plausible) pose's checks.
 #[allow(clippy::too_many_arguments)]
-fn register_and_check(
+pub fn register_and_check(
     parts: &[Scene],
     opaque: &[Vec<[f64; 3]>],
     colours: &[Vec<[f64; 3]>],

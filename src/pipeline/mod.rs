@@ -47,6 +47,8 @@ enum MaskIds {
     Global,
     /// Ids that mean nothing across frames, with `masks/train/<stem>.json` categories.
     PerFrame,
+    /// No masks used: the instances are discovered (`train --discover`).
+    Discovered,
 }
 
 /// Checks the masks against the training views before any long work: every view has its
@@ -172,7 +174,10 @@ fn settings(s: Stage, a: &PipelineArgs, cfg: &PipelineConfig) -> Result<serde_js
             Some(p) => serde_json::json!({"init": std::fs::canonicalize(p).unwrap_or_else(|_| p.clone())}),
             None => serde_json::to_value(&cfg.plain)?,
         },
-        Stage::Segment => serde_json::to_value(&cfg.segment)?,
+        Stage::Segment => match &a.discover {
+            Some(spec) => serde_json::json!({"discover": format!("{spec:?}")}),
+            None => serde_json::to_value(&cfg.segment)?,
+        },
         Stage::Instance => serde_json::to_value(&cfg.instance)?,
         Stage::Joint => serde_json::to_value(&cfg.joint)?,
         Stage::Eval => serde_json::to_value(&cfg.eval)?,
@@ -205,7 +210,10 @@ pub fn run(a: PipelineArgs) -> Result<()> {
     let load = crate::dataset::LoadOptions { downscale: a.downscale, background: cfg.plain.background };
     let ds = crate::dataset::load(&a.data, &load)?;
     let what = ds.describe(&a.data)?;
-    let mask_ids = check_masks(&a.data, &ds)?;
+    let mask_ids = match &a.discover {
+        Some(_) => MaskIds::Discovered,
+        None => check_masks(&a.data, &ds)?,
+    };
     if let Some(p) = &a.init {
         // Read now: a bad file is refused before anything runs.
         crate::formats::read_scene(p)?;
@@ -257,11 +265,12 @@ pub fn run(a: PipelineArgs) -> Result<()> {
     }
     let (gpu, k) = crate::gpu::kernels::open_device(a.device.clone())?;
     eprintln!(
-        "{}: {what}, instance masks ({}); {}",
+        "{}: {what}, {}; {}",
         a.data.display(),
         match mask_ids {
-            MaskIds::Global => "ids grouped by instances.json",
-            MaskIds::PerFrame => "per-frame ids",
+            MaskIds::Global => "instance masks (ids grouped by instances.json)",
+            MaskIds::PerFrame => "instance masks (per-frame ids)",
+            MaskIds::Discovered => "instances discovered without masks",
         },
         gpu.describe()
     );
@@ -373,6 +382,7 @@ impl Ctx<'_> {
                 }
                 self.train(run, None, &self.cfg.plain, s, hooked)
             }
+            Stage::Segment if self.mask_ids == MaskIds::Discovered => self.discover(),
             Stage::Segment => {
                 let scene = crate::formats::ply::read_ply(&run.join("point_cloud.ply"))?;
                 let per_frame = self.mask_ids == MaskIds::PerFrame;
@@ -426,6 +436,7 @@ impl Ctx<'_> {
                         (g.clone(), Some(g))
                     }
                     MaskIds::PerFrame => (run.join("labels.json"), None),
+                    MaskIds::Discovered => (run.join("groups.json"), None),
                 };
                 let mut check = if c.render_check {
                     // Masks select the views only where their ids are the labels' ids.
@@ -433,7 +444,7 @@ impl Ctx<'_> {
                         MaskIds::Global => {
                             Some(crate::dataset::masks::load_masks(&self.a.data, "train", &self.ds.train)?)
                         }
-                        MaskIds::PerFrame => None,
+                        MaskIds::PerFrame | MaskIds::Discovered => None,
                     };
                     let cams = self.ds.train.iter().map(|v| v.camera.clone()).collect();
                     Some(crate::instancing::verify::ImageCheck::new(self.gpu, self.k, cams, masks)?)
@@ -563,6 +574,72 @@ impl Ctx<'_> {
         Ok(!r.interrupted)
     }
 
+    /// The segment stage without masks: `crate::discover` finds the instances (labels.json,
+    /// groups.json), and the plain scene's significance (every Gaussian's blending weight over
+    /// the training views, as segmentation measures it) is written for background pruning.
+    fn discover(&self) -> Result<bool> {
+        let run = self.run_dir();
+        let spec = self.a.discover.as_ref().expect("discovering");
+        let scene = crate::formats::ply::read_ply(&run.join("point_cloud.ply"))?;
+        let label = Stage::Segment.label();
+        let started = Instant::now();
+        let opts = crate::discover::DiscoverOptions {
+            instance: crate::instancing::template::InstanceOptions {
+                seed: self.cfg.instance.seed,
+                ..Default::default()
+            },
+            ..Default::default()
+        };
+        let found = crate::discover::run::search(
+            self.gpu,
+            self.k,
+            &scene,
+            spec,
+            &self.ds.train,
+            &opts,
+            self.cfg.instance.render_check,
+            |l| eprintln!("{label}{l}"),
+        )?;
+        if interrupted() {
+            return Ok(false);
+        }
+        let blank: Vec<Vec<u16>> =
+            self.ds.train.iter().map(|v| vec![0; (v.camera.width * v.camera.height) as usize]).collect();
+        let weight = crate::segment::segment(self.gpu, self.k, &scene, &self.ds.train, &blank, &[], 0.0)?.weight;
+        crate::util::write_atomic(&run.join("significance.bin"), |f| {
+            use std::io::Write;
+            f.write_all(bytemuck::cast_slice(&weight))
+        })?;
+        crate::discover::run::write_outputs(
+            &scene,
+            &found,
+            &self.a.data,
+            &run.join("labels.json"),
+            &run.join("groups.json"),
+            started.elapsed().as_secs_f64(),
+        )?;
+        let labels = found.labels(scene.len());
+        let instances: Vec<serde_json::Value> = found
+            .groups
+            .iter()
+            .filter(|g| g.members.len() > 1)
+            .flat_map(|g| {
+                g.members
+                    .iter()
+                    .map(move |m| serde_json::json!({"group": g.name, "id": m.id, "gaussians": m.gaussians.len()}))
+            })
+            .collect();
+        let summary = serde_json::json!({
+            "method": "discover",
+            "discover": format!("{spec:?}"),
+            "background": labels.iter().filter(|&&l| l == 0).count(),
+            "instances": instances,
+            "refused": found.refused,
+        });
+        crate::util::write_json(&run.join("segment.json"), &summary, true)?;
+        Ok(true)
+    }
+
     fn eval(&self) -> Result<bool> {
         let run = self.run_dir();
         let bg = self.cfg.plain.background;
@@ -667,7 +744,7 @@ pub fn train(a: PipelineArgs, resume: bool) -> Result<()> {
         Some(p) => crate::formats::detect(p)? == crate::formats::Format::Instgs,
         None => false,
     };
-    if has_masks(&a.data) && !is_instgs {
+    if (has_masks(&a.data) || a.discover.is_some()) && !is_instgs {
         return run(a);
     }
     if a.from.is_some() || a.until.is_some() {

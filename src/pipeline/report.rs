@@ -162,7 +162,21 @@ pub fn write(run: &Path, a: &PipelineArgs, stages: &[(Stage, bool, f64)]) -> Res
         }
     }
 
-    if let Some(s) = read(run, "segment.json") {
+    if let Some(s) = read(run, "segment.json").filter(|s| s["method"] == "discover") {
+        let _ = writeln!(
+            md,
+            "## Instances discovered without masks (`{}`)\n\nEvery instance below passed the instance stage's checks against the group's first (groups.json); refused candidates stay background.\n\n| group | instance | Gaussians |\n|---|---|---|",
+            s["discover"].as_str().unwrap_or("?")
+        );
+        for r in s["instances"].as_array().into_iter().flatten() {
+            let _ = writeln!(md, "| {} | {} | {} |", r["group"].as_str().unwrap_or("?"), r["id"], r["gaussians"]);
+        }
+        let _ = writeln!(md, "| background | | {} |\n", s["background"]);
+        for r in s["refused"].as_array().into_iter().flatten().filter_map(|r| r.as_str()) {
+            let _ = writeln!(md, "- refused: {r}");
+        }
+        md.push('\n');
+    } else if let Some(s) = read(run, "segment.json") {
         let _ = writeln!(
             md,
             "## Segmentation (gradient-driven, α = {:.2})\n\n| group | instance | Gaussians | held-out IoU |\n|---|---|---|---|",

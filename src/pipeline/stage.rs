@@ -54,6 +54,8 @@ pub struct PipelineArgs {
     pub iterations: Option<u64>,
     pub from: Option<Stage>,
     pub until: Option<Stage>,
+    /// Find the instances without masks (`crate::discover`) in the segment stage.
+    pub discover: Option<crate::discover::run::ExampleSpec>,
     pub progress: bool,
     pub device: Option<String>,
 }

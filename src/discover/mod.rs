@@ -1,0 +1,879 @@
+//! Repetition found in 3D (`instgs-vk discover`): instances of a plain scene found without
+//! per-instance masks, from one example or from none.
+//!
+//! * **From an example** ([`from_example`]): the example's Gaussians (a 3D box, a label of a
+//!   labels file, or one view's mask lifted into the scene, [`run`]) are matched against the
+//!   rest of the scene: FPFH features on voxel-downsampled opaque means (the registration's,
+//!   [`crate::register`]), each example point paired with its nearest scene features, and
+//!   RANSAC over 3-point samples drawn within one example size of each other, scored by the
+//!   example points that land on their paired scene points. The best placement is refined by ICP
+//!   onto the scene points around it; the Gaussians within reach of the placed example are the
+//!   candidate copy, which is then registered and checked like any instance
+//!   ([`register_and_check`]: two-sided fitness, scale against the clouds' size ratio, the render
+//!   check against the training views). An accepted copy's Gaussians leave the search and the
+//!   next round looks for another; the search ends when a round's best placements are all
+//!   refused.
+//! * **From none** ([`auto`]): the dominant plane of the opaque means (RANSAC, then least
+//!   squares) is taken as the support; what stands on it is split into connected clusters
+//!   (links of a few point spacings); clusters are grouped by registering each onto the
+//!   references of the groups found so far (largest first) with the same checks; each group's
+//!   reference (of groups with two members or more) then searches the rest of the scene as an
+//!   example does, for copies the clusters merged or missed. Groups with one member, and clusters that fit nothing, stay background.
+//!
+//! Poses are reported as in the instance stage: instance world → reference world.
+pub mod run;
+
+use std::collections::HashMap;
+
+use anyhow::Result;
+use kiddo::SquaredEuclidean;
+use nalgebra::{Matrix3, SymmetricEigen, Vector3};
+use rand::{Rng, SeedableRng};
+
+use crate::instancing::template::{
+    register_and_check, registration_cloud, InstanceOptions, InstanceReport, PoseCheck, RenderCheck, Status,
+};
+use crate::math::{sigmoid, tree};
+use crate::model::scene::Scene;
+use crate::register::{centroid, fpfh, icp, median_spacing, normals, object_size, umeyama_bounded, Sim3, FPFH_DIM};
+
+/// Settings of the search (configuration `[discover]`, configs/pipeline.toml).
+#[derive(Clone, Debug)]
+pub struct DiscoverOptions {
+    /// Registration and acceptance, as in the instance stage.
+    pub instance: InstanceOptions,
+    /// RANSAC samples per search round.
+    pub ransac_iterations: usize,
+    /// Placements checked per round, the best first; a round whose placements are all refused
+    /// ends the search.
+    pub placements_per_round: usize,
+    /// A placement counts when at least this fraction of the example's points land on a scene
+    /// point (and 2 % of them on their paired ones).
+    pub min_inlier_fraction: f64,
+    /// Gaussians within this many registration voxels of a placed example Gaussian make up the
+    /// candidate copy.
+    pub claim_voxels: f64,
+    /// Support plane (auto): its thickness in median spacings of the opaque Gaussians (a
+    /// trained surface is a thin sheet of them).
+    pub plane_spacings: f64,
+    /// Clusters (auto): at least this many opaque Gaussians.
+    pub min_cluster: usize,
+    /// Clusters (auto): at most this fraction of the scene's size.
+    pub max_cluster_size: f64,
+    /// Copies per group at most.
+    pub max_copies: usize,
+}
+
+impl Default for DiscoverOptions {
+    fn default() -> Self {
+        DiscoverOptions {
+            instance: InstanceOptions::default(),
+            ransac_iterations: 20_000,
+            placements_per_round: 2,
+            min_inlier_fraction: 0.5,
+            claim_voxels: 1.5,
+            plane_spacings: 2.5,
+            min_cluster: 30,
+            max_cluster_size: 0.4,
+            max_copies: 64,
+        }
+    }
+}
+
+/// One instance found: its Gaussians (scene indices) and its pose onto the group's reference.
+#[derive(Clone, Debug)]
+pub struct Member {
+    pub id: u32,
+    pub gaussians: Vec<usize>,
+    /// Instance world → reference world (identity for the reference).
+    pub relative: Sim3,
+    /// The checks of that pose (None for the reference).
+    pub report: Option<InstanceReport>,
+}
+
+/// A group: its reference (the example, or the largest cluster) first.
+#[derive(Clone, Debug)]
+pub struct FoundGroup {
+    pub name: String,
+    pub members: Vec<Member>,
+}
+
+/// What a search found and what it refused.
+#[derive(Clone, Debug, Default)]
+pub struct Discovery {
+    pub groups: Vec<FoundGroup>,
+    /// One line per refused candidate: where, and why.
+    pub refused: Vec<String>,
+}
+
+impl Discovery {
+    /// Per-Gaussian labels (0 = background) of the groups with at least two members.
+    pub fn labels(&self, n: usize) -> Vec<u32> {
+        let mut labels = vec![0; n];
+        for g in self.groups.iter().filter(|g| g.members.len() > 1) {
+            for m in &g.members {
+                for &i in &m.gaussians {
+                    labels[i] = m.id;
+                }
+            }
+        }
+        labels
+    }
+}
+
+/// Ids under which candidates meet the render check (which caches each id's own renders);
+/// far above any instance id.
+static CHECK_IDS: std::sync::atomic::AtomicU32 = std::sync::atomic::AtomicU32::new(1 << 30);
+
+fn opaque(scene: &Scene, i: usize, min_opacity: f32) -> bool {
+    sigmoid(scene.opacities[i]) >= min_opacity
+}
+
+fn f64s(p: [f32; 3]) -> [f64; 3] {
+    p.map(|c| c as f64)
+}
+
+fn dist2(a: &[f64; 3], b: &[f64; 3]) -> f64 {
+    (0..3).map(|k| (a[k] - b[k]).powi(2)).sum()
+}
+
+/// Voxel cells of a cloud: centroids and the indices (into the cloud) of each cell's points.
+fn voxel_cells(points: &[[f64; 3]], voxel: f64) -> (Vec<[f64; 3]>, Vec<Vec<usize>>) {
+    let mut cells: HashMap<[i64; 3], usize> = HashMap::new();
+    let mut members: Vec<Vec<usize>> = Vec::new();
+    for (j, p) in points.iter().enumerate() {
+        let key = p.map(|c| (c / voxel).floor() as i64);
+        let i = *cells.entry(key).or_insert_with(|| {
+            members.push(Vec::new());
+            members.len() - 1
+        });
+        members[i].push(j);
+    }
+    let centres = members
+        .iter()
+        .map(|m| {
+            let mut c = [0.0; 3];
+            for &j in m {
+                for a in 0..3 {
+                    c[a] += points[j][a] / m.len() as f64;
+                }
+            }
+            c
+        })
+        .collect();
+    (centres, members)
+}
+
+/// The sample's edges in `b` are those of `a` times one scale (each pair of ratios within
+/// `ratio`), and that scale lies in `range` (1 without).
+fn edges_fit(a: &[[f64; 3]], b: &[[f64; 3]], ratio: f64, range: Option<(f64, f64)>) -> bool {
+    let mut k = Vec::with_capacity(3);
+    for i in 0..a.len() {
+        for j in i + 1..a.len() {
+            let (x, y) = (dist2(&a[i], &a[j]).sqrt(), dist2(&b[i], &b[j]).sqrt());
+            if x <= 0.0 {
+                return false;
+            }
+            k.push(y / x);
+        }
+    }
+    let lo = k.iter().copied().fold(f64::INFINITY, f64::min);
+    let hi = k.iter().copied().fold(0.0, f64::max);
+    let (min, max) = range.unwrap_or((1.0, 1.0));
+    lo >= ratio * hi && lo >= ratio * min && hi * ratio <= max
+}
+
+/// The `k` nearest of `set` to `f` (Euclidean), nearest first; `skip` leaves entries out.
+fn nearest_k(f: &[f64; FPFH_DIM], set: &[[f64; FPFH_DIM]], k: usize, skip: &[bool]) -> Vec<usize> {
+    let mut best: Vec<(f64, usize)> = Vec::with_capacity(k + 1);
+    for (j, g) in set.iter().enumerate() {
+        if skip[j] {
+            continue;
+        }
+        let d: f64 = f.iter().zip(g).map(|(a, b)| (a - b) * (a - b)).sum();
+        if best.len() < k || d < best[k - 1].0 {
+            let at = best.partition_point(|b| b.0 <= d);
+            best.insert(at, (d, j));
+            best.truncate(k);
+        }
+    }
+    best.into_iter().map(|b| b.1).collect()
+}
+
+/// [`registration_cloud`] of the Gaussians of `part` that stand on `support` (all of them
+/// where fewer than 16 do, or without a support plane): a patch of floor is no part of an
+/// object's shape.
+fn object_cloud(part: &Scene, support: Option<&Support>, min_opacity: f32) -> (Vec<[f64; 3]>, Vec<[f64; 3]>) {
+    if let Some(s) = support {
+        let up: Vec<usize> = (0..part.len()).filter(|&i| s.height(part.means[i]) > 1.5 * s.thickness).collect();
+        if up.len() >= 16 {
+            return registration_cloud(&part.select(&up), min_opacity);
+        }
+    }
+    registration_cloud(part, min_opacity)
+}
+
+/// Searches `available` Gaussians of `scene` for copies of the reference (`reference`: scene
+/// indices) and checks each; accepted copies' Gaussians are taken out of `available`. Ids are
+/// drawn from `next_id`; `progress` gets one line per candidate.
+#[allow(clippy::too_many_arguments)]
+fn search_copies(
+    scene: &Scene,
+    reference: &Member,
+    support: Option<&Support>,
+    group: &str,
+    available: &mut [bool],
+    o: &DiscoverOptions,
+    render_check: &mut Option<&mut dyn RenderCheck>,
+    next_id: &mut u32,
+    refused: &mut Vec<String>,
+    progress: &mut dyn FnMut(&str),
+) -> Result<Vec<Member>> {
+    let io = &o.instance;
+    let ref_scene = scene.select(&reference.gaussians);
+    let (e_pts, e_rgb) = object_cloud(&ref_scene, support, io.min_opacity);
+    let size = object_size(&e_pts);
+    let reg = io.register_options(size);
+    let voxel = reg.voxel;
+    let (e, _) = voxel_cells(&e_pts, voxel);
+    if e.len() < 8 || size <= 0.0 {
+        refused.push(format!("{group}: the reference has too few points to search with ({} voxels)", e.len()));
+        return Ok(Vec::new());
+    }
+    let fe = fpfh(&e, &normals(&e, 2.0 * voxel, 30), 5.0 * voxel, 100);
+    // The scene's opaque available Gaussians, voxelised once; a voxel leaves the search when
+    // all its Gaussians are taken.
+    let pool: Vec<usize> = (0..scene.len()).filter(|&i| available[i] && opaque(scene, i, io.min_opacity)).collect();
+    let pool_pts: Vec<[f64; 3]> = pool.iter().map(|&i| f64s(scene.means[i])).collect();
+    if pool_pts.len() < 8 {
+        return Ok(Vec::new());
+    }
+    let (s, cells) = voxel_cells(&pool_pts, voxel);
+    let fs = fpfh(&s, &normals(&s, 2.0 * voxel, 30), 5.0 * voxel, 100);
+    let range = io.with_scale.then(|| (1.0 / (1.0 + io.accept.scale_tolerance), 1.0 + io.accept.scale_tolerance));
+    let dist = 1.5 * voxel;
+    let mut rng = rand_pcg::Pcg64::seed_from_u64(io.seed ^ 0x5eed);
+    let mut found = Vec::new();
+    // Placements refused so far (their centres): not proposed again.
+    let mut tried: Vec<[f64; 3]> = Vec::new();
+    let e_centre = centroid(&e);
+    // The example's reach from that centre: every Gaussian of it (floor patches included).
+    let radius = ref_scene.means.iter().map(|m| dist2(&f64s(*m), &e_centre.into()).sqrt()).fold(0.0, f64::max);
+    'rounds: while found.len() < o.max_copies {
+        let gone: Vec<bool> = cells.iter().map(|m| m.iter().all(|&j| !available[pool[j]])).collect();
+        // Each example point paired with its 4 nearest scene features.
+        let corr: Vec<(usize, usize)> =
+            (0..e.len()).flat_map(|i| nearest_k(&fe[i], &fs, 4, &gone).into_iter().map(move |j| (i, j))).collect();
+        if corr.len() < 3 {
+            break;
+        }
+        // Correspondences binned by their scene point on a grid of the example's size.
+        let cell = |p: &[f64; 3]| p.map(|c| (c / size).floor() as i64);
+        let mut grid: HashMap<[i64; 3], Vec<usize>> = HashMap::new();
+        for (c, &(_, j)) in corr.iter().enumerate() {
+            grid.entry(cell(&s[j])).or_default().push(c);
+        }
+        let near = |p: &[f64; 3]| {
+            let k = cell(p);
+            let mut v = Vec::new();
+            for dx in -1..=1 {
+                for dy in -1..=1 {
+                    for dz in -1..=1 {
+                        if let Some(list) = grid.get(&[k[0] + dx, k[1] + dy, k[2] + dz]) {
+                            v.extend_from_slice(list);
+                        }
+                    }
+                }
+            }
+            v
+        };
+        let min_inliers = ((0.02 * e.len() as f64).ceil() as usize).max(6);
+        // Placements are scored by the example points that land on an available scene point.
+        let live: Vec<[f64; 3]> = (0..s.len()).filter(|&j| !gone[j]).map(|j| s[j]).collect();
+        let live_tree = tree(&live);
+        let stride = e.len().div_ceil(256);
+        let probe: Vec<[f64; 3]> = e.iter().step_by(stride).copied().collect();
+        let mut best: Vec<(usize, Sim3)> = Vec::new();
+        for _ in 0..o.ransac_iterations {
+            let c0 = rng.random_range(0..corr.len());
+            let around = near(&s[corr[c0].1]);
+            if around.len() < 3 {
+                continue;
+            }
+            let c1 = around[rng.random_range(0..around.len())];
+            let c2 = around[rng.random_range(0..around.len())];
+            let idx = [c0, c1, c2];
+            let a: Vec<[f64; 3]> = idx.iter().map(|&c| e[corr[c].0]).collect();
+            let b: Vec<[f64; 3]> = idx.iter().map(|&c| s[corr[c].1]).collect();
+            if (0..3).any(|i| (0..i).any(|k| corr[idx[i]].0 == corr[idx[k]].0 || corr[idx[i]].1 == corr[idx[k]].1)) {
+                continue;
+            }
+            if !edges_fit(&a, &b, reg.edge_ratio, range) {
+                continue;
+            }
+            let Some(x) = umeyama_bounded(&a, &b, range) else { continue };
+            if a.iter().zip(&b).any(|(p, q)| dist2(&x.apply(p), q) > dist * dist) {
+                continue;
+            }
+            let placed = x.apply(&e_centre.into());
+            if tried.iter().any(|t| dist2(t, &placed) < (0.5 * size).powi(2)) {
+                continue;
+            }
+            let mut hit = vec![false; e.len()];
+            for &c in &around {
+                let (i, j) = corr[c];
+                if dist2(&x.apply(&e[i]), &s[j]) <= dist * dist {
+                    hit[i] = true;
+                }
+            }
+            if hit.iter().filter(|&&h| h).count() < min_inliers {
+                continue;
+            }
+            let landed = probe
+                .iter()
+                .filter(|p| live_tree.nearest_one::<SquaredEuclidean>(&x.apply(p)).distance <= dist * dist)
+                .count();
+            let inliers = landed * 1000 / probe.len();
+            if (inliers as f64) < 1000.0 * o.min_inlier_fraction {
+                continue;
+            }
+            // One entry per placement (centres closer than half the size are one place).
+            if let Some(k) =
+                best.iter().position(|(_, y)| dist2(&y.apply(&e_centre.into()), &placed) < (0.5 * size).powi(2))
+            {
+                if inliers > best[k].0 {
+                    best[k] = (inliers, x);
+                }
+            } else {
+                best.push((inliers, x));
+            }
+        }
+        best.sort_by_key(|b| std::cmp::Reverse(b.0));
+        if best.is_empty() {
+            break;
+        }
+        for (inliers, x) in best.into_iter().take(o.placements_per_round) {
+            let placed_centre = x.apply(&e_centre.into());
+            tried.push(placed_centre);
+            // ICP of the example onto the available scene points around the placement.
+            let local: Vec<[f64; 3]> = pool
+                .iter()
+                .filter(|&&i| available[i])
+                .map(|&i| f64s(scene.means[i]))
+                .filter(|p| dist2(p, &placed_centre) <= (0.75 * size * x.scale).powi(2))
+                .collect();
+            if local.len() < 8 {
+                continue;
+            }
+            let x = icp(&e_pts, &local, x, dist, 30, range, false);
+            let x = icp(&e_pts, &local, x, 0.5 * voxel, 30, range, false);
+            // The candidate copy: available Gaussians near a placed reference Gaussian.
+            let placed: Vec<[f64; 3]> = ref_scene.means.iter().map(|m| x.apply(&f64s(*m))).collect();
+            let t = tree(&placed);
+            let reach = (o.claim_voxels * voxel * x.scale).powi(2);
+            let claim: Vec<usize> = (0..scene.len())
+                .filter(|&i| available[i])
+                .filter(|&i| {
+                    let p = f64s(scene.means[i]);
+                    dist2(&p, &placed_centre) <= (1.05 * radius * x.scale).powi(2)
+                        && t.nearest_one::<SquaredEuclidean>(&p).distance <= reach
+                })
+                .collect();
+            let where_ = format!("[{:.3}, {:.3}, {:.3}]", placed_centre[0], placed_centre[1], placed_centre[2]);
+            let part = scene.select(&claim);
+            let (c_pts, c_rgb) = object_cloud(&part, support, io.min_opacity);
+            if c_pts.len() < e_pts.len() / 4 {
+                refused.push(format!(
+                    "{group}: candidate at {where_}: {} opaque Gaussians where the reference has {}",
+                    c_pts.len(),
+                    e_pts.len()
+                ));
+                continue;
+            }
+            let id = *next_id;
+            // The render check keys its cache by id: each candidate gets its own.
+            let check_id = CHECK_IDS.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+            let mut report = InstanceReport {
+                group: group.to_string(),
+                id,
+                reference: reference.id,
+                gaussians: claim.len(),
+                relative: Sim3::identity(),
+                check: PoseCheck::perfect(),
+                render: None,
+                tried: 0,
+                shape_ambiguous: false,
+                status: Status::Reference,
+            };
+            let parts = [ref_scene.clone(), part];
+            let (pose, status) = register_and_check(
+                &parts,
+                &[e_pts.clone(), c_pts],
+                &[e_rgb.clone(), c_rgb],
+                1,
+                0,
+                &reg,
+                io,
+                render_check,
+                &mut report,
+                group,
+                &[reference.id, check_id],
+            )?;
+            report.relative = pose;
+            report.status = status.clone();
+            let scores = format!(
+                "fitness {:.2} / {:.2}, scale {:.3}{}; placed with {:.0} % of {} points landing",
+                report.check.fitness,
+                report.check.fitness_reverse,
+                pose.scale,
+                report.render.map(|s| format!(", render IoU {:.2} PSNR {:.1} dB", s.iou, s.psnr)).unwrap_or_default(),
+                inliers as f64 / 10.0,
+                e.len()
+            );
+            match status {
+                Status::Accepted => {
+                    *next_id += 1;
+                    for &i in &claim {
+                        available[i] = false;
+                    }
+                    progress(&format!("{group}: copy {id} at {where_}, {} Gaussians ({scores})", claim.len()));
+                    found.push(Member { id, gaussians: claim, relative: pose, report: Some(report) });
+                    continue 'rounds;
+                }
+                other => {
+                    let why = other.reason().unwrap_or("refused").to_string();
+                    progress(&format!("{group}: candidate at {where_} refused: {why} ({scores})"));
+                    refused.push(format!("{group}: candidate at {where_}: {why}"));
+                }
+            }
+        }
+        break;
+    }
+    Ok(found)
+}
+
+/// Finds the copies of the example (`example`: scene indices, the group's reference).
+pub fn from_example(
+    scene: &Scene,
+    example: &[usize],
+    o: &DiscoverOptions,
+    mut render_check: Option<&mut dyn RenderCheck>,
+    mut progress: impl FnMut(&str),
+) -> Result<Discovery> {
+    if example.is_empty() {
+        anyhow::bail!("the example holds no Gaussian");
+    }
+    let mut available = vec![true; scene.len()];
+    let mut example = example.to_vec();
+    // A dominant support plane (a tenth of the scene's cells or more) belongs to no object: a
+    // box drawn around an object holds some of it, the copies' surroundings too. Its Gaussians
+    // (1.5 plane thicknesses up) leave the example and the search, as they leave `auto`'s
+    // clusters: every copy is then cut from the floor alike.
+    let mut support = find_support(scene, o, &mut progress).ok().filter(|s| s.share >= 0.1);
+    if let Some(s) = support {
+        let on = |i: usize| s.height(scene.means[i]) <= 1.5 * s.thickness;
+        let kept: Vec<usize> = example.iter().copied().filter(|&i| !on(i)).collect();
+        if kept.len() >= 16 {
+            if kept.len() < example.len() {
+                progress(&format!("the example leaves {} Gaussians on the support plane", example.len() - kept.len()));
+            }
+            example = kept;
+            for (i, a) in available.iter_mut().enumerate() {
+                *a = !on(i);
+            }
+        } else {
+            support = None;
+        }
+    }
+    // The example grows by the rule that makes a copy of it: every available Gaussian within
+    // `claim_voxels` registration voxels of one of its Gaussians (so that the two are cut from
+    // their surroundings alike, e.g. both with the floor just around them).
+    let ex_scene = scene.select(&example);
+    let (pts, _) = object_cloud(&ex_scene, support.as_ref(), o.instance.min_opacity);
+    let reach = o.claim_voxels * o.instance.register_options(object_size(&pts)).voxel;
+    if reach > 0.0 && !example.is_empty() {
+        let ex_means: Vec<[f64; 3]> = ex_scene.means.iter().map(|m| f64s(*m)).collect();
+        let t = tree(&ex_means);
+        let mut inside = vec![false; scene.len()];
+        for &i in &example {
+            inside[i] = true;
+        }
+        let grown: Vec<usize> = (0..scene.len())
+            .filter(|&i| {
+                inside[i]
+                    || (available[i]
+                        && t.nearest_one::<SquaredEuclidean>(&f64s(scene.means[i])).distance <= reach * reach)
+            })
+            .collect();
+        example = grown;
+    }
+    for &i in &example {
+        available[i] = false;
+    }
+    let reference = Member { id: 1, gaussians: example, relative: Sim3::identity(), report: None };
+    let mut next_id = 2;
+    let mut out = Discovery::default();
+    let copies = search_copies(
+        scene,
+        &reference,
+        support.as_ref(),
+        "example",
+        &mut available,
+        o,
+        &mut render_check,
+        &mut next_id,
+        &mut out.refused,
+        &mut progress,
+    )?;
+    let mut members = vec![reference];
+    members.extend(copies);
+    out.groups.push(FoundGroup { name: "example".into(), members });
+    Ok(out)
+}
+
+/// The dominant plane of `points`: unit normal n and offset d (n·p = d for points on it), and
+/// the number of points within `thickness`. RANSAC over 3-point samples (seeded), refined by
+/// least squares on its inliers. None for fewer than 3 points.
+pub fn support_plane(points: &[[f64; 3]], thickness: f64, seed: u64) -> Option<(Vector3<f64>, f64, usize)> {
+    if points.len() < 3 {
+        return None;
+    }
+    let mut rng = rand_pcg::Pcg64::seed_from_u64(seed);
+    let count = |n: &Vector3<f64>, d: f64| {
+        points.iter().filter(|p| (n.dot(&Vector3::from(**p)) - d).abs() <= thickness).count()
+    };
+    let mut best: Option<(usize, Vector3<f64>, f64)> = None;
+    for _ in 0..1000 {
+        let [a, b, c] = [0; 3].map(|_| Vector3::from(points[rng.random_range(0..points.len())]));
+        let n = (b - a).cross(&(c - a));
+        if n.norm() < 1e-12 {
+            continue;
+        }
+        let n = n.normalize();
+        let d = n.dot(&a);
+        let k = count(&n, d);
+        if best.as_ref().is_none_or(|b| k > b.0) {
+            best = Some((k, n, d));
+        }
+    }
+    let (_, n, d) = best?;
+    let inl: Vec<Vector3<f64>> =
+        points.iter().map(|p| Vector3::from(*p)).filter(|p| (n.dot(p) - d).abs() <= thickness).collect();
+    let m = inl.iter().fold(Vector3::zeros(), |a, p| a + p) / inl.len() as f64;
+    let cov = inl.iter().fold(Matrix3::zeros(), |a, p| a + (p - m) * (p - m).transpose());
+    let e = SymmetricEigen::new(cov);
+    let mut n2: Vector3<f64> = e.eigenvectors.column(e.eigenvalues.imin()).into_owned();
+    if n2.dot(&n) < 0.0 {
+        n2 = -n2;
+    }
+    let d2 = n2.dot(&m);
+    Some((n2, d2, count(&n2, d2)))
+}
+
+/// Connected components of `points` linked within `link` (union–find over a k-d tree's radius
+/// queries), largest first; each a list of indices.
+pub fn clusters(points: &[[f64; 3]], link: f64) -> Vec<Vec<usize>> {
+    fn root(p: &mut [usize], mut i: usize) -> usize {
+        while p[i] != i {
+            p[i] = p[p[i]];
+            i = p[i];
+        }
+        i
+    }
+    if points.is_empty() {
+        return Vec::new();
+    }
+    let t = tree(points);
+    let mut parent: Vec<usize> = (0..points.len()).collect();
+    for (i, p) in points.iter().enumerate() {
+        for nb in t.within_unsorted::<SquaredEuclidean>(p, link * link) {
+            let (a, b) = (root(&mut parent, i), root(&mut parent, nb.item as usize));
+            if a != b {
+                parent[a.max(b)] = a.min(b);
+            }
+        }
+    }
+    let mut by_root: HashMap<usize, Vec<usize>> = HashMap::new();
+    for i in 0..points.len() {
+        let r = root(&mut parent, i);
+        by_root.entry(r).or_default().push(i);
+    }
+    let mut out: Vec<Vec<usize>> = by_root.into_values().collect();
+    out.sort_by_key(|c| (std::cmp::Reverse(c.len()), c[0]));
+    out
+}
+
+/// The scene's support plane: points p with normal·p − offset ≤ `thickness` lie on it; the
+/// normal points to the side where more of the scene stands.
+#[derive(Clone, Copy, Debug)]
+pub struct Support {
+    pub normal: Vector3<f64>,
+    pub offset: f64,
+    pub thickness: f64,
+    /// Fraction of the scene's occupied cells (of `thickness`) on the plane.
+    pub share: f64,
+}
+
+impl Support {
+    /// Height of `p` above the plane.
+    pub fn height(&self, p: [f32; 3]) -> f64 {
+        self.normal.dot(&Vector3::from(f64s(p))) - self.offset
+    }
+}
+
+/// [`support_plane`] of the scene's opaque means, `o.plane_spacings` median spacings thick.
+pub fn find_support(scene: &Scene, o: &DiscoverOptions, progress: &mut dyn FnMut(&str)) -> Result<Support> {
+    let pts: Vec<[f64; 3]> =
+        (0..scene.len()).filter(|&i| opaque(scene, i, o.instance.min_opacity)).map(|i| f64s(scene.means[i])).collect();
+    if pts.len() < 3 {
+        anyhow::bail!("the scene has too few opaque Gaussians ({}) to search", pts.len());
+    }
+    let thickness = o.plane_spacings * median_spacing(&pts);
+    let (coarse, _) = voxel_cells(&pts, thickness);
+    let Some((mut n, mut d, on)) = support_plane(&coarse, thickness, o.instance.seed) else {
+        anyhow::bail!("no support plane found");
+    };
+    // Up: the side of the plane with more of the rest.
+    let above = pts.iter().filter(|p| n.dot(&Vector3::from(**p)) - d > thickness).count();
+    let below = pts.iter().filter(|p| n.dot(&Vector3::from(**p)) - d < -thickness).count();
+    if below > above {
+        (n, d) = (-n, -d);
+    }
+    // The plane is as thick as its Gaussians spread about it (4 × their median distance),
+    // between a tenth of the search's thickness and all of it: a flat floor cuts off no more
+    // of what stands on it than it must.
+    let mut h: Vec<f64> =
+        pts.iter().map(|p| (n.dot(&Vector3::from(*p)) - d).abs()).filter(|&h| h <= thickness).collect();
+    h.sort_by(f64::total_cmp);
+    let spread = h.get(h.len() / 2).copied().unwrap_or(thickness);
+    let thickness = (4.0 * spread).clamp(0.1 * thickness, thickness);
+    progress(&format!(
+        "support plane: normal [{:.3}, {:.3}, {:.3}], {} of {} occupied cells on it ({:.4} thick)",
+        n[0],
+        n[1],
+        n[2],
+        on,
+        coarse.len(),
+        thickness
+    ));
+    Ok(Support { normal: n, offset: d, thickness, share: on as f64 / coarse.len() as f64 })
+}
+
+/// Finds groups of repeated objects with no example ([`auto`] in the module docs).
+pub fn auto(
+    scene: &Scene,
+    o: &DiscoverOptions,
+    mut render_check: Option<&mut dyn RenderCheck>,
+    mut progress: impl FnMut(&str),
+) -> Result<Discovery> {
+    let io = &o.instance;
+    let op: Vec<usize> = (0..scene.len()).filter(|&i| opaque(scene, i, io.min_opacity)).collect();
+    let pts: Vec<[f64; 3]> = op.iter().map(|&i| f64s(scene.means[i])).collect();
+    let scene_size = object_size(&pts);
+    if pts.len() < 3 || scene_size <= 0.0 {
+        anyhow::bail!("the scene has too few opaque Gaussians ({}) to search", pts.len());
+    }
+    let support = find_support(scene, o, &mut progress)?;
+    let (n, d, thickness) = (support.normal, support.offset, support.thickness);
+    let standing: Vec<usize> =
+        (0..pts.len()).filter(|&k| n.dot(&Vector3::from(pts[k])) - d > 1.5 * thickness).collect();
+    let standing_pts: Vec<[f64; 3]> = standing.iter().map(|&k| pts[k]).collect();
+    let link = (3.0 * median_spacing(&standing_pts)).max(0.5 * thickness);
+    let found: Vec<Vec<usize>> = clusters(&standing_pts, link)
+        .into_iter()
+        .filter(|c| c.len() >= o.min_cluster)
+        .filter(|c| {
+            let cp: Vec<[f64; 3]> = c.iter().map(|&k| standing_pts[k]).collect();
+            object_size(&cp) <= o.max_cluster_size * scene_size
+        })
+        .collect();
+    progress(&format!("{} object candidates stand on it (links of {:.4})", found.len(), link));
+    // Every Gaussian near a candidate's points (within one link) belongs to it.
+    let mut owner = vec![usize::MAX; standing_pts.len()];
+    for (c, members) in found.iter().enumerate() {
+        for &k in members {
+            owner[k] = c;
+        }
+    }
+    let t = tree(&standing_pts);
+    let mut gaussians: Vec<Vec<usize>> = vec![Vec::new(); found.len()];
+    for i in 0..scene.len() {
+        let nn = t.nearest_one::<SquaredEuclidean>(&f64s(scene.means[i]));
+        let c = owner[nn.item as usize];
+        if c != usize::MAX && nn.distance <= link * link && n.dot(&Vector3::from(f64s(scene.means[i]))) - d > thickness
+        {
+            gaussians[c].push(i);
+        }
+    }
+    // Grouping: each candidate (largest first) onto the references of the groups so far.
+    let mut out = Discovery::default();
+    let mut next_id = 1u32;
+    let mut groups: Vec<FoundGroup> = Vec::new();
+    for members in gaussians {
+        let part = scene.select(&members);
+        let (c_pts, c_rgb) = object_cloud(&part, Some(&support), io.min_opacity);
+        let c_size = object_size(&c_pts);
+        let id = next_id;
+        next_id += 1;
+        let centre = centroid(&c_pts);
+        let where_ = format!("[{:.3}, {:.3}, {:.3}]", centre[0], centre[1], centre[2]);
+        let mut joined = false;
+        for g in groups.iter_mut() {
+            let r = &g.members[0];
+            let r_scene = scene.select(&r.gaussians);
+            let (r_pts, r_rgb) = object_cloud(&r_scene, Some(&support), io.min_opacity);
+            // Candidates of another size or density are not tried (ratios past 1.5 and 3).
+            let ratio = c_size / object_size(&r_pts);
+            let count = c_pts.len() as f64 / r_pts.len() as f64;
+            if !(1.0 / 1.5..=1.5).contains(&ratio) || !(1.0 / 3.0..=3.0).contains(&count) {
+                continue;
+            }
+            let reg = io.register_options(object_size(&r_pts));
+            let mut report = InstanceReport {
+                group: g.name.clone(),
+                id,
+                reference: r.id,
+                gaussians: members.len(),
+                relative: Sim3::identity(),
+                check: PoseCheck::perfect(),
+                render: None,
+                tried: 0,
+                shape_ambiguous: false,
+                status: Status::Reference,
+            };
+            let (pose, status) = register_and_check(
+                &[r_scene, part.clone()],
+                &[r_pts, c_pts.clone()],
+                &[r_rgb, c_rgb.clone()],
+                1,
+                0,
+                &reg,
+                io,
+                &mut render_check,
+                &mut report,
+                &g.name,
+                &[r.id, id],
+            )?;
+            report.relative = pose;
+            report.status = status.clone();
+            if status == Status::Accepted {
+                progress(&format!(
+                    "candidate {id} at {where_} ({} Gaussians) joins {} (fitness {:.2} / {:.2}{})",
+                    members.len(),
+                    g.name,
+                    report.check.fitness,
+                    report.check.fitness_reverse,
+                    report
+                        .render
+                        .map(|s| format!(", render IoU {:.2} PSNR {:.1} dB", s.iou, s.psnr))
+                        .unwrap_or_default()
+                ));
+                g.members.push(Member { id, gaussians: members.clone(), relative: pose, report: Some(report) });
+                joined = true;
+                break;
+            }
+            out.refused.push(format!(
+                "candidate {id} at {where_} onto {}: {}",
+                g.name,
+                status.reason().unwrap_or("refused")
+            ));
+        }
+        if !joined {
+            let name = format!("group{}", groups.len() + 1);
+            progress(&format!("candidate {id} at {where_} ({} Gaussians) starts {name}", members.len()));
+            groups.push(FoundGroup {
+                name,
+                members: vec![Member { id, gaussians: members, relative: Sim3::identity(), report: None }],
+            });
+        }
+    }
+    // Copies the clusters merged or missed: each group's reference searches the rest.
+    let mut available = vec![true; scene.len()];
+    for g in &groups {
+        for m in &g.members {
+            for &i in &m.gaussians {
+                available[i] = false;
+            }
+        }
+    }
+    for g in groups.iter_mut().filter(|g| g.members.len() > 1) {
+        let reference = g.members[0].clone();
+        let more = search_copies(
+            scene,
+            &reference,
+            Some(&support),
+            &g.name,
+            &mut available,
+            o,
+            &mut render_check,
+            &mut next_id,
+            &mut out.refused,
+            &mut progress,
+        )?;
+        g.members.extend(more);
+    }
+    for g in &groups {
+        if g.members.len() == 1 {
+            progress(&format!("{}: one member ({}), stays background", g.name, g.members[0].id));
+        }
+    }
+    out.groups = groups;
+    Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_support_plane_is_found_tilted_and_thin() {
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(3);
+        let n = Vector3::new(0.1, -0.2, 1.0).normalize();
+        let (u, v) = (n.cross(&Vector3::x()).normalize(), n.cross(&n.cross(&Vector3::x())).normalize());
+        let mut pts: Vec<[f64; 3]> = (0..3000)
+            .map(|_| {
+                let p = u * rng.random_range(-2.0..2.0)
+                    + v * rng.random_range(-2.0..2.0)
+                    + n * (0.5 + rng.random_range(-0.002..0.002));
+                [p.x, p.y, p.z]
+            })
+            .collect();
+        // Two blobs above it.
+        for c in [u * 0.5 + n * 0.8, -u * 0.7 + n * 0.9] {
+            for _ in 0..500 {
+                let p = c + Vector3::new(
+                    rng.random_range(-0.1..0.1),
+                    rng.random_range(-0.1..0.1),
+                    rng.random_range(-0.1..0.1),
+                );
+                pts.push([p.x, p.y, p.z]);
+            }
+        }
+        let (m, d, on) = support_plane(&pts, 0.01, 0).unwrap();
+        assert!(m.dot(&n).abs() > 0.9999, "normal {m:?}");
+        assert!((d * m.dot(&n).signum() - 0.5).abs() < 1e-3, "offset {d}");
+        assert!((2990..=3000).contains(&on), "{on} on the plane");
+    }
+
+    #[test]
+    fn clusters_split_at_gaps_wider_than_the_link() {
+        let line = |x0: f64, n: usize| (0..n).map(move |i| [x0 + 0.01 * i as f64, 0.0, 0.0]);
+        let pts: Vec<[f64; 3]> = line(0.0, 50).chain(line(1.0, 30)).chain(line(0.6, 20)).collect();
+        let c = clusters(&pts, 0.015);
+        let sizes: Vec<usize> = c.iter().map(|c| c.len()).collect();
+        assert_eq!(sizes, [50, 30, 20]);
+        assert_eq!(clusters(&pts, 0.5).len(), 1);
+    }
+
+    #[test]
+    fn edges_fit_needs_one_scale_in_range() {
+        let a = [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 2.0, 0.0]];
+        let b = a.map(|p| p.map(|c| 1.1 * c + 3.0));
+        assert!(edges_fit(&a, &b, 0.9, Some((0.8, 1.25))));
+        let far = a.map(|p| p.map(|c| 1.3 * c));
+        assert!(!edges_fit(&a, &far, 0.9, None), "rigid: scale 1.3 is refused");
+        let mut c = b;
+        c[2][1] *= 1.5;
+        assert!(!edges_fit(&a, &c, 0.9, Some((0.8, 1.25))), "no common scale");
+    }
+}
