@@ -39,6 +39,9 @@ pub fn instance(
     let labels_path = labels;
     let labels = template::read_labels(labels_path, scene.len())?;
     let groups = crate::dataset::masks::read_groups(groups_path)?;
+    let mut opts = opts.clone();
+    opts.starts = read_starting_poses(groups_path)?;
+    let opts = &opts;
     let known: std::collections::BTreeSet<u32> = groups.iter().flat_map(|g| g.ids.iter().copied()).collect();
     if let Some(l) = labels.iter().find(|&&l| l != 0 && !known.contains(&l)) {
         bail!("{}: label {l} is not an instance of {}", labels_path.display(), groups_path.display());
@@ -172,6 +175,47 @@ pub fn compose(
         scene.rows()
     );
     Ok(())
+}
+
+/// The `to_reference` poses (4×4 row-major similarities, instance world → a common frame) a
+/// groups file carries (`discover` writes them); none where it has none.
+pub fn read_starting_poses(path: &Path) -> Result<std::collections::BTreeMap<u32, crate::register::Sim3>> {
+    #[derive(serde::Deserialize)]
+    struct File {
+        groups: Vec<G>,
+    }
+    #[derive(serde::Deserialize)]
+    struct G {
+        instances: Vec<I>,
+    }
+    #[derive(serde::Deserialize)]
+    struct I {
+        id: u32,
+        to_reference: Option<[[f64; 4]; 4]>,
+    }
+    let what = path.display();
+    let text = std::fs::read_to_string(path).with_context(|| format!("{what}: cannot read"))?;
+    let f: File = serde_json::from_str(&text).with_context(|| format!("{what}: not a groups file"))?;
+    let mut out = std::collections::BTreeMap::new();
+    for i in f.groups.into_iter().flat_map(|g| g.instances) {
+        let Some(m) = i.to_reference else { continue };
+        let a = nalgebra::Matrix3::from_fn(|r, c| m[r][c]);
+        let det = a.determinant();
+        if !(det > 0.0 && det.is_finite()) {
+            bail!("{what}: instance {}: to_reference is not a similarity", i.id);
+        }
+        let s = det.cbrt();
+        let x = crate::register::Sim3 {
+            rotation: a / s,
+            scale: s,
+            translation: nalgebra::Vector3::new(m[0][3], m[1][3], m[2][3]),
+        };
+        if (x.rotation * x.rotation.transpose() - nalgebra::Matrix3::identity()).norm() > 1e-4 {
+            bail!("{what}: instance {}: to_reference is not a similarity", i.id);
+        }
+        out.insert(i.id, x);
+    }
+    Ok(out)
 }
 
 /// What `instgs-vk instance` was asked.

@@ -27,7 +27,7 @@ use crate::math::{logit, sigmoid};
 use crate::model::instanced::{quat_mul, Group, Instance, InstancedScene, Offsets, ShRotation, Similarity};
 use crate::model::scene::Scene;
 use crate::register::{
-    candidates, centroid, farthest_point_sample, median_spacing, object_size, reverse_fitness, voxel_downsample,
+    candidates, centroid, farthest_point_sample, icp, median_spacing, object_size, reverse_fitness, voxel_downsample,
     RegisterOptions, Sim3,
 };
 use crate::train::knn_log_scales;
@@ -61,6 +61,9 @@ pub struct InstanceOptions {
     pub seed: u64,
     /// What a pose must pass before its instance is instanced.
     pub accept: Acceptance,
+    /// Starting poses (instance id → a common frame, e.g. `discover`'s `to_reference`): where
+    /// an instance and its group's reference both have one, the pose they imply is tried first.
+    pub starts: BTreeMap<u32, Sim3>,
 }
 
 /// The checks a registered pose must pass before its instance shares the group's template
@@ -130,6 +133,7 @@ impl Default for InstanceOptions {
             voxel_fraction: 0.04,
             seed: 0,
             accept: Acceptance::default(),
+            starts: BTreeMap::new(),
         }
     }
 }
@@ -581,13 +585,25 @@ pub fn register_and_check(
     'seeds: for attempt in 0..2u64 {
         let ro = RegisterOptions { seed: o.seed + k as u64 + 1000 * attempt, ..reg.clone() };
         let rgb = |i: usize| o.use_colour.then(|| colours[i].as_slice());
-        let found = match candidates(&opaque[k], rgb(k), &opaque[r], rgb(r), &ro) {
+        let mut found = match candidates(&opaque[k], rgb(k), &opaque[r], rgb(r), &ro) {
             Ok(c) => c,
             Err(e) => {
                 last_error = Some(format!("{e:#}"));
                 continue;
             }
         };
+        // A starting pose (instance → common frame → reference), polished by ICP, goes first.
+        if let (0, Some(a), Some(b)) = (attempt, o.starts.get(&ids[k]), o.starts.get(&ids[r])) {
+            let range = o.with_scale.then(|| (1.0 / (1.0 + reg.scale_tolerance), 1.0 + reg.scale_tolerance));
+            let scaled = range.map(|(lo, hi)| {
+                let s = b.inverse().compose(a).scale;
+                (s * lo, s * hi)
+            });
+            let x = icp(&opaque[k], &opaque[r], b.inverse().compose(a), 1.5 * reg.voxel, 30, scaled, true);
+            let mut start = found[0].clone();
+            start.transform = x;
+            found.insert(0, start);
+        }
         report.shape_ambiguous |= found[0].shape_ambiguous;
         for cand in found {
             if tried >= a.max_candidates {
