@@ -16,7 +16,8 @@
 //! * **From none** ([`auto`]): the dominant plane of the opaque means (RANSAC, then least
 //!   squares) is taken as the support; what stands on it is split into connected clusters
 //!   (links of a few point spacings); clusters are grouped by registering each onto the
-//!   references of the groups found so far (largest first) with the same checks; each group's
+//!   references of the groups found so far (largest first; onto up to three members of a
+//!   group, the first first) with the same checks; each group's
 //!   reference (of groups with two members or more) then searches the rest of the scene as an
 //!   example does, for copies the clusters merged or missed. Groups with one member, and clusters that fit nothing, stay background.
 //!
@@ -31,7 +32,7 @@ use nalgebra::{Matrix3, SymmetricEigen, Vector3};
 use rand::{Rng, SeedableRng};
 
 use crate::instancing::template::{
-    register_and_check, registration_cloud, InstanceOptions, InstanceReport, PoseCheck, RenderCheck, Status,
+    register_and_check, registration_cloud, InstanceOptions, InstanceReport, RenderCheck, Status,
 };
 use crate::math::{sigmoid, tree};
 use crate::model::scene::Scene;
@@ -393,18 +394,7 @@ fn search_copies(
             let id = *next_id;
             // The render check keys its cache by id: each candidate gets its own.
             let check_id = CHECK_IDS.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-            let mut report = InstanceReport {
-                group: group.to_string(),
-                id,
-                reference: reference.id,
-                gaussians: claim.len(),
-                relative: Sim3::identity(),
-                check: PoseCheck::perfect(),
-                render: None,
-                tried: 0,
-                shape_ambiguous: false,
-                status: Status::Reference,
-            };
+            let mut report = InstanceReport::new(group, id, reference.id, claim.len());
             let parts = [ref_scene.clone(), part];
             let (pose, status) = register_and_check(
                 &parts,
@@ -718,65 +708,65 @@ pub fn auto(
         let centre = centroid(&c_pts);
         let where_ = format!("[{:.3}, {:.3}, {:.3}]", centre[0], centre[1], centre[2]);
         let mut joined = false;
-        for g in groups.iter_mut() {
-            let r = &g.members[0];
-            let r_scene = scene.select(&r.gaussians);
-            let (r_pts, r_rgb) = object_cloud(&r_scene, Some(&support), io.min_opacity);
-            // Candidates of another size or density are not tried (ratios past 1.5 and 3).
-            let ratio = c_size / object_size(&r_pts);
-            let count = c_pts.len() as f64 / r_pts.len() as f64;
-            if !(1.0 / 1.5..=1.5).contains(&ratio) || !(1.0 / 3.0..=3.0).contains(&count) {
-                continue;
-            }
-            let reg = io.register_options(object_size(&r_pts));
-            let mut report = InstanceReport {
-                group: g.name.clone(),
-                id,
-                reference: r.id,
-                gaussians: members.len(),
-                relative: Sim3::identity(),
-                check: PoseCheck::perfect(),
-                render: None,
-                tried: 0,
-                shape_ambiguous: false,
-                status: Status::Reference,
-            };
-            let (pose, status) = register_and_check(
-                &[r_scene, part.clone()],
-                &[r_pts, c_pts.clone()],
-                &[r_rgb, c_rgb.clone()],
-                1,
-                0,
-                &reg,
-                io,
-                &mut render_check,
-                &mut report,
-                &g.name,
-                &[r.id, id],
-            )?;
-            report.relative = pose;
-            report.status = status.clone();
-            if status == Status::Accepted {
-                progress(&format!(
-                    "candidate {id} at {where_} ({} Gaussians) joins {} (fitness {:.2} / {:.2}{})",
-                    members.len(),
+        'groups: for g in groups.iter_mut() {
+            // The group's first member, then up to two more: members of one group differ by a
+            // tint, and a candidate's colours may match one member's better than the first's.
+            let mut last_refusal = None;
+            for m in 0..g.members.len().min(3) {
+                let r = &g.members[m];
+                let r_scene = scene.select(&r.gaussians);
+                let (r_pts, r_rgb) = object_cloud(&r_scene, Some(&support), io.min_opacity);
+                // Candidates of another size or density are not tried (ratios past 1.5 and 3).
+                let ratio = c_size / object_size(&r_pts);
+                let count = c_pts.len() as f64 / r_pts.len() as f64;
+                if !(1.0 / 1.5..=1.5).contains(&ratio) || !(1.0 / 3.0..=3.0).contains(&count) {
+                    continue;
+                }
+                let reg = io.register_options(object_size(&r_pts));
+                let mut report = InstanceReport::new(&g.name, id, r.id, members.len());
+                let (pose, status) = register_and_check(
+                    &[r_scene, part.clone()],
+                    &[r_pts, c_pts.clone()],
+                    &[r_rgb, c_rgb.clone()],
+                    1,
+                    0,
+                    &reg,
+                    io,
+                    &mut render_check,
+                    &mut report,
+                    &g.name,
+                    &[r.id, id],
+                )?;
+                if status == Status::Accepted {
+                    progress(&format!(
+                        "candidate {id} at {where_} ({} Gaussians) joins {} onto {} (fitness {:.2} / {:.2}{})",
+                        members.len(),
+                        g.name,
+                        r.id,
+                        report.check.fitness,
+                        report.check.fitness_reverse,
+                        report
+                            .render
+                            .map(|s| format!(", render IoU {:.2} PSNR {:.1} dB", s.iou, s.psnr))
+                            .unwrap_or_default()
+                    ));
+                    // Onto the group's first: through the member it was registered onto.
+                    report.relative = r.relative.compose(&pose);
+                    report.reference = g.members[0].id;
+                    report.status = status;
+                    let relative = report.relative;
+                    g.members.push(Member { id, gaussians: members.clone(), relative, report: Some(report) });
+                    joined = true;
+                    break 'groups;
+                }
+                last_refusal = Some(format!(
+                    "candidate {id} at {where_} onto {} of {}: {}",
+                    r.id,
                     g.name,
-                    report.check.fitness,
-                    report.check.fitness_reverse,
-                    report
-                        .render
-                        .map(|s| format!(", render IoU {:.2} PSNR {:.1} dB", s.iou, s.psnr))
-                        .unwrap_or_default()
+                    status.reason().unwrap_or("refused")
                 ));
-                g.members.push(Member { id, gaussians: members.clone(), relative: pose, report: Some(report) });
-                joined = true;
-                break;
             }
-            out.refused.push(format!(
-                "candidate {id} at {where_} onto {}: {}",
-                g.name,
-                status.reason().unwrap_or("refused")
-            ));
+            out.refused.extend(last_refusal);
         }
         if !joined {
             let name = format!("group{}", groups.len() + 1);

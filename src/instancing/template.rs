@@ -198,6 +198,24 @@ pub struct InstanceReport {
     pub status: Status,
 }
 
+impl InstanceReport {
+    /// A report before registration: the identity pose, perfect checks, status reference.
+    pub fn new(group: &str, id: u32, reference: u32, gaussians: usize) -> InstanceReport {
+        InstanceReport {
+            group: group.to_string(),
+            id,
+            reference,
+            gaussians,
+            relative: Sim3::identity(),
+            check: PoseCheck::perfect(),
+            render: None,
+            tried: 0,
+            shape_ambiguous: false,
+            status: Status::Reference,
+        }
+    }
+}
+
 /// The geometric checks of a pose (instance world → reference world) on the two instances'
 /// opaque Gaussian means, both voxel-downsampled at half the registration voxel.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -442,18 +460,7 @@ pub fn instantiate(
             ));
         }
         for k in 0..parts.len() {
-            let mut report = InstanceReport {
-                group: g.name.clone(),
-                id: g.ids[k],
-                reference: g.ids[r],
-                gaussians: parts[k].len(),
-                relative: Sim3::identity(),
-                check: PoseCheck::perfect(),
-                render: None,
-                tried: 0,
-                shape_ambiguous: false,
-                status: Status::Reference,
-            };
+            let mut report = InstanceReport::new(&g.name, g.ids[k], g.ids[r], parts[k].len());
             if k != r {
                 let (x, status) = register_and_check(
                     &parts,
