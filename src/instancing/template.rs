@@ -78,7 +78,7 @@ pub struct Acceptance {
     pub scale_tolerance: f64,
     /// Render check ([`RenderCheck`]): median silhouette IoU at least this.
     pub min_render_iou: f64,
-    /// Render check: PSNR (dB, after a per-channel gain for the instance's tint) at least this.
+    /// Render check: PSNR (dB, after a non-negative colour mix for the instance's tint) at least this.
     pub min_render_psnr: f64,
     /// Pose hypotheses tried per instance, the most plausible first, over two RANSAC seeds.
     pub max_candidates: usize,
@@ -295,7 +295,8 @@ pub struct RenderScore {
     /// Median over views of the silhouettes' IoU (alpha > 0.5).
     pub iou: f64,
     /// PSNR (dB) of the placed reference against the instance's own render over the pixels of
-    /// either silhouette, after a least-squares gain per colour channel (the instance's tint).
+    /// either silhouette, after a least-squares non-negative mix of the colour channels (the
+    /// instance's tint; [`crate::instancing::verify::compare`]).
     pub psnr: f64,
 }
 

@@ -3,8 +3,8 @@
 //! instance's own Gaussians are each rendered alone (over black) from the training cameras that
 //! see the instance best, and compared ([`compare`]): the placed silhouette (alpha > 0.5) with
 //! the instance's mask by IoU, the colours with the instance's own render by PSNR after a
-//! least-squares gain per channel (instances of one group may differ by a tint, which the
-//! offsets learn later). A collapsed, mirrored or turned pose cannot pass: its silhouette or its
+//! least-squares non-negative mix of the colour channels (instances of one group may differ by
+//! a tint, which the offsets learn later). A collapsed, mirrored or turned pose cannot pass: its silhouette or its
 //! colours disagree with the data in the views the instance was trained from.
 //!
 //! Views: those where the instance's own silhouette covers at least [`MIN_VIEW_PIXELS`]; with
@@ -15,6 +15,7 @@ use std::collections::HashMap;
 use std::sync::Arc;
 
 use anyhow::Result;
+use nalgebra::{DMatrix, DVector};
 
 use crate::gpu::kernels::Kernels;
 use crate::gpu::Gpu;
@@ -116,21 +117,18 @@ pub struct Compared<'a> {
 /// Scores a pose over the compared views. IoU: the placed reference's silhouette against the
 /// mask's pixels of `id` (pixels of other instances — occluders — left out), or against the
 /// instance's own silhouette without masks; the median over views. PSNR: the placed
-/// reference's colours × a per-channel least-squares gain (clamped to [1/4, 4]: the tint)
-/// against the instance's own, over the pixels either silhouette covers (so a slightly turned
-/// or shifted pose costs PSNR along the outline: pose refinement climbs this).
+/// reference's colours mapped by [`ColourMap`] (the instance's tint) against the instance's
+/// own, over the pixels either silhouette covers (so a slightly turned or shifted pose costs
+/// PSNR along the outline: pose refinement climbs this).
 pub fn compare(views: &[Compared], id: u32) -> RenderScore {
     let mut ious = Vec::new();
-    let (mut ab, mut bb) = ([0.0f64; 3], [0.0f64; 3]);
+    let mut fit = ColourMap::default();
     for v in views {
         let (mut inter, mut union) = (0usize, 0usize);
         for (i, (p, q)) in v.own.iter().zip(v.placed).enumerate() {
             let (s, t) = (silhouette(p), silhouette(q));
             if s || t {
-                for c in 0..3 {
-                    ab[c] += p[c] as f64 * q[c] as f64;
-                    bb[c] += q[c] as f64 * q[c] as f64;
-                }
+                fit.add(p, q);
             }
             let truth = match v.mask {
                 Some(m) if m[i] != 0 && m[i] as u32 != id => continue,
@@ -142,27 +140,126 @@ pub fn compare(views: &[Compared], id: u32) -> RenderScore {
         }
         ious.push(if union > 0 { inter as f64 / union as f64 } else { 0.0 });
     }
-    let gain: [f64; 3] = std::array::from_fn(|c| if bb[c] > 0.0 { (ab[c] / bb[c]).clamp(0.25, 4.0) } else { 1.0 });
-    let (mut sq, mut n) = (0.0f64, 0usize);
-    for v in views {
-        for (p, q) in v.own.iter().zip(v.placed) {
-            if silhouette(p) || silhouette(q) {
-                for c in 0..3 {
-                    sq += (p[c] as f64 - gain[c] * q[c] as f64).powi(2);
-                }
-                n += 3;
-            }
-        }
-    }
-    let psnr = if n == 0 {
-        0.0
-    } else {
-        let mse = sq / n as f64;
-        if mse > 0.0 {
-            -10.0 * mse.log10()
-        } else {
-            f64::INFINITY
-        }
+    let psnr = match fit.mse() {
+        None => 0.0,
+        Some(mse) if mse > 0.0 => -10.0 * mse.log10(),
+        Some(_) => f64::INFINITY,
     };
     RenderScore { views: views.len(), iou: crate::math::median(&ious), psnr }
+}
+
+/// The least-squares colour map from the placed reference's render q to the instance's own p:
+/// each output channel a non-negative mix of q's three channels, `p_c ≈ Σ_k m_ck q_k`, m ≥ 0.
+/// Instances of a group differ by a tint of the diffuse colour while highlights stay white
+/// (tabletop's mugs: yellow, blue, green and pink, channel ratios up to 6×), so a gain per
+/// channel cannot map one onto another: `0.83·d + s` (yellow's green) is `a·(d + s) + b·(0.22·d
+/// + s) + c·(0.78·d + s)` from pink's with `a + b + c = 1`, not a multiple of pink's green. A
+/// mix cannot move or reshape anything, so a wrongly placed reference still disagrees with
+/// the instance's own render; non-negative so that no map inverts the shading.
+#[derive(Default)]
+struct ColourMap {
+    /// Σ q qᵀ (symmetric), Σ p_c q, Σ p_c², pixel count.
+    qq: [[f64; 3]; 3],
+    pq: [[f64; 3]; 3],
+    pp: [f64; 3],
+    n: usize,
+}
+
+impl ColourMap {
+    fn add(&mut self, p: &Pixel, q: &Pixel) {
+        for c in 0..3 {
+            self.pp[c] += p[c] as f64 * p[c] as f64;
+            for k in 0..3 {
+                self.qq[c][k] += q[c] as f64 * q[k] as f64;
+                self.pq[c][k] += p[c] as f64 * q[k] as f64;
+            }
+        }
+        self.n += 1;
+    }
+
+    /// The mean squared error per channel value of the best map; None without pixels.
+    fn mse(&self) -> Option<f64> {
+        if self.n == 0 {
+            return None;
+        }
+        let sse: f64 = (0..3).map(|c| self.best_channel(c)).sum();
+        Some(sse.max(0.0) / (3 * self.n) as f64)
+    }
+
+    /// Non-negative least squares for one output channel over three inputs, exactly: the best
+    /// over the input subsets whose unconstrained solution is non-negative (the empty map, 0,
+    /// included), since the optimum is the unconstrained optimum on its support.
+    fn best_channel(&self, c: usize) -> f64 {
+        let mut best = self.pp[c];
+        for support in 1u32..8 {
+            let idx: Vec<usize> = (0..3).filter(|k| support >> k & 1 == 1).collect();
+            let a = DMatrix::from_fn(idx.len(), idx.len(), |i, j| self.qq[idx[i]][idx[j]]);
+            let b = DVector::from_iterator(idx.len(), idx.iter().map(|&i| self.pq[c][i]));
+            // Singular: a channel the reference's render never lights (it is left out in
+            // a smaller support).
+            let Some(m) = a.clone().cholesky().map(|ch| ch.solve(&b)) else { continue };
+            if m.iter().any(|x| *x < 0.0) {
+                continue;
+            }
+            // SSE = Σp² − 2 mᵀb + mᵀ A m, in full: a nearly singular solve's m is then
+            // scored by what it really leaves.
+            let sse = self.pp[c] - 2.0 * m.dot(&b) + (&a * &m).dot(&m);
+            best = best.min(sse);
+        }
+        best
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A shaded, highlighted object tinted two ways: diffuse d·tint plus a white highlight h.
+    fn tinted(tint: [f32; 3], n: usize) -> Vec<Pixel> {
+        (0..n)
+            .map(|i| {
+                let d = 0.2 + 0.6 * ((i as f32 * 0.37).sin() * 0.5 + 0.5);
+                let h = if i % 7 == 0 { 0.3 } else { 0.0 };
+                [d * tint[0] + h, d * tint[1] + h, d * tint[2] + h, 0.0]
+            })
+            .collect()
+    }
+
+    fn psnr(own: &[Pixel], placed: &[Pixel]) -> f64 {
+        compare(&[Compared { own, placed, mask: None }], 1).psnr
+    }
+
+    #[test]
+    fn a_tint_with_white_highlights_maps_far_better_than_a_gain_per_channel() {
+        // tabletop's yellow mug from its green and pink ones. Yellow's blue (0.19 of the
+        // diffuse) lies below every channel of pink's (0.22–1), so no non-negative mix of pink
+        // with its highlight gives it exactly; green's (0.17–1) does.
+        let yellow = tinted([1.0, 0.8261, 0.1916], 500);
+        for (tint, at_least) in [([0.1668, 1.0, 0.4042], 60.0), ([1.0, 0.2219, 0.7783], 40.0)] {
+            let other = tinted(tint, 500);
+            let mut m = ColourMap::default();
+            for (p, q) in yellow.iter().zip(&other) {
+                m.add(p, q);
+            }
+            let gain_only: f64 = (0..3)
+                .map(|c| {
+                    let g = m.pq[c][c] / m.qq[c][c];
+                    yellow.iter().zip(&other).map(|(p, q)| (p[c] as f64 - g * q[c] as f64).powi(2)).sum::<f64>()
+                })
+                .sum();
+            let gain_psnr = -10.0 * (gain_only / 1500.0).log10();
+            let mix_psnr = psnr(&yellow, &other);
+            assert!(mix_psnr > at_least && mix_psnr > gain_psnr + 10.0, "mix {mix_psnr} dB, gain {gain_psnr} dB");
+        }
+    }
+
+    #[test]
+    fn a_map_cannot_move_the_shading_nor_invert_it() {
+        let a = tinted([0.9, 0.6, 0.3], 500);
+        let shifted: Vec<Pixel> = (0..500).map(|i| a[(i + 9) % 500]).collect();
+        assert!(psnr(&a, &shifted) < 25.0, "{}", psnr(&a, &shifted));
+        let inverted: Vec<Pixel> = a.iter().map(|p| [1.0 - p[0], 1.0 - p[1], 1.0 - p[2], 0.0]).collect();
+        // The best non-negative map of an inverted render is no better than a flat grey.
+        assert!(psnr(&a, &inverted) < 20.0, "{}", psnr(&a, &inverted));
+    }
 }
