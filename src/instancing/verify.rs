@@ -119,7 +119,8 @@ pub struct Compared<'a> {
 /// instance's own silhouette without masks; the median over views. PSNR: the placed
 /// reference's colours mapped by [`ColourMap`] (the instance's tint) against the instance's
 /// own, over the pixels either silhouette covers (so a slightly turned or shifted pose costs
-/// PSNR along the outline: pose refinement climbs this).
+/// PSNR along the outline); the same after a gain per channel alone for choosing and refining
+/// poses (`pose_psnr`).
 pub fn compare(views: &[Compared], id: u32) -> RenderScore {
     let mut ious = Vec::new();
     let mut fit = ColourMap::default();
@@ -140,12 +141,17 @@ pub fn compare(views: &[Compared], id: u32) -> RenderScore {
         }
         ious.push(if union > 0 { inter as f64 / union as f64 } else { 0.0 });
     }
-    let psnr = match fit.mse() {
+    let db = |mse: Option<f64>| match mse {
         None => 0.0,
         Some(mse) if mse > 0.0 => -10.0 * mse.log10(),
         Some(_) => f64::INFINITY,
     };
-    RenderScore { views: views.len(), iou: crate::math::median(&ious), psnr }
+    RenderScore {
+        views: views.len(),
+        iou: crate::math::median(&ious),
+        psnr: db(fit.mse()),
+        pose_psnr: db(fit.gain_mse()),
+    }
 }
 
 /// The least-squares colour map from the placed reference's render q to the instance's own p:
@@ -183,6 +189,23 @@ impl ColourMap {
             return None;
         }
         let sse: f64 = (0..3).map(|c| self.best_channel(c)).sum();
+        Some(sse.max(0.0) / (3 * self.n) as f64)
+    }
+
+    /// The mean squared error per channel value after a least-squares gain per channel
+    /// (clamped to [1/4, 4]) alone: fewer colour degrees of freedom, so less of a misplaced
+    /// pose's error is absorbed by the colours ([`RenderScore::pose_psnr`]).
+    fn gain_mse(&self) -> Option<f64> {
+        if self.n == 0 {
+            return None;
+        }
+        let sse: f64 = (0..3)
+            .map(|c| {
+                let (pq, qq) = (self.pq[c][c], self.qq[c][c]);
+                let g = if qq > 0.0 { (pq / qq).clamp(0.25, 4.0) } else { 1.0 };
+                self.pp[c] - 2.0 * g * pq + g * g * qq
+            })
+            .sum();
         Some(sse.max(0.0) / (3 * self.n) as f64)
     }
 
