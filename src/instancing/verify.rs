@@ -117,7 +117,8 @@ pub struct Compared<'a> {
 /// Scores a pose over the compared views. IoU: the placed reference's silhouette against the
 /// mask's pixels of `id` (pixels of other instances — occluders — left out), or against the
 /// instance's own silhouette without masks; the median over views. PSNR: the placed
-/// reference's colours mapped by [`ColourMap`] (the instance's tint) against the instance's
+/// reference's colours mapped by the least-squares non-negative mix of its channels that best
+/// matches (a tint changes the diffuse colour, not the white highlights) against the instance's
 /// own, over the pixels either silhouette covers (so a slightly turned or shifted pose costs
 /// PSNR along the outline); the same after a gain per channel alone for choosing and refining
 /// poses (`pose_psnr`).
