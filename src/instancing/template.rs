@@ -78,7 +78,8 @@ pub struct Acceptance {
     pub scale_tolerance: f64,
     /// Render check ([`RenderCheck`]): median silhouette IoU at least this.
     pub min_render_iou: f64,
-    /// Render check: PSNR (dB, after a non-negative colour mix for the instance's tint) at least this.
+    /// Render check: PSNR (dB, after a non-negative colour mix for the instance's tint) at least
+    /// this.
     pub min_render_psnr: f64,
     /// Pose hypotheses tried per instance, the most plausible first, over two RANSAC seeds.
     pub max_candidates: usize,
@@ -677,9 +678,9 @@ pub fn register_and_check(
 
 /// Pose refinement against the images: a pattern search over a small similarity `D` applied
 /// after `x` about the reference's `centre` (rotation about three axes, translation along three,
-/// and log scale unless `rigid`), each step kept when the render check's `pose_psnr` rises; steps start
-/// at 2° / 1 % of `size` / 1 % of scale and halve three times when no move helps (at most 120
-/// renders of the check). Registration on a few hundred Gaussian means leaves a few degrees of
+/// and log scale unless `rigid`), each step kept when the render check's `pose_psnr` rises;
+/// steps start at 2° / 1 % of `size` / 1 % of scale and halve three times when no move helps (at
+/// most 120 renders of the check). Registration on a few hundred Gaussian means leaves a few degrees of
 /// error that the pictures still show; the check's optimum is where the reference's pictures
 /// match the instance's.
 #[allow(clippy::too_many_arguments)]
