@@ -15,7 +15,8 @@
 //!   refused.
 //! * **From none** ([`auto`]): the dominant plane of the opaque means (RANSAC, then least
 //!   squares) is taken as the support; what stands on it is split into connected clusters
-//!   (links of a few point spacings); clusters are grouped by registering each onto the
+//!   (links of a few point spacings), each with its bottom (the plane's slab inside its
+//!   footprint, [`Support::object_gaussians`]); clusters are grouped by registering each onto the
 //!   references of the groups found so far (largest first; onto up to three members of a
 //!   group, the first first) with the same checks; each group's
 //!   reference (of groups with two members or more) then searches the rest of the scene as an
@@ -34,7 +35,7 @@ use rand::{Rng, SeedableRng};
 use crate::instancing::template::{
     register_and_check, registration_cloud, InstanceOptions, InstanceReport, RenderCheck, Status,
 };
-use crate::math::{sigmoid, tree};
+use crate::math::{quat_to_mat, sigmoid, tree};
 use crate::model::scene::Scene;
 use crate::register::{centroid, fpfh, icp, median_spacing, normals, object_size, umeyama_bounded, Sim3, FPFH_DIM};
 
@@ -201,14 +202,14 @@ fn nearest_k(f: &[f64; FPFH_DIM], set: &[[f64; FPFH_DIM]], k: usize, skip: &[boo
     best.into_iter().map(|b| b.1).collect()
 }
 
-/// [`registration_cloud`] of the Gaussians of `part` that stand on `support` (all of them
-/// where fewer than 16 do, or without a support plane): a patch of floor is no part of an
-/// object's shape.
+/// [`registration_cloud`] of `part`'s object Gaussians ([`Support::object_gaussians`]; all of
+/// them where fewer than 16 stand above the plane's slab, or without a support plane): a patch
+/// of floor is no part of an object's shape, its bottom is.
 fn object_cloud(part: &Scene, support: Option<&Support>, min_opacity: f32) -> (Vec<[f64; 3]>, Vec<[f64; 3]>) {
     if let Some(s) = support {
-        let up: Vec<usize> = (0..part.len()).filter(|&i| s.height(part.means[i]) > 1.5 * s.thickness).collect();
-        if up.len() >= 16 {
-            return registration_cloud(&part.select(&up), min_opacity);
+        let all: Vec<usize> = (0..part.len()).collect();
+        if let Some(kept) = s.object_gaussians(part, &all, min_opacity) {
+            return registration_cloud(&part.select(&kept), min_opacity);
         }
     }
     registration_cloud(part, min_opacity)
@@ -244,7 +245,12 @@ fn search_copies(
     let fe = fpfh(&e, &normals(&e, 2.0 * voxel, 30), 5.0 * voxel, 100);
     // The scene's opaque available Gaussians, voxelised once; a voxel leaves the search when
     // all its Gaussians are taken.
-    let pool: Vec<usize> = (0..scene.len()).filter(|&i| available[i] && opaque(scene, i, io.min_opacity)).collect();
+    // The slab of the support plane takes no part in matching: each copy's own bottom is
+    // claimed with it.
+    let pool: Vec<usize> = (0..scene.len())
+        .filter(|&i| available[i] && opaque(scene, i, io.min_opacity))
+        .filter(|&i| support.is_none_or(|s| s.height(scene.means[i]) > 1.5 * s.thickness))
+        .collect();
     let pool_pts: Vec<[f64; 3]> = pool.iter().map(|&i| f64s(scene.means[i])).collect();
     if pool_pts.len() < 8 {
         return Ok(Vec::new());
@@ -356,11 +362,11 @@ fn search_copies(
         for (inliers, x) in best.into_iter().take(o.placements_per_round) {
             let placed_centre = x.apply(&e_centre.into());
             tried.push(placed_centre);
-            // ICP of the example onto the available scene points around the placement.
-            let local: Vec<[f64; 3]> = pool
-                .iter()
-                .filter(|&&i| available[i])
-                .map(|&i| f64s(scene.means[i]))
+            // ICP of the example onto the available opaque scene points around the placement
+            // (the slab's too: the example's bottom meets them).
+            let local: Vec<[f64; 3]> = (0..scene.len())
+                .filter(|&i| available[i] && opaque(scene, i, io.min_opacity))
+                .map(|i| f64s(scene.means[i]))
                 .filter(|p| dist2(p, &placed_centre) <= (0.75 * size * x.scale).powi(2))
                 .collect();
             if local.len() < 8 {
@@ -380,6 +386,8 @@ fn search_copies(
                         && t.nearest_one::<SquaredEuclidean>(&p).distance <= reach
                 })
                 .collect();
+            // Of those, the object's: the floor around it stays.
+            let claim = support.and_then(|s| s.object_gaussians(scene, &claim, io.min_opacity)).unwrap_or(claim);
             let where_ = format!("[{:.3}, {:.3}, {:.3}]", placed_centre[0], placed_centre[1], placed_centre[2]);
             let part = scene.select(&claim);
             let (c_pts, c_rgb) = object_cloud(&part, support, io.min_opacity);
@@ -456,23 +464,23 @@ pub fn from_example(
     let mut available = vec![true; scene.len()];
     let mut example = example.to_vec();
     // A dominant support plane (a tenth of the scene's cells or more) belongs to no object: a
-    // box drawn around an object holds some of it, the copies' surroundings too. Its Gaussians
-    // (1.5 plane thicknesses up) leave the example and the search, as they leave `auto`'s
-    // clusters: every copy is then cut from the floor alike.
+    // box drawn around an object holds some of it, the copies' surroundings too. The example
+    // keeps its object Gaussians ([`Support::object_gaussians`]: those above the plane's slab
+    // and its bottom inside their footprint), as `auto`'s clusters do, and every copy is then
+    // cut from the floor alike.
     let mut support = find_support(scene, o, &mut progress).ok().filter(|s| s.share >= 0.1);
     if let Some(s) = support {
-        let on = |i: usize| s.height(scene.means[i]) <= 1.5 * s.thickness;
-        let kept: Vec<usize> = example.iter().copied().filter(|&i| !on(i)).collect();
-        if kept.len() >= 16 {
-            if kept.len() < example.len() {
-                progress(&format!("the example leaves {} Gaussians on the support plane", example.len() - kept.len()));
+        match s.object_gaussians(scene, &example, o.instance.min_opacity) {
+            Some(kept) => {
+                if kept.len() < example.len() {
+                    progress(&format!(
+                        "the example leaves {} Gaussians on the support plane",
+                        example.len() - kept.len()
+                    ));
+                }
+                example = kept;
             }
-            example = kept;
-            for (i, a) in available.iter_mut().enumerate() {
-                *a = !on(i);
-            }
-        } else {
-            support = None;
+            None => support = None,
         }
     }
     // The example grows by the rule that makes a copy of it: every available Gaussian within
@@ -484,18 +492,16 @@ pub fn from_example(
     if reach > 0.0 && !example.is_empty() {
         let ex_means: Vec<[f64; 3]> = ex_scene.means.iter().map(|m| f64s(*m)).collect();
         let t = tree(&ex_means);
-        let mut inside = vec![false; scene.len()];
+        let mut in_example = vec![false; scene.len()];
         for &i in &example {
-            inside[i] = true;
+            in_example[i] = true;
         }
         let grown: Vec<usize> = (0..scene.len())
             .filter(|&i| {
-                inside[i]
-                    || (available[i]
-                        && t.nearest_one::<SquaredEuclidean>(&f64s(scene.means[i])).distance <= reach * reach)
+                in_example[i] || t.nearest_one::<SquaredEuclidean>(&f64s(scene.means[i])).distance <= reach * reach
             })
             .collect();
-        example = grown;
+        example = support.and_then(|s| s.object_gaussians(scene, &grown, o.instance.min_opacity)).unwrap_or(grown);
     }
     for &i in &example {
         available[i] = false;
@@ -609,6 +615,119 @@ impl Support {
     pub fn height(&self, p: [f32; 3]) -> f64 {
         self.normal.dot(&Vector3::from(f64s(p))) - self.offset
     }
+
+    /// An orthonormal basis of the plane.
+    fn basis(&self) -> [Vector3<f64>; 2] {
+        let a = if self.normal[0].abs() < 0.9 { Vector3::x() } else { Vector3::y() };
+        let u = self.normal.cross(&a).normalize();
+        [u, self.normal.cross(&u)]
+    }
+
+    /// Coordinates of `p` in the plane.
+    fn planar(&self, p: [f32; 3]) -> [f64; 2] {
+        let q = Vector3::from(f64s(p));
+        self.basis().map(|b| b.dot(&q))
+    }
+
+    /// Whether Gaussian `i` of `scene` lies in the footprint `hull` with its extent: its centre
+    /// plus two standard deviations towards each edge's outside within half a plane thickness
+    /// of the edge. An object's bottom passes (thin across its wall, which is an edge); a
+    /// floor Gaussian whose centre falls just inside but which spreads out over the floor
+    /// around does not.
+    fn fits_inside(&self, hull: &[[f64; 2]], scene: &Scene, i: usize) -> bool {
+        let [u, v] = self.basis();
+        let q = self.planar(scene.means[i]);
+        // Each edge: how far the centre lies beyond it (outward unit normal of a
+        // counter-clockwise edge), and the outward normal in the world.
+        let edges: Vec<(f64, Vector3<f64>)> = (0..hull.len())
+            .filter_map(|k| {
+                let (a, b) = (hull[k], hull[(k + 1) % hull.len()]);
+                let len = ((b[0] - a[0]).powi(2) + (b[1] - a[1]).powi(2)).sqrt();
+                let out = [(b[1] - a[1]) / len, -(b[0] - a[0]) / len];
+                (len > 0.0).then(|| ((q[0] - a[0]) * out[0] + (q[1] - a[1]) * out[1], u * out[0] + v * out[1]))
+            })
+            .collect();
+        let tolerance = 0.5 * self.thickness;
+        if edges.iter().any(|e| e.0 > tolerance) {
+            return false;
+        }
+        let r = quat_to_mat(scene.quats[i]);
+        let s = scene.scales[i].map(|x| x.exp() as f64);
+        edges.iter().all(|(beyond, d)| {
+            let var: f64 = (0..3)
+                .map(|c| {
+                    let col = r.col(c);
+                    (s[c] * (col.x as f64 * d.x + col.y as f64 * d.y + col.z as f64 * d.z)).powi(2)
+                })
+                .sum();
+            beyond + 2.0 * var.sqrt() <= tolerance
+        })
+    }
+
+    /// Whether `p` lies in the plane's slab: from half a thickness below the plane to 1.5
+    /// thicknesses above it (what stands higher is clustered into objects).
+    fn in_slab(&self, p: [f32; 3]) -> bool {
+        let h = self.height(p);
+        h > -0.5 * self.thickness && h <= 1.5 * self.thickness
+    }
+
+    /// The footprint of an object standing on the plane: the convex hull, in the plane, of its
+    /// opaque Gaussians (of `part`, indices into `scene`) above the slab and less than 3
+    /// thicknesses up — its lowest band, whose outline is its base. None for fewer than 3.
+    fn footprint(&self, scene: &Scene, part: &[usize], min_opacity: f32) -> Option<Vec<[f64; 2]>> {
+        let band: Vec<[f64; 2]> = part
+            .iter()
+            .filter(|&&i| opaque(scene, i, min_opacity))
+            .filter(|&&i| (1.5 * self.thickness..=3.0 * self.thickness).contains(&self.height(scene.means[i])))
+            .map(|&i| self.planar(scene.means[i]))
+            .collect();
+        let hull = convex_hull(band);
+        (hull.len() >= 3).then_some(hull)
+    }
+
+    /// The Gaussians of `part` (indices into `scene`) that make up the object(s) standing
+    /// there: those above the slab, and those in the slab inside their footprint — the
+    /// object's bottom, down to where it meets the plane, where the floor around it lies
+    /// outside. None where fewer than 16 stand above the slab.
+    pub fn object_gaussians(&self, scene: &Scene, part: &[usize], min_opacity: f32) -> Option<Vec<usize>> {
+        let above = |i: usize| self.height(scene.means[i]) > 1.5 * self.thickness;
+        let up: Vec<usize> = part.iter().copied().filter(|&i| above(i)).collect();
+        if up.len() < 16 {
+            return None;
+        }
+        let Some(hull) = self.footprint(scene, &up, min_opacity) else { return Some(up) };
+        Some(
+            part.iter()
+                .copied()
+                .filter(|&i| above(i) || (self.in_slab(scene.means[i]) && self.fits_inside(&hull, scene, i)))
+                .collect(),
+        )
+    }
+}
+
+/// Convex hull of 2D points, counter-clockwise (Andrew's monotone chain); collinear points
+/// are left out.
+fn convex_hull(mut p: Vec<[f64; 2]>) -> Vec<[f64; 2]> {
+    p.sort_by(|a, b| a[0].total_cmp(&b[0]).then(a[1].total_cmp(&b[1])));
+    p.dedup();
+    if p.len() < 3 {
+        return p;
+    }
+    let cross = |o: [f64; 2], a: [f64; 2], b: [f64; 2]| (a[0] - o[0]) * (b[1] - o[1]) - (a[1] - o[1]) * (b[0] - o[0]);
+    let mut hull: Vec<[f64; 2]> = Vec::with_capacity(2 * p.len());
+    for pass in 0..2 {
+        let start = hull.len();
+        let points: Box<dyn Iterator<Item = &[f64; 2]>> =
+            if pass == 0 { Box::new(p.iter()) } else { Box::new(p.iter().rev()) };
+        for &q in points {
+            while hull.len() >= start + 2 && cross(hull[hull.len() - 2], hull[hull.len() - 1], q) <= 0.0 {
+                hull.pop();
+            }
+            hull.push(q);
+        }
+        hull.pop();
+    }
+    hull
 }
 
 /// [`support_plane`] of the scene's opaque means, `o.plane_spacings` median spacings thick.
@@ -664,9 +783,9 @@ pub fn auto(
         anyhow::bail!("the scene has too few opaque Gaussians ({}) to search", pts.len());
     }
     let support = find_support(scene, o, &mut progress)?;
-    let (n, d, thickness) = (support.normal, support.offset, support.thickness);
+    let thickness = support.thickness;
     let standing: Vec<usize> =
-        (0..pts.len()).filter(|&k| n.dot(&Vector3::from(pts[k])) - d > 1.5 * thickness).collect();
+        (0..pts.len()).filter(|&k| support.height(scene.means[op[k]]) > 1.5 * thickness).collect();
     let standing_pts: Vec<[f64; 3]> = standing.iter().map(|&k| pts[k]).collect();
     let link = (3.0 * median_spacing(&standing_pts)).max(0.5 * thickness);
     let found: Vec<Vec<usize>> = clusters(&standing_pts, link)
@@ -678,7 +797,8 @@ pub fn auto(
         })
         .collect();
     progress(&format!("{} object candidates stand on it (links of {:.4})", found.len(), link));
-    // Every Gaussian near a candidate's points (within one link) belongs to it.
+    // Every Gaussian above the slab near a candidate's points (within one link) belongs to it,
+    // and so do the slab's Gaussians inside its footprint (its bottom).
     let mut owner = vec![usize::MAX; standing_pts.len()];
     for (c, members) in found.iter().enumerate() {
         for &k in members {
@@ -690,10 +810,19 @@ pub fn auto(
     for i in 0..scene.len() {
         let nn = t.nearest_one::<SquaredEuclidean>(&f64s(scene.means[i]));
         let c = owner[nn.item as usize];
-        if c != usize::MAX && nn.distance <= link * link && n.dot(&Vector3::from(f64s(scene.means[i]))) - d > thickness
-        {
+        if c != usize::MAX && nn.distance <= link * link && support.height(scene.means[i]) > 1.5 * thickness {
             gaussians[c].push(i);
         }
+    }
+    let hulls: Vec<Option<Vec<[f64; 2]>>> =
+        gaussians.iter().map(|g| support.footprint(scene, g, io.min_opacity)).collect();
+    for i in (0..scene.len()).filter(|&i| support.in_slab(scene.means[i])) {
+        if let Some(c) = hulls.iter().position(|h| h.as_ref().is_some_and(|h| support.fits_inside(h, scene, i))) {
+            gaussians[c].push(i);
+        }
+    }
+    for g in gaussians.iter_mut() {
+        g.sort_unstable();
     }
     // Grouping: each candidate (largest first) onto the references of the groups so far.
     let mut out = Discovery::default();
@@ -853,6 +982,72 @@ mod tests {
         let sizes: Vec<usize> = c.iter().map(|c| c.len()).collect();
         assert_eq!(sizes, [50, 30, 20]);
         assert_eq!(clusters(&pts, 0.5).len(), 1);
+    }
+
+    #[test]
+    fn the_convex_hull_holds_every_point_and_nothing_outside() {
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(5);
+        let pts: Vec<[f64; 2]> = (0..200).map(|_| [rng.random_range(-1.0..1.0), rng.random_range(-0.5..0.5)]).collect();
+        let hull = convex_hull(pts.clone());
+        assert!(hull.len() >= 4 && hull.len() < 40, "{} corners", hull.len());
+        let inside = |q: [f64; 2]| {
+            (0..hull.len()).all(|k| {
+                let (a, b) = (hull[k], hull[(k + 1) % hull.len()]);
+                (b[0] - a[0]) * (q[1] - a[1]) - (b[1] - a[1]) * (q[0] - a[0]) >= 0.0
+            })
+        };
+        assert!(pts.iter().all(|&q| inside(q)), "counter-clockwise, every point inside");
+        assert!(!inside([1.01, 0.0]) && !inside([0.0, -0.51]));
+        assert!(convex_hull(vec![[0.0, 0.0], [1.0, 1.0], [2.0, 2.0]]).len() < 3, "collinear: no area");
+    }
+
+    #[test]
+    fn an_object_keeps_its_bottom_and_leaves_the_floor_around_it() {
+        // A floor at z = 0 (flat Gaussians 5 cm wide within ±4 mm; some centred just inside
+        // the box's base, spreading out) and a 0.2 × 0.2 × 0.3 box standing on it, its walls
+        // (Gaussians flat across them) down to the floor.
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(9);
+        let mut scene = Scene::default();
+        let mut truth = Vec::new();
+        let mut push = |scene: &mut Scene, p: [f64; 3], scales: [f32; 3], object: bool| {
+            scene.means.push(p.map(|c| c as f32));
+            scene.scales.push(scales);
+            scene.quats.push([1.0, 0.0, 0.0, 0.0]);
+            scene.opacities.push(3.0);
+            scene.sh.extend([0.5; 3]);
+            truth.push(object);
+        };
+        for _ in 0..3000 {
+            let p: [f64; 3] =
+                [rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0), rng.random_range(-0.004..0.004)];
+            if p[0].abs() > 0.1 || p[1].abs() > 0.1 {
+                push(&mut scene, p, [-3.0, -3.0, -8.0], false);
+            }
+        }
+        for k in 0..20 {
+            let a = -0.09 + 0.009 * k as f64;
+            push(&mut scene, [0.095, a, 0.0], [-3.0, -3.0, -8.0], false);
+            push(&mut scene, [a, -0.095, 0.0], [-3.0, -3.0, -8.0], false);
+        }
+        for _ in 0..2000 {
+            let (a, z) = (rng.random_range(-0.1..0.1), rng.random_range(0.0..0.3));
+            let (p, scales) = match rng.random_range(0..4) {
+                0 => ([0.1, a, z], [-8.0, -5.0, -5.0]),
+                1 => ([-0.1, a, z], [-8.0, -5.0, -5.0]),
+                2 => ([a, 0.1, z], [-5.0, -8.0, -5.0]),
+                _ => ([a, -0.1, z], [-5.0, -8.0, -5.0]),
+            };
+            push(&mut scene, p, scales, true);
+        }
+        let support = Support { normal: Vector3::z(), offset: 0.0, thickness: 0.02, share: 0.5 };
+        // The part: the box and the floor within 5 cm of it.
+        let part: Vec<usize> =
+            (0..scene.len()).filter(|&i| scene.means[i][0].abs() < 0.15 && scene.means[i][1].abs() < 0.15).collect();
+        let kept = support.object_gaussians(&scene, &part, 0.5).unwrap();
+        let box_all = truth.iter().filter(|&&t| t).count();
+        assert!(kept.iter().all(|&i| truth[i]), "no floor Gaussian kept");
+        assert!(kept.len() * 100 >= box_all * 98, "{} of {box_all} box Gaussians kept", kept.len());
+        assert!(part.iter().any(|&i| !truth[i]), "the part holds floor");
     }
 
     #[test]

@@ -159,10 +159,11 @@ pub fn compare(views: &[Compared], id: u32) -> RenderScore {
 /// each output channel a non-negative mix of q's three channels, `p_c ≈ Σ_k m_ck q_k`, m ≥ 0.
 /// Instances of a group differ by a tint of the diffuse colour while highlights stay white
 /// (tabletop's mugs: yellow, blue, green and pink, channel ratios up to 6×), so a gain per
-/// channel cannot map one onto another: `0.83·d + s` (yellow's green) is `a·(d + s) + b·(0.22·d
-/// + s) + c·(0.78·d + s)` from pink's with `a + b + c = 1`, not a multiple of pink's green. A
-/// mix cannot move or reshape anything, so a wrongly placed reference still disagrees with
-/// the instance's own render; non-negative so that no map inverts the shading.
+/// channel cannot map one onto another: `0.83·d + s` (yellow's green) is
+/// `a·(d + s) + b·(0.22·d + s) + c·(0.78·d + s)` from pink's with `a + b + c = 1`, not a
+/// multiple of pink's green. A mix cannot move or reshape anything, so a wrongly placed
+/// reference still disagrees with the instance's own render; non-negative so that no map
+/// inverts the shading.
 #[derive(Default)]
 struct ColourMap {
     /// Σ q qᵀ (symmetric), Σ p_c q, Σ p_c², pixel count.
