@@ -608,25 +608,27 @@ pub struct Support {
     pub thickness: f64,
     /// Fraction of the scene's occupied cells (of `thickness`) on the plane.
     pub share: f64,
+    /// An orthonormal basis of the plane (planar coordinates, footprints).
+    basis: [Vector3<f64>; 2],
 }
 
 impl Support {
+    /// The plane n·p = offset (n a unit normal pointing up), `thickness` thick.
+    pub fn new(normal: Vector3<f64>, offset: f64, thickness: f64, share: f64) -> Support {
+        let a = if normal[0].abs() < 0.9 { Vector3::x() } else { Vector3::y() };
+        let u = normal.cross(&a).normalize();
+        Support { normal, offset, thickness, share, basis: [u, normal.cross(&u)] }
+    }
+
     /// Height of `p` above the plane.
     pub fn height(&self, p: [f32; 3]) -> f64 {
         self.normal.dot(&Vector3::from(f64s(p))) - self.offset
     }
 
-    /// An orthonormal basis of the plane.
-    fn basis(&self) -> [Vector3<f64>; 2] {
-        let a = if self.normal[0].abs() < 0.9 { Vector3::x() } else { Vector3::y() };
-        let u = self.normal.cross(&a).normalize();
-        [u, self.normal.cross(&u)]
-    }
-
     /// Coordinates of `p` in the plane.
     fn planar(&self, p: [f32; 3]) -> [f64; 2] {
         let q = Vector3::from(f64s(p));
-        self.basis().map(|b| b.dot(&q))
+        self.basis.map(|b| b.dot(&q))
     }
 
     /// Whether Gaussian `i` of `scene` lies in the footprint `hull` with its extent: its centre
@@ -635,7 +637,7 @@ impl Support {
     /// floor Gaussian whose centre falls just inside but which spreads out over the floor
     /// around does not.
     fn fits_inside(&self, hull: &[[f64; 2]], scene: &Scene, i: usize) -> bool {
-        let [u, v] = self.basis();
+        let [u, v] = self.basis;
         let q = self.planar(scene.means[i]);
         // Each edge: how far the centre lies beyond it (outward unit normal of a
         // counter-clockwise edge), and the outward normal in the world.
@@ -765,7 +767,7 @@ pub fn find_support(scene: &Scene, o: &DiscoverOptions, progress: &mut dyn FnMut
         coarse.len(),
         thickness
     ));
-    Ok(Support { normal: n, offset: d, thickness, share: on as f64 / coarse.len() as f64 })
+    Ok(Support::new(n, d, thickness, on as f64 / coarse.len() as f64))
 }
 
 /// Finds groups of repeated objects with no example ([`auto`] in the module docs).
@@ -1039,7 +1041,7 @@ mod tests {
             };
             push(&mut scene, p, scales, true);
         }
-        let support = Support { normal: Vector3::z(), offset: 0.0, thickness: 0.02, share: 0.5 };
+        let support = Support::new(Vector3::z(), 0.0, 0.02, 0.5);
         // The part: the box and the floor within 5 cm of it.
         let part: Vec<usize> =
             (0..scene.len()).filter(|&i| scene.means[i][0].abs() < 0.15 && scene.means[i][1].abs() < 0.15).collect();
