@@ -1,4 +1,5 @@
-//! Compiles every `glsl/*.comp` to SPIR-V 1.3 with shaderc (glslang) and generates Rust from the
+//! Compiles every `glsl/*.comp` (and the draw path's `*.vert` / `*.frag`) to SPIR-V 1.3 with
+//! shaderc (glslang) and generates Rust from the
 //! one shared GLSL header `glsl/common.glsl`:
 //! - every `#define NAME <integer>` becomes `pub const NAME: u32`;
 //! - every `struct Name { ... };` becomes a `#[repr(C)]` bytemuck struct with the std430/std140
@@ -24,14 +25,19 @@ fn main() {
     let mut entries: Vec<PathBuf> = std::fs::read_dir(&glsl_dir)
         .unwrap()
         .map(|e| e.unwrap().path())
-        .filter(|p| p.extension().is_some_and(|e| e == "comp"))
+        .filter(|p| p.extension().is_some_and(|e| e == "comp" || e == "vert" || e == "frag"))
         .collect();
     entries.sort();
 
     let compiler = shaderc::Compiler::new().expect("shaderc compiler");
-    gen.push_str("\n/// SPIR-V of every compute kernel in `glsl/`, by file stem.\npub mod spirv {\n");
+    gen.push_str("\n/// SPIR-V of every shader in `glsl/`: compute kernels by file stem, vertex and fragment\n/// shaders as `STEM_VERT` / `STEM_FRAG`.\npub mod spirv {\n");
     for path in &entries {
         let stem = path.file_stem().unwrap().to_str().unwrap().to_string();
+        let (stem, kind) = match path.extension().unwrap().to_str().unwrap() {
+            "vert" => (format!("{stem}_vert"), shaderc::ShaderKind::Vertex),
+            "frag" => (format!("{stem}_frag"), shaderc::ShaderKind::Fragment),
+            _ => (stem, shaderc::ShaderKind::Compute),
+        };
         // Kernels that accumulate floats also get a compare-and-swap variant (atomic_add.glsl).
         let src = std::fs::read_to_string(path).unwrap();
         let mut variants = vec![(stem.clone(), None)];
@@ -39,7 +45,7 @@ fn main() {
             variants.push((format!("{stem}_cas"), Some("NO_FLOAT_ATOMICS")));
         }
         for (name, define) in variants {
-            let words = compile(&compiler, &glsl_dir, path, define);
+            let words = compile(&compiler, &glsl_dir, path, kind, define);
             let spv = out_dir.join(format!("{name}.spv"));
             std::fs::write(&spv, bytemuck_words(&words)).unwrap();
             writeln!(gen, "    pub const {}: &[u8] = include_bytes!(\"{}\");", name.to_uppercase(), spv.display())
@@ -67,7 +73,13 @@ fn ascii_only(name: &str, src: &str) -> Result<(), String> {
     }
 }
 
-fn compile(compiler: &shaderc::Compiler, dir: &Path, path: &Path, define: Option<&str>) -> Vec<u32> {
+fn compile(
+    compiler: &shaderc::Compiler,
+    dir: &Path,
+    path: &Path,
+    kind: shaderc::ShaderKind,
+    define: Option<&str>,
+) -> Vec<u32> {
     let src = std::fs::read_to_string(path).unwrap();
     let file = format!("glsl/{}", path.file_name().unwrap().to_str().unwrap());
     if let Err(e) = ascii_only(&file, &src) {
@@ -89,7 +101,7 @@ fn compile(compiler: &shaderc::Compiler, dir: &Path, path: &Path, define: Option
         Ok(shaderc::ResolvedInclude { resolved_name: format!("glsl/{name}"), content })
     });
     let name = format!("glsl/{}", path.file_name().unwrap().to_str().unwrap());
-    match compiler.compile_into_spirv(&src, shaderc::ShaderKind::Compute, &name, "main", Some(&opts)) {
+    match compiler.compile_into_spirv(&src, kind, &name, "main", Some(&opts)) {
         Ok(r) => r.as_binary().to_vec(),
         Err(e) => fail(&format!("shader compile failed:\n{e}")),
     }

@@ -34,6 +34,8 @@
 // that loads it) and without limit elsewhere.
 #define BLEND_LOOP_ITERATIONS 60000
 #define BLEND_BATCH_ITERATIONS 20
+// The draw path (splat_quads.vert) draws every splat as an instance: a 4-vertex triangle strip.
+#define QUAD_VERTICES 4
 // Indirect dispatches are clamped to this many workgroups; kernels loop grid-stride.
 #define MAX_GROUPS 65535
 

@@ -5,6 +5,7 @@ use anyhow::Result;
 use clap::{Args, Parser, Subcommand};
 use instgs_vk::formats::instgs;
 use instgs_vk::model::camera::UpAxis;
+use instgs_vk::render::raster::Forward;
 use instgs_vk::pipeline;
 use instgs_vk::render::frames::FrameSpec;
 use instgs_vk::render::lod::RenderConfig;
@@ -64,6 +65,10 @@ pub(crate) enum Cmd {
         /// rendering (frame time ratios and the PSNR of A's frames against B's).
         #[arg(long, requires = "compare")]
         compare_exact: bool,
+        /// B's forward path (default: A's, --forward). Without --compare, B is A's scene: this
+        /// times the two forward paths against each other on the same frames.
+        #[arg(long, value_enum)]
+        compare_forward: Option<Forward>,
     },
     /// The main job. On a dataset with instance masks (DIR/masks/train/): the whole InstGS
     /// pipeline, plain → segment → instance → joint → eval → bench, into one run folder with a
@@ -362,6 +367,10 @@ pub(crate) enum Cmd {
         headless: bool,
         #[command(flatten)]
         render: RenderArgs,
+        /// How the depth-sorted splats become pixels: compute (the blend kernel), quads (the
+        /// fixed-function rasterizer) or auto (whichever renders the first frame faster).
+        #[arg(long, value_enum, default_value = "auto")]
+        forward: Forward,
     },
     /// Time the GPU radix sort against Rust's sort_unstable on the same random keys.
     BenchSort {
@@ -449,6 +458,11 @@ pub(crate) struct ViewArgs {
     /// Background colour r,g,b in [0, 1].
     #[arg(long, allow_hyphen_values = true, default_value = "0,0,0", value_parser = parse_rgb)]
     pub(crate) background: [f32; 3],
+    /// How the depth-sorted splats become pixels: compute (tile lists and the blend kernel, the
+    /// reference), quads (instanced quads through the fixed-function rasterizer and blending;
+    /// a device with a graphics queue) or auto (whichever renders the first frame faster).
+    #[arg(long, value_enum, default_value = "compute")]
+    pub(crate) forward: Forward,
 }
 
 impl ViewArgs {
@@ -462,6 +476,7 @@ impl ViewArgs {
             width: self.width,
             height: self.height,
             background: self.background,
+            forward: self.forward,
         }
     }
 }

@@ -47,10 +47,16 @@ fn run(cli: Cli) -> Result<()> {
     match cli.cmd {
         Cmd::Info { scene, json } => formats::info::info(&scene, json),
         Cmd::Render { view, out } => render::frames::render(device, &view.spec(), &out),
-        Cmd::Bench { view, frames, warmup, compare, json, render, compare_exact } => {
+        Cmd::Bench { view, frames, warmup, compare, json, render, compare_exact, compare_forward } => {
             let cfg = render.load()?;
-            let b = compare.as_deref().map(|p| (p, if compare_exact { cfg.clone().exact() } else { cfg.clone() }));
-            bench::bench(device, &view.spec(), frames, warmup, &cfg, b, json.as_deref())
+            let spec = view.spec();
+            let b_cfg = if compare_exact { cfg.clone().exact() } else { cfg.clone() };
+            let b = match (compare.as_deref(), compare_forward) {
+                (Some(p), f) => Some((p, b_cfg, f.unwrap_or(spec.forward))),
+                (None, Some(f)) => Some((spec.scene.as_path(), b_cfg, f)),
+                (None, None) => None,
+            };
+            bench::bench(device, &spec, (frames, warmup), &cfg, b, json.as_deref())
         }
         Cmd::Compose { templates, scene_graph, background, random_offsets, seed, offset_dtype, out } => {
             instancing::build::compose(
@@ -166,9 +172,11 @@ fn run(cli: Cli) -> Result<()> {
             out,
             headless,
             render,
+            forward,
         } => {
             let opts = player::PlayerOptions {
                 render: render.load()?,
+                forward,
                 scene_path: scene,
                 device,
                 width,

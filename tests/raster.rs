@@ -360,3 +360,83 @@ fn tile_culling_drops_intersections_not_pixels() {
         assert!(render(&culled) == render(&whole), "culling changed the image");
     }
 }
+
+/// The draw path (`Forward::Quads`) and the compute path render one frame; returns the PSNR of
+/// the draw against the compute image and against the CPU render. Output buffers poisoned.
+fn quads_against_compute(scene: &Scene, cam: &Camera, bg: [f32; 3]) -> (f64, f64) {
+    use instgs_vk::render::raster::Forward;
+    let (gpu, k) = gpu();
+    let gs = GpuScene::new(&gpu, scene).unwrap();
+    let mut r = Rasterizer::new(&gpu, &k).unwrap();
+    r.poison = true;
+    let compute = r.render(&gs, cam, bg).unwrap();
+    r.set_forward(Forward::Quads).unwrap();
+    let quads = r.render(&gs, cam, bg).unwrap();
+    assert!(quads.image.iter().all(|p| p.iter().all(|v| v.is_finite())), "unwritten (poisoned) pixels");
+    assert_eq!(quads.visible, compute.visible);
+    // The compute path stops a pixel before the splat that takes T below 1e-4 (Inria), so at
+    // T < 1e-4 / (1 - 0.99); the draw blends on.
+    let max_t = compute.image.iter().zip(&quads.image).map(|(a, b)| (a[3] - b[3]).abs()).fold(0.0f32, f32::max);
+    assert!(max_t <= 0.0101, "transmittance differs by {max_t}");
+    let fp = frame_params(scene.len(), scene.sh_degree, cam, bg, compute.intersections.max(1));
+    let cpu = reference::forward::render(scene, &fp);
+    assert_clean(&gpu);
+    (psnr(&compute.image, &quads.image), psnr(&cpu, &quads.image))
+}
+
+#[test]
+fn quads_match_the_compute_path_on_random_scenes() {
+    if !gpu().0.info.draws {
+        eprintln!("skipped: the device cannot draw");
+        return;
+    }
+    let mut rng = Rng::new(23);
+    for deg in [0, 3] {
+        let scene = random_scene(&mut rng, 4000, deg);
+        let cam = look_at(Vec3::new(0.4, -0.6, -4.0), Vec3::new(0.1, 0.0, 0.2), -Vec3::Y, 203, 157, 180.0);
+        let (vs_compute, vs_cpu) = quads_against_compute(&scene, &cam, [0.2, 0.5, 0.9]);
+        assert!(vs_compute >= 60.0 && vs_cpu >= 50.0, "degree {deg}: {vs_compute:.1} / {vs_cpu:.1} dB");
+    }
+    // Hundreds of splats over a few tiles: pixels saturate, where the two paths part.
+    let (scene, cam) = crowded_scene(&mut rng, 3000);
+    let (vs_compute, vs_cpu) = quads_against_compute(&scene, &cam, [1.0, 1.0, 1.0]);
+    assert!(vs_compute >= 60.0 && vs_cpu >= 50.0, "crowded: {vs_compute:.1} / {vs_cpu:.1} dB");
+}
+
+#[test]
+fn quads_match_the_compute_path_on_real_splats() {
+    if !gpu().0.info.draws {
+        eprintln!("skipped: the device cannot draw");
+        return;
+    }
+    for name in ["guitar.ply", "biker.ply", "playbot_lod2.ply"] {
+        let scene = read_ply(&shared_data(&format!("splats/{name}"))).unwrap();
+        for cam in orbit_around(&scene, 3, UpAxis::NegY, 320, 240).iter().take(2) {
+            let (vs_compute, vs_cpu) = quads_against_compute(&scene, cam, [0.0, 0.0, 0.0]);
+            // The bar is 45 dB; the draw order per pixel is the compute path's.
+            assert!(vs_compute >= 60.0, "{name} {}: quads vs compute {vs_compute:.1} dB", cam.name);
+            assert!(vs_cpu >= 50.0, "{name} {}: quads vs CPU {vs_cpu:.1} dB", cam.name);
+        }
+    }
+}
+
+#[test]
+fn auto_forward_picks_a_path_and_renders_the_same_image() {
+    use instgs_vk::render::raster::Forward;
+    let (gpu, k) = gpu();
+    let mut rng = Rng::new(29);
+    let scene = random_scene(&mut rng, 2000, 1);
+    let gs = GpuScene::new(&gpu, &scene).unwrap();
+    let cam = look_at(Vec3::new(0.0, 0.0, -4.0), Vec3::ZERO, -Vec3::Y, 160, 120, 150.0);
+    let mut r = Rasterizer::new(&gpu, &k).unwrap();
+    let compute = r.render(&gs, &cam, [0.0; 3]).unwrap();
+    r.set_forward(Forward::Auto).unwrap();
+    let auto = r.render(&gs, &cam, [0.0; 3]).unwrap();
+    assert_ne!(r.forward(), Forward::Auto);
+    if !gpu.info.draws {
+        assert_eq!(r.forward(), Forward::Compute);
+    }
+    let p = psnr(&compute.image, &auto.image);
+    assert!(p >= 60.0, "auto ({:?}) vs compute: {p:.1} dB", r.forward());
+    assert_clean(&gpu);
+}

@@ -12,9 +12,24 @@ use crate::math::{median, percentile};
 use crate::model::camera::Camera;
 use crate::render::frames::{collect, print_passes, setup, FrameSpec, Setup};
 use crate::render::lod::RenderConfig;
-use crate::render::raster::Rasterizer;
+use crate::render::raster::{Forward, Rasterizer};
 use crate::render::upload::GpuScene;
 use crate::util::{write_json, Progress, ProgressMode};
+
+/// A scene to bench: its file, the scene, how it is rendered (level of detail, forward path).
+pub struct BenchInput<'a> {
+    pub path: &'a Path,
+    pub scene: AnyScene,
+    pub render: RenderConfig,
+    pub forward: Forward,
+}
+
+impl<'a> BenchInput<'a> {
+    /// Reads the scene at `path`.
+    pub fn read(path: &'a Path, render: RenderConfig, forward: Forward) -> Result<BenchInput<'a>> {
+        Ok(BenchInput { path, scene: AnyScene::read(path)?, render, forward })
+    }
+}
 
 /// One scene of a bench run: its own rasterizer (buffers sized for it) and samples.
 struct BenchScene {
@@ -29,9 +44,11 @@ struct BenchScene {
 }
 
 impl BenchScene {
-    fn new(gpu: &Arc<Gpu>, k: &Arc<Kernels>, path: &Path, scene: AnyScene, cfg: &RenderConfig) -> Result<BenchScene> {
-        let gs = scene.upload_for_rendering(gpu, cfg).with_context(|| path.display().to_string())?;
-        let r = Rasterizer::new(gpu, k)?;
+    fn new(gpu: &Arc<Gpu>, k: &Arc<Kernels>, input: BenchInput) -> Result<BenchScene> {
+        let BenchInput { path, scene, render, forward } = input;
+        let gs = scene.upload_for_rendering(gpu, &render).with_context(|| path.display().to_string())?;
+        let mut r = Rasterizer::new(gpu, k)?;
+        r.set_forward(forward)?;
         Ok(BenchScene {
             path: path.to_path_buf(),
             scene,
@@ -61,7 +78,7 @@ impl BenchScene {
         let p90 = percentile(&self.frame_ms, 0.9);
         let file_bytes = std::fs::metadata(&self.path)?.len();
         let sorts = sort_comparison(&self.r, &self.per_pass)?;
-        println!("scene            {}", self.path.display());
+        println!("scene            {} ({} forward path)", self.path.display(), forward_name(self.r.forward()));
         println!("splats           {}", self.scene.splats());
         println!("visible (median) {}", median(&self.visible));
         println!("intersections    {}", median(&self.isects));
@@ -85,6 +102,7 @@ impl BenchScene {
             self.per_pass.iter().map(|(n, v)| (n.clone(), serde_json::json!(median(v)))).collect();
         Ok(serde_json::json!({
             "scene": self.path.display().to_string(),
+            "forward": self.r.forward(),
             "splats": self.scene.splats(),
             "visible": median(&self.visible),
             "intersections": median(&self.isects),
@@ -100,6 +118,14 @@ impl BenchScene {
                 "ratio": c.gpu_ms / c.cpu_ms,
             })).collect::<Vec<_>>(),
         }))
+    }
+}
+
+fn forward_name(f: Forward) -> &'static str {
+    match f {
+        Forward::Compute => "compute",
+        Forward::Quads => "quads",
+        Forward::Auto => "auto",
     }
 }
 
@@ -129,27 +155,26 @@ fn cpu_rss_bytes() -> Option<u64> {
     Some(kb * 1024)
 }
 
-#[allow(clippy::too_many_arguments)]
-/// `instgs-vk bench`: renders `view`'s scene (and `compare`'s, interleaved) `frames` times per
+/// `instgs-vk bench`: renders `view`'s scene (and `compare`, interleaved) `frames` times per
 /// camera after `warmup` untimed frames; prints the tables and writes `json`.
 pub fn bench(
     device: Option<String>,
     view: &FrameSpec,
-    frames: usize,
-    warmup: usize,
-    cfg: &RenderConfig,
-    compare: Option<(&Path, RenderConfig)>,
+    (frames, warmup): (usize, usize),
+    render: &RenderConfig,
+    compare: Option<(&Path, RenderConfig, Forward)>,
     json: Option<&Path>,
 ) -> Result<()> {
     if frames == 0 {
         bail!("--frames must be at least 1");
     }
     let Setup { gpu, k, scene, cams } = setup(device, view)?;
-    let b = compare.map(|(p, c)| AnyScene::read(p).map(|s| (p, s, c))).transpose()?;
+    let a = BenchInput { path: &view.scene, scene, render: render.clone(), forward: view.forward };
+    let b = compare.map(|(p, c, f)| BenchInput::read(p, c, f)).transpose()?;
     let v = bench_scenes(
         &gpu,
         &k,
-        (&view.scene, scene, cfg),
+        a,
         b,
         &cams,
         (frames, warmup),
@@ -168,17 +193,17 @@ pub fn bench(
 pub fn bench_scenes(
     gpu: &Arc<Gpu>,
     k: &Arc<Kernels>,
-    a: (&Path, AnyScene, &RenderConfig),
-    b: Option<(&Path, AnyScene, RenderConfig)>,
+    a: BenchInput,
+    b: Option<BenchInput>,
     cams: &[Camera],
     (frames, warmup): (usize, usize),
     background: [f32; 3],
     progress: (&str, ProgressMode),
 ) -> Result<serde_json::Value> {
-    let cfg = a.2;
-    let mut runs = vec![BenchScene::new(gpu, k, a.0, a.1, cfg)?];
-    if let Some((p, scene, bcfg)) = b {
-        runs.push(BenchScene::new(gpu, k, p, scene, &bcfg)?);
+    let render = serde_json::to_value(&a.render)?;
+    let mut runs = vec![BenchScene::new(gpu, k, a)?];
+    if let Some(b) = b {
+        runs.push(BenchScene::new(gpu, k, b)?);
     }
     // Interleaved (A B A B …) so that clock and thermal drift hit both scenes alike.
     let mut bar = Progress::new(progress.0, "view", "views/s", cams.len() as u64, 0, progress.1);
@@ -270,7 +295,7 @@ pub fn bench_scenes(
         v["psnr_a_vs_b"] = serde_json::json!({ "mean": mean(&ab), "min": worst, "views": ab });
         v["psnr_vs_reference"] = serde_json::json!({ "a": mean(&a_ref), "b": mean(&b_ref) });
     }
-    v["render"] = serde_json::to_value(cfg)?;
+    v["render"] = render;
     Ok(v)
 }
 
@@ -303,22 +328,19 @@ fn sort_comparison(r: &Rasterizer, per_pass: &[(String, Vec<f64>)]) -> Result<Ve
     let depth_ids: Vec<u32> = (0..proj.depths.len() as u32).filter(|&i| proj.tiles_touched[i as usize] > 0).collect();
     let depth_keys: Vec<u32> = depth_ids.iter().map(|&i| proj.depths[i as usize].to_bits()).collect();
     let fp = r.last_frame_params().ok_or_else(|| anyhow!("no frame rendered"))?;
-    let (tile_keys, tile_ids) = reference::forward::emit(&fp, &proj, &st.depth_ids);
-    let gpu = |name: &str| per_pass.iter().find(|(n, _)| n == name).map_or(f64::NAN, |(_, v)| median(v));
-    Ok(vec![
-        SortComparison {
-            name: "depth_sort",
-            keys: depth_keys.len(),
-            gpu_ms: gpu("depth_sort"),
-            cpu_ms: time_sort_unstable(&depth_keys, &depth_ids, 5),
-        },
-        SortComparison {
-            name: "tile_sort",
-            keys: tile_keys.len(),
-            gpu_ms: gpu("tile_sort"),
-            cpu_ms: time_sort_unstable(&tile_keys, &tile_ids, 5),
-        },
-    ])
+    let gpu = |name: &str| per_pass.iter().find(|(n, _)| n == name).map(|(_, v)| median(v));
+    let mut out = Vec::new();
+    if let Some(gpu_ms) = gpu("depth_sort") {
+        let cpu_ms = time_sort_unstable(&depth_keys, &depth_ids, 5);
+        out.push(SortComparison { name: "depth_sort", keys: depth_keys.len(), gpu_ms, cpu_ms });
+    }
+    // The tile lists exist on the compute forward path only.
+    if let Some(gpu_ms) = gpu("tile_sort") {
+        let (tile_keys, tile_ids) = reference::forward::emit(&fp, &proj, &st.depth_ids);
+        let cpu_ms = time_sort_unstable(&tile_keys, &tile_ids, 5);
+        out.push(SortComparison { name: "tile_sort", keys: tile_keys.len(), gpu_ms, cpu_ms });
+    }
+    Ok(out)
 }
 
 /// `instgs-vk bench-sort`: the GPU radix sort against `sort_unstable` on `n` fixed pseudo-random

@@ -55,7 +55,14 @@ pub struct DeviceInfo {
     /// `shaderBufferFloat32AtomicAdd` (VK_EXT_shader_atomic_float) is available and enabled;
     /// without it the gradient kernels use their compare-and-swap variants.
     pub float_atomics: bool,
+    /// The queue also draws, and [`TARGET_FORMAT`] attachments blend: the hardware-rasterized
+    /// forward path (`render::raster::quads`) can run.
+    pub draws: bool,
 }
+
+/// The draw path's colour attachment (crate::gpu::draw): 32-bit float RGBA, the compute path's
+/// `out_image` texel.
+pub const TARGET_FORMAT: vk::Format = vk::Format::R32G32B32A32_SFLOAT;
 
 struct Messages(Mutex<Vec<String>>, bool);
 
@@ -244,10 +251,15 @@ impl Gpu {
             },
             None => true,
         };
+        // A family that computes and draws (every desktop driver's first), else one that computes.
+        let graphics = vk::QueueFlags::COMPUTE | vk::QueueFlags::GRAPHICS;
         let (qf, qprops) = families
             .iter()
             .enumerate()
-            .find(|&(i, f)| f.queue_flags.contains(vk::QueueFlags::COMPUTE) && presents(i))
+            .find(|&(i, f)| f.queue_flags.contains(graphics) && presents(i))
+            .or_else(|| {
+                families.iter().enumerate().find(|&(i, f)| f.queue_flags.contains(vk::QueueFlags::COMPUTE) && presents(i))
+            })
             .ok_or_else(|| match surface {
                 Some(_) => anyhow!("device '{}' has no compute queue that can present to the window", chosen.1),
                 None => anyhow!("device '{}' has no compute queue", chosen.1),
@@ -307,6 +319,14 @@ impl Gpu {
             max_storage_buffer_range: props.limits.max_storage_buffer_range as u64,
             timestamp_period_ns,
             float_atomics,
+            draws: qprops.queue_flags.contains(vk::QueueFlags::GRAPHICS) && {
+                let f = unsafe {
+                    instance.get_physical_device_format_properties(physical, TARGET_FORMAT)
+                };
+                f.optimal_tiling_features.contains(
+                    vk::FormatFeatureFlags::COLOR_ATTACHMENT_BLEND | vk::FormatFeatureFlags::TRANSFER_SRC,
+                )
+            },
         };
         Ok(Arc::new(Gpu {
             _entry: entry,

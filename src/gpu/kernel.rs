@@ -1,5 +1,5 @@
 //! One compute kernel: its pipeline and a descriptor layout reflected from its SPIR-V; buffers
-//! are bound by the GLSL name of their block.
+//! are bound by the GLSL name of their block (the draw path's pipelines reflect the same way).
 use std::collections::BTreeMap;
 use std::ffi::CString;
 use std::sync::Arc;
@@ -30,37 +30,8 @@ impl Kernel {
 
     /// As [`Kernel::new`], with `extra[i]` as the u32 specialization constant `i + 1`.
     pub fn with_spec(gpu: &Arc<Gpu>, name: &str, spirv: &[u8], extra: &[u32]) -> Result<Kernel> {
-        let refl = rspirv_reflect::Reflection::new_from_spirv(spirv)
-            .map_err(|e| anyhow!("kernel {name}: SPIR-V reflection failed: {e:?}"))?;
-        let sets = refl.get_descriptor_sets().map_err(|e| anyhow!("kernel {name}: reflection: {e:?}"))?;
-        if sets.keys().any(|&s| s != 0) {
-            bail!("kernel {name}: only descriptor set 0 is supported");
-        }
-        let mut bindings = BTreeMap::new();
-        let mut layout_bindings = Vec::new();
-        for (&binding, info) in sets.get(&0).into_iter().flatten() {
-            let ty = match info.ty {
-                rspirv_reflect::DescriptorType::STORAGE_BUFFER => vk::DescriptorType::STORAGE_BUFFER,
-                rspirv_reflect::DescriptorType::UNIFORM_BUFFER => vk::DescriptorType::UNIFORM_BUFFER,
-                other => bail!("kernel {name}: binding {binding} has unsupported descriptor type {other:?}"),
-            };
-            if info.name.is_empty() {
-                bail!("kernel {name}: binding {binding} has no instance name; declare `buffer XBuf {{ ... }} name;`");
-            }
-            bindings.insert(info.name.clone(), (binding, ty));
-            layout_bindings.push(
-                vk::DescriptorSetLayoutBinding::default()
-                    .binding(binding)
-                    .descriptor_type(ty)
-                    .descriptor_count(1)
-                    .stage_flags(vk::ShaderStageFlags::COMPUTE),
-            );
-        }
-        let push_size = refl
-            .get_push_constant_range()
-            .map_err(|e| anyhow!("kernel {name}: reflection: {e:?}"))?
-            .map(|p| p.offset + p.size)
-            .unwrap_or(0);
+        let Reflected { bindings, layout_bindings, push_size } =
+            reflect(name, &[spirv], vk::ShaderStageFlags::COMPUTE)?;
         let d = &gpu.device;
         let words = ash::util::read_spv(&mut std::io::Cursor::new(spirv))?;
         unsafe {
@@ -101,6 +72,31 @@ impl Kernel {
     }
 }
 
+impl Kernel {
+    pub(crate) fn pipeline_ref(&self) -> PipelineRef<'_> {
+        PipelineRef {
+            name: &self.name,
+            pipeline: self.pipeline,
+            layout: self.layout,
+            bindings: &self.bindings,
+            push_size: self.push_size,
+            point: vk::PipelineBindPoint::COMPUTE,
+            stages: vk::ShaderStageFlags::COMPUTE,
+        }
+    }
+}
+
+/// What binding buffers to a pipeline needs: compute kernels and the draw pipelines alike.
+pub(crate) struct PipelineRef<'a> {
+    pub name: &'a str,
+    pub pipeline: vk::Pipeline,
+    pub layout: vk::PipelineLayout,
+    pub bindings: &'a BTreeMap<String, (u32, vk::DescriptorType)>,
+    pub push_size: u32,
+    pub point: vk::PipelineBindPoint,
+    pub stages: vk::ShaderStageFlags,
+}
+
 impl Drop for Kernel {
     fn drop(&mut self) {
         unsafe {
@@ -110,4 +106,59 @@ impl Drop for Kernel {
             d.destroy_descriptor_set_layout(self.set_layout, None);
         }
     }
+}
+
+/// The buffers and push constants shaders declare, by reflection.
+pub(crate) struct Reflected {
+    /// GLSL block instance name → (binding, descriptor type).
+    pub bindings: BTreeMap<String, (u32, vk::DescriptorType)>,
+    pub layout_bindings: Vec<vk::DescriptorSetLayoutBinding<'static>>,
+    /// Bytes of the push-constant block (0: none).
+    pub push_size: u32,
+}
+
+/// Reflects the descriptor set 0 and push constants of `modules` (the stages of one pipeline;
+/// a binding declared by several must have one name), visible to `stages`.
+pub(crate) fn reflect(name: &str, modules: &[&[u8]], stages: vk::ShaderStageFlags) -> Result<Reflected> {
+    let mut bindings: BTreeMap<String, (u32, vk::DescriptorType)> = BTreeMap::new();
+    let mut push_size = 0;
+    for spirv in modules {
+        let refl = rspirv_reflect::Reflection::new_from_spirv(spirv)
+            .map_err(|e| anyhow!("kernel {name}: SPIR-V reflection failed: {e:?}"))?;
+        let sets = refl.get_descriptor_sets().map_err(|e| anyhow!("kernel {name}: reflection: {e:?}"))?;
+        if sets.keys().any(|&s| s != 0) {
+            bail!("kernel {name}: only descriptor set 0 is supported");
+        }
+        for (&binding, info) in sets.get(&0).into_iter().flatten() {
+            let ty = match info.ty {
+                rspirv_reflect::DescriptorType::STORAGE_BUFFER => vk::DescriptorType::STORAGE_BUFFER,
+                rspirv_reflect::DescriptorType::UNIFORM_BUFFER => vk::DescriptorType::UNIFORM_BUFFER,
+                other => bail!("kernel {name}: binding {binding} has unsupported descriptor type {other:?}"),
+            };
+            if info.name.is_empty() {
+                bail!("kernel {name}: binding {binding} has no instance name; declare `buffer XBuf {{ ... }} name;`");
+            }
+            if let Some(other) = bindings.iter().find(|(n, b)| b.0 == binding && **n != info.name) {
+                bail!("kernel {name}: binding {binding} is '{}' in one stage and '{}' in another", other.0, info.name);
+            }
+            bindings.insert(info.name.clone(), (binding, ty));
+        }
+        let push = refl
+            .get_push_constant_range()
+            .map_err(|e| anyhow!("kernel {name}: reflection: {e:?}"))?
+            .map(|p| p.offset + p.size)
+            .unwrap_or(0);
+        push_size = push_size.max(push);
+    }
+    let layout_bindings = bindings
+        .values()
+        .map(|&(binding, ty)| {
+            vk::DescriptorSetLayoutBinding::default()
+                .binding(binding)
+                .descriptor_type(ty)
+                .descriptor_count(1)
+                .stage_flags(stages)
+        })
+        .collect();
+    Ok(Reflected { bindings, layout_bindings, push_size })
 }

@@ -16,6 +16,8 @@ pub struct Kernels {
     /// then the rest (specialization constant CROWDED_TILES 0 and 1); dispatch both, in any order.
     pub blend: [Kernel; 2],
     pub dispatch_args: Kernel,
+    /// The draw path's indirect draw command (render::raster::quads).
+    pub draw_args: Kernel,
     pub scan_reduce: Kernel,
     pub scan_blocks: Kernel,
     pub scan_down: Kernel,
@@ -92,6 +94,7 @@ impl Kernels {
                 Kernel::with_spec(gpu, "blend (crowded tiles)", spirv::BLEND, &blend_spec(1))?,
             ],
             dispatch_args: k("dispatch_args", spirv::DISPATCH_ARGS)?,
+            draw_args: k("draw_args", spirv::DRAW_ARGS)?,
             scan_reduce: k("scan_reduce", spirv::SCAN_REDUCE)?,
             scan_blocks: k("scan_blocks", spirv::SCAN_BLOCKS)?,
             scan_down: k("scan_down", spirv::SCAN_DOWN)?,

@@ -1,5 +1,6 @@
 //! Vulkan context on `ash` + `gpu-allocator`: device choice, validation layers, buffers,
-//! compute kernels with reflected descriptor layouts, command recording and GPU timestamps.
+//! compute kernels with reflected descriptor layouts, the draw path's graphics pipelines, command
+//! recording and GPU timestamps.
 //!
 //! Device choice: a discrete GPU over an integrated one over a virtual one over a CPU device
 //! (lavapipe). `INSTGS_DEVICE` or `--device NAME|INDEX` overrides (a name matches by
@@ -11,6 +12,7 @@
 
 pub mod buffer;
 pub mod context;
+pub mod draw;
 pub mod kernel;
 pub mod kernels;
 pub mod record;

@@ -8,7 +8,7 @@ use ash::vk;
 
 use crate::gpu::buffer::Buffer;
 use crate::gpu::context::Gpu;
-use crate::gpu::kernel::Kernel;
+use crate::gpu::kernel::{Kernel, PipelineRef};
 use gpu_allocator::MemoryLocation;
 
 /// Named GPU timestamps: one before the first pass and one after every pass.
@@ -72,13 +72,13 @@ impl Drop for Timer {
 /// global memory barrier (compute and transfer writes before compute, transfer and indirect
 /// reads), since each pass here consumes the previous one's output.
 pub struct Recorder<'a> {
-    gpu: &'a Arc<Gpu>,
-    cmd: vk::CommandBuffer,
+    pub(crate) gpu: &'a Arc<Gpu>,
+    pub(crate) cmd: vk::CommandBuffer,
     timer: Option<&'a mut Timer>,
 }
 
 impl Recorder<'_> {
-    fn barrier(&mut self) {
+    pub(crate) fn barrier(&mut self) {
         let mb = [vk::MemoryBarrier::default()
             .src_access_mask(vk::AccessFlags::SHADER_WRITE | vk::AccessFlags::TRANSFER_WRITE)
             .dst_access_mask(
@@ -149,6 +149,16 @@ impl Recorder<'_> {
     }
 
     fn bind<P: bytemuck::Pod>(&mut self, k: &Kernel, binds: &[(&str, &Buffer)], push: &P) -> Result<()> {
+        self.bind_pipeline(&k.pipeline_ref(), binds, push)
+    }
+
+    /// Binds a pipeline, its buffers by GLSL name (push descriptors) and its push constants.
+    pub(crate) fn bind_pipeline<P: bytemuck::Pod>(
+        &mut self,
+        k: &PipelineRef,
+        binds: &[(&str, &Buffer)],
+        push: &P,
+    ) -> Result<()> {
         if binds.len() != k.bindings.len() {
             let want: Vec<&String> = k.bindings.keys().collect();
             let got: Vec<&str> = binds.iter().map(|b| b.0).collect();
@@ -183,16 +193,10 @@ impl Recorder<'_> {
         }
         unsafe {
             let d = &self.gpu.device;
-            d.cmd_bind_pipeline(self.cmd, vk::PipelineBindPoint::COMPUTE, k.pipeline);
-            self.gpu.push_descriptor.cmd_push_descriptor_set(
-                self.cmd,
-                vk::PipelineBindPoint::COMPUTE,
-                k.layout,
-                0,
-                &writes,
-            );
+            d.cmd_bind_pipeline(self.cmd, k.point, k.pipeline);
+            self.gpu.push_descriptor.cmd_push_descriptor_set(self.cmd, k.point, k.layout, 0, &writes);
             if k.push_size > 0 {
-                d.cmd_push_constants(self.cmd, k.layout, vk::ShaderStageFlags::COMPUTE, 0, bytes);
+                d.cmd_push_constants(self.cmd, k.layout, k.stages, 0, bytes);
             }
         }
         Ok(())

@@ -25,10 +25,12 @@ use std::sync::atomic::Ordering;
 use std::sync::Arc;
 use std::time::Instant;
 
+use crate::bench::BenchInput;
 use crate::dataset::Dataset;
 use crate::formats::AnyScene;
 use crate::gpu::kernels::Kernels;
 use crate::gpu::Gpu;
+use crate::render::raster::Forward;
 use crate::train::config::{BackgroundKeep, PipelineConfig};
 use crate::train::{self, INTERRUPTED};
 use crate::util::{Progress, ProgressMode};
@@ -522,8 +524,8 @@ impl Ctx<'_> {
                 let v = crate::bench::bench_scenes(
                     self.gpu,
                     self.k,
-                    (&a, AnyScene::read(&a)?, &render),
-                    Some((&b, AnyScene::read(&b)?, render.clone())),
+                    BenchInput::read(&a, render.clone(), Forward::Compute)?,
+                    Some(BenchInput::read(&b, render.clone(), Forward::Compute)?),
                     &cams,
                     (self.cfg.bench.frames, self.cfg.bench.warmup),
                     self.cfg.plain.background,

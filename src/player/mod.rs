@@ -65,6 +65,8 @@ pub struct PlayerOptions {
     pub out: Option<PathBuf>,
     /// Culling and level of detail of instanced scenes.
     pub render: crate::render::lod::RenderConfig,
+    /// How the depth-sorted splats become pixels.
+    pub forward: crate::render::raster::Forward,
 }
 
 /// The selection's box outline colour (RGBA8).
@@ -148,6 +150,7 @@ pub fn run_headless(opts: &PlayerOptions, scene: &AnyScene, start: ViewCamera) -
     let k = Kernels::new(&gpu)?;
     let gs = scene.upload_for_rendering(&gpu, &opts.render).with_context(|| opts.scene_path.display().to_string())?;
     let mut r = Rasterizer::new(&gpu, &k)?;
+    r.set_forward(opts.forward)?;
     let mut gpu_ms = Vec::new();
     for i in 0..frames {
         let mut view = start.clone();
@@ -313,7 +316,8 @@ impl App {
             .scene
             .upload_for_rendering(&gpu, &self.opts.render)
             .with_context(|| self.opts.scene_path.display().to_string())?;
-        let raster = Rasterizer::new(&gpu, &k)?;
+        let mut raster = Rasterizer::new(&gpu, &k)?;
+        raster.set_forward(self.opts.forward)?;
         let presenter = Presenter::new(&gpu, &k, self.opts.vsync)?;
         let overlay_buf = gpu.storage("overlay", 16)?;
         let now = Instant::now();

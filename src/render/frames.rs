@@ -10,7 +10,7 @@ use crate::gpu::kernels::Kernels;
 use crate::gpu::{Gpu, GpuOptions};
 use crate::math::median;
 use crate::model::camera::{self, Camera, UpAxis};
-use crate::render::raster::Rasterizer;
+use crate::render::raster::{Forward, Rasterizer};
 use crate::util::save_png;
 
 /// What `render` and `bench` draw: a scene from a set of cameras over a background colour.
@@ -30,6 +30,8 @@ pub struct FrameSpec {
     pub height: Option<u32>,
     /// Linear RGB in [0, 1].
     pub background: [f32; 3],
+    /// How the depth-sorted splats become pixels.
+    pub forward: Forward,
 }
 
 /// The cameras of `view` (checked before any device starts).
@@ -89,6 +91,7 @@ pub fn render(device: Option<String>, view: &FrameSpec, out: &Path) -> Result<()
     std::fs::create_dir_all(out).with_context(|| format!("{}: cannot create folder", out.display()))?;
     let gs = scene.upload(&gpu).with_context(|| view.scene.display().to_string())?;
     let mut r = Rasterizer::new(&gpu, &k)?;
+    r.set_forward(view.forward)?;
     let mut per_pass: Vec<(String, Vec<f64>)> = Vec::new();
     for cam in &cams {
         let f = r.render(&gs, cam, view.background)?;

@@ -1,6 +1,7 @@
 //! The GPU forward rasterizer: a scene on the device and the per-frame passes
 //! preprocess → scan visible → compact → depth sort → scan tiles → emit → tile sort → ranges →
-//! blend, all sized on the GPU (indirect dispatch from GPU-written counts). The command buffer is
+//! blend, all sized on the GPU (indirect dispatch from GPU-written counts), or with
+//! [`Forward::Quads`] the depth-sorted splats drawn as quads after the depth sort ([`quads`]). The command buffer is
 //! recorded once per scene, image size and intersection capacity and replayed for every frame.
 //! [`Rasterizer::render`] reads the image back; [`Rasterizer::render_resident`] (bench, player)
 //! leaves it on the device. Either way the GPU copies its 32-byte counts into host-visible
@@ -20,6 +21,10 @@ use crate::model::camera::Camera;
 use crate::shared::*;
 
 pub mod backward;
+pub mod quads;
+
+pub use quads::Forward;
+use quads::QuadBufs;
 
 use crate::render::upload::GpuScene;
 
@@ -198,6 +203,12 @@ pub struct Rasterizer {
     select: Option<SelectBufs>,
     /// Bound where a kernel's instance-selection buffers are unused (exact rendering).
     placeholder: Buffer,
+    /// How sorted splats become pixels ([`Rasterizer::set_forward`]): never `Auto` here.
+    forward: Forward,
+    /// `Auto` was asked for and the first frame has not chosen yet.
+    choose_forward: bool,
+    /// The draw path's pipelines and target (with [`Forward::Quads`]).
+    quads: Option<QuadBufs>,
     cmd: CommandBuffer,
     timer: Option<Timer>,
     /// (scene buffer handle, N, width, height, capacity, image read back) the command buffer
@@ -214,8 +225,9 @@ pub struct Rasterizer {
 }
 
 /// What a recorded frame depends on: scene id, per-splat capacity, width, height,
-/// intersection capacity, image read back, instance-selection push constants (as bits).
-type RecordKey = (u64, usize, u32, u32, usize, bool, Option<[u32; 3]>);
+/// intersection capacity, image read back, instance-selection push constants (as bits), the
+/// forward path.
+type RecordKey = (u64, usize, u32, u32, usize, bool, Option<[u32; 3]>, Forward);
 
 /// A quiet-NaN bit pattern that no kernel writes.
 pub const POISON: u32 = 0x7fc0_0bad;
@@ -243,6 +255,9 @@ impl Rasterizer {
             image: None,
             select: None,
             placeholder: gpu.storage("placeholder", 16)?,
+            forward: Forward::Compute,
+            choose_forward: false,
+            quads: None,
             cmd: CommandBuffer::new(gpu)?,
             timer: Timer::new(gpu, 32)?,
             recorded: None,
@@ -251,6 +266,45 @@ impl Rasterizer {
             last_params: None,
             poison: false,
         })
+    }
+
+    /// Chooses the forward path (default [`Forward::Compute`]); [`Forward::Quads`] builds the
+    /// draw pipelines and fails on a device that cannot draw them; [`Forward::Auto`] times both
+    /// on the first frame (where the device can draw and has timestamps; else compute).
+    pub fn set_forward(&mut self, forward: Forward) -> Result<()> {
+        let usable = self.gpu.info.draws && self.timer.is_some();
+        if (forward == Forward::Quads || (forward == Forward::Auto && usable)) && self.quads.is_none() {
+            self.quads = Some(QuadBufs::new(&self.gpu)?);
+        }
+        self.choose_forward = forward == Forward::Auto && usable;
+        self.forward = if forward == Forward::Quads { Forward::Quads } else { Forward::Compute };
+        Ok(())
+    }
+
+    /// The forward path in use (with `Auto`, the chosen one once a frame was rendered).
+    pub fn forward(&self) -> Forward {
+        self.forward
+    }
+
+    /// `Auto`'s choice: two frames of each path, alternating, from the first camera; the lower
+    /// median GPU time wins (ties: compute, the reference).
+    fn choose_forward(&mut self, scene: &GpuScene, cam: &Camera, background: [f32; 3]) -> Result<()> {
+        self.choose_forward = false;
+        let mut ms = [Vec::new(), Vec::new()];
+        for _ in 0..2 {
+            for (i, f) in [Forward::Compute, Forward::Quads].into_iter().enumerate() {
+                self.forward = f;
+                let stats = self.render_frame(scene, cam, background, false)?;
+                ms[i].push(stats.passes.iter().map(|p| p.1).sum::<f64>());
+            }
+        }
+        let (compute, quads) = (crate::math::median(&ms[0]), crate::math::median(&ms[1]));
+        self.forward = if quads < compute { Forward::Quads } else { Forward::Compute };
+        eprintln!(
+            "forward path: {} (first frame: compute {compute:.2} ms, quads {quads:.2} ms of GPU time)",
+            if self.forward == Forward::Quads { "quads" } else { "compute" }
+        );
+        Ok(())
     }
 
     /// Bytes of the per-frame device buffers.
@@ -270,7 +324,7 @@ impl Rasterizer {
         if let Some(im) = &self.image {
             b += im.ranges.size + im.out_image.size + im.last.size + im.readback_image.as_ref().map_or(0, |r| r.size);
         }
-        b
+        b + self.quads.as_ref().map_or(0, |q| q.bytes())
     }
 
     fn ensure_buffers(
@@ -348,6 +402,9 @@ impl Rasterizer {
                 readback_image: None,
             });
         }
+        if self.forward == Forward::Quads {
+            self.quads.as_mut().unwrap().ensure_target(&gpu, width, height)?;
+        }
         let im = self.image.as_mut().unwrap();
         if readback && im.readback_image.is_none() {
             im.readback_image =
@@ -372,6 +429,7 @@ impl Rasterizer {
         let mut isect_result = 0;
         let readback_counts = &self.readback_counts;
         let poison = self.poison;
+        let quads = self.quads.as_ref().filter(|_| self.forward == Forward::Quads);
         self.cmd.record_timed(self.timer.as_mut(), |rec| {
             if poison {
                 for b in g
@@ -500,6 +558,22 @@ impl Rasterizer {
             depth_result = record_sort(rec, &k, c, COUNT_VISIBLE, 31, &depth_bufs)?;
             rec.end_pass("depth_sort")?;
             let depth_ids = &g.depth_ids[depth_result];
+            if let Some(q) = quads {
+                q.record(
+                    rec,
+                    &k,
+                    &c.counts,
+                    frame,
+                    [("depth_ids", depth_ids), ("xys", &g.xys), ("conics", &g.conics), ("colours", &g.colours)],
+                    &im.out_image,
+                )?;
+                rec.end_pass("draw")?;
+                if readback {
+                    rec.copy(&im.out_image, im.readback_image.as_ref().unwrap(), im.out_image.size);
+                }
+                rec.copy(&c.counts, readback_counts, c.counts.size);
+                return rec.end_pass("readback");
+            }
             record_scan(
                 rec,
                 &k,
@@ -583,6 +657,9 @@ impl Rasterizer {
     /// Renders one frame of `scene` seen by `cam` over `background` (linear RGB in [0, 1]) and
     /// reads the image back.
     pub fn render(&mut self, scene: &GpuScene, cam: &Camera, background: [f32; 3]) -> Result<Frame> {
+        if self.choose_forward {
+            self.choose_forward(scene, cam, background)?;
+        }
         let stats = self.render_frame(scene, cam, background, true)?;
         let im = self.image.as_ref().unwrap();
         let image = im.readback_image.as_ref().unwrap().read_mapped((cam.width * cam.height) as usize)?;
@@ -599,6 +676,9 @@ impl Rasterizer {
     /// Renders one frame and leaves the image on the device ([`Rasterizer::image_buffer`]):
     /// the steady state of the bench and the player, where nothing but the counts is read.
     pub fn render_resident(&mut self, scene: &GpuScene, cam: &Camera, background: [f32; 3]) -> Result<FrameStats> {
+        if self.choose_forward {
+            self.choose_forward(scene, cam, background)?;
+        }
         self.render_frame(scene, cam, background, false)
     }
 
@@ -623,7 +703,7 @@ impl Rasterizer {
             let fp = scene.frame_params(cam, background, cap as u32);
             self.frame_ub.write_mapped(&[fp])?;
             let select = scene.inst.select.map(|a| [a.max_level, a.splats_per_pixel.to_bits(), a.margin_px.to_bits()]);
-            let key = (scene.id, n, cam.width, cam.height, cap, readback, select);
+            let key = (scene.id, n, cam.width, cam.height, cap, readback, select, self.forward);
             if self.recorded != Some(key) || self.poison {
                 self.record(scene, &fp, readback)?;
                 self.recorded = Some(key);
