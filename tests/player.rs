@@ -71,10 +71,12 @@ fn demo() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("demo/guitar.compressed.ply")
 }
 
-/// Runs the player under a virtual X server with validation on; returns stderr.
+/// Runs the player under a virtual X server with validation on; returns stderr. The forward path
+/// is pinned to compute (the player's `auto` may pick either, which differ by rounding), so
+/// screenshots compare exactly with `render` and headless frames.
 fn windowed(args: &[&str]) -> String {
     let o = Command::new("xvfb-run")
-        .args(["-a", "-s", "-screen 0 1024x768x24", bin(), "view"])
+        .args(["-a", "-s", "-screen 0 1024x768x24", bin(), "view", "--forward", "compute"])
         .args(args)
         .env("INSTGS_VALIDATION", "1")
         .output()
@@ -121,7 +123,10 @@ fn window_screenshot_equals_offscreen_render() {
     assert!(err.contains("swapchain 320x240"), "{err}");
     assert!(err.contains("4 frames: GPU"), "{err}");
     let head = out_dir("headless");
-    validated(&["view", scene, "--width", "320", "--height", "240", "--headless", "--frames", "1"], &head);
+    validated(
+        &["view", scene, "--forward", "compute", "--width", "320", "--height", "240", "--headless", "--frames", "1"],
+        &head,
+    );
     let (shot, frame) = (rgb(&win.join("screenshot_000.png")), rgb(&head.join("frame_000.png")));
     let worst = worst_difference(&shot, &frame);
     assert!(worst <= 1, "screenshot differs from the offscreen render by up to {worst}/255");
@@ -317,7 +322,7 @@ fn editing_moves_turns_duplicates_deletes_undoes_and_saves() {
     // Instance 2 on screen (clicked to check that a click picks the instance under it).
     let [u2, v2, _] = cam.project(centre + Vec3::new(2.5, 0.0, 0.0)).unwrap();
     let script = format!(
-        "timeout 300 {bin} view {scene} --cameras {cams} --up +z --exact --width {w} --height {h} --out {out} 2> {out}/err & \
+        "timeout 300 {bin} view {scene} --forward compute --cameras {cams} --up +z --exact --width {w} --height {h} --out {out} 2> {out}/err & \
          {wait_for} 'swapchain {w}x{h}'; \
          win=$(xdotool search --sync --name instgs-vk | head -1); xdotool windowfocus --sync $win; \
          xdotool mousemove --window $win {x2} {y2} click 1; {wait_for} 'selected instance 2'; \
@@ -391,4 +396,26 @@ fn editing_moves_turns_duplicates_deletes_undoes_and_saves() {
     let (shot, frame) = (rgb(&dir.join("screenshot_001.png")), rgb(&rendered.join("view.png")));
     let worst = worst_difference(&shot, &frame);
     assert!(worst <= 1, "screenshot differs from `render` of the saved file by up to {worst}/255");
+}
+
+#[test]
+fn the_draw_path_shows_the_same_picture() {
+    // The player's forward paths (`--forward quads`: fixed-function quads; `auto`: the faster of
+    // the two on this device) against compute, headless, validation on. They differ only where
+    // a pixel saturates (T < 0.01, see render::raster::quads).
+    let scene = demo();
+    let scene = scene.to_str().unwrap();
+    let mut frames = Vec::new();
+    for forward in ["compute", "quads", "auto"] {
+        let out = out_dir(&format!("forward-{forward}"));
+        validated(
+            &["view", scene, "--forward", forward, "--width", "320", "--height", "240", "--headless", "--frames", "1"],
+            &out,
+        );
+        frames.push(rgb(&out.join("frame_000.png")));
+    }
+    for (f, name) in frames[1..].iter().zip(["quads", "auto"]) {
+        let worst = worst_difference(&frames[0], f);
+        assert!(worst <= 3, "{name} differs from compute by up to {worst}/255");
+    }
 }
