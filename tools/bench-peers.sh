@@ -6,7 +6,8 @@
 # camera, then the harness over the same cameras; the ratio of each round's median frame times
 # (ours / web-splat's), and the median of those ratios.
 #
-# usage: tools/bench-peers.sh [--rounds R] [--frames F] [--size WxH] [--cameras N] [--build-only] [PLY...]
+# usage: tools/bench-peers.sh [--rounds R] [--frames F] [--size WxH] [--cameras N] [--forward compute|quads|auto]
+#                            [--build-only] [PLY...]
 #   (default: 4 rounds, 3 frames per camera, 640x480, 8 cameras; the shared guitar, biker and
 #   playbot_lod2). Results: out/bench-peers/<scene>.json and a table on stdout.
 # Environment: PEERS_SCRATCH (scratch folder, default ${TMPDIR:-/tmp}/instgs-peers);
@@ -18,7 +19,7 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 repo=$(pwd)
-rounds=4 frames=3 size=640x480 ncams=8 build_only=0
+rounds=4 frames=3 size=640x480 ncams=8 build_only=0 forward=compute
 scenes=()
 while [[ $# -gt 0 ]]; do
     case $1 in
@@ -26,6 +27,7 @@ while [[ $# -gt 0 ]]; do
         --frames) frames=$2; shift 2 ;;
         --size) size=$2; shift 2 ;;
         --cameras) ncams=$2; shift 2 ;;
+        --forward) forward=$2; shift 2 ;;
         --build-only) build_only=1; shift ;;
         -*) echo "bench-peers.sh: unknown option $1" >&2; exit 2 ;;
         *) scenes+=("$1"); shift ;;
@@ -266,11 +268,11 @@ json.dump(cams, open(os.path.join(work, "cameras.json"), "w"), indent=1)
 EOF
     for r in $(seq 1 "$rounds"); do
         "$ours" bench --scene "$ply" --cameras "$work/transforms_test.json" --width "$width" --height "$height" \
-            --frames "$frames" --warmup 1 --json "$work/ours-$r.json" > /dev/null 2>&1
+            --frames "$frames" --warmup 1 --forward "$forward" --json "$work/ours-$r.json" > /dev/null 2>&1
         "$harness" "$ply" "$work/cameras.json" "$frames" 1 "$out/$name-web-splat-view0.png" > "$work/web-splat-$r.json"
     done
     "$ours" render --scene "$ply" --cameras "$work/transforms_test.json" --width "$width" --height "$height" \
-        --out "$work/ours-render" > /dev/null 2>&1
+        --forward "$forward" --out "$work/ours-render" > /dev/null 2>&1
     cp "$work/ours-render/r_000.png" "$out/$name-ours-view0.png"
     python3 - "$work" "$rounds" "$out/$name.json" "$name" "$size" "$frames" $WEB_SPLAT_REV <<'EOF'
 import json, statistics, sys
@@ -281,7 +283,8 @@ peer_runs = [json.load(open(f"{work}/web-splat-{r}.json")) for r in range(1, int
 ours = [o["frame_ms_median"] for o in ours_runs]
 theirs = [med(p["frame_ms"]) for p in peer_runs]
 ratios = [a / b for a, b in zip(ours, theirs)]
-res = {"scene": name, "device": ours_runs[0]["device"], "size": size, "frames_per_camera": int(frames),
+res = {"scene": name, "device": ours_runs[0]["device"], "forward": ours_runs[0]["forward"], "size": size,
+       "frames_per_camera": int(frames),
        "web_splat": rev, "ours_frame_ms": ours, "web_splat_frame_ms": theirs,
        "web_splat_wall_ms": [med(p["wall_ms"]) for p in peer_runs],
        "ratio_per_round": ratios, "ratio_median": med(ratios)}
