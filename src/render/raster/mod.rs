@@ -270,9 +270,9 @@ impl Rasterizer {
 
     /// Chooses the forward path (default [`Forward::Compute`]); [`Forward::Quads`] builds the
     /// draw pipelines and fails on a device that cannot draw them; [`Forward::Auto`] times both
-    /// on the first frame (where the device can draw and has timestamps; else compute).
+    /// on the first frame (where the device can draw; else compute).
     pub fn set_forward(&mut self, forward: Forward) -> Result<()> {
-        let usable = self.gpu.info.draws && self.timer.is_some();
+        let usable = self.gpu.info.draws;
         if (forward == Forward::Quads || (forward == Forward::Auto && usable)) && self.quads.is_none() {
             self.quads = Some(QuadBufs::new(&self.gpu)?);
         }
@@ -286,22 +286,24 @@ impl Rasterizer {
         self.forward
     }
 
-    /// `Auto`'s choice: two frames of each path, alternating, from the first camera; the lower
-    /// median GPU time wins (ties: compute, the reference).
+    /// `Auto`'s choice: three frames of each path, alternating, from the first camera; the
+    /// lower median wall-clock frame time (submission to fence) wins, ties to compute (the
+    /// reference). Not GPU timestamps: lavapipe's shift between passes once a context has drawn.
     fn choose_forward(&mut self, scene: &GpuScene, cam: &Camera, background: [f32; 3]) -> Result<()> {
         self.choose_forward = false;
         let mut ms = [Vec::new(), Vec::new()];
-        for _ in 0..2 {
+        for _ in 0..3 {
             for (i, f) in [Forward::Compute, Forward::Quads].into_iter().enumerate() {
                 self.forward = f;
-                let stats = self.render_frame(scene, cam, background, false)?;
-                ms[i].push(stats.passes.iter().map(|p| p.1).sum::<f64>());
+                let t0 = std::time::Instant::now();
+                self.render_frame(scene, cam, background, false)?;
+                ms[i].push(t0.elapsed().as_secs_f64() * 1e3);
             }
         }
         let (compute, quads) = (crate::math::median(&ms[0]), crate::math::median(&ms[1]));
         self.forward = if quads < compute { Forward::Quads } else { Forward::Compute };
         eprintln!(
-            "forward path: {} (first frame: compute {compute:.2} ms, quads {quads:.2} ms of GPU time)",
+            "forward path: {} (first frame: compute {compute:.2} ms, quads {quads:.2} ms)",
             if self.forward == Forward::Quads { "quads" } else { "compute" }
         );
         Ok(())

@@ -26,8 +26,8 @@ pub enum Forward {
     Compute,
     /// Instanced quads, fixed-function rasterization and blending.
     Quads,
-    /// Whichever of the two renders the first frame faster on this device (GPU timestamps, two
-    /// frames each, alternating); compute where the device cannot draw or has no timestamps.
+    /// Whichever of the two renders the first frame faster on this device (three frames each,
+    /// alternating, by the wall clock); compute where the device cannot draw.
     Auto,
 }
 
