@@ -5,10 +5,10 @@ use anyhow::Result;
 use clap::{Args, Parser, Subcommand};
 use instgs_vk::formats::instgs;
 use instgs_vk::model::camera::UpAxis;
-use instgs_vk::render::raster::Forward;
 use instgs_vk::pipeline;
 use instgs_vk::render::frames::FrameSpec;
 use instgs_vk::render::lod::RenderConfig;
+use instgs_vk::render::raster::Forward;
 
 /// Instanced 3D Gaussian Splatting on Vulkan compute.
 #[derive(Parser)]

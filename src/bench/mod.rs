@@ -180,16 +180,7 @@ pub fn bench(
     let Setup { gpu, k, scene, cams } = setup(device, view)?;
     let a = BenchInput { path: &view.scene, scene, render: render.clone(), forward: view.forward };
     let b = compare.map(|(p, c, f)| BenchInput::read(p, c, f)).transpose()?;
-    let v = bench_scenes(
-        &gpu,
-        &k,
-        a,
-        b,
-        &cams,
-        (frames, warmup),
-        view.background,
-        ("bench: ", ProgressMode::Auto),
-    )?;
+    let v = bench_scenes(&gpu, &k, a, b, &cams, (frames, warmup), view.background, ("bench: ", ProgressMode::Auto))?;
     if let Some(path) = json {
         write_json(path, &v, true)?;
     }

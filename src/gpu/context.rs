@@ -258,7 +258,10 @@ impl Gpu {
             .enumerate()
             .find(|&(i, f)| f.queue_flags.contains(graphics) && presents(i))
             .or_else(|| {
-                families.iter().enumerate().find(|&(i, f)| f.queue_flags.contains(vk::QueueFlags::COMPUTE) && presents(i))
+                families
+                    .iter()
+                    .enumerate()
+                    .find(|&(i, f)| f.queue_flags.contains(vk::QueueFlags::COMPUTE) && presents(i))
             })
             .ok_or_else(|| match surface {
                 Some(_) => anyhow!("device '{}' has no compute queue that can present to the window", chosen.1),
@@ -320,12 +323,9 @@ impl Gpu {
             timestamp_period_ns,
             float_atomics,
             draws: qprops.queue_flags.contains(vk::QueueFlags::GRAPHICS) && {
-                let f = unsafe {
-                    instance.get_physical_device_format_properties(physical, TARGET_FORMAT)
-                };
-                f.optimal_tiling_features.contains(
-                    vk::FormatFeatureFlags::COLOR_ATTACHMENT_BLEND | vk::FormatFeatureFlags::TRANSFER_SRC,
-                )
+                let f = unsafe { instance.get_physical_device_format_properties(physical, TARGET_FORMAT) };
+                f.optimal_tiling_features
+                    .contains(vk::FormatFeatureFlags::COLOR_ATTACHMENT_BLEND | vk::FormatFeatureFlags::TRANSFER_SRC)
             },
         };
         Ok(Arc::new(Gpu {
