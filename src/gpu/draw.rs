@@ -17,7 +17,7 @@ use gpu_allocator::vulkan::{Allocation, AllocationCreateDesc, AllocationScheme};
 use gpu_allocator::MemoryLocation;
 
 use crate::gpu::context::TARGET_FORMAT;
-use crate::gpu::kernel::{reflect, PipelineRef, Reflected};
+use crate::gpu::kernel::{create_layouts, reflect, PipelineRef, Reflected};
 use crate::gpu::{Buffer, Gpu, Recorder};
 use crate::shared::spirv;
 
@@ -43,20 +43,8 @@ impl DrawPipeline {
         let stages = vk::ShaderStageFlags::VERTEX | vk::ShaderStageFlags::FRAGMENT;
         let Reflected { bindings, layout_bindings, push_size } = reflect(name, &[vert, frag], stages)?;
         let d = &gpu.device;
+        let (set_layout, layout) = create_layouts(gpu, &layout_bindings, push_size, stages)?;
         unsafe {
-            let set_layout = d.create_descriptor_set_layout(
-                &vk::DescriptorSetLayoutCreateInfo::default()
-                    .flags(vk::DescriptorSetLayoutCreateFlags::PUSH_DESCRIPTOR_KHR)
-                    .bindings(&layout_bindings),
-                None,
-            )?;
-            let set_layouts = [set_layout];
-            let ranges = [vk::PushConstantRange::default().stage_flags(stages).offset(0).size(push_size)];
-            let mut lci = vk::PipelineLayoutCreateInfo::default().set_layouts(&set_layouts);
-            if push_size > 0 {
-                lci = lci.push_constant_ranges(&ranges);
-            }
-            let layout = d.create_pipeline_layout(&lci, None)?;
             let module = |spv: &[u8]| -> Result<vk::ShaderModule> {
                 let words = ash::util::read_spv(&mut std::io::Cursor::new(spv))?;
                 Ok(d.create_shader_module(&vk::ShaderModuleCreateInfo::default().code(&words), None)?)

@@ -34,22 +34,9 @@ impl Kernel {
             reflect(name, &[spirv], vk::ShaderStageFlags::COMPUTE)?;
         let d = &gpu.device;
         let words = ash::util::read_spv(&mut std::io::Cursor::new(spirv))?;
+        let (set_layout, layout) = create_layouts(gpu, &layout_bindings, push_size, vk::ShaderStageFlags::COMPUTE)?;
         unsafe {
             let module = d.create_shader_module(&vk::ShaderModuleCreateInfo::default().code(&words), None)?;
-            let set_layout = d.create_descriptor_set_layout(
-                &vk::DescriptorSetLayoutCreateInfo::default()
-                    .flags(vk::DescriptorSetLayoutCreateFlags::PUSH_DESCRIPTOR_KHR)
-                    .bindings(&layout_bindings),
-                None,
-            )?;
-            let ranges =
-                [vk::PushConstantRange::default().stage_flags(vk::ShaderStageFlags::COMPUTE).offset(0).size(push_size)];
-            let set_layouts = [set_layout];
-            let mut lci = vk::PipelineLayoutCreateInfo::default().set_layouts(&set_layouts);
-            if push_size > 0 {
-                lci = lci.push_constant_ranges(&ranges);
-            }
-            let layout = d.create_pipeline_layout(&lci, None)?;
             let spec_values: Vec<u32> =
                 std::iter::once(gpu.info.min_subgroup_size).chain(extra.iter().copied()).collect();
             let spec_data: &[u8] = bytemuck::cast_slice(&spec_values);
@@ -115,6 +102,38 @@ pub(crate) struct Reflected {
     pub layout_bindings: Vec<vk::DescriptorSetLayoutBinding<'static>>,
     /// Bytes of the push-constant block (0: none).
     pub push_size: u32,
+}
+
+/// The push-descriptor set layout of `bindings` and a pipeline layout with it and `push_size`
+/// bytes of push constants visible to `stages` (compute kernels and the draw pipelines alike).
+pub(crate) fn create_layouts(
+    gpu: &Gpu,
+    bindings: &[vk::DescriptorSetLayoutBinding],
+    push_size: u32,
+    stages: vk::ShaderStageFlags,
+) -> Result<(vk::DescriptorSetLayout, vk::PipelineLayout)> {
+    let d = &gpu.device;
+    unsafe {
+        let set_layout = d.create_descriptor_set_layout(
+            &vk::DescriptorSetLayoutCreateInfo::default()
+                .flags(vk::DescriptorSetLayoutCreateFlags::PUSH_DESCRIPTOR_KHR)
+                .bindings(bindings),
+            None,
+        )?;
+        let set_layouts = [set_layout];
+        let ranges = [vk::PushConstantRange::default().stage_flags(stages).offset(0).size(push_size)];
+        let mut lci = vk::PipelineLayoutCreateInfo::default().set_layouts(&set_layouts);
+        if push_size > 0 {
+            lci = lci.push_constant_ranges(&ranges);
+        }
+        match d.create_pipeline_layout(&lci, None) {
+            Ok(layout) => Ok((set_layout, layout)),
+            Err(e) => {
+                d.destroy_descriptor_set_layout(set_layout, None);
+                Err(e.into())
+            }
+        }
+    }
 }
 
 /// Reflects the descriptor set 0 and push constants of `modules` (the stages of one pipeline;
