@@ -76,3 +76,23 @@ fn dispatch_args_match_cpu_twin() {
     }
     assert_clean(&gpu);
 }
+
+#[test]
+fn draw_args_match_cpu_twin() {
+    use instgs_vk::gpu::kernels::Counts;
+    use instgs_vk::shared::COUNT_VISIBLE;
+    let (gpu, k) = gpu();
+    let counts = Counts::new(&gpu).unwrap();
+    let args = gpu.storage("draw_args", 16).unwrap();
+    for n in [0u32, 1, 90_854, u32::MAX / 2] {
+        gpu.write_at(&counts.counts, COUNT_VISIBLE as u64 * 4, &[n]).unwrap();
+        gpu.submit_and_wait(|rec| {
+            rec.fill(&args, 0xdead_beef);
+            rec.dispatch(&k.draw_args, &[("counts", &counts.counts), ("draw_args", &args)], &(), [1, 1, 1])
+        })
+        .unwrap();
+        let got: Vec<u32> = gpu.read(&args, 4).unwrap();
+        assert_eq!(got, reference::forward::draw_args(n), "visible {n}");
+    }
+    assert_clean(&gpu);
+}

@@ -4,7 +4,7 @@ use crate::math::{quat_to_mat, sh_basis};
 use glam::{Mat3, Vec2, Vec3};
 
 use crate::model::scene::Scene;
-use crate::shared::{FrameParams, MAX_GROUPS, SCAN_BLOCK, TILE_SIZE, WG_SIZE};
+use crate::shared::{FrameParams, MAX_GROUPS, QUAD_VERTICES, SCAN_BLOCK, TILE_SIZE, WG_SIZE};
 
 /// Per-Gaussian output of the preprocess pass (GPU buffers of the same names). A culled
 /// Gaussian has tiles_touched = 0 and radii 0; its other values are unspecified (zero here).
@@ -151,6 +151,12 @@ pub fn preprocess(scene: &Scene, fp: &FrameParams) -> Projected {
 /// thread, radix-sort blocks of `sort_block` keys, scan blocks), clamped to MAX_GROUPS.
 pub fn dispatch_groups(n: u32, sort_block: u32) -> [u32; 3] {
     [n.div_ceil(WG_SIZE), n.div_ceil(sort_block), n.div_ceil(SCAN_BLOCK)].map(|g| g.min(MAX_GROUPS))
+}
+
+/// Pass `draw_args`: the draw path's VkDrawIndirectCommand for `visible` splats (one instance
+/// of QUAD_VERTICES vertices per splat).
+pub fn draw_args(visible: u32) -> [u32; 4] {
+    [QUAD_VERTICES, visible, 0, 0]
 }
 
 /// Exclusive prefix sum and total.
