@@ -12,16 +12,18 @@
 // Generic exclusive scan: each thread owns SCAN_ITEMS consecutive items.
 #define SCAN_ITEMS 8
 #define SCAN_BLOCK 2048
-// Radix sort: up to SORT_MAX_BITS key bits per pass (the bits needed are spread evenly over
-// the passes); blocks of SORT_WG threads, each thread ranking a run of SORT_ITEMS consecutive
-// keys (specialization constant 1 of the sort kernels). CPU devices (lavapipe) pay a large
-// fixed cost per workgroup that has barriers, so they take long runs; GPUs take short runs for
-// many workgroups.
-#define SORT_MAX_BITS 6
-#define SORT_MAX_BINS 64
+// Radix sort: up to SORT_BITS_* key bits per pass (the bits needed are spread evenly over the
+// passes), each thread ranking a run of SORT_ITEMS_* consecutive keys (specialization
+// constants 4 and 1 of the sort kernels). GPUs: blocks of SORT_WG threads share one histogram
+// column through shared memory, short runs for many workgroups. CPU devices (lavapipe) pay a
+// large fixed cost per workgroup that has barriers and per dispatch, and loads cost more than
+// arithmetic: every thread's long run is its own histogram column (no shared memory, no
+// barrier, workgroups of one subgroup) and wide digits for fewer passes.
+#define SORT_BITS_GPU 6
+#define SORT_BITS_CPU 8
 #define SORT_WG 64
 #define SORT_ITEMS_GPU 32
-#define SORT_ITEMS_CPU 512
+#define SORT_ITEMS_CPU 2048
 // blend and blend_backward visit the rows a splat reaches with a loop, which on lavapipe skips
 // work for real (its `if` only masks lanes). But lavapipe (Mesa 22.3) ends every loop of a
 // shader invocation after 65535 iterations of all its loops together
@@ -162,14 +164,14 @@ struct ScanArgs {
 struct SortArgs {
     uint count_slot; // counts[count_slot] = number of keys
     uint shift; // first key bit of this pass
-    uint bits; // key bits of this pass (1..SORT_MAX_BITS)
+    uint bits; // key bits of this pass (1..SORT_BITS_*)
     uint _pad0;
 };
 
 /// Push constants of the indirect-argument writer.
 struct DispatchArgs {
     uint count_slot; // reads counts[count_slot], writes args[count_slot * ARGS_PER_SLOT + k]
-    uint sort_block; // keys per radix-sort block (SORT_WG * items)
+    uint sort_block; // keys per radix-sort workgroup (threads * items)
     uint _pad1;
     uint _pad2;
 };

@@ -39,6 +39,8 @@ pub struct Kernels {
     pub present: Kernel,
     pub instance_select: Kernel,
     pub policy: KernelPolicy,
+    /// Threads per radix-sort workgroup (specialization constant 3 of the sort kernels).
+    pub sort_wg: u32,
 }
 
 /// Device-dependent kernel choices (specialization constants).
@@ -46,6 +48,12 @@ pub struct Kernels {
 pub struct KernelPolicy {
     /// Keys per thread in a radix-sort block (SORT_ITEMS_CPU or SORT_ITEMS_GPU).
     pub sort_items: u32,
+    /// Each sort thread's run of keys is its own histogram column (no shared memory and no
+    /// barrier in the sort kernels; more columns to scan), else a workgroup's block is.
+    pub sort_thread_runs: bool,
+    /// Key bits per radix-sort pass (SORT_BITS_CPU or SORT_BITS_GPU; blocks take at most the
+    /// latter).
+    pub sort_bits: u32,
     /// Pixels of a tile column each blend invocation owns (divides TILE_SIZE).
     pub blend_pixels_per_thread: u32,
     /// Gradient kernels add floats with atomics (else a compare-and-swap loop).
@@ -54,13 +62,25 @@ pub struct KernelPolicy {
 
 impl KernelPolicy {
     /// For GPUs: short sort runs for many workgroups; one pixel per blend invocation.
-    pub const GPU: KernelPolicy =
-        KernelPolicy { sort_items: SORT_ITEMS_GPU, blend_pixels_per_thread: 1, float_atomics: true };
+    pub const GPU: KernelPolicy = KernelPolicy {
+        sort_items: SORT_ITEMS_GPU,
+        sort_thread_runs: false,
+        sort_bits: SORT_BITS_GPU,
+        blend_pixels_per_thread: 1,
+        float_atomics: true,
+    };
     /// For CPU devices (lavapipe): every workgroup with barriers has a large fixed cost
     /// (llvmpipe runs such workgroups as coroutines) and every load costs far more than
-    /// arithmetic, so long sort runs and a whole tile column per blend invocation.
-    pub const CPU: KernelPolicy =
-        KernelPolicy { sort_items: SORT_ITEMS_CPU, blend_pixels_per_thread: TILE_SIZE, float_atomics: true };
+    /// arithmetic, so long sort runs that are their own histogram columns (no barrier), 8-bit
+    /// digits (4 passes for a 31-bit depth key instead of 6) and a whole tile column per blend
+    /// invocation.
+    pub const CPU: KernelPolicy = KernelPolicy {
+        sort_items: SORT_ITEMS_CPU,
+        sort_thread_runs: true,
+        sort_bits: SORT_BITS_CPU,
+        blend_pixels_per_thread: TILE_SIZE,
+        float_atomics: true,
+    };
 
     pub fn for_device(gpu: &Gpu) -> KernelPolicy {
         let p = if gpu.info.kind == "CPU" { KernelPolicy::CPU } else { KernelPolicy::GPU };
@@ -81,7 +101,12 @@ impl Kernels {
         }
         let k = |name: &str, spv: &[u8]| Kernel::new(gpu, name, spv);
         let atomics = |f: &'static [u8], cas: &'static [u8]| if policy.float_atomics { f } else { cas };
-        let sort_items = policy.sort_items;
+        // Thread runs need no shared memory or barrier, so a workgroup is one subgroup.
+        let sort_wg = if policy.sort_thread_runs { gpu.info.min_subgroup_size } else { SORT_WG };
+        if (!policy.sort_thread_runs && policy.sort_bits > SORT_BITS_GPU) || policy.sort_bits == 0 {
+            anyhow::bail!("sort policy: {} bits per pass does not fit the sort kernels", policy.sort_bits);
+        }
+        let sort_spec = [policy.sort_items, policy.sort_thread_runs as u32, sort_wg, policy.sort_bits];
         let blend_spec =
             |crowded: u32| [policy.blend_pixels_per_thread, TILE_SIZE / policy.blend_pixels_per_thread, crowded];
         Ok(Arc::new(Kernels {
@@ -98,8 +123,8 @@ impl Kernels {
             scan_reduce: k("scan_reduce", spirv::SCAN_REDUCE)?,
             scan_blocks: k("scan_blocks", spirv::SCAN_BLOCKS)?,
             scan_down: k("scan_down", spirv::SCAN_DOWN)?,
-            sort_count: Kernel::with_spec(gpu, "sort_count", spirv::SORT_COUNT, &[sort_items])?,
-            sort_scatter: Kernel::with_spec(gpu, "sort_scatter", spirv::SORT_SCATTER, &[sort_items])?,
+            sort_count: Kernel::with_spec(gpu, "sort_count", spirv::SORT_COUNT, &sort_spec)?,
+            sort_scatter: Kernel::with_spec(gpu, "sort_scatter", spirv::SORT_SCATTER, &sort_spec)?,
             blend_backward: [
                 Kernel::with_spec(
                     gpu,
@@ -129,12 +154,22 @@ impl Kernels {
             present: k("present", spirv::PRESENT)?,
             instance_select: k("instance_select", spirv::INSTANCE_SELECT)?,
             policy,
+            sort_wg,
         }))
     }
 
-    /// Keys per radix-sort block.
+    /// Keys per radix-sort block (one workgroup's keys).
     pub fn sort_block(&self) -> u32 {
-        SORT_WG * self.policy.sort_items
+        self.sort_wg * self.policy.sort_items
+    }
+
+    /// Keys per column of the radix-sort histogram table: a thread's run or a whole block.
+    pub fn sort_column(&self) -> u32 {
+        if self.policy.sort_thread_runs {
+            self.policy.sort_items
+        } else {
+            self.sort_block()
+        }
     }
 }
 
@@ -171,7 +206,7 @@ pub fn scan_blocks_for(n: u64) -> u64 {
 
 /// Length of the radix-sort histogram table for `n` keys.
 pub fn sort_hist_for(k: &Kernels, n: u64) -> u64 {
-    n.div_ceil(k.sort_block() as u64).max(1) * SORT_MAX_BINS as u64
+    n.div_ceil(k.sort_column() as u64).max(1) << k.policy.sort_bits
 }
 
 /// One scan: input, optional gather list, output and where its total goes.
@@ -247,8 +282,8 @@ pub fn record_sort(
     b: &SortBuffers,
 ) -> Result<usize> {
     let SortBuffers { keys, vals, hist } = *b;
-    // The fewest passes of at most SORT_MAX_BITS, with the bits spread evenly over them.
-    let passes = bits.div_ceil(SORT_MAX_BITS);
+    // The fewest passes of at most the policy's bits, with the bits spread evenly over them.
+    let passes = bits.div_ceil(k.policy.sort_bits);
     let off = Counts::args_offset(slot, ARGS_SORT_BLOCKS);
     let mut shift = 0;
     for p in 0..passes {
@@ -267,7 +302,7 @@ pub fn record_sort(
             count_slot: slot,
             out_slot: NO_SLOT,
             clamp_slot: NO_SLOT,
-            divisor: k.sort_block(),
+            divisor: k.sort_column(),
             multiplier: 1 << pass_bits,
             ..Default::default()
         };
