@@ -23,6 +23,10 @@
 #define SORT_BITS_CPU 8
 #define SORT_WG 64
 #define SORT_ITEMS_GPU 32
+// Inputs of at most the policy's sort_small_max keys are sorted by one workgroup of
+// SORT_SMALL_WG threads in one dispatch (sort_small.comp): no fixed cost per pass.
+#define SORT_SMALL_WG 16
+#define SORT_SMALL_MAX_CPU 12288
 #define SORT_ITEMS_CPU 2048
 // blend and blend_backward visit the rows a splat reaches with a loop, which on lavapipe skips
 // work for real (its `if` only masks lanes). But lavapipe (Mesa 22.3) ends every loop of a
@@ -55,7 +59,9 @@
 #define ARGS_ITEMS 0
 #define ARGS_SORT_BLOCKS 1
 #define ARGS_SCAN_BLOCKS 2
-#define ARGS_PER_SLOT 3
+#define ARGS_SORT_SMALL 3
+#define ARGS_SORT_SCAN 4
+#define ARGS_PER_SLOT 5
 
 // Input modes of the generic scan.
 #define SCAN_MODE_VALUE 0
@@ -172,7 +178,7 @@ struct SortArgs {
 struct DispatchArgs {
     uint count_slot; // reads counts[count_slot], writes args[count_slot * ARGS_PER_SLOT + k]
     uint sort_block; // keys per radix-sort workgroup (threads * items)
-    uint _pad1;
+    uint sort_small_max; // up to this many keys: the one-dispatch sort (sort_small.comp)
     uint _pad2;
 };
 

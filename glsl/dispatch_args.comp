@@ -17,6 +17,11 @@ void put(uint kind, uint groups) {
 void main() {
     uint n = counts.v[args.count_slot];
     put(ARGS_ITEMS, (n + WG_SIZE - 1) / WG_SIZE);
-    put(ARGS_SORT_BLOCKS, (n + args.sort_block - 1) / args.sort_block);
+    // A sort of at most sort_small_max keys is one workgroup of sort_small; a larger one is
+    // the multi-dispatch passes (their blocks and their one-workgroup table scan).
+    bool small = n <= args.sort_small_max;
+    put(ARGS_SORT_BLOCKS, small ? 0 : (n + args.sort_block - 1) / args.sort_block);
     put(ARGS_SCAN_BLOCKS, (n + SCAN_BLOCK - 1) / SCAN_BLOCK);
+    put(ARGS_SORT_SMALL, small && n > 0 ? 1 : 0);
+    put(ARGS_SORT_SCAN, small ? 0 : 1);
 }

@@ -8,8 +8,10 @@ use instgs_vk::render::sort::GpuSort;
 #[test]
 fn gpu_sort_equals_cpu_stable_sort() {
     let (gpu, _) = gpu();
-    // Both block-size policies, whatever the device: GPU-sized and CPU-sized runs per thread.
-    for policy in [KernelPolicy::GPU, KernelPolicy::CPU] {
+    // Both policies, whatever the device: GPU-sized and CPU-sized runs per thread, 6- and 8-bit
+    // digits; and the one-dispatch small-input sort with both digit widths.
+    let gpu_small = KernelPolicy { sort_small_max: KernelPolicy::CPU.sort_small_max, ..KernelPolicy::GPU };
+    for policy in [KernelPolicy::GPU, KernelPolicy::CPU, gpu_small] {
         let k = Kernels::with_policy(&gpu, policy).unwrap();
         check_sort(GpuSort::new(&gpu, &k, 1_000_003).unwrap());
     }
@@ -28,6 +30,11 @@ fn check_sort(mut sorter: GpuSort) {
         (4096, 12, 1000),
         (4096, 32, 17),
         (4097, 31, u32::MAX),
+        // Around the CPU policy's one-dispatch limit (SORT_SMALL_MAX_CPU), odd and even passes.
+        (12_288, 17, u32::MAX),
+        (12_289, 17, u32::MAX),
+        (12_288, 32, 40),
+        (12_289, 32, 40),
         (100_000, 11, 1200),
         (1_000_003, 32, u32::MAX),
         (1_000_003, 11, 1200),
@@ -55,7 +62,7 @@ fn dispatch_args_match_cpu_twin() {
     let (gpu, _) = gpu();
     for k in both_policies() {
         let counts = Counts::new(&gpu).unwrap();
-        let ns: Vec<u32> = vec![0, 1, 255, 256, 257, 4_000_000, 50_000_000, u32::MAX / 2];
+        let ns: Vec<u32> = vec![0, 1, 257, 12_288, 12_289, 4_000_000, 50_000_000, u32::MAX / 2];
         gpu.submit_and_wait(|rec| {
             rec.fill(&counts.indirect, 0xdead_beef);
             rec.update(&counts.counts, &ns);
@@ -67,7 +74,7 @@ fn dispatch_args_match_cpu_twin() {
         .unwrap();
         let got: Vec<u32> = gpu.read(&counts.indirect, (COUNT_SLOTS * ARGS_PER_SLOT * 3) as usize).unwrap();
         for (slot, &n) in ns.iter().enumerate() {
-            let want = reference::forward::dispatch_groups(n, k.sort_block());
+            let want = reference::forward::dispatch_groups(n, k.sort_block(), k.policy.sort_small_max);
             for (kind, &groups) in want.iter().enumerate() {
                 let at = (slot * ARGS_PER_SLOT as usize + kind) * 3;
                 assert_eq!(got[at..at + 3], [groups, 1, 1], "n={n} kind={kind}");

@@ -23,6 +23,7 @@ pub struct Kernels {
     pub scan_down: Kernel,
     pub sort_count: Kernel,
     pub sort_scatter: Kernel,
+    pub sort_small: Kernel,
     /// As `blend`: both dispatched.
     pub blend_backward: [Kernel; 2],
     /// Over every parameter row, then (plain scenes) over the frame's visible Gaussians only
@@ -54,6 +55,8 @@ pub struct KernelPolicy {
     /// Key bits per radix-sort pass (SORT_BITS_CPU or SORT_BITS_GPU; blocks take at most the
     /// latter).
     pub sort_bits: u32,
+    /// Up to this many keys one workgroup sorts in one dispatch (`sort_small.comp`); 0: never.
+    pub sort_small_max: u32,
     /// Pixels of a tile column each blend invocation owns (divides TILE_SIZE).
     pub blend_pixels_per_thread: u32,
     /// Gradient kernels add floats with atomics (else a compare-and-swap loop).
@@ -61,23 +64,26 @@ pub struct KernelPolicy {
 }
 
 impl KernelPolicy {
-    /// For GPUs: short sort runs for many workgroups; one pixel per blend invocation.
+    /// For GPUs: short sort runs for many workgroups; one pixel per blend invocation. No
+    /// one-dispatch sort: its threads' long serial runs suit a CPU, not a GPU.
     pub const GPU: KernelPolicy = KernelPolicy {
         sort_items: SORT_ITEMS_GPU,
         sort_thread_runs: false,
         sort_bits: SORT_BITS_GPU,
+        sort_small_max: 0,
         blend_pixels_per_thread: 1,
         float_atomics: true,
     };
     /// For CPU devices (lavapipe): every workgroup with barriers has a large fixed cost
     /// (llvmpipe runs such workgroups as coroutines) and every load costs far more than
     /// arithmetic, so long sort runs that are their own histogram columns (no barrier), 8-bit
-    /// digits (4 passes for a 31-bit depth key instead of 6) and a whole tile column per blend
-    /// invocation.
+    /// digits (4 passes for a 31-bit depth key instead of 6), inputs up to SORT_SMALL_MAX_CPU
+    /// keys sorted in one dispatch, and a whole tile column per blend invocation.
     pub const CPU: KernelPolicy = KernelPolicy {
         sort_items: SORT_ITEMS_CPU,
         sort_thread_runs: true,
         sort_bits: SORT_BITS_CPU,
+        sort_small_max: SORT_SMALL_MAX_CPU,
         blend_pixels_per_thread: TILE_SIZE,
         float_atomics: true,
     };
@@ -106,6 +112,12 @@ impl Kernels {
         if (!policy.sort_thread_runs && policy.sort_bits > SORT_BITS_GPU) || policy.sort_bits == 0 {
             anyhow::bail!("sort policy: {} bits per pass does not fit the sort kernels", policy.sort_bits);
         }
+        // lavapipe ends every loop of an invocation after 65 535 iterations of all its loops
+        // together: the one-dispatch sort's thread walks its run twice per pass.
+        let small_run = policy.sort_small_max.div_ceil(SORT_SMALL_WG);
+        if 32u32.div_ceil(policy.sort_bits) * (2 * small_run + (5 << policy.sort_bits)) > 60_000 {
+            anyhow::bail!("sort policy: {} keys are too many for the one-dispatch sort", policy.sort_small_max);
+        }
         let sort_spec = [policy.sort_items, policy.sort_thread_runs as u32, sort_wg, policy.sort_bits];
         let blend_spec =
             |crowded: u32| [policy.blend_pixels_per_thread, TILE_SIZE / policy.blend_pixels_per_thread, crowded];
@@ -125,6 +137,7 @@ impl Kernels {
             scan_down: k("scan_down", spirv::SCAN_DOWN)?,
             sort_count: Kernel::with_spec(gpu, "sort_count", spirv::SORT_COUNT, &sort_spec)?,
             sort_scatter: Kernel::with_spec(gpu, "sort_scatter", spirv::SORT_SCATTER, &sort_spec)?,
+            sort_small: Kernel::with_spec(gpu, "sort_small", spirv::SORT_SMALL, &sort_spec)?,
             blend_backward: [
                 Kernel::with_spec(
                     gpu,
@@ -194,7 +207,12 @@ impl Counts {
 
     /// Writes the indirect commands of `slot` from the GPU-side count.
     pub fn record_args(&self, rec: &mut Recorder, k: &Kernels, slot: u32) -> Result<()> {
-        let push = DispatchArgs { count_slot: slot, sort_block: k.sort_block(), ..Default::default() };
+        let push = DispatchArgs {
+            count_slot: slot,
+            sort_block: k.sort_block(),
+            sort_small_max: k.policy.sort_small_max,
+            ..Default::default()
+        };
         rec.dispatch(&k.dispatch_args, &[("counts", &self.counts), ("indirect", &self.indirect)], &push, [1, 1, 1])
     }
 }
@@ -285,6 +303,15 @@ pub fn record_sort(
     // The fewest passes of at most the policy's bits, with the bits spread evenly over them.
     let passes = bits.div_ceil(k.policy.sort_bits);
     let off = Counts::args_offset(slot, ARGS_SORT_BLOCKS);
+    // Small inputs: every pass in one dispatch (dispatch_args gives the passes below no
+    // workgroups then, and this one none otherwise).
+    rec.dispatch_indirect(
+        &k.sort_small,
+        &[("counts", &c.counts), ("keys_a", keys[0]), ("vals_a", vals[0]), ("keys_b", keys[1]), ("vals_b", vals[1])],
+        &SortArgs { count_slot: slot, shift: 0, bits, _pad0: 0 },
+        &c.indirect,
+        Counts::args_offset(slot, ARGS_SORT_SMALL),
+    )?;
     let mut shift = 0;
     for p in 0..passes {
         let (i, o) = ((p % 2) as usize, ((p + 1) % 2) as usize);
@@ -306,7 +333,13 @@ pub fn record_sort(
             multiplier: 1 << pass_bits,
             ..Default::default()
         };
-        rec.dispatch(&k.scan_blocks, &[("counts", &c.counts), ("data", hist)], &scan, [1, 1, 1])?;
+        rec.dispatch_indirect(
+            &k.scan_blocks,
+            &[("counts", &c.counts), ("data", hist)],
+            &scan,
+            &c.indirect,
+            Counts::args_offset(slot, ARGS_SORT_SCAN),
+        )?;
         rec.dispatch_indirect(
             &k.sort_scatter,
             &[

@@ -148,9 +148,19 @@ pub fn preprocess(scene: &Scene, fp: &FrameParams) -> Projected {
 }
 
 /// Pass `dispatch_args`: workgroup counts for `n` items, indexed by ARGS_* (one item per
-/// thread, radix-sort blocks of `sort_block` keys, scan blocks), clamped to MAX_GROUPS.
-pub fn dispatch_groups(n: u32, sort_block: u32) -> [u32; 3] {
-    [n.div_ceil(WG_SIZE), n.div_ceil(sort_block), n.div_ceil(SCAN_BLOCK)].map(|g| g.min(MAX_GROUPS))
+/// thread, radix-sort blocks of `sort_block` keys, scan blocks, the one-dispatch sort, the
+/// sort's table scan), clamped to MAX_GROUPS. Up to `sort_small_max` keys the one-dispatch sort
+/// runs instead of the sort's passes.
+pub fn dispatch_groups(n: u32, sort_block: u32, sort_small_max: u32) -> [u32; 5] {
+    let small = n <= sort_small_max;
+    [
+        n.div_ceil(WG_SIZE),
+        if small { 0 } else { n.div_ceil(sort_block) },
+        n.div_ceil(SCAN_BLOCK),
+        (small && n > 0) as u32,
+        (!small) as u32,
+    ]
+    .map(|g| g.min(MAX_GROUPS))
 }
 
 /// Pass `draw_args`: the draw path's VkDrawIndirectCommand for `visible` splats (one instance
