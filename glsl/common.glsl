@@ -9,7 +9,9 @@
 #define WG_SIZE 256
 // Screen tiles are TILE_SIZE x TILE_SIZE pixels; blend runs one workgroup per tile.
 #define TILE_SIZE 16
-// Generic exclusive scan: each thread owns SCAN_ITEMS consecutive items.
+// Generic exclusive scan: a workgroup owns SCAN_BLOCK consecutive items; each of its WG_SIZE
+// threads SCAN_ITEMS of them, or on CPU devices (KernelPolicy::thread_runs) each of a
+// subgroup's threads SCAN_BLOCK / subgroup size, its run a column of the block sums.
 #define SCAN_ITEMS 8
 #define SCAN_BLOCK 2048
 // Radix sort: up to SORT_BITS_* key bits per pass (the bits needed are spread evenly over the

@@ -42,6 +42,8 @@ pub struct Kernels {
     pub policy: KernelPolicy,
     /// Threads per radix-sort workgroup (specialization constant 3 of the sort kernels).
     pub sort_wg: u32,
+    /// Threads per `scan_reduce` / `scan_down` workgroup (their specialization constant 1).
+    pub scan_wg: u32,
 }
 
 /// Device-dependent kernel choices (specialization constants).
@@ -49,9 +51,11 @@ pub struct Kernels {
 pub struct KernelPolicy {
     /// Keys per thread in a radix-sort block (SORT_ITEMS_CPU or SORT_ITEMS_GPU).
     pub sort_items: u32,
-    /// Each sort thread's run of keys is its own histogram column (no shared memory and no
-    /// barrier in the sort kernels; more columns to scan), else a workgroup's block is.
-    pub sort_thread_runs: bool,
+    /// Each thread's run of keys (sort) or items (scan) is its own column of the table that
+    /// the one-workgroup `scan_blocks` scans: no shared memory and no barrier in `sort_count`,
+    /// `sort_scatter`, `scan_reduce` and `scan_down`, workgroups of one subgroup, more columns
+    /// to scan. Else a workgroup's block is a column.
+    pub thread_runs: bool,
     /// Key bits per radix-sort pass (SORT_BITS_CPU or SORT_BITS_GPU; blocks take at most the
     /// latter).
     pub sort_bits: u32,
@@ -68,7 +72,7 @@ impl KernelPolicy {
     /// one-dispatch sort: its threads' long serial runs suit a CPU, not a GPU.
     pub const GPU: KernelPolicy = KernelPolicy {
         sort_items: SORT_ITEMS_GPU,
-        sort_thread_runs: false,
+        thread_runs: false,
         sort_bits: SORT_BITS_GPU,
         sort_small_max: 0,
         blend_pixels_per_thread: 1,
@@ -81,7 +85,7 @@ impl KernelPolicy {
     /// keys sorted in one dispatch, and a whole tile column per blend invocation.
     pub const CPU: KernelPolicy = KernelPolicy {
         sort_items: SORT_ITEMS_CPU,
-        sort_thread_runs: true,
+        thread_runs: true,
         sort_bits: SORT_BITS_CPU,
         sort_small_max: SORT_SMALL_MAX_CPU,
         blend_pixels_per_thread: TILE_SIZE,
@@ -108,8 +112,13 @@ impl Kernels {
         let k = |name: &str, spv: &[u8]| Kernel::new(gpu, name, spv);
         let atomics = |f: &'static [u8], cas: &'static [u8]| if policy.float_atomics { f } else { cas };
         // Thread runs need no shared memory or barrier, so a workgroup is one subgroup.
-        let sort_wg = if policy.sort_thread_runs { gpu.info.min_subgroup_size } else { SORT_WG };
-        if (!policy.sort_thread_runs && policy.sort_bits > SORT_BITS_GPU) || policy.sort_bits == 0 {
+        let sort_wg = if policy.thread_runs { gpu.info.min_subgroup_size } else { SORT_WG };
+        let scan_wg = if policy.thread_runs { gpu.info.min_subgroup_size } else { WG_SIZE };
+        if SCAN_BLOCK % scan_wg != 0 {
+            anyhow::bail!("subgroup size {scan_wg} does not divide the scan block {SCAN_BLOCK}");
+        }
+        let scan_spec = [scan_wg, policy.thread_runs as u32];
+        if (!policy.thread_runs && policy.sort_bits > SORT_BITS_GPU) || policy.sort_bits == 0 {
             anyhow::bail!("sort policy: {} bits per pass does not fit the sort kernels", policy.sort_bits);
         }
         // lavapipe ends every loop of an invocation after 65 535 iterations of all its loops
@@ -118,7 +127,7 @@ impl Kernels {
         if 32u32.div_ceil(policy.sort_bits) * (2 * small_run + (5 << policy.sort_bits)) > 60_000 {
             anyhow::bail!("sort policy: {} keys are too many for the one-dispatch sort", policy.sort_small_max);
         }
-        let sort_spec = [policy.sort_items, policy.sort_thread_runs as u32, sort_wg, policy.sort_bits];
+        let sort_spec = [policy.sort_items, policy.thread_runs as u32, sort_wg, policy.sort_bits];
         let blend_spec =
             |crowded: u32| [policy.blend_pixels_per_thread, TILE_SIZE / policy.blend_pixels_per_thread, crowded];
         Ok(Arc::new(Kernels {
@@ -132,9 +141,9 @@ impl Kernels {
             ],
             dispatch_args: k("dispatch_args", spirv::DISPATCH_ARGS)?,
             draw_args: k("draw_args", spirv::DRAW_ARGS)?,
-            scan_reduce: k("scan_reduce", spirv::SCAN_REDUCE)?,
+            scan_reduce: Kernel::with_spec(gpu, "scan_reduce", spirv::SCAN_REDUCE, &scan_spec)?,
             scan_blocks: k("scan_blocks", spirv::SCAN_BLOCKS)?,
-            scan_down: k("scan_down", spirv::SCAN_DOWN)?,
+            scan_down: Kernel::with_spec(gpu, "scan_down", spirv::SCAN_DOWN, &scan_spec)?,
             sort_count: Kernel::with_spec(gpu, "sort_count", spirv::SORT_COUNT, &sort_spec)?,
             sort_scatter: Kernel::with_spec(gpu, "sort_scatter", spirv::SORT_SCATTER, &sort_spec)?,
             sort_small: Kernel::with_spec(gpu, "sort_small", spirv::SORT_SMALL, &sort_spec)?,
@@ -168,6 +177,7 @@ impl Kernels {
             instance_select: k("instance_select", spirv::INSTANCE_SELECT)?,
             policy,
             sort_wg,
+            scan_wg,
         }))
     }
 
@@ -176,9 +186,18 @@ impl Kernels {
         self.sort_wg * self.policy.sort_items
     }
 
+    /// Items per column of the generic scan's block sums: a thread's run or a whole block.
+    pub fn scan_column(&self) -> u32 {
+        if self.policy.thread_runs {
+            SCAN_BLOCK / self.scan_wg
+        } else {
+            SCAN_BLOCK
+        }
+    }
+
     /// Keys per column of the radix-sort histogram table: a thread's run or a whole block.
     pub fn sort_column(&self) -> u32 {
-        if self.policy.sort_thread_runs {
+        if self.policy.thread_runs {
             self.policy.sort_items
         } else {
             self.sort_block()
@@ -217,9 +236,9 @@ impl Counts {
     }
 }
 
-/// Number of block sums a scan of `n` items needs.
-pub fn scan_blocks_for(n: u64) -> u64 {
-    n.div_ceil(SCAN_BLOCK as u64).max(1)
+/// Number of column sums a scan of `n` items needs.
+pub fn scan_blocks_for(k: &Kernels, n: u64) -> u64 {
+    n.div_ceil(k.scan_column() as u64).max(1)
 }
 
 /// Length of the radix-sort histogram table for `n` keys.
@@ -251,7 +270,7 @@ pub fn record_scan(rec: &mut Recorder, k: &Kernels, c: &Counts, s: &Scan) -> Res
         out_slot: s.out_slot,
         clamp_slot: s.clamp_slot,
         capacity: s.capacity,
-        divisor: SCAN_BLOCK,
+        divisor: k.scan_column(),
         multiplier: 1,
         out_bias: s.out_bias,
     };

@@ -346,7 +346,7 @@ impl Rasterizer {
                 inst_count: gpu.storage("inst_count", b)?,
                 inst_level: gpu.storage("inst_level", b)?,
                 inst_offsets: gpu.storage("inst_offsets", b)?,
-                block_sums: gpu.storage("inst_block_sums", scan_blocks_for(instances as u64) * 4)?,
+                block_sums: gpu.storage("inst_block_sums", scan_blocks_for(&self.k, instances as u64) * 4)?,
             });
         }
         let limit = gpu.info.max_storage_buffer_range;
@@ -389,7 +389,7 @@ impl Rasterizer {
                 keys: [gpu.storage("isect_keys_a", b)?, gpu.storage("isect_keys_b", b)?],
                 ids: [gpu.storage("isect_ids_a", b)?, gpu.storage("isect_ids_b", b)?],
                 hist: gpu.storage("sort_hist", sort_hist_for(&self.k, most) * 4)?,
-                block_sums: gpu.storage("scan_block_sums", scan_blocks_for(n as u64) * 4)?,
+                block_sums: gpu.storage("scan_block_sums", scan_blocks_for(&self.k, n as u64) * 4)?,
             });
         }
         if self.image.as_ref().is_none_or(|im| im.width != width || im.height != height) {
@@ -441,7 +441,7 @@ impl Rasterizer {
                     .chain(&g.depth_ids)
                     .chain(&is.keys)
                     .chain(&is.ids)
-                    .chain([&im.out_image, &im.last])
+                    .chain([&is.block_sums, &im.out_image, &im.last])
                 {
                     rec.fill(b, POISON);
                 }
@@ -456,7 +456,7 @@ impl Rasterizer {
             rec.end_pass("setup")?;
             if let Some((args, sel)) = select {
                 if poison {
-                    for b in [&sel.inst_count, &sel.inst_level, &sel.inst_offsets] {
+                    for b in [&sel.inst_count, &sel.inst_level, &sel.inst_offsets, &sel.block_sums] {
                         rec.fill(b, POISON);
                     }
                 }
