@@ -13,20 +13,27 @@
 // Specialization constant 3 (CROWDED_TILES) picks the tiles: 0 those whose splats fit the loop
 // budget by emit's tile_costs, 1 the rest, without that loop (see common.glsl); the rasterizer
 // dispatches both.
-// Splats reach the pixels in shared-memory batches of 256; the tile stops early once every
-// pixel is saturated.
+// On GPUs splats reach the pixels in shared-memory batches of 256 (SHARED_BATCHES) and the
+// tile stops early once every pixel is saturated; on CPU devices each invocation fetches every
+// splat itself and stops once its own pixels are.
 #include "common.glsl"
 #include "tiles.glsl"
 #extension GL_KHR_shader_subgroup_arithmetic : require
 layout(constant_id = 1) const uint PIXELS_PER_THREAD = 1;
 layout(constant_id = 3) const uint CROWDED_TILES = 0;
+// Specialization constant 4: 1 stages the splats through shared memory in batches (GPUs), 0
+// has every invocation fetch each splat itself, with no shared memory and no barrier (CPU
+// devices: a shared-memory load is a loop over the lanes there, a texel fetch a gather).
+layout(constant_id = 4) const uint SHARED_BATCHES = 1;
 layout(local_size_x = TILE_SIZE, local_size_y_id = 2) in;
 layout(std430, binding = 0) readonly buffer FrameBuf { FrameParams p; } frame;
 layout(std430, binding = 1) readonly buffer RangesBuf { uvec2 v[]; } ranges;
-layout(std430, binding = 2) readonly buffer IsectIdsBuf { uint v[]; } isect_ids;
-layout(std430, binding = 3) readonly buffer XysBuf { vec2 v[]; } xys;
-layout(std430, binding = 4) readonly buffer ConicsBuf { vec4 v[]; } conics;
-layout(std430, binding = 5) readonly buffer ColorsBuf { vec4 v[]; } colours;
+// The splats' data as texel buffers (xys two splats per texel): lavapipe fetches texels with
+// vector gathers, where a storage-buffer load is a loop over the lanes.
+layout(binding = 2) uniform usamplerBuffer isect_ids;
+layout(binding = 3) uniform samplerBuffer xys;
+layout(binding = 4) uniform samplerBuffer conics;
+layout(binding = 5) uniform samplerBuffer colours;
 layout(std430, binding = 6) writeonly buffer OutImageBuf { vec4 v[]; } out_image;
 layout(std430, binding = 7) writeonly buffer LastBuf { uint v[]; } last;
 layout(std430, binding = 8) readonly buffer TileCostsBuf { uint v[]; } tile_costs;
@@ -88,12 +95,28 @@ void blend_rows(uint n, vec2 xy, vec4 co, vec3 rgb, vec2 reach) {
     }
 }
 
+// The projected mean of splat g (two per texel).
+vec2 splat_xy(uint g) {
+    vec4 two = texelFetch(xys, int(g / 2));
+    return (g & 1) == 0 ? two.xy : two.zw;
+}
+
 // Blends the batch's splat j (of `count`; none past them) whose tile number is first + j + 1.
 void blend_batch_splat(uint first, uint j, uint count) {
     if (j < count) {
         uint b = min(j, BATCH - 1);
         vec4 co = s_conic[b];
         blend_rows(first + j + 1, s_xy[b], co, s_rgb[b], splat_reach(co));
+    }
+}
+
+// Blends the tile's intersection at index i (none at or past `end`), fetched by this
+// invocation, as splat number i - first + 1.
+void blend_fetched_splat(uint i, uint first, uint end) {
+    if (i < end) {
+        uint g = texelFetch(isect_ids, int(i)).x;
+        vec4 co = texelFetch(conics, int(g));
+        blend_rows(i - first + 1, splat_xy(g), co, texelFetch(colours, int(g)).rgb, splat_reach(co));
     }
 }
 
@@ -119,38 +142,55 @@ void main() {
     if (!mine) range.y = range.x;
     bool thread_done = n_done == PIXELS_PER_THREAD;
     uint t = gl_LocalInvocationIndex;
-    for (uint start = range.x; start < range.y; start += BATCH) {
-        if (t == 0) s_done = 0;
-        barrier();
-        if (thread_done) atomicAdd(s_done, 1);
-        barrier();
-        if (s_done == threads) break;
-        for (uint k = t; k < BATCH && start + k < range.y; k += threads) {
-            uint g = isect_ids.v[start + k];
-            s_xy[k] = xys.v[g];
-            s_conic[k] = conics.v[g];
-            s_rgb[k] = colours.v[g].rgb;
-        }
-        barrier();
-        uint count = min(BATCH, range.y - start);
+    if (SHARED_BATCHES == 0) {
         if (CROWDED_TILES == 0) {
-            for (uint j = 0; !thread_done && j < count; j++) {
-                vec4 co = s_conic[j];
-                blend_rows(start - range.x + j + 1, s_xy[j], co, s_rgb[j], splat_reach(co));
+            for (uint i = range.x; !thread_done && i < range.y; i++) {
+                blend_fetched_splat(i, range.x, range.y);
                 thread_done = n_done == PIXELS_PER_THREAD;
             }
         } else {
-            // Four splats per iteration, written out: a quarter of the loop iterations that
-            // lavapipe counts (see CROWDED_TILES in common.glsl).
-            for (uint j = 0; !thread_done && j < count; j += 4) {
-                blend_batch_splat(start - range.x, j, count);
-                blend_batch_splat(start - range.x, j + 1, count);
-                blend_batch_splat(start - range.x, j + 2, count);
-                blend_batch_splat(start - range.x, j + 3, count);
+            for (uint i = range.x; !thread_done && i < range.y; i += 4) {
+                blend_fetched_splat(i, range.x, range.y);
+                blend_fetched_splat(i + 1, range.x, range.y);
+                blend_fetched_splat(i + 2, range.x, range.y);
+                blend_fetched_splat(i + 3, range.x, range.y);
                 thread_done = n_done == PIXELS_PER_THREAD;
             }
         }
-        barrier();
+    } else {
+        for (uint start = range.x; start < range.y; start += BATCH) {
+            if (t == 0) s_done = 0;
+            barrier();
+            if (thread_done) atomicAdd(s_done, 1);
+            barrier();
+            if (s_done == threads) break;
+            for (uint k = t; k < BATCH && start + k < range.y; k += threads) {
+                uint g = texelFetch(isect_ids, int(start + k)).x;
+                s_xy[k] = splat_xy(g);
+                s_conic[k] = texelFetch(conics, int(g));
+                s_rgb[k] = texelFetch(colours, int(g)).rgb;
+            }
+            barrier();
+            uint count = min(BATCH, range.y - start);
+            if (CROWDED_TILES == 0) {
+                for (uint j = 0; !thread_done && j < count; j++) {
+                    vec4 co = s_conic[j];
+                    blend_rows(start - range.x + j + 1, s_xy[j], co, s_rgb[j], splat_reach(co));
+                    thread_done = n_done == PIXELS_PER_THREAD;
+                }
+            } else {
+                // Four splats per iteration, written out: a quarter of the loop iterations that
+                // lavapipe counts (see CROWDED_TILES in common.glsl).
+                for (uint j = 0; !thread_done && j < count; j += 4) {
+                    blend_batch_splat(start - range.x, j, count);
+                    blend_batch_splat(start - range.x, j + 1, count);
+                    blend_batch_splat(start - range.x, j + 2, count);
+                    blend_batch_splat(start - range.x, j + 3, count);
+                    thread_done = n_done == PIXELS_PER_THREAD;
+                }
+            }
+            barrier();
+        }
     }
     for (uint r = 0; r < PIXELS_PER_THREAD; r++) {
         if (mine && px < frame.p.width && py0 + r < frame.p.height) {

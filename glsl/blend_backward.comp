@@ -24,13 +24,18 @@
 #extension GL_KHR_shader_subgroup_vote : require
 layout(constant_id = 1) const uint PIXELS_PER_THREAD = 1;
 layout(constant_id = 3) const uint CROWDED_TILES = 0;
+// Specialization constant 4, as in blend: 1 stages the splats through shared memory in batches
+// (GPUs), 0 has every invocation fetch each splat itself and each subgroup walk the tile alone,
+// with no shared memory and no barrier (CPU devices).
+layout(constant_id = 4) const uint SHARED_BATCHES = 1;
 layout(local_size_x = TILE_SIZE, local_size_y_id = 2) in;
 layout(std430, binding = 0) readonly buffer FrameBuf { FrameParams p; } frame;
 layout(std430, binding = 1) readonly buffer RangesBuf { uvec2 v[]; } ranges;
-layout(std430, binding = 2) readonly buffer IsectIdsBuf { uint v[]; } isect_ids;
-layout(std430, binding = 3) readonly buffer XysBuf { vec2 v[]; } xys;
-layout(std430, binding = 4) readonly buffer ConicsBuf { vec4 v[]; } conics;
-layout(std430, binding = 5) readonly buffer ColorsBuf { vec4 v[]; } colours;
+// The splats' data as texel buffers, as in blend (xys two splats per texel).
+layout(binding = 2) uniform usamplerBuffer isect_ids;
+layout(binding = 3) uniform samplerBuffer xys;
+layout(binding = 4) uniform samplerBuffer conics;
+layout(binding = 5) uniform samplerBuffer colours;
 layout(std430, binding = 6) readonly buffer OutImageBuf { vec4 v[]; } out_image;
 layout(std430, binding = 7) readonly buffer LastBuf { uint v[]; } last;
 layout(std430, binding = 8) readonly buffer VImageBuf { vec4 v[]; } v_image;
@@ -145,6 +150,21 @@ void backward_batch_splat(uint first, uint q, uint count) {
     }
 }
 
+// The projected mean of splat g (two per texel).
+vec2 splat_xy(uint g) {
+    vec4 two = texelFetch(xys, int(g / 2));
+    return (g & 1) == 0 ? two.xy : two.zw;
+}
+
+// The tile's intersection at index i (none below `first`), fetched by this invocation, as splat
+// number i - first + 1. Subgroup-uniform arguments.
+void backward_fetched_splat(int i, uint first) {
+    if (i >= int(first)) {
+        uint g = texelFetch(isect_ids, i).x;
+        splat_backward(uint(i) - first + 1, g, splat_xy(g), texelFetch(conics, int(g)), texelFetch(colours, int(g)).rgb);
+    }
+}
+
 void main() {
     uint tile = gl_WorkGroupID.y * frame.p.tiles_x + gl_WorkGroupID.x;
     px = gl_WorkGroupID.x * TILE_SIZE + gl_LocalInvocationID.x;
@@ -165,38 +185,54 @@ void main() {
     box_x = vec2(subgroupMin(px), subgroupMax(px)) + 0.5;
     uvec2 range = ranges.v[tile];
     bool mine = (CROWDED_TILES != 0) == blend_tile_crowded(tile_costs.v[tile], range.y - range.x);
-    if (gl_LocalInvocationIndex == 0) s_max_last = 0;
-    barrier();
-    atomicMax(s_max_last, thread_last);
-    barrier();
-    uint end = range.x + (mine ? s_max_last : 0);
-    uint t = gl_LocalInvocationIndex;
-    uint threads = gl_WorkGroupSize.x * gl_WorkGroupSize.y;
-    for (uint batch_end = end; batch_end > range.x; batch_end -= min(BATCH, batch_end - range.x)) {
-        uint count = min(BATCH, batch_end - range.x);
-        uint batch_start = batch_end - count;
-        barrier();
-        for (uint k = t; k < count; k += threads) {
-            uint g = isect_ids.v[batch_start + k];
-            s_id[k] = g;
-            s_xy[k] = xys.v[g];
-            s_conic[k] = conics.v[g];
-            s_rgb[k] = colours.v[g].rgb;
-        }
-        barrier();
+    if (SHARED_BATCHES == 0) {
+        // Each subgroup alone, from the last splat any of its pixels blended.
+        int end = int(range.x + (mine ? subgroupMax(thread_last) : 0));
         if (CROWDED_TILES == 0) {
-            for (uint jj = count; jj > 0; jj--) {
-                uint j = jj - 1;
-                splat_backward(batch_start - range.x + j + 1, s_id[j], s_xy[j], s_conic[j], s_rgb[j]);
-            }
+            for (int i = end - 1; i >= int(range.x); i--) backward_fetched_splat(i, range.x);
         } else {
-            // Four splats per iteration, written out: a quarter of the loop iterations that
-            // lavapipe counts (see CROWDED_TILES in common.glsl).
-            for (uint q = 0; q < count; q += 4) {
-                backward_batch_splat(batch_start - range.x, q, count);
-                backward_batch_splat(batch_start - range.x, q + 1, count);
-                backward_batch_splat(batch_start - range.x, q + 2, count);
-                backward_batch_splat(batch_start - range.x, q + 3, count);
+            // Four splats per iteration (see CROWDED_TILES in common.glsl).
+            for (int i = end - 1; i >= int(range.x); i -= 4) {
+                backward_fetched_splat(i, range.x);
+                backward_fetched_splat(i - 1, range.x);
+                backward_fetched_splat(i - 2, range.x);
+                backward_fetched_splat(i - 3, range.x);
+            }
+        }
+    } else {
+        if (gl_LocalInvocationIndex == 0) s_max_last = 0;
+        barrier();
+        atomicMax(s_max_last, thread_last);
+        barrier();
+        uint end = range.x + (mine ? s_max_last : 0);
+        uint t = gl_LocalInvocationIndex;
+        uint threads = gl_WorkGroupSize.x * gl_WorkGroupSize.y;
+        for (uint batch_end = end; batch_end > range.x; batch_end -= min(BATCH, batch_end - range.x)) {
+            uint count = min(BATCH, batch_end - range.x);
+            uint batch_start = batch_end - count;
+            barrier();
+            for (uint k = t; k < count; k += threads) {
+                uint g = texelFetch(isect_ids, int(batch_start + k)).x;
+                s_id[k] = g;
+                s_xy[k] = splat_xy(g);
+                s_conic[k] = texelFetch(conics, int(g));
+                s_rgb[k] = texelFetch(colours, int(g)).rgb;
+            }
+            barrier();
+            if (CROWDED_TILES == 0) {
+                for (uint jj = count; jj > 0; jj--) {
+                    uint j = jj - 1;
+                    splat_backward(batch_start - range.x + j + 1, s_id[j], s_xy[j], s_conic[j], s_rgb[j]);
+                }
+            } else {
+                // Four splats per iteration, written out: a quarter of the loop iterations that
+                // lavapipe counts (see CROWDED_TILES in common.glsl).
+                for (uint q = 0; q < count; q += 4) {
+                    backward_batch_splat(batch_start - range.x, q, count);
+                    backward_batch_splat(batch_start - range.x, q + 1, count);
+                    backward_batch_splat(batch_start - range.x, q + 2, count);
+                    backward_batch_splat(batch_start - range.x, q + 3, count);
+                }
             }
         }
     }

@@ -24,7 +24,9 @@ layout(std430, binding = 1) readonly buffer MeansBuf { float v[]; } means;
 layout(std430, binding = 2) readonly buffer ScalesBuf { float v[]; } scales;
 layout(std430, binding = 3) readonly buffer QuatsBuf { vec4 v[]; } quats;
 layout(std430, binding = 4) readonly buffer OpacitiesBuf { float v[]; } opacities;
-layout(std430, binding = 5) readonly buffer ShBuf { vec4 v[]; } sh;
+// The SH rows as RGBA32F texels: lavapipe fetches texels with vector gathers, where a storage
+// buffer load is a loop over the lanes (see BENCHMARKS.md, "Texel fetches").
+layout(binding = 5) uniform samplerBuffer sh;
 layout(std430, binding = 6) writeonly buffer XysBuf { vec2 v[]; } xys;
 layout(std430, binding = 7) writeonly buffer ConicsBuf { vec4 v[]; } conics;
 layout(std430, binding = 8) writeonly buffer ColorsBuf { vec4 v[]; } colours;
@@ -141,7 +143,7 @@ void preprocess(uint i) {
     uint shift = off & 3;
     float raw[SH_RAW_FLOATS];
     for (uint q = 0; q < (shift + 3 * nb + 3) / 4; q++) {
-        vec4 x = sh.v[off / 4 + q];
+        vec4 x = texelFetch(sh, int(off / 4 + q));
         raw[4 * q] = x.x;
         raw[4 * q + 1] = x.y;
         raw[4 * q + 2] = x.z;

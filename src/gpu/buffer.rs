@@ -16,6 +16,9 @@ pub struct Buffer {
     pub(crate) alloc: Option<Allocation>,
     pub size: u64,
     pub name: String,
+    /// Views of its whole length as texels of a format, for kernels that read it as a
+    /// `samplerBuffer` ([`Buffer::texel_view`]); made on first use.
+    pub(crate) views: std::sync::Mutex<Vec<(vk::Format, vk::BufferView)>>,
 }
 
 impl Buffer {
@@ -40,6 +43,33 @@ impl Buffer {
         Ok(bytemuck::pod_collect_to_vec(&m[..bytes]))
     }
 
+    /// The buffer as texels of `format` (RGBA32F or R32_UINT: a uniform texel buffer view of its
+    /// whole length, rounded down to whole texels), made on first use and kept until the buffer
+    /// is dropped. Storage buffers carry the usage for it.
+    pub(crate) fn texel_view(&self, format: vk::Format) -> Result<vk::BufferView> {
+        let mut views = self.views.lock().unwrap();
+        if let Some(&(_, v)) = views.iter().find(|(f, _)| *f == format) {
+            return Ok(v);
+        }
+        let texel_bytes = if format == vk::Format::R32_UINT { 4 } else { 16 };
+        let texels = self.size / texel_bytes;
+        if texels > self.gpu.info.max_texel_buffer_elements {
+            bail!(
+                "buffer '{}' ({texels} texels) exceeds the device's maxTexelBufferElements ({})",
+                self.name,
+                self.gpu.info.max_texel_buffer_elements
+            );
+        }
+        let info = vk::BufferViewCreateInfo::default()
+            .buffer(self.raw)
+            .format(format)
+            .offset(0)
+            .range(texels * texel_bytes);
+        let v = unsafe { self.gpu.device.create_buffer_view(&info, None)? };
+        views.push((format, v));
+        Ok(v)
+    }
+
     pub(crate) fn mapped(&self) -> Result<&[u8]> {
         self.alloc
             .as_ref()
@@ -61,7 +91,12 @@ impl Drop for Buffer {
         if let Some(a) = self.alloc.take() {
             let _ = self.gpu.allocator.lock().unwrap().free(a);
         }
-        unsafe { self.gpu.device.destroy_buffer(self.raw, None) };
+        unsafe {
+            for &(_, v) in self.views.get_mut().unwrap().iter() {
+                self.gpu.device.destroy_buffer_view(v, None);
+            }
+            self.gpu.device.destroy_buffer(self.raw, None)
+        };
     }
 }
 
@@ -75,7 +110,10 @@ impl Gpu {
         location: MemoryLocation,
     ) -> Result<Buffer> {
         let size = size.max(16);
-        let usage = usage | vk::BufferUsageFlags::TRANSFER_SRC | vk::BufferUsageFlags::TRANSFER_DST;
+        let mut usage = usage | vk::BufferUsageFlags::TRANSFER_SRC | vk::BufferUsageFlags::TRANSFER_DST;
+        if usage.contains(vk::BufferUsageFlags::STORAGE_BUFFER) {
+            usage |= vk::BufferUsageFlags::UNIFORM_TEXEL_BUFFER;
+        }
         let raw = unsafe { self.device.create_buffer(&vk::BufferCreateInfo::default().size(size).usage(usage), None)? };
         let requirements = unsafe { self.device.get_buffer_memory_requirements(raw) };
         let alloc = self.allocator.lock().unwrap().allocate(&AllocationCreateDesc {
@@ -93,6 +131,13 @@ impl Gpu {
             }
         };
         unsafe { self.device.bind_buffer_memory(raw, alloc.memory(), alloc.offset())? };
-        Ok(Buffer { gpu: self.clone(), raw, alloc: Some(alloc), size, name: name.to_string() })
+        Ok(Buffer {
+            gpu: self.clone(),
+            raw,
+            alloc: Some(alloc),
+            size,
+            name: name.to_string(),
+            views: std::sync::Mutex::new(Vec::new()),
+        })
     }
 }

@@ -50,6 +50,8 @@ pub struct DeviceInfo {
     /// Smallest subgroup size the device may use (bounds shared arrays per subgroup).
     pub min_subgroup_size: u32,
     pub max_storage_buffer_range: u64,
+    /// `maxTexelBufferElements`: the most texels a kernel's `samplerBuffer` may view.
+    pub max_texel_buffer_elements: u64,
     /// Nanoseconds per timestamp tick; `None` when the compute queue has no timestamps.
     pub timestamp_period_ns: Option<f64>,
     /// `shaderBufferFloat32AtomicAdd` (VK_EXT_shader_atomic_float) is available and enabled;
@@ -320,6 +322,7 @@ impl Gpu {
             subgroup_size: subgroup.subgroup_size,
             min_subgroup_size,
             max_storage_buffer_range: props.limits.max_storage_buffer_range as u64,
+            max_texel_buffer_elements: props.limits.max_texel_buffer_elements as u64,
             timestamp_period_ns,
             float_atomics,
             draws: qprops.queue_flags.contains(vk::QueueFlags::GRAPHICS) && {

@@ -17,7 +17,7 @@ use gpu_allocator::vulkan::{Allocation, AllocationCreateDesc, AllocationScheme};
 use gpu_allocator::MemoryLocation;
 
 use crate::gpu::context::TARGET_FORMAT;
-use crate::gpu::kernel::{create_layouts, reflect, PipelineRef, Reflected};
+use crate::gpu::kernel::{create_layouts, reflect, Binding, PipelineRef, Reflected};
 use crate::gpu::{Buffer, Gpu, Recorder};
 use crate::shared::spirv;
 
@@ -27,7 +27,7 @@ struct DrawPipeline {
     pipeline: vk::Pipeline,
     layout: vk::PipelineLayout,
     set_layout: vk::DescriptorSetLayout,
-    bindings: BTreeMap<String, (u32, vk::DescriptorType)>,
+    bindings: BTreeMap<String, Binding>,
     push_size: u32,
 }
 

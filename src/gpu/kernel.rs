@@ -18,7 +18,7 @@ pub struct Kernel {
     pub(crate) pipeline: vk::Pipeline,
     pub(crate) layout: vk::PipelineLayout,
     pub(crate) set_layout: vk::DescriptorSetLayout,
-    pub(crate) bindings: BTreeMap<String, (u32, vk::DescriptorType)>,
+    pub(crate) bindings: BTreeMap<String, Binding>,
     pub(crate) push_size: u32,
 }
 
@@ -78,7 +78,7 @@ pub(crate) struct PipelineRef<'a> {
     pub name: &'a str,
     pub pipeline: vk::Pipeline,
     pub layout: vk::PipelineLayout,
-    pub bindings: &'a BTreeMap<String, (u32, vk::DescriptorType)>,
+    pub bindings: &'a BTreeMap<String, Binding>,
     pub push_size: u32,
     pub point: vk::PipelineBindPoint,
     pub stages: vk::ShaderStageFlags,
@@ -95,10 +95,20 @@ impl Drop for Kernel {
     }
 }
 
+/// One binding of a kernel's descriptor set, by reflection.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct Binding {
+    pub binding: u32,
+    pub ty: vk::DescriptorType,
+    /// The texel format of a `samplerBuffer` (RGBA32F) or `usamplerBuffer` (R32_UINT) binding;
+    /// `UNDEFINED` for buffers.
+    pub format: vk::Format,
+}
+
 /// The buffers and push constants shaders declare, by reflection.
 pub(crate) struct Reflected {
     /// GLSL block instance name → (binding, descriptor type).
-    pub bindings: BTreeMap<String, (u32, vk::DescriptorType)>,
+    pub bindings: BTreeMap<String, Binding>,
     pub layout_bindings: Vec<vk::DescriptorSetLayoutBinding<'static>>,
     /// Bytes of the push-constant block (0: none).
     pub push_size: u32,
@@ -139,7 +149,7 @@ pub(crate) fn create_layouts(
 /// Reflects the descriptor set 0 and push constants of `modules` (the stages of one pipeline;
 /// a binding declared by several must have one name), visible to `stages`.
 pub(crate) fn reflect(name: &str, modules: &[&[u8]], stages: vk::ShaderStageFlags) -> Result<Reflected> {
-    let mut bindings: BTreeMap<String, (u32, vk::DescriptorType)> = BTreeMap::new();
+    let mut bindings: BTreeMap<String, Binding> = BTreeMap::new();
     let mut push_size = 0;
     for spirv in modules {
         let refl = rspirv_reflect::Reflection::new_from_spirv(spirv)
@@ -152,15 +162,28 @@ pub(crate) fn reflect(name: &str, modules: &[&[u8]], stages: vk::ShaderStageFlag
             let ty = match info.ty {
                 rspirv_reflect::DescriptorType::STORAGE_BUFFER => vk::DescriptorType::STORAGE_BUFFER,
                 rspirv_reflect::DescriptorType::UNIFORM_BUFFER => vk::DescriptorType::UNIFORM_BUFFER,
+                rspirv_reflect::DescriptorType::UNIFORM_TEXEL_BUFFER => vk::DescriptorType::UNIFORM_TEXEL_BUFFER,
                 other => bail!("kernel {name}: binding {binding} has unsupported descriptor type {other:?}"),
             };
             if info.name.is_empty() {
-                bail!("kernel {name}: binding {binding} has no instance name; declare `buffer XBuf {{ ... }} name;`");
+                bail!(
+                    "kernel {name}: binding {binding} has no instance name; declare `buffer XBuf {{ ... }} name;` \\
+                     (or `uniform samplerBuffer name;`)"
+                );
             }
-            if let Some(other) = bindings.iter().find(|(n, b)| b.0 == binding && **n != info.name) {
+            if let Some(other) = bindings.iter().find(|(n, b)| b.binding == binding && **n != info.name) {
                 bail!("kernel {name}: binding {binding} is '{}' in one stage and '{}' in another", other.0, info.name);
             }
-            bindings.insert(info.name.clone(), (binding, ty));
+            let format = if ty == vk::DescriptorType::UNIFORM_TEXEL_BUFFER {
+                if texel_buffer_is_uint(&refl.0, binding) {
+                    vk::Format::R32_UINT
+                } else {
+                    vk::Format::R32G32B32A32_SFLOAT
+                }
+            } else {
+                vk::Format::UNDEFINED
+            };
+            bindings.insert(info.name.clone(), Binding { binding, ty, format });
         }
         let push = refl
             .get_push_constant_range()
@@ -171,13 +194,33 @@ pub(crate) fn reflect(name: &str, modules: &[&[u8]], stages: vk::ShaderStageFlag
     }
     let layout_bindings = bindings
         .values()
-        .map(|&(binding, ty)| {
+        .map(|b| {
             vk::DescriptorSetLayoutBinding::default()
-                .binding(binding)
-                .descriptor_type(ty)
+                .binding(b.binding)
+                .descriptor_type(b.ty)
                 .descriptor_count(1)
                 .stage_flags(stages)
         })
         .collect();
     Ok(Reflected { bindings, layout_bindings, push_size })
+}
+
+/// Whether the texel buffer at set 0 `binding` samples integers (`usamplerBuffer`): the
+/// variable's type is a pointer to a sampled image whose image type has an integer sampled type.
+fn texel_buffer_is_uint(module: &rspirv_reflect::rspirv::dr::Module, binding: u32) -> bool {
+    use rspirv_reflect::rspirv::dr::Operand;
+    use rspirv_reflect::spirv::{Decoration, Op};
+    let find = |id: u32| module.types_global_values.iter().find(|i| i.result_id == Some(id));
+    let var = module.annotations.iter().find_map(|a| match a.operands.as_slice() {
+        [Operand::IdRef(id), Operand::Decoration(Decoration::Binding), Operand::LiteralBit32(b)] if *b == binding => {
+            Some(*id)
+        }
+        _ => None,
+    });
+    let mut ty = var.and_then(find).and_then(|v| v.result_type);
+    // pointer -> sampled image -> image -> sampled type
+    for (op, operand) in [(Op::TypePointer, 1), (Op::TypeSampledImage, 0), (Op::TypeImage, 0)] {
+        ty = ty.and_then(find).filter(|i| i.class.opcode == op).and_then(|i| i.operands.get(operand)?.id_ref_any());
+    }
+    ty.and_then(find).is_some_and(|i| i.class.opcode == Op::TypeInt)
 }

@@ -63,6 +63,10 @@ pub struct KernelPolicy {
     pub sort_small_max: u32,
     /// Pixels of a tile column each blend invocation owns (divides TILE_SIZE).
     pub blend_pixels_per_thread: u32,
+    /// `blend` and `blend_backward` stage a tile's splats through shared memory in batches
+    /// (else every invocation fetches each splat from the texel buffers itself: no shared
+    /// memory, no barrier).
+    pub blend_shared_batches: bool,
     /// Gradient kernels add floats with atomics (else a compare-and-swap loop).
     pub float_atomics: bool,
 }
@@ -76,19 +80,23 @@ impl KernelPolicy {
         sort_bits: SORT_BITS_GPU,
         sort_small_max: 0,
         blend_pixels_per_thread: 1,
+        blend_shared_batches: true,
         float_atomics: true,
     };
     /// For CPU devices (lavapipe): every workgroup with barriers has a large fixed cost
     /// (llvmpipe runs such workgroups as coroutines) and every load costs far more than
     /// arithmetic, so long sort runs that are their own histogram columns (no barrier), 8-bit
     /// digits (4 passes for a 31-bit depth key instead of 6), inputs up to SORT_SMALL_MAX_CPU
-    /// keys sorted in one dispatch, and a whole tile column per blend invocation.
+    /// keys sorted in one dispatch, and a whole tile column per blend invocation that fetches
+    /// every splat itself (a texel fetch is a vector gather on lavapipe, a shared-memory load a
+    /// loop over the lanes).
     pub const CPU: KernelPolicy = KernelPolicy {
         sort_items: SORT_ITEMS_CPU,
         thread_runs: true,
         sort_bits: SORT_BITS_CPU,
         sort_small_max: SORT_SMALL_MAX_CPU,
         blend_pixels_per_thread: TILE_SIZE,
+        blend_shared_batches: false,
         float_atomics: true,
     };
 
@@ -129,7 +137,7 @@ impl Kernels {
         }
         let sort_spec = [policy.sort_items, policy.thread_runs as u32, sort_wg, policy.sort_bits];
         let blend_spec =
-            |crowded: u32| [policy.blend_pixels_per_thread, TILE_SIZE / policy.blend_pixels_per_thread, crowded];
+            |crowded: u32| [policy.blend_pixels_per_thread, TILE_SIZE / policy.blend_pixels_per_thread, crowded, policy.blend_shared_batches as u32];
         Ok(Arc::new(Kernels {
             preprocess: k("preprocess", spirv::PREPROCESS)?,
             compact: k("compact", spirv::COMPACT)?,

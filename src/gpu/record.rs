@@ -165,10 +165,11 @@ impl Recorder<'_> {
             bail!("kernel {}: expects buffers {want:?}, got {got:?}", k.name);
         }
         let mut infos = Vec::with_capacity(binds.len());
+        let mut views = Vec::with_capacity(binds.len());
         let mut meta = Vec::with_capacity(binds.len());
         for (name, buf) in binds {
-            let &(binding, ty) =
-                k.bindings.get(*name).ok_or_else(|| anyhow!("kernel {}: no buffer named '{name}'", k.name))?;
+            let b = *k.bindings.get(*name).ok_or_else(|| anyhow!("kernel {}: no buffer named '{name}'", k.name))?;
+            let (binding, ty) = (b.binding, b.ty);
             if ty == vk::DescriptorType::STORAGE_BUFFER && buf.size > self.gpu.info.max_storage_buffer_range {
                 bail!(
                     "buffer '{}' ({} bytes) exceeds the device's maxStorageBufferRange ({} bytes)",
@@ -178,13 +179,21 @@ impl Recorder<'_> {
                 );
             }
             infos.push([vk::DescriptorBufferInfo::default().buffer(buf.raw).offset(0).range(vk::WHOLE_SIZE)]);
+            let view = if ty == vk::DescriptorType::UNIFORM_TEXEL_BUFFER { buf.texel_view(b.format)? } else { vk::BufferView::null() };
+            views.push([view]);
             meta.push((binding, ty));
         }
         let writes: Vec<vk::WriteDescriptorSet> = infos
             .iter()
+            .zip(&views)
             .zip(&meta)
-            .map(|(info, &(binding, ty))| {
-                vk::WriteDescriptorSet::default().dst_binding(binding).descriptor_type(ty).buffer_info(info)
+            .map(|((info, view), &(binding, ty))| {
+                let w = vk::WriteDescriptorSet::default().dst_binding(binding).descriptor_type(ty);
+                if ty == vk::DescriptorType::UNIFORM_TEXEL_BUFFER {
+                    w.texel_buffer_view(view)
+                } else {
+                    w.buffer_info(info)
+                }
             })
             .collect();
         let bytes: &[u8] = bytemuck::bytes_of(push);

@@ -368,7 +368,7 @@ impl Rasterizer {
             let b = n as u64 * 4;
             self.gauss = Some(GaussBufs {
                 n,
-                xys: gpu.storage("xys", b * 2)?,
+                xys: gpu.storage("xys", (n as u64).div_ceil(2) * 16)?, // whole texels of two
                 conics: gpu.storage("conics", b * 4)?,
                 colours: gpu.storage("colours", b * 4)?,
                 depths: gpu.storage("depths", b)?,
