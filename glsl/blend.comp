@@ -26,9 +26,10 @@ layout(constant_id = 3) const uint CROWDED_TILES = 0;
 // devices: a shared-memory load is a loop over the lanes there, a texel fetch a gather).
 layout(constant_id = 4) const uint SHARED_BATCHES = 1;
 layout(local_size_x = TILE_SIZE, local_size_y_id = 2) in;
-layout(std430, binding = 0) readonly buffer FrameBuf { FrameParams p; } frame;
+#define FRAME_BINDING 0
+#include "frame.glsl"
 layout(std430, binding = 1) readonly buffer RangesBuf { uvec2 v[]; } ranges;
-// The splats' data as texel buffers (xys two splats per texel): lavapipe fetches texels with
+// The splats' data as texel buffers (isect_ids four per texel, xys two): lavapipe fetches texels with
 // vector gathers, where a storage-buffer load is a loop over the lanes.
 layout(binding = 2) uniform usamplerBuffer isect_ids;
 layout(binding = 3) uniform samplerBuffer xys;
@@ -95,6 +96,11 @@ void blend_rows(uint n, vec2 xy, vec4 co, vec3 rgb, vec2 reach) {
     }
 }
 
+// The Gaussian of the tile intersection at index i (four per texel).
+uint isect_id(uint i) {
+    return texelFetch(isect_ids, int(i / 4))[i & 3];
+}
+
 // The projected mean of splat g (two per texel).
 vec2 splat_xy(uint g) {
     vec4 two = texelFetch(xys, int(g / 2));
@@ -114,13 +120,14 @@ void blend_batch_splat(uint first, uint j, uint count) {
 // invocation, as splat number i - first + 1.
 void blend_fetched_splat(uint i, uint first, uint end) {
     if (i < end) {
-        uint g = texelFetch(isect_ids, int(i)).x;
+        uint g = isect_id(i);
         vec4 co = texelFetch(conics, int(g));
         blend_rows(i - first + 1, splat_xy(g), co, texelFetch(colours, int(g)).rgb, splat_reach(co));
     }
 }
 
 void main() {
+    load_frame();
     uint threads = gl_WorkGroupSize.x * gl_WorkGroupSize.y;
     uint tile = gl_WorkGroupID.y * frame.p.tiles_x + gl_WorkGroupID.x;
     px = gl_WorkGroupID.x * TILE_SIZE + gl_LocalInvocationID.x;
@@ -165,7 +172,7 @@ void main() {
             barrier();
             if (s_done == threads) break;
             for (uint k = t; k < BATCH && start + k < range.y; k += threads) {
-                uint g = texelFetch(isect_ids, int(start + k)).x;
+                uint g = isect_id(start + k);
                 s_xy[k] = splat_xy(g);
                 s_conic[k] = texelFetch(conics, int(g));
                 s_rgb[k] = texelFetch(colours, int(g)).rgb;

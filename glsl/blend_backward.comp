@@ -29,9 +29,10 @@ layout(constant_id = 3) const uint CROWDED_TILES = 0;
 // with no shared memory and no barrier (CPU devices).
 layout(constant_id = 4) const uint SHARED_BATCHES = 1;
 layout(local_size_x = TILE_SIZE, local_size_y_id = 2) in;
-layout(std430, binding = 0) readonly buffer FrameBuf { FrameParams p; } frame;
+#define FRAME_BINDING 0
+#include "frame.glsl"
 layout(std430, binding = 1) readonly buffer RangesBuf { uvec2 v[]; } ranges;
-// The splats' data as texel buffers, as in blend (xys two splats per texel).
+// The splats' data as texel buffers, as in blend (isect_ids four per texel, xys two).
 layout(binding = 2) uniform usamplerBuffer isect_ids;
 layout(binding = 3) uniform samplerBuffer xys;
 layout(binding = 4) uniform samplerBuffer conics;
@@ -150,6 +151,11 @@ void backward_batch_splat(uint first, uint q, uint count) {
     }
 }
 
+// The Gaussian of the tile intersection at index i (four per texel).
+uint isect_id(uint i) {
+    return texelFetch(isect_ids, int(i / 4))[i & 3];
+}
+
 // The projected mean of splat g (two per texel).
 vec2 splat_xy(uint g) {
     vec4 two = texelFetch(xys, int(g / 2));
@@ -160,12 +166,13 @@ vec2 splat_xy(uint g) {
 // number i - first + 1. Subgroup-uniform arguments.
 void backward_fetched_splat(int i, uint first) {
     if (i >= int(first)) {
-        uint g = texelFetch(isect_ids, i).x;
+        uint g = isect_id(uint(i));
         splat_backward(uint(i) - first + 1, g, splat_xy(g), texelFetch(conics, int(g)), texelFetch(colours, int(g)).rgb);
     }
 }
 
 void main() {
+    load_frame();
     uint tile = gl_WorkGroupID.y * frame.p.tiles_x + gl_WorkGroupID.x;
     px = gl_WorkGroupID.x * TILE_SIZE + gl_LocalInvocationID.x;
     py0 = gl_WorkGroupID.y * TILE_SIZE + gl_LocalInvocationID.y * PIXELS_PER_THREAD;
@@ -212,7 +219,7 @@ void main() {
             uint batch_start = batch_end - count;
             barrier();
             for (uint k = t; k < count; k += threads) {
-                uint g = texelFetch(isect_ids, int(batch_start + k)).x;
+                uint g = isect_id(batch_start + k);
                 s_id[k] = g;
                 s_xy[k] = splat_xy(g);
                 s_conic[k] = texelFetch(conics, int(g));

@@ -72,11 +72,11 @@
 
 #define NO_SLOT 0xFFFFFFFF
 
-/// Per-frame camera and image parameters, a small read-only storage buffer (`FrameBuf`). Not a
-/// uniform buffer: with one, lavapipe (Mesa 22.3) grew the process by ~0.4 MB per frame in the
-/// preprocess pass whatever the scene size (measured; probably its uniform inlining, which
-/// compiles shader variants from uniform values that steer loops); as a storage buffer memory
-/// stays flat.
+/// Per-frame camera and image parameters, a small buffer that kernels read as RGBA32UI texels
+/// (frame.glsl, 12 texels). Not a uniform buffer: with one, lavapipe (Mesa 22.3) grew the
+/// process by ~0.4 MB per frame in the preprocess pass whatever the scene size (measured;
+/// probably its uniform inlining, which compiles shader variants from uniform values that steer
+/// loops).
 /// Camera is OpenCV: +X right, +Y down, +Z forward; viewmat maps world to camera.
 struct FrameParams {
     mat4 viewmat; // world -> camera, column-major

@@ -9,7 +9,8 @@
 #include "tiles.glsl"
 layout(constant_id = 1) const uint PIXELS_PER_THREAD = 1;
 layout(local_size_x = WG_SIZE) in;
-layout(std430, binding = 0) readonly buffer FrameBuf { FrameParams p; } frame;
+#define FRAME_BINDING 0
+#include "frame.glsl"
 layout(std430, binding = 1) readonly buffer CountsBuf { uint v[]; } counts;
 layout(std430, binding = 2) readonly buffer DepthIdsBuf { uint v[]; } depth_ids;
 layout(std430, binding = 3) readonly buffer IsectOffsetsBuf { uint v[]; } isect_offsets;
@@ -21,6 +22,7 @@ layout(std430, binding = 8) readonly buffer ConicsBuf { vec4 v[]; } conics;
 layout(std430, binding = 9) buffer TileCostsBuf { uint v[]; } tile_costs;
 
 void main() {
+    load_frame();
     uint n = counts.v[COUNT_VISIBLE];
     for (uint j = gl_GlobalInvocationID.x; j < n; j += gl_NumWorkGroups.x * WG_SIZE) {
         uint i = depth_ids.v[j];

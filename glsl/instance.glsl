@@ -7,7 +7,7 @@
 // pair 16 bits in d_codes (two pairs per word, low half first), the low byte indexing the
 // group's dp codebook (codebooks[group * 512 + code].xyz), the high byte its (d SH DC, d
 // opacity) codebook (codebooks[group * 512 + 256 + code]).
-// The including kernel declares `frame` (FrameBuf) and the parameter buffers means, scales,
+// The including kernel declares `frame` (frame.glsl) and the parameter buffers means, scales,
 // quats, opacities, and defines INSTANCE_BINDING, the first of the seven bindings below.
 layout(std430, binding = INSTANCE_BINDING) readonly buffer GroupsBuf { GroupInfo v[]; } groups;
 layout(std430, binding = INSTANCE_BINDING + 1) readonly buffer XformsBuf { InstanceXform v[]; } xforms;

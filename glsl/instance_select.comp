@@ -12,13 +12,15 @@
 #include "common.glsl"
 layout(local_size_x = WG_SIZE) in;
 layout(push_constant) uniform Push { SelectArgs a; } push;
-layout(std430, binding = 0) readonly buffer FrameBuf { FrameParams p; } frame;
+#define FRAME_BINDING 0
+#include "frame.glsl"
 layout(std430, binding = 1) readonly buffer GroupsBuf { GroupInfo v[]; } groups;
 layout(std430, binding = 2) readonly buffer XformsBuf { InstanceXform v[]; } xforms;
 layout(std430, binding = 3) writeonly buffer InstCountBuf { uint v[]; } inst_count;
 layout(std430, binding = 4) writeonly buffer InstLevelBuf { uint v[]; } inst_level;
 
 void main() {
+    load_frame();
     for (uint k = gl_GlobalInvocationID.x; k < frame.p.num_instances; k += gl_NumWorkGroups.x * WG_SIZE) {
         uint g = 0;
         while (g + 1 < frame.p.num_groups && k >= groups.v[g + 1].instance_first) g++;

@@ -19,7 +19,8 @@
 #include "sh.glsl"
 #include "tiles.glsl"
 layout(local_size_x = WG_SIZE) in;
-layout(std430, binding = 0) readonly buffer FrameBuf { FrameParams p; } frame;
+#define FRAME_BINDING 0
+#include "frame.glsl"
 layout(std430, binding = 1) readonly buffer MeansBuf { float v[]; } means;
 layout(std430, binding = 2) readonly buffer ScalesBuf { float v[]; } scales;
 layout(std430, binding = 3) readonly buffer QuatsBuf { vec4 v[]; } quats;
@@ -164,6 +165,7 @@ void preprocess(uint i) {
 }
 
 void main() {
+    load_frame();
     uint n = counts.v[COUNT_GAUSSIANS];
     for (uint i = gl_GlobalInvocationID.x; i < n; i += gl_NumWorkGroups.x * WG_SIZE) {
         preprocess(i);

@@ -26,7 +26,8 @@
 #include "common.glsl"
 #include "sh.glsl"
 layout(local_size_x = WG_SIZE) in;
-layout(std430, binding = 0) readonly buffer FrameBuf { FrameParams p; } frame;
+#define FRAME_BINDING 0
+#include "frame.glsl"
 layout(std430, binding = 1) readonly buffer MeansBuf { float v[]; } means;
 layout(std430, binding = 2) readonly buffer ScalesBuf { float v[]; } scales;
 layout(std430, binding = 3) readonly buffer QuatsBuf { vec4 v[]; } quats;
@@ -286,6 +287,7 @@ void backward(uint r) {
 }
 
 void main() {
+    load_frame();
     uint rows = VISIBLE_ROWS != 0 ? frame.p.num_visible : frame.p.num_rows;
     for (uint j = gl_GlobalInvocationID.x; j < rows; j += gl_NumWorkGroups.x * WG_SIZE) {
         backward(VISIBLE_ROWS != 0 ? visible_ids.v[j] : j);

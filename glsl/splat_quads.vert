@@ -9,7 +9,8 @@
 // wider so that no pixel centre the compute path blends is left out. Pixel coordinates have
 // pixel (x, y)'s centre at (x + 0.5, y + 0.5), as gl_FragCoord and blend.comp.
 #include "common.glsl"
-layout(std430, binding = 0) readonly buffer FrameBuf { FrameParams p; } frame;
+#define FRAME_BINDING 0
+#include "frame.glsl"
 layout(std430, binding = 1) readonly buffer DepthIdsBuf { uint v[]; } depth_ids;
 layout(std430, binding = 2) readonly buffer XysBuf { vec2 v[]; } xys;
 layout(std430, binding = 3) readonly buffer ConicsBuf { vec4 v[]; } conics;
@@ -19,6 +20,7 @@ layout(location = 1) flat out vec4 v_conic;
 layout(location = 2) flat out vec3 v_rgb;
 
 void main() {
+    load_frame();
     uint g = depth_ids.v[gl_InstanceIndex];
     // Strip corners 0..3 = (-,-), (+,-), (-,+), (+,+).
     uint corner = uint(gl_VertexIndex);

@@ -4,7 +4,8 @@
 // partial sums then a shared-memory tree: no atomics, a fixed order (deterministic).
 #include "common.glsl"
 layout(local_size_x = WG_SIZE) in;
-layout(std430, binding = 0) readonly buffer FrameBuf { FrameParams p; } frame;
+#define FRAME_BINDING 0
+#include "frame.glsl"
 layout(std430, binding = 1) readonly buffer GroupsBuf { GroupInfo v[]; } groups;
 layout(std430, binding = 2) readonly buffer XformTermsBuf { float v[]; } xform_terms;
 layout(std430, binding = 3) writeonly buffer GradXformsBuf { float v[]; } v_xforms;
@@ -12,6 +13,7 @@ layout(std430, binding = 3) writeonly buffer GradXformsBuf { float v[]; } v_xfor
 shared float partial[WG_SIZE];
 
 void main() {
+    load_frame();
     uint inst = gl_WorkGroupID.x;
     uint lid = gl_LocalInvocationID.x;
     uint g = 0;

@@ -43,7 +43,7 @@ impl Buffer {
         Ok(bytemuck::pod_collect_to_vec(&m[..bytes]))
     }
 
-    /// The buffer as texels of `format` (RGBA32F or R32_UINT: a uniform texel buffer view of its
+    /// The buffer as texels of `format` (RGBA32F or RGBA32UI: a uniform texel buffer view of its
     /// whole length, rounded down to whole texels), made on first use and kept until the buffer
     /// is dropped. Storage buffers carry the usage for it.
     pub(crate) fn texel_view(&self, format: vk::Format) -> Result<vk::BufferView> {
@@ -51,8 +51,7 @@ impl Buffer {
         if let Some(&(_, v)) = views.iter().find(|(f, _)| *f == format) {
             return Ok(v);
         }
-        let texel_bytes = if format == vk::Format::R32_UINT { 4 } else { 16 };
-        let texels = self.size / texel_bytes;
+        let texels = self.size / 16;
         if texels > self.gpu.info.max_texel_buffer_elements {
             bail!(
                 "buffer '{}' ({texels} texels) exceeds the device's maxTexelBufferElements ({})",
@@ -60,11 +59,7 @@ impl Buffer {
                 self.gpu.info.max_texel_buffer_elements
             );
         }
-        let info = vk::BufferViewCreateInfo::default()
-            .buffer(self.raw)
-            .format(format)
-            .offset(0)
-            .range(texels * texel_bytes);
+        let info = vk::BufferViewCreateInfo::default().buffer(self.raw).format(format).offset(0).range(texels * 16);
         let v = unsafe { self.gpu.device.create_buffer_view(&info, None)? };
         views.push((format, v));
         Ok(v)

@@ -100,7 +100,7 @@ impl Drop for Kernel {
 pub(crate) struct Binding {
     pub binding: u32,
     pub ty: vk::DescriptorType,
-    /// The texel format of a `samplerBuffer` (RGBA32F) or `usamplerBuffer` (R32_UINT) binding;
+    /// The texel format of a `samplerBuffer` (RGBA32F) or `usamplerBuffer` (RGBA32UI) binding;
     /// `UNDEFINED` for buffers.
     pub format: vk::Format,
 }
@@ -176,7 +176,7 @@ pub(crate) fn reflect(name: &str, modules: &[&[u8]], stages: vk::ShaderStageFlag
             }
             let format = if ty == vk::DescriptorType::UNIFORM_TEXEL_BUFFER {
                 if texel_buffer_is_uint(&refl.0, binding) {
-                    vk::Format::R32_UINT
+                    vk::Format::R32G32B32A32_UINT
                 } else {
                     vk::Format::R32G32B32A32_SFLOAT
                 }

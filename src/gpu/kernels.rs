@@ -136,8 +136,14 @@ impl Kernels {
             anyhow::bail!("sort policy: {} keys are too many for the one-dispatch sort", policy.sort_small_max);
         }
         let sort_spec = [policy.sort_items, policy.thread_runs as u32, sort_wg, policy.sort_bits];
-        let blend_spec =
-            |crowded: u32| [policy.blend_pixels_per_thread, TILE_SIZE / policy.blend_pixels_per_thread, crowded, policy.blend_shared_batches as u32];
+        let blend_spec = |crowded: u32| {
+            [
+                policy.blend_pixels_per_thread,
+                TILE_SIZE / policy.blend_pixels_per_thread,
+                crowded,
+                policy.blend_shared_batches as u32,
+            ]
+        };
         Ok(Arc::new(Kernels {
             preprocess: k("preprocess", spirv::PREPROCESS)?,
             compact: k("compact", spirv::COMPACT)?,

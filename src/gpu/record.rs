@@ -179,7 +179,11 @@ impl Recorder<'_> {
                 );
             }
             infos.push([vk::DescriptorBufferInfo::default().buffer(buf.raw).offset(0).range(vk::WHOLE_SIZE)]);
-            let view = if ty == vk::DescriptorType::UNIFORM_TEXEL_BUFFER { buf.texel_view(b.format)? } else { vk::BufferView::null() };
+            let view = if ty == vk::DescriptorType::UNIFORM_TEXEL_BUFFER {
+                buf.texel_view(b.format)?
+            } else {
+                vk::BufferView::null()
+            };
             views.push([view]);
             meta.push((binding, ty));
         }

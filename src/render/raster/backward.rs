@@ -146,7 +146,7 @@ impl Rasterizer {
             rec.dispatch(
                 blend_backward,
                 &[
-                    ("frame", &self.frame_ub),
+                    ("frame_texels", &self.frame_ub),
                     ("ranges", &im.ranges),
                     ("isect_ids", &is.ids[self.isect_result]),
                     ("xys", &gb.xys),
@@ -171,7 +171,7 @@ impl Rasterizer {
     fn record_preprocess_backward(&self, rec: &mut Recorder, scene: &GpuScene, g: &Grads) -> Result<()> {
         let gb = self.gauss.as_ref().unwrap();
         let bindings: Vec<(&str, &Buffer)> = [
-            ("frame", &self.frame_ub),
+            ("frame_texels", &self.frame_ub),
             ("means", &scene.means),
             ("scales", &scene.scales),
             ("quats", &scene.quats),
@@ -230,7 +230,7 @@ impl Rasterizer {
             rec.dispatch(
                 &self.k.xform_grad_reduce,
                 &[
-                    ("frame", &self.frame_ub),
+                    ("frame_texels", &self.frame_ub),
                     ("groups", &scene.inst.groups),
                     ("xform_terms", &g.xform_terms),
                     ("v_xforms", &g.v_xforms),

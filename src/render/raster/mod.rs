@@ -232,6 +232,9 @@ type RecordKey = (u64, usize, u32, u32, usize, bool, Option<[u32; 3]>, Forward);
 /// A quiet-NaN bit pattern that no kernel writes.
 pub const POISON: u32 = 0x7fc0_0bad;
 
+// glsl/frame.glsl reads the frame parameters as 12 RGBA32UI texels.
+const _: () = assert!(std::mem::size_of::<FrameParams>() == 12 * 16);
+
 impl Rasterizer {
     pub fn new(gpu: &Arc<Gpu>, k: &Arc<Kernels>) -> Result<Rasterizer> {
         Ok(Rasterizer {
@@ -387,7 +390,11 @@ impl Rasterizer {
             self.isect = Some(IsectBufs {
                 cap,
                 keys: [gpu.storage("isect_keys_a", b)?, gpu.storage("isect_keys_b", b)?],
-                ids: [gpu.storage("isect_ids_a", b)?, gpu.storage("isect_ids_b", b)?],
+                // Whole texels of four: blend reads the ids as a usamplerBuffer.
+                ids: [
+                    gpu.storage("isect_ids_a", b.next_multiple_of(16))?,
+                    gpu.storage("isect_ids_b", b.next_multiple_of(16))?,
+                ],
                 hist: gpu.storage("sort_hist", sort_hist_for(&self.k, most) * 4)?,
                 block_sums: gpu.storage("scan_block_sums", scan_blocks_for(&self.k, n as u64) * 4)?,
             });
@@ -464,7 +471,7 @@ impl Rasterizer {
                 rec.dispatch(
                     &k.instance_select,
                     &[
-                        ("frame", frame),
+                        ("frame_texels", frame),
                         ("groups", &scene.inst.groups),
                         ("xforms", &scene.inst.xforms),
                         ("inst_count", &sel.inst_count),
@@ -498,7 +505,7 @@ impl Rasterizer {
             let (inst_offsets, inst_level) =
                 select.map_or((placeholder, placeholder), |(_, s)| (&s.inst_offsets, &s.inst_level));
             let bindings: Vec<(&str, &Buffer)> = [
-                ("frame", frame),
+                ("frame_texels", frame),
                 ("means", &scene.means),
                 ("scales", &scene.scales),
                 ("quats", &scene.quats),
@@ -597,7 +604,7 @@ impl Rasterizer {
             rec.dispatch_indirect(
                 &k.emit,
                 &[
-                    ("frame", frame),
+                    ("frame_texels", frame),
                     ("counts", &c.counts),
                     ("depth_ids", depth_ids),
                     ("isect_offsets", &g.isect_offsets),
@@ -630,7 +637,7 @@ impl Rasterizer {
                 rec.dispatch(
                     blend,
                     &[
-                        ("frame", frame),
+                        ("frame_texels", frame),
                         ("ranges", &im.ranges),
                         ("isect_ids", &is.ids[isect_result]),
                         ("xys", &g.xys),

@@ -75,10 +75,10 @@ impl QuadBufs {
             &self.draw,
             target,
             &SplatDrawCall {
-                splats: &[("frame", frame), a, b, c, d],
+                splats: &[("frame_texels", frame), a, b, c, d],
                 args: &self.args,
                 args_offset: 0,
-                background: &[("frame", frame)],
+                background: &[("frame_texels", frame)],
                 out: out_image,
             },
         )
