@@ -14,11 +14,13 @@ layout(local_size_x = WG_SIZE) in;
 layout(std430, binding = 1) readonly buffer CountsBuf { uint v[]; } counts;
 layout(std430, binding = 2) readonly buffer DepthIdsBuf { uint v[]; } depth_ids;
 layout(std430, binding = 3) readonly buffer IsectOffsetsBuf { uint v[]; } isect_offsets;
-layout(std430, binding = 4) readonly buffer XysBuf { vec2 v[]; } xys;
-layout(std430, binding = 5) readonly buffer RadiiBuf { uvec2 v[]; } radii;
+// The splats' projections as texels (xys and radii two splats per texel, conics one): one
+// gather each on lavapipe (see frame.glsl).
+layout(binding = 4) uniform samplerBuffer xys;
+layout(binding = 5) uniform usamplerBuffer radii;
 layout(std430, binding = 6) writeonly buffer IsectKeysBuf { uint v[]; } isect_keys;
 layout(std430, binding = 7) writeonly buffer IsectIdsBuf { uint v[]; } isect_ids;
-layout(std430, binding = 8) readonly buffer ConicsBuf { vec4 v[]; } conics;
+layout(binding = 8) uniform samplerBuffer conics;
 layout(std430, binding = 9) buffer TileCostsBuf { uint v[]; } tile_costs;
 
 void main() {
@@ -26,10 +28,13 @@ void main() {
     uint n = counts.v[COUNT_VISIBLE];
     for (uint j = gl_GlobalInvocationID.x; j < n; j += gl_NumWorkGroups.x * WG_SIZE) {
         uint i = depth_ids.v[j];
-        vec2 xy = xys.v[i];
-        vec4 co = conics.v[i];
+        vec4 two_xy = texelFetch(xys, int(i / 2));
+        uvec4 two_radii = texelFetch(radii, int(i / 2));
+        vec2 xy = (i & 1) == 0 ? two_xy.xy : two_xy.zw;
+        uvec2 radius = (i & 1) == 0 ? two_radii.xy : two_radii.zw;
+        vec4 co = texelFetch(conics, int(i));
         ivec2 rmin, rmax;
-        tile_rect(xy, radii.v[i], uvec2(frame.p.tiles_x, frame.p.tiles_y), rmin, rmax);
+        tile_rect(xy, radius, uvec2(frame.p.tiles_x, frame.p.tiles_y), rmin, rmax);
         uint o = isect_offsets.v[j];
         for (int y = rmin.y; y < rmax.y; y++) {
             uint cost = blend_cost(xy, co, uint(y), PIXELS_PER_THREAD);

@@ -375,7 +375,7 @@ impl Rasterizer {
                 conics: gpu.storage("conics", b * 4)?,
                 colours: gpu.storage("colours", b * 4)?,
                 depths: gpu.storage("depths", b)?,
-                radii: gpu.storage("radii", b * 2)?,
+                radii: gpu.storage("radii", (n as u64).div_ceil(2) * 16)?, // whole texels of two
                 tiles_touched: gpu.storage("tiles_touched", b)?,
                 vis_offsets: gpu.storage("vis_offsets", b)?,
                 depth_keys: [gpu.storage("depth_keys_a", b)?, gpu.storage("depth_keys_b", b)?],
