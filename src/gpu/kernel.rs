@@ -1,5 +1,7 @@
 //! One compute kernel: its pipeline and a descriptor layout reflected from its SPIR-V; buffers
-//! are bound by the GLSL name of their block (the draw path's pipelines reflect the same way).
+//! are bound by the GLSL name of their block, or of their `samplerBuffer` / `usamplerBuffer`
+//! (bound as an RGBA32F / RGBA32UI view of the buffer); the draw path's pipelines reflect the
+//! same way.
 use std::collections::BTreeMap;
 use std::ffi::CString;
 use std::sync::Arc;

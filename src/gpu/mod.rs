@@ -1,5 +1,6 @@
 //! Vulkan context on `ash` + `gpu-allocator`: device choice, validation layers, buffers,
-//! compute kernels with reflected descriptor layouts, the draw path's graphics pipelines, command
+//! compute kernels with reflected descriptor layouts (storage and uniform buffers, and texel
+//! buffers: RGBA32F or RGBA32UI views of storage buffers), the draw path's graphics pipelines, command
 //! recording and GPU timestamps.
 //!
 //! Device choice: a discrete GPU over an integrated one over a virtual one over a CPU device
