@@ -21,10 +21,11 @@
 layout(local_size_x = WG_SIZE) in;
 #define FRAME_BINDING 0
 #include "frame.glsl"
-layout(std430, binding = 1) readonly buffer MeansBuf { float v[]; } means;
-layout(std430, binding = 2) readonly buffer ScalesBuf { float v[]; } scales;
-layout(std430, binding = 3) readonly buffer QuatsBuf { vec4 v[]; } quats;
-layout(std430, binding = 4) readonly buffer OpacitiesBuf { float v[]; } opacities;
+// The parameter rows as RGBA32F texels (read by instance.glsl's param_* helpers).
+layout(binding = 1) uniform samplerBuffer means;
+layout(binding = 2) uniform samplerBuffer scales;
+layout(binding = 3) uniform samplerBuffer quats;
+layout(binding = 4) uniform samplerBuffer opacities;
 // The SH rows as RGBA32F texels: lavapipe fetches texels with vector gathers, where a storage
 // buffer load is a loop over the lanes (see BENCHMARKS.md, "Texel fetches").
 layout(binding = 5) uniform samplerBuffer sh;

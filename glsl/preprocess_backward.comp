@@ -28,10 +28,11 @@
 layout(local_size_x = WG_SIZE) in;
 #define FRAME_BINDING 0
 #include "frame.glsl"
-layout(std430, binding = 1) readonly buffer MeansBuf { float v[]; } means;
-layout(std430, binding = 2) readonly buffer ScalesBuf { float v[]; } scales;
-layout(std430, binding = 3) readonly buffer QuatsBuf { vec4 v[]; } quats;
-layout(std430, binding = 4) readonly buffer OpacitiesBuf { float v[]; } opacities;
+// The parameter rows as RGBA32F texels (read by instance.glsl's param_* helpers).
+layout(binding = 1) uniform samplerBuffer means;
+layout(binding = 2) uniform samplerBuffer scales;
+layout(binding = 3) uniform samplerBuffer quats;
+layout(binding = 4) uniform samplerBuffer opacities;
 layout(std430, binding = 5) readonly buffer ShBuf { vec4 v[]; } sh;
 layout(std430, binding = 6) readonly buffer RadiiBuf { uvec2 v[]; } radii;
 layout(std430, binding = 7) readonly buffer TilesTouchedBuf { uint v[]; } tiles_touched;
@@ -239,9 +240,9 @@ void backward(uint r) {
             v_d_opacities.v[p] = v_logit;
             InstanceXform x = xforms.v[ref.xform];
             if (frame.p.xform_grads != 0) {
-                vec3 m_t = vec3(means.v[3 * r], means.v[3 * r + 1], means.v[3 * r + 2]);
+                vec3 m_t = texel_vec3(means, 3 * r);
                 mat3 v_R = x.scale.x * outerProduct(v_p, m_t) + outerProduct(dir, v_dir_t);
-                vec4 q_t = quats.v[r];
+                vec4 q_t = texelFetch(quats, int(r));
                 vec4 v_qr = quat_mul(v_q, q_t * vec4(1.0, -1.0, -1.0, -1.0));
                 uint o = p * XFORM_GRAD_TERMS;
                 xform_terms.v[o] = v_p.x;

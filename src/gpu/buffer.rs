@@ -44,14 +44,14 @@ impl Buffer {
     }
 
     /// The buffer as texels of `format` (RGBA32F or RGBA32UI: a uniform texel buffer view of its
-    /// whole length, rounded down to whole texels), made on first use and kept until the buffer
+    /// whole length, the last texel padded), made on first use and kept until the buffer
     /// is dropped. Storage buffers carry the usage for it.
     pub(crate) fn texel_view(&self, format: vk::Format) -> Result<vk::BufferView> {
         let mut views = self.views.lock().unwrap();
         if let Some(&(_, v)) = views.iter().find(|(f, _)| *f == format) {
             return Ok(v);
         }
-        let texels = self.size / 16;
+        let texels = self.size.div_ceil(16); // the buffer underneath is padded to whole texels
         if texels > self.gpu.info.max_texel_buffer_elements {
             bail!(
                 "buffer '{}' ({texels} texels) exceeds the device's maxTexelBufferElements ({})",
@@ -105,11 +105,15 @@ impl Gpu {
         location: MemoryLocation,
     ) -> Result<Buffer> {
         let size = size.max(16);
+        // Whole 16-byte texels underneath, so a texel view (`texel_view`) covers every byte of
+        // `size`; the padding is never read or written as data.
+        let raw_size = size.next_multiple_of(16);
         let mut usage = usage | vk::BufferUsageFlags::TRANSFER_SRC | vk::BufferUsageFlags::TRANSFER_DST;
         if usage.contains(vk::BufferUsageFlags::STORAGE_BUFFER) {
             usage |= vk::BufferUsageFlags::UNIFORM_TEXEL_BUFFER;
         }
-        let raw = unsafe { self.device.create_buffer(&vk::BufferCreateInfo::default().size(size).usage(usage), None)? };
+        let raw =
+            unsafe { self.device.create_buffer(&vk::BufferCreateInfo::default().size(raw_size).usage(usage), None)? };
         let requirements = unsafe { self.device.get_buffer_memory_requirements(raw) };
         let alloc = self.allocator.lock().unwrap().allocate(&AllocationCreateDesc {
             name,

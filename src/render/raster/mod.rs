@@ -371,11 +371,11 @@ impl Rasterizer {
             let b = n as u64 * 4;
             self.gauss = Some(GaussBufs {
                 n,
-                xys: gpu.storage("xys", (n as u64).div_ceil(2) * 16)?, // whole texels of two
+                xys: gpu.storage("xys", b * 2)?,
                 conics: gpu.storage("conics", b * 4)?,
                 colours: gpu.storage("colours", b * 4)?,
                 depths: gpu.storage("depths", b)?,
-                radii: gpu.storage("radii", (n as u64).div_ceil(2) * 16)?, // whole texels of two
+                radii: gpu.storage("radii", b * 2)?,
                 tiles_touched: gpu.storage("tiles_touched", b)?,
                 vis_offsets: gpu.storage("vis_offsets", b)?,
                 depth_keys: [gpu.storage("depth_keys_a", b)?, gpu.storage("depth_keys_b", b)?],
@@ -390,11 +390,7 @@ impl Rasterizer {
             self.isect = Some(IsectBufs {
                 cap,
                 keys: [gpu.storage("isect_keys_a", b)?, gpu.storage("isect_keys_b", b)?],
-                // Whole texels of four: blend reads the ids as a usamplerBuffer.
-                ids: [
-                    gpu.storage("isect_ids_a", b.next_multiple_of(16))?,
-                    gpu.storage("isect_ids_b", b.next_multiple_of(16))?,
-                ],
+                ids: [gpu.storage("isect_ids_a", b)?, gpu.storage("isect_ids_b", b)?],
                 hist: gpu.storage("sort_hist", sort_hist_for(&self.k, most) * 4)?,
                 block_sums: gpu.storage("scan_block_sums", scan_blocks_for(&self.k, n as u64) * 4)?,
             });
