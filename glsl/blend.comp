@@ -18,6 +18,7 @@
 // splat itself and stops once its own pixels are.
 #include "common.glsl"
 #include "tiles.glsl"
+#include "texels.glsl"
 #extension GL_KHR_shader_subgroup_arithmetic : require
 layout(constant_id = 1) const uint PIXELS_PER_THREAD = 1;
 layout(constant_id = 3) const uint CROWDED_TILES = 0;
@@ -96,17 +97,6 @@ void blend_rows(uint n, vec2 xy, vec4 co, vec3 rgb, vec2 reach) {
     }
 }
 
-// The Gaussian of the tile intersection at index i (four per texel).
-uint isect_id(uint i) {
-    return texelFetch(isect_ids, int(i / 4))[i & 3];
-}
-
-// The projected mean of splat g (two per texel).
-vec2 splat_xy(uint g) {
-    vec4 two = texelFetch(xys, int(g / 2));
-    return (g & 1) == 0 ? two.xy : two.zw;
-}
-
 // Blends the batch's splat j (of `count`; none past them) whose tile number is first + j + 1.
 void blend_batch_splat(uint first, uint j, uint count) {
     if (j < count) {
@@ -120,9 +110,9 @@ void blend_batch_splat(uint first, uint j, uint count) {
 // invocation, as splat number i - first + 1.
 void blend_fetched_splat(uint i, uint first, uint end) {
     if (i < end) {
-        uint g = isect_id(i);
+        uint g = texel_u32(isect_ids, i);
         vec4 co = texelFetch(conics, int(g));
-        blend_rows(i - first + 1, splat_xy(g), co, texelFetch(colours, int(g)).rgb, splat_reach(co));
+        blend_rows(i - first + 1, texel_vec2(xys, g), co, texelFetch(colours, int(g)).rgb, splat_reach(co));
     }
 }
 
@@ -172,8 +162,8 @@ void main() {
             barrier();
             if (s_done == threads) break;
             for (uint k = t; k < BATCH && start + k < range.y; k += threads) {
-                uint g = isect_id(start + k);
-                s_xy[k] = splat_xy(g);
+                uint g = texel_u32(isect_ids, start + k);
+                s_xy[k] = texel_vec2(xys, g);
                 s_conic[k] = texelFetch(conics, int(g));
                 s_rgb[k] = texelFetch(colours, int(g)).rgb;
             }

@@ -18,6 +18,7 @@
 // tile_costs, 1 the rest, without that loop (see common.glsl); the rasterizer dispatches both.
 #include "common.glsl"
 #include "tiles.glsl"
+#include "texels.glsl"
 #include "atomic_add.glsl"
 #extension GL_KHR_shader_subgroup_basic : require
 #extension GL_KHR_shader_subgroup_arithmetic : require
@@ -151,23 +152,12 @@ void backward_batch_splat(uint first, uint q, uint count) {
     }
 }
 
-// The Gaussian of the tile intersection at index i (four per texel).
-uint isect_id(uint i) {
-    return texelFetch(isect_ids, int(i / 4))[i & 3];
-}
-
-// The projected mean of splat g (two per texel).
-vec2 splat_xy(uint g) {
-    vec4 two = texelFetch(xys, int(g / 2));
-    return (g & 1) == 0 ? two.xy : two.zw;
-}
-
 // The tile's intersection at index i (none below `first`), fetched by this invocation, as splat
 // number i - first + 1. Subgroup-uniform arguments.
 void backward_fetched_splat(int i, uint first) {
     if (i >= int(first)) {
-        uint g = isect_id(uint(i));
-        splat_backward(uint(i) - first + 1, g, splat_xy(g), texelFetch(conics, int(g)), texelFetch(colours, int(g)).rgb);
+        uint g = texel_u32(isect_ids, uint(i));
+        splat_backward(uint(i) - first + 1, g, texel_vec2(xys, g), texelFetch(conics, int(g)), texelFetch(colours, int(g)).rgb);
     }
 }
 
@@ -219,9 +209,9 @@ void main() {
             uint batch_start = batch_end - count;
             barrier();
             for (uint k = t; k < count; k += threads) {
-                uint g = isect_id(batch_start + k);
+                uint g = texel_u32(isect_ids, batch_start + k);
                 s_id[k] = g;
-                s_xy[k] = splat_xy(g);
+                s_xy[k] = texel_vec2(xys, g);
                 s_conic[k] = texelFetch(conics, int(g));
                 s_rgb[k] = texelFetch(colours, int(g)).rgb;
             }

@@ -7,6 +7,7 @@
 // blend's PIXELS_PER_THREAD as specialization constant 1.
 #include "common.glsl"
 #include "tiles.glsl"
+#include "texels.glsl"
 layout(constant_id = 1) const uint PIXELS_PER_THREAD = 1;
 layout(local_size_x = WG_SIZE) in;
 #define FRAME_BINDING 0
@@ -28,10 +29,8 @@ void main() {
     uint n = counts.v[COUNT_VISIBLE];
     for (uint j = gl_GlobalInvocationID.x; j < n; j += gl_NumWorkGroups.x * WG_SIZE) {
         uint i = depth_ids.v[j];
-        vec4 two_xy = texelFetch(xys, int(i / 2));
-        uvec4 two_radii = texelFetch(radii, int(i / 2));
-        vec2 xy = (i & 1) == 0 ? two_xy.xy : two_xy.zw;
-        uvec2 radius = (i & 1) == 0 ? two_radii.xy : two_radii.zw;
+        vec2 xy = texel_vec2(xys, i);
+        uvec2 radius = texel_uvec2(radii, i);
         vec4 co = texelFetch(conics, int(i));
         ivec2 rmin, rmax;
         tile_rect(xy, radius, uvec2(frame.p.tiles_x, frame.p.tiles_y), rmin, rmax);

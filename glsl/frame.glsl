@@ -15,29 +15,13 @@ FrameBlock frame;
 void load_frame() {
     uvec4 t[12];
     for (int k = 0; k < 12; k++) t[k] = texelFetch(frame_texels, k);
-    frame.p.viewmat = mat4(uintBitsToFloat(t[0]), uintBitsToFloat(t[1]), uintBitsToFloat(t[2]), uintBitsToFloat(t[3]));
-    frame.p.intrinsics = uintBitsToFloat(t[4]);
-    frame.p.campos = uintBitsToFloat(t[5]);
-    frame.p.background = uintBitsToFloat(t[6]);
-    frame.p.width = t[7].x;
-    frame.p.height = t[7].y;
-    frame.p.tiles_x = t[7].z;
-    frame.p.tiles_y = t[7].w;
-    frame.p.num_gaussians = t[8].x;
-    frame.p.sh_degree = t[8].y;
-    frame.p.sh_coeffs = t[8].z;
-    frame.p.isect_capacity = t[8].w;
-    frame.p.near_plane = uintBitsToFloat(t[9].x);
-    frame.p.far_plane = uintBitsToFloat(t[9].y);
-    frame.p.num_background = t[9].z;
-    frame.p.num_groups = t[9].w;
-    frame.p.num_rows = t[10].x;
-    frame.p.xform_grads = t[10].y;
-    frame.p.select = t[10].z;
-    frame.p.num_instances = t[10].w;
-    frame.p.offset_codes = t[11].x;
-    frame.p.num_visible = t[11].y;
-    frame.p._pad1 = t[11].z;
-    frame.p._pad2 = t[11].w;
+    vec4 f[7];
+    for (int k = 0; k < 7; k++) f[k] = uintBitsToFloat(t[k]);
+    // The fields in declaration order: viewmat, intrinsics, campos, background, then from
+    // texel 7 on the scalars (near_plane and far_plane floats, the rest uints).
+    frame.p = FrameParams(mat4(f[0], f[1], f[2], f[3]), f[4], f[5], f[6],
+                          t[7].x, t[7].y, t[7].z, t[7].w, t[8].x, t[8].y, t[8].z, t[8].w,
+                          uintBitsToFloat(t[9].x), uintBitsToFloat(t[9].y), t[9].z, t[9].w,
+                          t[10].x, t[10].y, t[10].z, t[10].w, t[11].x, t[11].y, t[11].z, t[11].w);
 }
 #endif

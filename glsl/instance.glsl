@@ -9,6 +9,7 @@
 // opacity) codebook (codebooks[group * 512 + 256 + code]).
 // The including kernel declares `frame` (frame.glsl) and the parameter buffers means, scales,
 // quats, opacities as samplerBuffers, and defines INSTANCE_BINDING, the first of the seven bindings below.
+#include "texels.glsl"
 layout(std430, binding = INSTANCE_BINDING) readonly buffer GroupsBuf { GroupInfo v[]; } groups;
 layout(std430, binding = INSTANCE_BINDING + 1) readonly buffer XformsBuf { InstanceXform v[]; } xforms;
 layout(std430, binding = INSTANCE_BINDING + 2) readonly buffer DMeansBuf { float v[]; } d_means;
@@ -16,15 +17,6 @@ layout(std430, binding = INSTANCE_BINDING + 3) readonly buffer DSh0Buf { float v
 layout(std430, binding = INSTANCE_BINDING + 4) readonly buffer DOpacitiesBuf { float v[]; } d_opacities;
 layout(std430, binding = INSTANCE_BINDING + 5) readonly buffer DCodesBuf { uint v[]; } d_codes;
 layout(std430, binding = INSTANCE_BINDING + 6) readonly buffer CodebooksBuf { vec4 v[]; } codebooks;
-
-// Floats f, f + 1, f + 2 of a float array read as RGBA32F texels (the buffers are whole texels;
-// the second texel is clamped to the last).
-vec3 texel_vec3(samplerBuffer b, uint f) {
-    vec4 lo = texelFetch(b, int(f / 4));
-    vec4 hi = texelFetch(b, min(int(f / 4) + 1, textureSize(b) - 1));
-    uint o = f & 3;
-    return o == 0 ? lo.xyz : o == 1 ? lo.yzw : o == 2 ? vec3(lo.zw, hi.x) : vec3(lo.w, hi.xy);
-}
 
 // Rotation matrix of a unit (w, x, y, z) quaternion.
 mat3 quat_to_mat(vec4 q) {
@@ -76,7 +68,7 @@ Expanded expand(SplatRef r) {
     e.mean = texel_vec3(means, 3 * row);
     e.log_scale = texel_vec3(scales, 3 * row);
     e.quat = texelFetch(quats, int(row));
-    e.logit = texelFetch(opacities, int(row / 4))[row & 3];
+    e.logit = texel_f32(opacities, row);
     e.dc = vec3(0.0);
     e.rot = mat3(1.0);
     if (r.pair != NO_SLOT) {
