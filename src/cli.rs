@@ -259,6 +259,10 @@ pub(crate) enum Cmd {
         /// Skip the render check (poses are then checked by geometry alone).
         #[arg(long)]
         no_render_check: bool,
+        /// Keep each pose registered onto the reference alone: no synchronisation over the
+        /// pairs of a group's accepted instances (it needs the render check).
+        #[arg(long)]
+        no_synchronise: bool,
         /// Acceptance: both fitnesses at least this.
         #[arg(long, allow_negative_numbers = true, value_parser = unit_f64, default_value_t = instgs_vk::instancing::template::Acceptance::default().min_fitness)]
         min_fitness: f64,

@@ -87,6 +87,7 @@ fn run(cli: Cli) -> Result<()> {
             report,
             downscale,
             no_render_check,
+            no_synchronise,
             min_fitness,
             scale_tolerance,
             min_render_iou,
@@ -107,6 +108,7 @@ fn run(cli: Cli) -> Result<()> {
                 colour_weight,
                 seed,
                 accept,
+                synchronise: !no_synchronise,
                 ..Default::default()
             };
             let req = instancing::build::InstanceRequest {

@@ -15,8 +15,11 @@
 //! outliers (10 % more Gaussians scattered in each instance's box, 20 % larger).
 //!
 //! ```sh
-//! cargo run --release --example robustness -- RUN DIR [--downscale K] [--seeds N] [--up z|y] [--only CASE]
+//! cargo run --release --example robustness -- RUN DIR [--downscale K] [--seeds N] [--up z|y] [--only CASE] [--no-synchronise]
 //! ```
+//!
+//! `--no-synchronise`: each pose registered onto the reference alone (the stage's
+//! `synchronise = false`).
 use std::collections::BTreeMap;
 use std::path::PathBuf;
 
@@ -189,10 +192,14 @@ fn equivalent(
 fn main() -> Result<()> {
     let mut it = std::env::args().skip(1);
     let (Some(run), Some(data)) = (it.next().map(PathBuf::from), it.next().map(PathBuf::from)) else {
-        bail!("usage: robustness RUN DIR [--downscale K] [--seeds N] [--up z|y]");
+        bail!("usage: robustness RUN DIR [--downscale K] [--seeds N] [--up z|y] [--only CASE] [--no-synchronise]");
     };
-    let (mut downscale, mut seeds, mut up, mut only) = (1u32, 2u64, 2usize, String::new());
+    let (mut downscale, mut seeds, mut up, mut only, mut synchronise) = (1u32, 2u64, 2usize, String::new(), true);
     while let Some(k) = it.next() {
+        if k == "--no-synchronise" {
+            synchronise = false;
+            continue;
+        }
         let v = it.next().with_context(|| format!("{k} needs a value"))?;
         match k.as_str() {
             "--downscale" => downscale = v.parse()?,
@@ -234,14 +241,26 @@ fn main() -> Result<()> {
             let (s, l, gt) = perturb(&scene, &labels, &truth, case, up, seed);
             let mut check =
                 instgs_vk::instancing::verify::ImageCheck::new(&gpu, &k, cams.clone(), Some(masks.clone()))?;
-            let o = InstanceOptions::default();
+            let o = InstanceOptions { synchronise, ..Default::default() };
             let (_, reports) =
-                template::instantiate(&s, &l, &groups, &o, Some(&mut check as &mut dyn RenderCheck), |_| {})?;
+                template::instantiate(&s, &l, &groups, &o, Some(&mut check as &mut dyn RenderCheck), |m| {
+                    eprintln!("  {m}")
+                })?;
             for r in reports.iter().filter(|r| r.id != r.reference) {
                 t.instances += 1;
                 let (rot, trans, scale) =
                     instgs_vk::instancing::pose_error::pose_error(&r.relative, &gt[&r.reference], &gt[&r.id]);
                 let err = trans.max(scale.abs());
+                eprintln!(
+                    "{} seed {seed}: {} {} onto {}: {} at {rot:.2}°, translation {:.2} %, scale {:+.2} %",
+                    case.name(),
+                    r.group,
+                    r.id,
+                    r.reference,
+                    r.status.name(),
+                    100.0 * trans,
+                    100.0 * scale
+                );
                 match r.status.name() {
                     "accepted" => {
                         t.worst_accepted = (t.worst_accepted.0.max(rot), t.worst_accepted.1.max(100.0 * err));

@@ -100,6 +100,11 @@ pub fn instance(
             row["render_views"] = s.views.into();
             line += &format!(", render IoU {:.2} PSNR {:.1} dB ({} views)", s.iou, s.psnr, s.views);
         }
+        if let Some(s) = &r.synchronised {
+            row["synchronised_moved_deg"] = s.moved_deg.into();
+            row["synchronised_spread_deg"] = s.spread_deg.into();
+            line += &format!(", synchronised (moved {:.2}°, estimates within {:.2}°)", s.moved_deg, s.spread_deg);
+        }
         if let Some(t) = &truth {
             if let (Some(a), Some(b)) = (t.get(&r.reference), t.get(&r.id)) {
                 let (rot, trans, scale) = crate::instancing::pose_error::pose_error(&r.relative, a, b);
@@ -134,6 +139,7 @@ pub fn instance(
         "colour": opts.use_colour,
         "acceptance": serde_json::to_value(&opts.accept)?,
         "render_check": check_ran,
+        "synchronise": check_ran && opts.synchronise,
         "template_gaussians": inst.groups.iter().map(|g| g.template.len()).sum::<usize>(),
         "background_gaussians": inst.background.len(),
         "splats": inst.splats(),

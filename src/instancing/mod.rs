@@ -1,8 +1,10 @@
 //! From segmented instances to an instanced scene: templates and per-instance transforms
-//! ([`template`]), the render check of every registered pose ([`verify`]), and background
-//! compaction ([`compact`]).
+//! ([`template`]), the render check of every registered pose ([`verify`]), the group's poses
+//! synchronised over every pair of its instances ([`synchronise`]), and background compaction
+//! ([`compact`]).
 pub mod build;
 pub mod compact;
 pub mod pose_error;
+pub mod synchronise;
 pub mod template;
 pub mod verify;

@@ -22,6 +22,7 @@ use glam::{Mat3, Quat, Vec3};
 use kiddo::SquaredEuclidean;
 
 use crate::dataset::masks::InstanceGroup;
+use crate::instancing::synchronise::{synchronise, Synchronised};
 use crate::math::SH_C0_F32;
 use crate::math::{logit, sigmoid};
 use crate::model::instanced::{quat_mul, Group, Instance, InstancedScene, Offsets, ShRotation, Similarity};
@@ -64,6 +65,10 @@ pub struct InstanceOptions {
     /// Starting poses (instance id → a common frame, e.g. `discover`'s `to_reference`): where
     /// an instance and its group's reference both have one, the pose they imply is tried first.
     pub starts: BTreeMap<u32, Sim3>,
+    /// With a render check and three or more accepted instances besides a group's reference,
+    /// register them onto each other too and keep the synchronised poses
+    /// ([`crate::instancing::synchronise`]).
+    pub synchronise: bool,
 }
 
 /// The checks a registered pose must pass before its instance shares the group's template
@@ -135,6 +140,7 @@ impl Default for InstanceOptions {
             seed: 0,
             accept: Acceptance::default(),
             starts: BTreeMap::new(),
+            synchronise: true,
         }
     }
 }
@@ -196,6 +202,8 @@ pub struct InstanceReport {
     pub tried: usize,
     /// Another pose fitted the shape nearly as well; colour decided (when used).
     pub shape_ambiguous: bool,
+    /// The kept pose is the group's synchronised one ([`crate::instancing::synchronise`]).
+    pub synchronised: Option<Synchronised>,
     pub status: Status,
 }
 
@@ -212,6 +220,7 @@ impl InstanceReport {
             render: None,
             tried: 0,
             shape_ambiguous: false,
+            synchronised: None,
             status: Status::Reference,
         }
     }
@@ -509,6 +518,23 @@ pub fn instantiate(
             }
             group_reports.push(report);
         }
+        if o.synchronise {
+            if let Some(rc) = render_check.as_deref_mut() {
+                synchronise_group(
+                    rc,
+                    &parts,
+                    &opaque,
+                    &g.ids,
+                    r,
+                    &mut relative,
+                    &reg,
+                    o,
+                    &mut group_reports,
+                    &mut progress,
+                )
+                .with_context(|| format!("group {:?}: pose synchronisation", g.name))?;
+            }
+        }
         let kept: Vec<usize> = (0..parts.len()).filter(|&k| relative[k].is_some()).collect();
         if kept.len() < 2 && g.ids.len() > 1 {
             let why = format!(
@@ -653,7 +679,7 @@ pub fn register_and_check(
     if let (Some((x, _, score)), Some(rc)) = (best, render_check.as_deref_mut()) {
         let centre = centroid(&opaque[r]);
         let (x, score) =
-            refine_pose(rc, &parts[r], &parts[k], ids[k], x, score, centre, object_size(&opaque[r]), rigid)
+            refine_pose(rc, &parts[r], &parts[k], ids[k], x, score, centre, object_size(&opaque[r]), rigid, 0..4)
                 .with_context(context)?;
         let check = PoseCheck::measure(&opaque[k], &opaque[r], &x, reg.voxel);
         report.check = check;
@@ -676,11 +702,60 @@ pub fn register_and_check(
     }
 }
 
+/// [`synchronise`]s the accepted poses of a group and keeps each synchronised pose that still
+/// passes every check (both fitnesses, scale, the render check against the reference); one
+/// that fails keeps its registration onto the reference alone. Reports say which.
+#[allow(clippy::too_many_arguments)]
+fn synchronise_group(
+    rc: &mut dyn RenderCheck,
+    parts: &[Scene],
+    opaque: &[Vec<[f64; 3]>],
+    ids: &[u32],
+    r: usize,
+    relative: &mut [Option<Sim3>],
+    reg: &RegisterOptions,
+    o: &InstanceOptions,
+    reports: &mut [InstanceReport],
+    progress: &mut impl FnMut(&str),
+) -> Result<()> {
+    let rigid = !o.with_scale;
+    let synced = synchronise(rc, parts, opaque, ids, r, relative, rigid)?;
+    for (k, s) in synced.iter().enumerate() {
+        let Some(s) = s else { continue };
+        let check = PoseCheck::measure(&opaque[k], &opaque[r], &s.pose, reg.voxel);
+        let score = rc.score(&parts[r], &parts[k], ids[k], &s.pose)?;
+        let failure = check.failure(&s.pose, &o.accept, rigid).or_else(|| match score {
+            Some(score) => score.failure(&o.accept),
+            None => Some("the instance shows in no training view".into()),
+        });
+        let report = &mut reports[k];
+        match failure {
+            None => {
+                relative[k] = Some(s.pose);
+                report.relative = s.pose;
+                report.check = check;
+                report.render = score;
+                report.synchronised = Some(*s);
+                progress(&format!(
+                    "{}: synchronised with the group's other instances (moved {:.2}°, estimates within {:.2}°)",
+                    ids[k], s.moved_deg, s.spread_deg
+                ));
+            }
+            Some(why) => progress(&format!(
+                "{}: synchronised pose (moved {:.2}°) fails a check ({why}); the registration onto {} is kept",
+                ids[k], s.moved_deg, ids[r]
+            )),
+        }
+    }
+    Ok(())
+}
+
 /// Pose refinement against the images: a pattern search over a small similarity `D` applied
 /// after `x` about the reference's `centre` (rotation about three axes, translation along three,
-/// and log scale unless `rigid`), each step kept when the render check's `pose_psnr` rises;
-/// steps start at 2° / 1 % of `size` / 1 % of scale and halve three times when no move helps (at
-/// most 120 renders of the check). Registration on a few hundred Gaussian means leaves a few degrees of
+/// and log scale unless `rigid`), each step kept when the render check's `pose_psnr` rises
+/// and repeated while it keeps rising; at `levels` l the steps are 2° / 1 % of `size` / 1 % of
+/// scale times 2^−l, the next level when no move helps (`0..4`: 2° down to 0.25°; at most 120
+/// renders of the check). Registration on a few hundred Gaussian means leaves a few degrees of
 /// error that the pictures still show; the check's optimum is where the reference's pictures
 /// match the instance's.
 #[allow(clippy::too_many_arguments)]
@@ -694,6 +769,7 @@ pub fn refine_pose(
     centre: nalgebra::Vector3<f64>,
     size: f64,
     rigid: bool,
+    levels: std::ops::Range<i32>,
 ) -> Result<(Sim3, RenderScore)> {
     let about = |d: Sim3| {
         let to = Sim3 { translation: -centre, ..Sim3::identity() };
@@ -703,7 +779,7 @@ pub fn refine_pose(
     let (mut x, mut score) = (x, score);
     let mut evaluations = 0;
     let params = if rigid { 6 } else { 7 };
-    for level in 0..4 {
+    for level in levels {
         let f = 0.5f64.powi(level);
         let mut improved = true;
         while improved && evaluations < 120 {
@@ -721,13 +797,23 @@ pub fn refine_pose(
                         3..=5 => d.translation[p - 3] = 0.01 * step * size,
                         _ => d.scale = (0.01 * step).exp(),
                     }
-                    let y = about(d).compose(&x);
-                    evaluations += 1;
-                    if let Some(s) = rc.score(reference, instance, id, &y)? {
-                        if s.pose_psnr > score.pose_psnr + 0.01 {
-                            (x, score, improved) = (y, s, true);
-                            break;
+                    let d = about(d);
+                    let mut y = d.compose(&x);
+                    let mut moved = false;
+                    // A step that helps is repeated while it helps (a long way costs one
+                    // render check per step rather than a sweep).
+                    while evaluations < 120 {
+                        evaluations += 1;
+                        match rc.score(reference, instance, id, &y)? {
+                            Some(s) if s.pose_psnr > score.pose_psnr + 0.01 => {
+                                (x, score, improved, moved) = (y, s, true, true);
+                                y = d.compose(&x);
+                            }
+                            _ => break,
                         }
+                    }
+                    if moved {
+                        break;
                     }
                 }
             }

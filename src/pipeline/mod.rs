@@ -425,6 +425,7 @@ impl Ctx<'_> {
                         min_render_psnr: c.min_render_psnr,
                         ..Default::default()
                     },
+                    synchronise: c.synchronise && c.render_check,
                     ..Default::default()
                 };
                 let dtype = match c.offset_dtype.as_str() {

@@ -205,7 +205,7 @@ pub fn write(run: &Path, a: &PipelineArgs, stages: &[(Stage, bool, f64)]) -> Res
             "Each instance is registered onto its group's reference (the instance with the most opaque Gaussians) \
              and accepted only when the pose passes every check: both fitnesses ≥ {}, scale within ±{:.0} % of the \
              clouds' size ratio{}. A refused instance stays plain (its Gaussians remain background). \
-             *borderline*: accepted with a check within 0.05 (1 dB for PSNR) of its limit.\n",
+             {}*borderline*: accepted with a check within 0.05 (1 dB for PSNR) of its limit.\n",
             limit("min_fitness"),
             100.0 * limit("scale_tolerance"),
             if s["render_check"].as_bool() == Some(true) {
@@ -216,11 +216,18 @@ pub fn write(run: &Path, a: &PipelineArgs, stages: &[(Stage, bool, f64)]) -> Res
                 )
             } else {
                 " (no render check ran)".into()
+            },
+            if s["synchronise"].as_bool() == Some(true) {
+                "Where a group has three or more accepted instances besides its reference, they are also registered onto each other and every \
+                 pose is synchronised (the least-squares mean of its estimates through the others), kept when it \
+                 passes the same checks; *synchronised* gives how far that moved it. "
+            } else {
+                ""
             }
         );
         let _ = writeln!(
             md,
-            "| group | instance | status | Gaussians | fitness | reverse fitness | scale | render IoU | render PSNR (dB) | rotation error (°) | translation error (% of size) | scale error (%) |\n|---|---|---|---|---|---|---|---|---|---|---|---|"
+            "| group | instance | status | Gaussians | fitness | reverse fitness | scale | render IoU | render PSNR (dB) | synchronised (°) | rotation error (°) | translation error (% of size) | scale error (%) |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|"
         );
         let f = |r: &serde_json::Value, k: &str, m: f64, d: usize| {
             num(r, k).map(|v| format!("{:.*}", d, v * m)).unwrap_or_else(|| "—".into())
@@ -244,7 +251,7 @@ pub fn write(run: &Path, a: &PipelineArgs, stages: &[(Stage, bool, f64)]) -> Res
             }
             let _ = writeln!(
                 md,
-                "| {} | {} | {shown} | {} | {} | {} | {} | {} | {} | {} | {} | {} |",
+                "| {} | {} | {shown} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} |",
                 r["group"].as_str().unwrap_or("?"),
                 r["id"],
                 r["gaussians"],
@@ -253,6 +260,7 @@ pub fn write(run: &Path, a: &PipelineArgs, stages: &[(Stage, bool, f64)]) -> Res
                 f(r, "scale", 1.0, 4),
                 f(r, "render_iou", 1.0, 3),
                 f(r, "render_psnr", 1.0, 1),
+                f(r, "synchronised_moved_deg", 1.0, 2),
                 f(r, "rotation_error_deg", 1.0, 2),
                 f(r, "translation_error_fraction", 100.0, 2),
                 f(r, "scale_error_fraction", 100.0, 2)

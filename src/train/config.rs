@@ -208,6 +208,8 @@ pub struct InstanceStage {
     pub min_fitness: f64,
     pub scale_tolerance: f64,
     pub render_check: bool,
+    /// Synchronise the poses of a group's accepted instances (crate::instancing::synchronise).
+    pub synchronise: bool,
     pub min_render_iou: f64,
     pub min_render_psnr: f64,
 }
