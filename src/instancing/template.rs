@@ -719,7 +719,13 @@ fn synchronise_group(
     progress: &mut impl FnMut(&str),
 ) -> Result<()> {
     let rigid = !o.with_scale;
-    let synced = synchronise(rc, parts, opaque, ids, r, relative, rigid)?;
+    // A pair a → b: refined against a's views from the pose the registrations imply, steps
+    // from 1° (the start is within a few degrees).
+    let synced = synchronise(opaque, r, relative, |a, b, start| {
+        let Some(score) = rc.score(&parts[b], &parts[a], ids[a], &start)? else { return Ok(None) };
+        let (centre, size) = (centroid(&opaque[b]), object_size(&opaque[b]));
+        Ok(Some(refine_pose(rc, &parts[b], &parts[a], ids[a], start, score, centre, size, rigid, 1..4)?.0))
+    })?;
     for (k, s) in synced.iter().enumerate() {
         let Some(s) = s else { continue };
         let check = PoseCheck::measure(&opaque[k], &opaque[r], &s.pose, reg.voxel);
