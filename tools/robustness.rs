@@ -186,6 +186,10 @@ fn equivalent(
     let (Some(at_truth), Some(accepted)) = (check.score(&reference, &own, r.id, &truth)?, r.render) else {
         return Ok(false);
     };
+    eprintln!(
+        "  {} {}: the instance's own render against the reference placed by the accepted pose {:.2} dB, by the true pose {:.2} dB",
+        r.group, r.id, accepted.psnr, at_truth.psnr
+    );
     Ok(accepted.psnr >= at_truth.psnr)
 }
 
