@@ -21,7 +21,7 @@
 layout(local_size_x = WG_SIZE) in;
 #define FRAME_BINDING 0
 #include "frame.glsl"
-// The parameter rows as RGBA32F texels (read by instance.glsl's param_* helpers).
+// The parameter rows as RGBA32F texels (read by instance.glsl's expand, through texels.glsl).
 layout(binding = 1) uniform samplerBuffer means;
 layout(binding = 2) uniform samplerBuffer scales;
 layout(binding = 3) uniform samplerBuffer quats;

@@ -74,6 +74,7 @@ pub fn synchronise(
             }
         }
     }
+    let centres: Vec<_> = opaque.iter().map(|p| centroid(p)).collect();
     let mut pose: Vec<Sim3> = (0..n).map(|k| relative[k].unwrap_or_else(Sim3::identity)).collect();
     let estimates = |pose: &[Sim3], k: usize| -> Vec<Sim3> {
         measured
@@ -91,7 +92,7 @@ pub fn synchronise(
     };
     for _ in 0..ROUNDS {
         for &k in &accepted {
-            pose[k] = Sim3::mean(&estimates(&pose, k), &centroid(&opaque[k])).unwrap_or(pose[k]);
+            pose[k] = Sim3::mean(&estimates(&pose, k), &centres[k]).unwrap_or(pose[k]);
         }
     }
     for &k in &accepted {

@@ -39,9 +39,7 @@ impl Sim3 {
         let d = self.rotation * other.rotation.transpose();
         ((d.trace() - 1.0) / 2.0).clamp(-1.0, 1.0).acos().to_degrees()
     }
-}
 
-impl Sim3 {
     /// The mean of several estimates of one similarity, for points near `at`: the chordal L2
     /// mean rotation (the sum of the rotation matrices projected onto SO(3)), the geometric mean
     /// scale, and the translation that takes `at` to the mean of the estimates' images of it
