@@ -82,7 +82,7 @@ pub fn instance(
             "status": r.status.name(), "reason": r.status.reason(),
             "fitness": r.check.fitness, "fitness_reverse": r.check.fitness_reverse,
             "scale": r.relative.scale, "scale_ratio": r.check.scale_ratio,
-            "poses_tried": r.tried, "shape_ambiguous": r.shape_ambiguous,
+            "poses_tried": r.tried, "poses_refined": r.refined, "shape_ambiguous": r.shape_ambiguous,
         });
         let mut line = format!(
             "{} {} ({}): {} Gaussians, fitness {:.2} / {:.2}, scale {:.4}",

@@ -481,7 +481,7 @@ pub fn rotation_grid(n: usize) -> Vec<Matrix3<f64>> {
 }
 
 /// The principal axes (unit eigenvectors of the covariance) of `points`.
-fn principal_axes(points: &[[f64; 3]]) -> Vec<nalgebra::Unit<Vector3<f64>>> {
+pub fn principal_axes(points: &[[f64; 3]]) -> Vec<nalgebra::Unit<Vector3<f64>>> {
     let c = centroid(points);
     let cov = points.iter().fold(Matrix3::zeros(), |a, p| {
         let d = Vector3::from(*p) - c;
