@@ -727,7 +727,7 @@ pub const MAX_RIVALS: usize = 3;
 /// turns) the unrefined hypotheses are a few degrees off each of its modes and the
 /// best-rendering one before refinement need not be the best after (one tabletop ball was
 /// accepted at its 72° turn, 0.28 dB below the true pose, BENCHMARKS.md).
-fn rival_poses(mut rendered: Vec<(Sim3, RenderScore)>) -> Vec<(Sim3, RenderScore)> {
+pub fn rival_poses(mut rendered: Vec<(Sim3, RenderScore)>) -> Vec<(Sim3, RenderScore)> {
     rendered.sort_by(|a, b| b.1.pose_psnr.total_cmp(&a.1.pose_psnr));
     let top = rendered.first().map_or(f64::NAN, |b| b.1.pose_psnr);
     let mut rivals: Vec<(Sim3, RenderScore)> = Vec::new();
