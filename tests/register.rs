@@ -338,10 +338,7 @@ fn background_pruning_keeps_instances_and_the_most_significant_background() {
 
 /// `d` applied about the point `c`, after `x`.
 fn about(c: [f64; 3], d: Sim3, x: Sim3) -> Sim3 {
-    let c = Vector3::from(c);
-    let to = Sim3 { translation: -c, ..Sim3::identity() };
-    let back = Sim3 { translation: c, ..Sim3::identity() };
-    back.compose(&d).compose(&to).compose(&x)
+    d.about(&Vector3::from(c)).compose(&x)
 }
 
 #[test]

@@ -178,11 +178,7 @@ fn a_flipped_or_shrunk_pose_fails_the_render_check() {
     let good = check.score(&two, &one, 1, &truth).unwrap().expect("visible");
     assert_eq!(good.failure(&a), None, "{good:?}");
     let centre = poses[1].translation;
-    let around = |d: Sim3| {
-        let to = Sim3 { translation: -centre, ..Sim3::identity() };
-        let back = Sim3 { translation: centre, ..Sim3::identity() };
-        back.compose(&d).compose(&to).compose(&truth)
-    };
+    let around = |d: Sim3| d.about(&centre).compose(&truth);
     for (name, d) in [
         (
             "flipped",

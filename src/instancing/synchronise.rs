@@ -135,10 +135,7 @@ mod tests {
             })
             .collect();
         let registered = |a: usize, b: usize| {
-            let c = centroid(&opaque[a]);
-            let (to, back) =
-                (Sim3 { translation: -c, ..Sim3::identity() }, Sim3 { translation: c, ..Sim3::identity() });
-            truth[b].compose(&truth[a].inverse()).compose(&back.compose(&bias[a][b]).compose(&to))
+            truth[b].compose(&truth[a].inverse()).compose(&bias[a][b].about(&centroid(&opaque[a])))
         };
         let r = 0;
         let relative: Vec<Option<Sim3>> =

@@ -773,7 +773,7 @@ fn quarter_turns(
         for quarter in 1..4 {
             let turn =
                 *nalgebra::Rotation3::from_axis_angle(&axis, quarter as f64 * std::f64::consts::FRAC_PI_2).matrix();
-            let x = Sim3 { rotation: turn, scale: 1.0, translation: c - turn * c }.compose(&top);
+            let x = Sim3 { rotation: turn, ..Sim3::identity() }.about(&c).compose(&top);
             // An axis of the cloud is a few degrees off the object's (a ragged reconstruction):
             // ICP takes the turn to the nearest fit of the shapes.
             let x = icp(&opaque[k], &opaque[r], x, 1.5 * reg.voxel, 30, scale_range, true);
@@ -896,11 +896,6 @@ pub fn refine_pose(
     rigid: bool,
     levels: std::ops::Range<i32>,
 ) -> Result<(Sim3, RenderScore)> {
-    let about = |d: Sim3| {
-        let to = Sim3 { translation: -centre, ..Sim3::identity() };
-        let back = Sim3 { translation: centre, ..Sim3::identity() };
-        back.compose(&d).compose(&to)
-    };
     let (mut x, mut score) = (x, score);
     let mut evaluations = 0;
     let params = if rigid { 6 } else { 7 };
@@ -922,7 +917,7 @@ pub fn refine_pose(
                         3..=5 => d.translation[p - 3] = 0.01 * step * size,
                         _ => d.scale = (0.01 * step).exp(),
                     }
-                    let d = about(d);
+                    let d = d.about(&centre);
                     let mut y = d.compose(&x);
                     let mut moved = false;
                     // A step that helps is repeated while it helps (a long way costs one

@@ -379,7 +379,7 @@ fn register_scaled(
         for axis in &axes {
             for step in 1..12 {
                 let r = *nalgebra::Rotation3::from_axis_angle(axis, step as f64 * std::f64::consts::PI / 6.0).matrix();
-                starts.push(Sim3 { rotation: r, scale: 1.0, translation: centre - r * centre }.compose(x));
+                starts.push(Sim3 { rotation: r, ..Sim3::identity() }.about(&centre).compose(x));
             }
         }
     }

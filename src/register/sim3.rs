@@ -34,6 +34,13 @@ impl Sim3 {
         Sim3 { rotation: rt, scale: 1.0 / self.scale, translation: -(rt * self.translation) / self.scale }
     }
 
+    /// This similarity applied about `centre` instead of the origin: x ↦ c + s·R·(x − c) + t.
+    pub fn about(&self, centre: &Vector3<f64>) -> Sim3 {
+        let to = Sim3 { translation: -centre, ..Sim3::identity() };
+        let back = Sim3 { translation: *centre, ..Sim3::identity() };
+        back.compose(self).compose(&to)
+    }
+
     /// The angle of R·other.Rᵀ, degrees.
     pub fn rotation_error_deg(&self, other: &Sim3) -> f64 {
         let d = self.rotation * other.rotation.transpose();
@@ -131,6 +138,18 @@ mod tests {
     fn about(axis: [f64; 3], deg: f64, scale: f64, t: [f64; 3]) -> Sim3 {
         let r = Rotation3::from_axis_angle(&Unit::new_normalize(Vector3::from(axis)), deg.to_radians());
         Sim3 { rotation: *r.matrix(), scale, translation: Vector3::from(t) }
+    }
+
+    #[test]
+    fn a_similarity_about_a_centre_keeps_the_centre_where_it_was() {
+        let r = *nalgebra::Rotation3::from_axis_angle(&Vector3::y_axis(), 0.7).matrix();
+        let c = Vector3::new(1.0, -2.0, 0.5);
+        let x = Sim3 { rotation: r, scale: 1.5, translation: Vector3::zeros() }.about(&c);
+        let moved = x.apply(&[c.x, c.y, c.z]);
+        assert!((Vector3::from(moved) - c).norm() < 1e-12, "{moved:?}");
+        let p = [0.3, 0.2, -0.1];
+        let expected = c + 1.5 * r * (Vector3::from(p) - c);
+        assert!((Vector3::from(x.apply(&p)) - expected).norm() < 1e-12);
     }
 
     #[test]
