@@ -9,7 +9,7 @@ use glam::Vec3;
 use instgs_vk::dataset::masks::InstanceGroup;
 use instgs_vk::instancing::template::{instantiate, InstanceOptions, TemplateInit};
 use instgs_vk::register::{
-    farthest_point_sample, fpfh, normals, register, umeyama, voxel_downsample, RegisterOptions, Sim3,
+    farthest_point_sample, fpfh, normals, register, support_plane, umeyama, voxel_downsample, RegisterOptions, Sim3,
 };
 use nalgebra::{Rotation3, Vector3};
 
@@ -379,4 +379,29 @@ fn degenerate_poses_are_refused_by_the_geometric_checks() {
     let mut sheared = x;
     sheared.rotation[(0, 1)] += 0.3;
     assert!(check(&sheared).is_some_and(|w| w.contains("not a similarity")), "{:?}", check(&sheared));
+}
+
+#[test]
+fn the_support_plane_is_found_tilted_and_thin() {
+    let mut rng = Rng::new(3);
+    let n = Vector3::new(0.1, -0.2, 1.0).normalize();
+    let (u, v) = (n.cross(&Vector3::x()).normalize(), n.cross(&n.cross(&Vector3::x())).normalize());
+    let mut r = |lo: f64, hi: f64| rng.range(lo as f32, hi as f32) as f64;
+    let mut pts: Vec<[f64; 3]> = (0..3000)
+        .map(|_| {
+            let p = u * r(-2.0, 2.0) + v * r(-2.0, 2.0) + n * (0.5 + r(-0.002, 0.002));
+            [p.x, p.y, p.z]
+        })
+        .collect();
+    // Two blobs above it.
+    for c in [u * 0.5 + n * 0.8, -u * 0.7 + n * 0.9] {
+        for _ in 0..500 {
+            let p = c + Vector3::new(r(-0.1, 0.1), r(-0.1, 0.1), r(-0.1, 0.1));
+            pts.push([p.x, p.y, p.z]);
+        }
+    }
+    let (m, d, on) = support_plane(&pts, 0.01, 0).unwrap();
+    assert!(m.dot(&n).abs() > 0.9999, "normal {m:?}");
+    assert!((d * m.dot(&n).signum() - 0.5).abs() < 1e-3, "offset {d}");
+    assert!((2990..=3000).contains(&on), "{on} on the plane");
 }

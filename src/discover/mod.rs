@@ -29,7 +29,7 @@ use std::collections::HashMap;
 
 use anyhow::Result;
 use kiddo::SquaredEuclidean;
-use nalgebra::{Matrix3, SymmetricEigen, Vector3};
+use nalgebra::Vector3;
 use rand::{Rng, SeedableRng};
 
 use crate::instancing::template::{
@@ -37,7 +37,9 @@ use crate::instancing::template::{
 };
 use crate::math::{quat_to_mat, sigmoid, tree};
 use crate::model::scene::Scene;
-use crate::register::{centroid, fpfh, icp, median_spacing, normals, object_size, umeyama_bounded, Sim3, FPFH_DIM};
+use crate::register::{
+    centroid, fpfh, icp, median_spacing, normals, object_size, support_plane, umeyama_bounded, Sim3, FPFH_DIM,
+};
 
 /// Settings of the search (configuration `[discover]`, configs/pipeline.toml).
 #[derive(Clone, Debug)]
@@ -231,7 +233,8 @@ fn search_copies(
     refused: &mut Vec<String>,
     progress: &mut dyn FnMut(&str),
 ) -> Result<Vec<Member>> {
-    let io = &o.instance;
+    // Shape-ambiguous copies also try turns about the support plane's normal.
+    let io = &InstanceOptions { up: o.instance.up.or(support.map(|s| s.normal)), ..o.instance.clone() };
     let ref_scene = scene.select(&reference.gaussians);
     let (e_pts, e_rgb) = object_cloud(&ref_scene, support, io.min_opacity);
     let size = object_size(&e_pts);
@@ -527,45 +530,6 @@ pub fn from_example(
     Ok(out)
 }
 
-/// The dominant plane of `points`: unit normal n and offset d (n·p = d for points on it), and
-/// the number of points within `thickness`. RANSAC over 3-point samples (seeded), refined by
-/// least squares on its inliers. None for fewer than 3 points.
-pub fn support_plane(points: &[[f64; 3]], thickness: f64, seed: u64) -> Option<(Vector3<f64>, f64, usize)> {
-    if points.len() < 3 {
-        return None;
-    }
-    let mut rng = rand_pcg::Pcg64::seed_from_u64(seed);
-    let count = |n: &Vector3<f64>, d: f64| {
-        points.iter().filter(|p| (n.dot(&Vector3::from(**p)) - d).abs() <= thickness).count()
-    };
-    let mut best: Option<(usize, Vector3<f64>, f64)> = None;
-    for _ in 0..1000 {
-        let [a, b, c] = [0; 3].map(|_| Vector3::from(points[rng.random_range(0..points.len())]));
-        let n = (b - a).cross(&(c - a));
-        if n.norm() < 1e-12 {
-            continue;
-        }
-        let n = n.normalize();
-        let d = n.dot(&a);
-        let k = count(&n, d);
-        if best.as_ref().is_none_or(|b| k > b.0) {
-            best = Some((k, n, d));
-        }
-    }
-    let (_, n, d) = best?;
-    let inl: Vec<Vector3<f64>> =
-        points.iter().map(|p| Vector3::from(*p)).filter(|p| (n.dot(p) - d).abs() <= thickness).collect();
-    let m = inl.iter().fold(Vector3::zeros(), |a, p| a + p) / inl.len() as f64;
-    let cov = inl.iter().fold(Matrix3::zeros(), |a, p| a + (p - m) * (p - m).transpose());
-    let e = SymmetricEigen::new(cov);
-    let mut n2: Vector3<f64> = e.eigenvectors.column(e.eigenvalues.imin()).into_owned();
-    if n2.dot(&n) < 0.0 {
-        n2 = -n2;
-    }
-    let d2 = n2.dot(&m);
-    Some((n2, d2, count(&n2, d2)))
-}
-
 /// Connected components of `points` linked within `link` (union–find over a k-d tree's radius
 /// queries), largest first; each a list of indices.
 pub fn clusters(points: &[[f64; 3]], link: f64) -> Vec<Vec<usize>> {
@@ -785,6 +749,7 @@ pub fn auto(
         anyhow::bail!("the scene has too few opaque Gaussians ({}) to search", pts.len());
     }
     let support = find_support(scene, o, &mut progress)?;
+    let io = &InstanceOptions { up: io.up.or(Some(support.normal)), ..io.clone() };
     let thickness = support.thickness;
     let standing: Vec<usize> =
         (0..pts.len()).filter(|&k| support.height(scene.means[op[k]]) > 1.5 * thickness).collect();
@@ -945,36 +910,6 @@ pub fn auto(
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn the_support_plane_is_found_tilted_and_thin() {
-        let mut rng = rand_pcg::Pcg64::seed_from_u64(3);
-        let n = Vector3::new(0.1, -0.2, 1.0).normalize();
-        let (u, v) = (n.cross(&Vector3::x()).normalize(), n.cross(&n.cross(&Vector3::x())).normalize());
-        let mut pts: Vec<[f64; 3]> = (0..3000)
-            .map(|_| {
-                let p = u * rng.random_range(-2.0..2.0)
-                    + v * rng.random_range(-2.0..2.0)
-                    + n * (0.5 + rng.random_range(-0.002..0.002));
-                [p.x, p.y, p.z]
-            })
-            .collect();
-        // Two blobs above it.
-        for c in [u * 0.5 + n * 0.8, -u * 0.7 + n * 0.9] {
-            for _ in 0..500 {
-                let p = c + Vector3::new(
-                    rng.random_range(-0.1..0.1),
-                    rng.random_range(-0.1..0.1),
-                    rng.random_range(-0.1..0.1),
-                );
-                pts.push([p.x, p.y, p.z]);
-            }
-        }
-        let (m, d, on) = support_plane(&pts, 0.01, 0).unwrap();
-        assert!(m.dot(&n).abs() > 0.9999, "normal {m:?}");
-        assert!((d * m.dot(&n).signum() - 0.5).abs() < 1e-3, "offset {d}");
-        assert!((2990..=3000).contains(&on), "{on} on the plane");
-    }
 
     #[test]
     fn clusters_split_at_gaps_wider_than_the_link() {

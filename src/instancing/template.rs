@@ -29,9 +29,10 @@ use crate::model::instanced::{quat_mul, Group, Instance, InstancedScene, Offsets
 use crate::model::scene::Scene;
 use crate::register::{
     candidates, centroid, farthest_point_sample, icp, median_spacing, object_size, principal_axes, reverse_fitness,
-    voxel_downsample, RegisterOptions, Sim3,
+    support_plane, voxel_downsample, RegisterOptions, Sim3,
 };
 use crate::train::knn_log_scales;
+use nalgebra::Vector3;
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
 pub enum TemplateInit {
@@ -69,6 +70,10 @@ pub struct InstanceOptions {
     /// register them onto each other too and keep the synchronised poses
     /// ([`crate::instancing::synchronise`]).
     pub synchronise: bool,
+    /// The scene's up axis (a unit normal of the floor the objects stand on; its sign does not
+    /// matter): shape-ambiguous instances also try their best hypothesis turned about it
+    /// ([`UP_TURNS_DEG`]). `None`: [`instantiate`] finds it from the background ([`up_axis`]).
+    pub up: Option<Vector3<f64>>,
 }
 
 /// The checks a registered pose must pass before its instance shares the group's template
@@ -141,6 +146,7 @@ impl Default for InstanceOptions {
             accept: Acceptance::default(),
             starts: BTreeMap::new(),
             synchronise: true,
+            up: None,
         }
     }
 }
@@ -453,6 +459,22 @@ pub fn instantiate(
         bail!("labels {unknown:?} are not instances of the groups file");
     }
     let mut background_idx = members.get(&0).cloned().unwrap_or_default();
+    let with_up;
+    let o = match o.up {
+        Some(_) => o,
+        None => {
+            let up = up_axis(&scene.select(&background_idx), o.min_opacity, o.seed);
+            progress(&match up {
+                Some(n) => format!(
+                    "up axis (the normal of the background's floor; shape-ambiguous instances try turns about it): [{:.3}, {:.3}, {:.3}]",
+                    n.x, n.y, n.z
+                ),
+                None => "no floor in the background: no turns about an up axis".into(),
+            });
+            with_up = InstanceOptions { up, ..o.clone() };
+            &with_up
+        }
+    };
     let mut reports = Vec::new();
     let mut out_groups = Vec::new();
     let c = scene.sh_coeffs() * 3;
@@ -685,7 +707,15 @@ pub fn register_and_check(
         }
     }
     if let (true, Some(rc)) = (report.shape_ambiguous, render_check.as_deref_mut()) {
-        tried += quarter_turns(rc, parts, opaque, k, r, reg, a, rigid, ids[k], &mut rendered).with_context(context)?;
+        const QUARTERS: [f64; 3] = [90.0, 180.0, 270.0];
+        let axes = principal_axes(&opaque[r]);
+        tried += turns(rc, parts, opaque, (k, r), reg, a, rigid, ids[k], (&axes, &QUARTERS), &mut rendered)
+            .with_context(context)?;
+        if let Some(up) = o.up {
+            let up = [nalgebra::Unit::new_normalize(up)];
+            tried += turns(rc, parts, opaque, (k, r), reg, a, rigid, ids[k], (&up, &UP_TURNS_DEG), &mut rendered)
+                .with_context(context)?;
+        }
     }
     report.tried = tried;
     if let (false, Some(rc)) = (rendered.is_empty(), render_check.as_deref_mut()) {
@@ -742,24 +772,30 @@ pub fn rival_poses(mut rendered: Vec<(Sim3, RenderScore)>) -> Vec<(Sim3, RenderS
     rivals
 }
 
-/// Where the shape leaves the pose open, the best-rendering hypothesis of `rendered` turned a
-/// quarter, a half and three quarters about each of the reference's principal axes (through its
-/// centroid) is checked too, each turn not within [`RIVAL_DEG`] of a hypothesis already there:
-/// the discrete symmetries of boxes, bricks and cans, which the registration's candidates need
-/// not all contain (a tabletop brick with a square footprint was accepted a quarter turn off,
-/// the true pose never tried). Turns that pass the geometric checks and the silhouette IoU join
-/// `rendered`; returns how many were tried.
+/// The turns about the scene's up axis tried where the shape leaves the pose open (degrees):
+/// every k/n of a turn for n = 2…6, the discrete symmetries an object standing on a floor may
+/// have about its vertical axis (a brick's half and quarter turns, a ball's fifths).
+pub const UP_TURNS_DEG: [f64; 11] = [60.0, 72.0, 90.0, 120.0, 144.0, 180.0, 216.0, 240.0, 270.0, 288.0, 300.0];
+
+/// Where the shape leaves the pose open, the best-rendering hypothesis of `rendered` turned by
+/// each of `angles_deg` about each of `axes` (through the reference's centroid) is checked too,
+/// each turn not within [`RIVAL_DEG`] of a hypothesis already there: the discrete symmetries of
+/// boxes, bricks, cans and balls, which the registration's candidates need not all contain (a
+/// tabletop brick with a square footprint was accepted a quarter turn off, a ball a fifth of a
+/// turn off, the true pose never tried). Each turn is polished by ICP (an axis of the cloud is
+/// a few degrees off the object's); those that pass the geometric checks and the silhouette
+/// IoU join `rendered`. Returns how many were tried.
 #[allow(clippy::too_many_arguments)]
-fn quarter_turns(
+fn turns(
     rc: &mut dyn RenderCheck,
     parts: &[Scene],
     opaque: &[Vec<[f64; 3]>],
-    k: usize,
-    r: usize,
+    (k, r): (usize, usize),
     reg: &RegisterOptions,
     a: &Acceptance,
     rigid: bool,
     id: u32,
+    (axes, angles_deg): (&[nalgebra::Unit<Vector3<f64>>], &[f64]),
     rendered: &mut Vec<(Sim3, RenderScore)>,
 ) -> Result<usize> {
     let Some(top) = rendered.iter().max_by(|x, y| x.1.pose_psnr.total_cmp(&y.1.pose_psnr)).map(|b| b.0) else {
@@ -769,13 +805,10 @@ fn quarter_turns(
     let scale_range =
         (!rigid).then(|| (top.scale / (1.0 + reg.scale_tolerance), top.scale * (1.0 + reg.scale_tolerance)));
     let mut tried = 0;
-    for axis in principal_axes(&opaque[r]) {
-        for quarter in 1..4 {
-            let turn =
-                *nalgebra::Rotation3::from_axis_angle(&axis, quarter as f64 * std::f64::consts::FRAC_PI_2).matrix();
+    for axis in axes {
+        for angle in angles_deg {
+            let turn = *nalgebra::Rotation3::from_axis_angle(axis, angle.to_radians()).matrix();
             let x = Sim3 { rotation: turn, ..Sim3::identity() }.about(&c).compose(&top);
-            // An axis of the cloud is a few degrees off the object's (a ragged reconstruction):
-            // ICP takes the turn to the nearest fit of the shapes.
             let x = icp(&opaque[k], &opaque[r], x, 1.5 * reg.voxel, 30, scale_range, true);
             if rendered.iter().any(|(y, _)| y.rotation_error_deg(&x) < RIVAL_DEG) {
                 continue;
@@ -792,6 +825,24 @@ fn quarter_turns(
         }
     }
     Ok(tried)
+}
+
+/// The scene's up axis for [`UP_TURNS_DEG`]: the normal of the dominant plane of `background`'s
+/// opaque means (2.5 median spacings thick, on a voxel grid that fine), when that plane holds at
+/// least a fifth of the occupied cells and 100 of them — a floor or a table. None otherwise
+/// (objects floating in an empty scene): no turns about an up axis.
+pub fn up_axis(background: &Scene, min_opacity: f32, seed: u64) -> Option<Vector3<f64>> {
+    let pts: Vec<[f64; 3]> = (0..background.len())
+        .filter(|&i| sigmoid(background.opacities[i]) >= min_opacity)
+        .map(|i| to_f64(background.means[i]))
+        .collect();
+    if pts.len() < 3 {
+        return None;
+    }
+    let thickness = 2.5 * median_spacing(&pts);
+    let cells = voxel_downsample(&pts, thickness);
+    let (n, _, on) = support_plane(&cells, thickness, seed)?;
+    (on >= 100 && 5 * on >= cells.len()).then_some(n)
 }
 
 /// Refines each of the [`rival_poses`] among `rendered` (hypotheses with their render checks,
@@ -1004,7 +1055,7 @@ fn nearest_offsets(template: &Scene, instances: &[Instance], parts: &[Scene], ca
 #[cfg(test)]
 mod tests {
     use super::*;
-    use nalgebra::{Rotation3, Vector3};
+    use nalgebra::Rotation3;
 
     fn turn_z(deg: f64) -> Sim3 {
         Sim3 {
@@ -1091,8 +1142,11 @@ mod tests {
         let reg = InstanceOptions::default().register_options(object_size(&opaque[0]));
         let quarter = turn_z(90.0);
         let mut rendered = vec![(quarter, Peak.score(&parts[0], &parts[1], 1, &quarter).unwrap().unwrap())];
+        let axes = principal_axes(&opaque[0]);
+        let quarters = [90.0, 180.0, 270.0];
+        let accept = Acceptance::default();
         let tried =
-            quarter_turns(&mut Peak, &parts, &opaque, 1, 0, &reg, &Acceptance::default(), true, 1, &mut rendered)
+            turns(&mut Peak, &parts, &opaque, (1, 0), &reg, &accept, true, 1, (&axes, &quarters), &mut rendered)
                 .unwrap();
         assert!(tried >= 2, "{tried}");
         // The turns that fit keep the long axis where it was (quarter turns about it, half
@@ -1104,5 +1158,77 @@ mod tests {
         let (x, _, _) =
             refine_rivals(&mut Peak, &parts[0], &parts[1], 1, rendered, Vector3::zeros(), 1.0, true).unwrap();
         assert!(x.rotation_error_deg(&Sim3::identity()) < 0.5, "{}°", x.rotation_error_deg(&Sim3::identity()));
+    }
+
+    /// Points on a sphere of radius 1 (a Fibonacci lattice).
+    fn sphere(n: usize) -> Vec<[f64; 3]> {
+        let golden = std::f64::consts::PI * (3.0 - 5f64.sqrt());
+        (0..n)
+            .map(|i| {
+                let z = 1.0 - 2.0 * (i as f64 + 0.5) / n as f64;
+                let (r, a) = ((1.0 - z * z).sqrt(), golden * i as f64);
+                [r * a.cos(), r * a.sin(), z]
+            })
+            .collect()
+    }
+
+    #[test]
+    fn a_fifth_of_a_turn_about_the_up_axis_is_tried_and_kept() {
+        // A ball: every turn fits the shape, and its principal axes are arbitrary, so quarter
+        // turns about them cannot reach a pose a fifth of a turn about the floor's normal away.
+        // The only hypothesis is 72° off about the up axis (tilted here); the turns about it
+        // bring the true pose (the identity) in, and it is kept after refinement.
+        let ball = sphere(800);
+        let opaque = vec![ball.clone(), ball];
+        let parts = vec![Scene::default(), Scene::default()];
+        let reg = InstanceOptions::default().register_options(object_size(&opaque[0]));
+        let up = nalgebra::Unit::new_normalize(Vector3::new(0.1, -0.2, 1.0));
+        let off = Sim3 { rotation: *Rotation3::from_axis_angle(&up, -72f64.to_radians()).matrix(), ..Sim3::identity() };
+        let mut rendered = vec![(off, Peak.score(&parts[0], &parts[1], 1, &off).unwrap().unwrap())];
+        let accept = Acceptance::default();
+        let tried =
+            turns(&mut Peak, &parts, &opaque, (1, 0), &reg, &accept, true, 1, (&[up], &UP_TURNS_DEG), &mut rendered)
+                .unwrap();
+        assert_eq!(tried, UP_TURNS_DEG.len());
+        let best = rendered.iter().map(|(x, _)| x.rotation_error_deg(&Sim3::identity())).fold(f64::MAX, f64::min);
+        assert!(best < 1.0, "nearest turn {best}°");
+        let (x, _, _) =
+            refine_rivals(&mut Peak, &parts[0], &parts[1], 1, rendered, Vector3::zeros(), 1.0, true).unwrap();
+        assert!(x.rotation_error_deg(&Sim3::identity()) < 0.5, "{}°", x.rotation_error_deg(&Sim3::identity()));
+    }
+
+    /// Gaussians at `points`, opaque.
+    fn opaque_scene(points: &[[f64; 3]]) -> Scene {
+        let mut s = Scene { sh_degree: 0, ..Default::default() };
+        for p in points {
+            s.means.push(p.map(|c| c as f32));
+            s.scales.push([-4.0; 3]);
+            s.quats.push([1.0, 0.0, 0.0, 0.0]);
+            s.opacities.push(3.0);
+            s.sh.extend([0.5; 3]);
+        }
+        s
+    }
+
+    #[test]
+    fn the_up_axis_is_the_floors_normal_and_none_without_a_floor() {
+        // A tilted floor of 60 × 60 Gaussians with a blob standing on it.
+        let n = Vector3::new(0.2, 0.1, 1.0).normalize();
+        let (u, v) = (n.cross(&Vector3::x()).normalize(), n.cross(&n.cross(&Vector3::x())).normalize());
+        let mut floor = Vec::new();
+        for i in 0..60 {
+            for j in 0..60 {
+                let p = u * (i as f64 * 0.05 - 1.5) + v * (j as f64 * 0.05 - 1.5);
+                floor.push([p.x, p.y, p.z]);
+            }
+        }
+        let blob: Vec<[f64; 3]> = sphere(400)
+            .iter()
+            .map(|p| [0.3 * p[0] + n.x * 0.4, 0.3 * p[1] + n.y * 0.4, 0.3 * p[2] + n.z * 0.4])
+            .collect();
+        let scene = opaque_scene(&[floor, blob.clone()].concat());
+        let up = up_axis(&scene, 0.05, 0).expect("a floor");
+        assert!(up.dot(&n).abs() > 0.999, "{up:?}");
+        assert!(up_axis(&opaque_scene(&blob), 0.05, 0).is_none());
     }
 }

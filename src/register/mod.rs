@@ -546,6 +546,45 @@ fn edges_agree(a: &[[f64; 3]], b: &[[f64; 3]], ratio: f64) -> bool {
     true
 }
 
+/// The dominant plane of `points`: unit normal n and offset d (n·p = d for points on it), and
+/// the number of points within `thickness`. RANSAC over 3-point samples (seeded), refined by
+/// least squares on its inliers. None for fewer than 3 points.
+pub fn support_plane(points: &[[f64; 3]], thickness: f64, seed: u64) -> Option<(Vector3<f64>, f64, usize)> {
+    if points.len() < 3 {
+        return None;
+    }
+    let mut rng = rand_pcg::Pcg64::seed_from_u64(seed);
+    let count = |n: &Vector3<f64>, d: f64| {
+        points.iter().filter(|p| (n.dot(&Vector3::from(**p)) - d).abs() <= thickness).count()
+    };
+    let mut best: Option<(usize, Vector3<f64>, f64)> = None;
+    for _ in 0..1000 {
+        let [a, b, c] = [0; 3].map(|_| Vector3::from(points[rng.random_range(0..points.len())]));
+        let n = (b - a).cross(&(c - a));
+        if n.norm() < 1e-12 {
+            continue;
+        }
+        let n = n.normalize();
+        let d = n.dot(&a);
+        let k = count(&n, d);
+        if best.as_ref().is_none_or(|b| k > b.0) {
+            best = Some((k, n, d));
+        }
+    }
+    let (_, n, d) = best?;
+    let inl: Vec<Vector3<f64>> =
+        points.iter().map(|p| Vector3::from(*p)).filter(|p| (n.dot(p) - d).abs() <= thickness).collect();
+    let m = inl.iter().fold(Vector3::zeros(), |a, p| a + p) / inl.len() as f64;
+    let cov = inl.iter().fold(Matrix3::zeros(), |a, p| a + (p - m) * (p - m).transpose());
+    let e = SymmetricEigen::new(cov);
+    let mut n2: Vector3<f64> = e.eigenvectors.column(e.eigenvalues.imin()).into_owned();
+    if n2.dot(&n) < 0.0 {
+        n2 = -n2;
+    }
+    let d2 = n2.dot(&m);
+    Some((n2, d2, count(&n2, d2)))
+}
+
 /// Farthest-point sampling: `n` indices of `points`, starting from the point nearest the
 /// centroid, each next one the farthest from those already taken (ties: lowest index).
 /// Deterministic; returns every index when `n ≥ points.len()`.
