@@ -5,7 +5,7 @@
 # with instance masks and ground truth (tools/instance_dataset.rs), then trained, segmented and
 # registered like any capture (the main job up to its instance stage, default configuration),
 # and the robustness study run on that run.
-# usage: tools/bench-objects.sh NAME TEMPLATE.ply [K] [ITERATIONS] [WIDTH HEIGHT] [SEEDS]
+# usage: [ONLY=CASE,CASE] tools/bench-objects.sh NAME TEMPLATE.ply [K] [ITERATIONS] [WIDTH HEIGHT] [SEEDS]
 #        (defaults: 4 copies, 1500 plain iterations, 200x150, 2 seeds)
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -35,4 +35,4 @@ python3 tools/orbit_transforms.py "$out/data" 24 6 "$gx" "$gy" "$gz" "$dist" 30 
 "$bin" render --scene "$out/truth.instgs" --cameras "$out/data/transforms_test.json" --out "$out/data/test" > /dev/null
 ./target/release/examples/instance_dataset "$out/truth.instgs" "$out/data"
 "$bin" train --data "$out/data" --out "$out/run" --iterations "$its" --until instance --quiet
-./target/release/examples/robustness "$out/run" "$out/data" --seeds "$seeds" --up y | tee "$out/robustness.md"
+./target/release/examples/robustness "$out/run" "$out/data" --seeds "$seeds" --up y ${ONLY:+--only "$ONLY"} | tee "$out/robustness.md"
