@@ -3,12 +3,10 @@
 //! ground-truth poses in DIR/instances.json) are perturbed, seeded, and registered again with
 //! the acceptance checks and the render check of the `instance` stage; every instance but the
 //! reference is classed against the ground truth: correct (< 2°, < 2 % translation and scale),
-//! correct up to a symmetry (more than 5° off, but within 2° / 2 % once a symmetry of the
-//! object's appearance, found and verified on the reference's own renders, is undone: see
-//! [`symmetry`]), refused, wrong (accepted with > 5° or > 5 %, and a different picture), in
-//! between (accepted, 2–5°/2–5 %), or another pose the images prefer or cannot tell apart (> 5° off, but see
-//! [`equivalent`]: an object symmetry, or the instance's own render matches it better than the
-//! true pose).
+//! refused, wrong (accepted with > 5° or > 5 %, and a different picture), in between
+//! (accepted, 2–5°/2–5 %), or another pose the images prefer or cannot tell apart (> 5° off, but
+//! see [`equivalent`]: an object symmetry, or the instance's own render matches it at least as
+//! well as the true pose, both refined).
 //!
 //! Cases: as segmented; Gaussians subsampled to 50 % and 25 % (the kept ones enlarged to cover
 //! the same surface), then either left so or re-fit: the whole perturbed scene fine-tuned on the
@@ -198,56 +196,11 @@ fn refit(
 struct Tally {
     instances: usize,
     correct: usize,
-    /// Correct once an object symmetry is undone ([`symmetry`]).
-    correct_up_to_symmetry: usize,
     between: usize,
     symmetric: usize,
     refused: usize,
     wrong: usize,
     worst_accepted: (f64, f64),
-}
-
-/// Whether an accepted pose far off the ground truth is the true pose composed with a symmetry
-/// of the object's appearance, as pose benchmarks count them (BOP: the error is the least over
-/// the object's symmetries). The discrepancy `D = T ∘ A⁻¹` (true relative pose T, accepted A; a
-/// map of the reference's world onto itself) is refined as a pose of the reference onto itself
-/// against the reference's own renders ([`template::refine_pose`], rigid: a symmetry keeps the size);
-/// the refined `S` is a symmetry when it stays more than 5° from the identity (a pose that is
-/// merely off climbs back to the identity, the one exact optimum) and places the reference onto
-/// itself at least as well as the accepted pose places the reference onto the instance (the
-/// pictures tell `S` from the identity no better than they tell two copies apart). Returns the
-/// pose errors of `S ∘ A` (the accepted pose with the symmetry undone).
-#[allow(clippy::too_many_arguments)]
-fn symmetry(
-    check: &mut dyn RenderCheck,
-    scene: &Scene,
-    labels: &[u32],
-    opaque_reference: &[[f64; 3]],
-    r: &template::InstanceReport,
-    gt: &BTreeMap<u32, GroundTruthPose>,
-) -> Result<Option<(f64, f64, f64)>> {
-    let Some(accepted) = r.render else { return Ok(None) };
-    let reference = instgs_vk::segment::subset(scene, labels, r.reference);
-    let truth = gt[&r.reference].object_to_world.compose(&gt[&r.id].object_to_world.inverse());
-    let d = truth.compose(&r.relative.inverse());
-    let Some(score) = check.score(&reference, &reference, r.reference, &d)? else { return Ok(None) };
-    let (centre, size) = (centroid(opaque_reference), instgs_vk::register::object_size(opaque_reference));
-    let (s, self_score) =
-        template::refine_pose(check, &reference, &reference, r.reference, d, score, centre, size, true, 0..4)?;
-    let from_identity = s.rotation_error_deg(&Sim3::identity());
-    eprintln!(
-        "  {} {}: the discrepancy turns {:.2}°, refined on the reference itself to {from_identity:.2}° at {:.2} dB (the accepted pose: {:.2} dB)",
-        r.group,
-        r.id,
-        d.rotation_error_deg(&Sim3::identity()),
-        self_score.pose_psnr,
-        accepted.pose_psnr
-    );
-    if from_identity <= 5.0 || self_score.pose_psnr < accepted.pose_psnr {
-        return Ok(None);
-    }
-    let undone = s.compose(&r.relative);
-    Ok(Some(instgs_vk::instancing::pose_error::pose_error(&undone, &gt[&r.reference], &gt[&r.id])))
 }
 
 /// Whether an accepted pose off the ground truth is one the images cannot tell from it: the
@@ -341,9 +294,9 @@ fn main() -> Result<()> {
     ];
     println!("{} ({} instances), {}", data.display(), truth.len(), gpu.describe());
     println!(
-        "| case | registrations | correct | correct up to a symmetry | 2–5° / 2–5 % | other pose the images prefer or cannot tell apart | refused | **wrong** | worst accepted (°, %) |"
+        "| case | registrations | correct | 2–5° / 2–5 % | other pose the images prefer or cannot tell apart | refused | **wrong** | worst accepted (°, %) |"
     );
-    println!("|---|---|---|---|---|---|---|---|---|");
+    println!("|---|---|---|---|---|---|---|---|");
     let mut rows = Vec::new();
     for case in cases.into_iter().filter(|c| only.split(',').any(|o| c.name().contains(o))) {
         let mut t = Tally::default();
@@ -383,21 +336,8 @@ fn main() -> Result<()> {
                             InstanceOptions::default().min_opacity,
                         )
                         .0;
-                        let undone = if rot > 5.0 { symmetry(&mut check, &s, &l, &opaque, r, &gt)? } else { None };
                         if rot < 2.0 && err < 0.02 {
                             t.correct += 1;
-                        } else if let Some((rot_s, trans_s, scale_s)) =
-                            undone.filter(|(a, b, c)| *a < 2.0 && b.max(c.abs()) < 0.02)
-                        {
-                            t.correct_up_to_symmetry += 1;
-                            eprintln!(
-                                "up to a symmetry {} seed {seed}: {} {}: {rot:.2}° off, {rot_s:.2}°, translation {:.2} %, scale {:+.2} % once the symmetry is undone",
-                                case.name(),
-                                r.group,
-                                r.id,
-                                100.0 * trans_s,
-                                100.0 * scale_s
-                            );
                         } else if (rot > 5.0 || err > 0.05)
                             && equivalent(&gpu, &k, &cams, &mut check, &s, &l, &opaque, r, &gt)?
                         {
@@ -439,11 +379,10 @@ fn main() -> Result<()> {
             }
         }
         println!(
-            "| {} | {} | {} | {} | {} | {} | {} | **{}** | {:.2}°, {:.2} % |",
+            "| {} | {} | {} | {} | {} | {} | **{}** | {:.2}°, {:.2} % |",
             case.name(),
             t.instances,
             t.correct,
-            t.correct_up_to_symmetry,
             t.between,
             t.symmetric,
             t.refused,
@@ -452,7 +391,7 @@ fn main() -> Result<()> {
             t.worst_accepted.1
         );
         rows.push(serde_json::json!({
-            "case": case.name(), "registrations": t.instances, "correct": t.correct, "correct_up_to_symmetry": t.correct_up_to_symmetry, "between": t.between, "symmetric": t.symmetric,
+            "case": case.name(), "registrations": t.instances, "correct": t.correct, "between": t.between, "symmetric": t.symmetric,
             "refused": t.refused, "wrong": t.wrong,
         }));
     }
