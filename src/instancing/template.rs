@@ -458,6 +458,13 @@ pub fn instantiate(
     if !unknown.is_empty() {
         bail!("labels {unknown:?} are not instances of the groups file");
     }
+    for g in groups {
+        for &id in &g.ids {
+            if members.get(&id).is_none_or(|m| m.is_empty()) {
+                bail!("group {:?}: instance {id} claims no Gaussian (its labels are empty)", g.name);
+            }
+        }
+    }
     let mut background_idx = members.get(&0).cloned().unwrap_or_default();
     let with_up;
     let o = match o.up {
@@ -479,11 +486,6 @@ pub fn instantiate(
     let mut out_groups = Vec::new();
     let c = scene.sh_coeffs() * 3;
     for g in groups {
-        for &id in &g.ids {
-            if members.get(&id).is_none_or(|m| m.is_empty()) {
-                bail!("group {:?}: instance {id} claims no Gaussian (its labels are empty)", g.name);
-            }
-        }
         let parts: Vec<Scene> = g.ids.iter().map(|id| scene.select(&members[id])).collect();
         type Clouds = Vec<Vec<[f64; 3]>>;
         let (opaque, colours): (Clouds, Clouds) = parts.iter().map(|p| registration_cloud(p, o.min_opacity)).unzip();
