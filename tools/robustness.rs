@@ -15,7 +15,8 @@
 //! to the same photos (enlarged alone, an instance's silhouette and colours no longer match its
 //! photos, which no trained scene shows); partial (the 30 % of each instance's Gaussians
 //! farthest along a random horizontal direction cut away); scaled (each instance by a uniform
-//! factor in 0.85–1.15 about its centroid; the truth scaled alike); outliers (10 % more Gaussians scattered in each instance's box, 20 % larger).
+//! factor in 0.85–1.15 about its centroid; the truth scaled alike); outliers (10 % more
+//! Gaussians scattered in each instance's box, 20 % larger).
 //!
 //! ```sh
 //! cargo run --release --example robustness -- RUN DIR [--downscale K] [--seeds N] [--up z|y]
@@ -165,19 +166,12 @@ fn refit(
     iterations: u64,
     seed: u64,
 ) -> Result<Scene> {
-    use instgs_vk::train::{config::Config, optim::LearningRates, TrainState, Trainer};
+    use instgs_vk::train::{config::Config, TrainState, Trainer};
     let cfg = Config { seed, ..Config::load(None)? };
     let mut state = TrainState::new(scene);
     state.active_sh_degree = state.scene.sh_degree;
     let mut trainer = Trainer::new(gpu, k, &state, false)?;
-    let lr = LearningRates {
-        means: cfg.position_lr(cfg.lr.position_max_steps, ds.camera_extent()),
-        scales: cfg.lr.scaling,
-        quats: cfg.lr.rotation,
-        opacities: cfg.lr.opacity,
-        sh0: cfg.lr.sh0,
-        sh_rest: cfg.lr.sh_rest,
-    };
+    let lr = cfg.learning_rates(cfg.lr.position_max_steps, ds.camera_extent());
     let mut psnr = Vec::new();
     for it in 1..=iterations {
         let view = &ds.train[instgs_vk::train::view_index(seed, it, ds.train.len())];
@@ -217,7 +211,6 @@ fn equivalent(
     check: &mut dyn RenderCheck,
     scene: &Scene,
     labels: &[u32],
-    opaque_reference: &[[f64; 3]],
     r: &template::InstanceReport,
     gt: &BTreeMap<u32, GroundTruthPose>,
 ) -> Result<bool> {
@@ -232,7 +225,8 @@ fn equivalent(
     let (Some(at_truth), Some(accepted)) = (check.score(&reference, &own, r.id, &truth)?, r.render) else {
         return Ok(false);
     };
-    let (centre, size) = (centroid(opaque_reference), instgs_vk::register::object_size(opaque_reference));
+    let opaque = template::registration_cloud(&reference, InstanceOptions::default().min_opacity).0;
+    let (centre, size) = (centroid(&opaque), instgs_vk::register::object_size(&opaque));
     let (refined, at_refined) =
         template::refine_pose(check, &reference, &own, r.id, truth, at_truth, centre, size, false, 0..4)?;
     eprintln!(
@@ -331,15 +325,9 @@ fn main() -> Result<()> {
                 match r.status.name() {
                     "accepted" => {
                         t.worst_accepted = (t.worst_accepted.0.max(rot), t.worst_accepted.1.max(100.0 * err));
-                        let opaque = template::registration_cloud(
-                            &instgs_vk::segment::subset(&s, &l, r.reference),
-                            InstanceOptions::default().min_opacity,
-                        )
-                        .0;
                         if rot < 2.0 && err < 0.02 {
                             t.correct += 1;
-                        } else if (rot > 5.0 || err > 0.05)
-                            && equivalent(&gpu, &k, &cams, &mut check, &s, &l, &opaque, r, &gt)?
+                        } else if (rot > 5.0 || err > 0.05) && equivalent(&gpu, &k, &cams, &mut check, &s, &l, r, &gt)?
                         {
                             t.symmetric += 1;
                             eprintln!(

@@ -470,7 +470,7 @@ pub fn instantiate(
     let o = match o.up {
         Some(_) => o,
         None => {
-            let up = up_axis(&scene.select(&background_idx), o.min_opacity, o.seed);
+            let up = up_axis(scene, &background_idx, o.min_opacity, o.seed);
             progress(&match up {
                 Some(n) => format!(
                     "up axis (the normal of the background's floor; shape-ambiguous instances try turns about it): [{:.3}, {:.3}, {:.3}]",
@@ -829,14 +829,16 @@ fn turns(
     Ok(tried)
 }
 
-/// The scene's up axis for [`UP_TURNS_DEG`]: the normal of the dominant plane of `background`'s
-/// opaque means (2.5 median spacings thick, on a voxel grid that fine), when that plane holds at
-/// least a fifth of the occupied cells and 100 of them — a floor or a table. None otherwise
-/// (objects floating in an empty scene): no turns about an up axis.
-pub fn up_axis(background: &Scene, min_opacity: f32, seed: u64) -> Option<Vector3<f64>> {
-    let pts: Vec<[f64; 3]> = (0..background.len())
-        .filter(|&i| sigmoid(background.opacities[i]) >= min_opacity)
-        .map(|i| to_f64(background.means[i]))
+/// The scene's up axis for [`UP_TURNS_DEG`]: the normal of the dominant plane of the opaque
+/// means of `scene`'s Gaussians `background` (2.5 median spacings thick, on a voxel grid that
+/// fine), when that plane holds at least a fifth of the occupied cells and 100 of them — a
+/// floor or a table. None otherwise (objects floating in an empty scene): no turns about an up
+/// axis.
+pub fn up_axis(scene: &Scene, background: &[usize], min_opacity: f32, seed: u64) -> Option<Vector3<f64>> {
+    let pts: Vec<[f64; 3]> = background
+        .iter()
+        .filter(|&&i| sigmoid(scene.opacities[i]) >= min_opacity)
+        .map(|&i| to_f64(scene.means[i]))
         .collect();
     if pts.len() < 3 {
         return None;
@@ -1229,8 +1231,8 @@ mod tests {
             .map(|p| [0.3 * p[0] + n.x * 0.4, 0.3 * p[1] + n.y * 0.4, 0.3 * p[2] + n.z * 0.4])
             .collect();
         let scene = opaque_scene(&[floor, blob.clone()].concat());
-        let up = up_axis(&scene, 0.05, 0).expect("a floor");
+        let up = up_axis(&scene, &(0..scene.len()).collect::<Vec<_>>(), 0.05, 0).expect("a floor");
         assert!(up.dot(&n).abs() > 0.999, "{up:?}");
-        assert!(up_axis(&opaque_scene(&blob), 0.05, 0).is_none());
+        assert!(up_axis(&opaque_scene(&blob), &(0..blob.len()).collect::<Vec<_>>(), 0.05, 0).is_none());
     }
 }

@@ -170,6 +170,19 @@ impl Config {
         Ok(())
     }
 
+    /// The Adam learning rates of every parameter group at `step` (positions decaying as
+    /// [`Config::position_lr`], the others constant).
+    pub fn learning_rates(&self, step: u64, extent: f32) -> crate::train::optim::LearningRates {
+        crate::train::optim::LearningRates {
+            means: self.position_lr(step, extent),
+            scales: self.lr.scaling,
+            quats: self.lr.rotation,
+            opacities: self.lr.opacity,
+            sh0: self.lr.sh0,
+            sh_rest: self.lr.sh_rest,
+        }
+    }
+
     /// Inria's position learning rate at `step` (get_expon_lr_func without delay), times the
     /// spatial scale (`lr.spatial_scale`, or `extent` when that is 0).
     pub fn position_lr(&self, step: u64, extent: f32) -> f32 {

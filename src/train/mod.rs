@@ -45,7 +45,6 @@ use crate::gpu::kernels::Kernels;
 use crate::gpu::Gpu;
 use crate::model::instanced::InstancedScene;
 use crate::train::config::Config;
-use crate::train::optim::LearningRates;
 use crate::util::{Progress, ProgressMode};
 
 /// The training view of iteration `it` (from 1): every epoch visits each view once, in an order
@@ -266,14 +265,7 @@ pub fn run(gpu: &Arc<Gpu>, k: &Arc<Kernels>, ds: &Dataset, cfg: &Config, opts: &
         if it % cfg.sh_increase_interval == 0 && trainer.scene.active_sh_degree < trainer.scene.sh_degree {
             trainer.scene.active_sh_degree += 1;
         }
-        let lr = LearningRates {
-            means: cfg.position_lr(it, extent),
-            scales: cfg.lr.scaling,
-            quats: cfg.lr.rotation,
-            opacities: cfg.lr.opacity,
-            sh0: cfg.lr.sh0,
-            sh_rest: cfg.lr.sh_rest,
-        };
+        let lr = cfg.learning_rates(it, extent);
         if fault_nan_at() == Some(it) {
             // Fault injection for the tests: a NaN in the first Gaussian's colour.
             let mut st = trainer.download(it - 1)?;
