@@ -9,6 +9,7 @@
 //! pipeline made: the textured surface is sampled (albedo from the texture, nearest texel, as
 //! the renderer filtered it; or the part's constant albedo), and a rotation is a symmetry when
 //! it maps the samples onto the surface, colours included, as closely as the samples lie on it.
+use std::collections::HashMap;
 use std::path::Path;
 
 use anyhow::{bail, Context, Result};
@@ -19,19 +20,33 @@ use kiddo::SquaredEuclidean;
 use nalgebra::{Matrix3, Vector3};
 use rand::{Rng, SeedableRng};
 
-/// Surface samples of one object in its mesh's own frame (the frame `object_to_world` maps).
+/// Surface samples of one object in its mesh's own frame (the frame `object_to_world` maps),
+/// with what every symmetry test of it shares: the k-d trees of the samples (all, and per colour
+/// class) and how closely the probes lie on the surface unmoved.
 pub struct Surface {
     /// Where the candidate symmetries are judged against.
-    pub points: Vec<[f64; 3]>,
-    pub colours: Vec<[f64; 3]>,
+    points: Vec<[f64; 3]>,
+    colours: Vec<[f64; 3]>,
     /// Other samples (another seed), moved by a candidate and looked up in `points`.
-    pub probes: Vec<[f64; 3]>,
-    pub probe_colours: Vec<[f64; 3]>,
+    probes: Vec<[f64; 3]>,
+    probe_colours: Vec<[f64; 3]>,
     /// The samples' bounding-box diagonal.
-    pub diameter: f64,
+    diameter: f64,
+    tree: Tree3,
+    /// Per colour class ([`colour_class`]): its samples' tree and their indices in `points`.
+    classes: HashMap<usize, (Tree3, Vec<usize>)>,
+    /// Twice the 99th-percentile distance from an unmoved probe to the nearest sample.
+    far: f64,
+    /// [`Surface::misfit`] of the identity.
+    identity_misfit: (f64, f64),
 }
 
 type Tree3 = ImmutableKdTree<f64, u32, 3, 32>;
+
+/// A colour's class for the colour-aware ICP: each channel in 8 levels.
+fn colour_class(c: &[f64; 3]) -> usize {
+    (0..3).map(|a| ((c[a] * 8.0) as usize).min(7) << (3 * a)).sum()
+}
 
 /// Two colours agree when no channel differs by more than this (0–1).
 const COLOUR_AGREES: f64 = 0.15;
@@ -61,8 +76,12 @@ pub fn load(group: &serde_json::Value, meshes: &Path) -> Result<Surface> {
             .with_context(|| format!("{}: cannot read the mesh", path.display()))?;
         let to_object = match part["part_to_object"].as_array() {
             Some(rows) => {
-                let m = |r: usize, c: usize| rows[r][c].as_f64().unwrap_or(0.0);
-                (Matrix3::from_fn(m), Vector3::new(m(0, 3), m(1, 3), m(2, 3)))
+                let m: Vec<f64> =
+                    rows.iter().flat_map(|r| r.as_array().into_iter().flatten()).filter_map(|v| v.as_f64()).collect();
+                if rows.len() != 4 || m.len() != 16 {
+                    bail!("group {name:?}: {mesh}: part_to_object is not a 4×4 matrix of numbers");
+                }
+                (Matrix3::from_fn(|r, c| m[4 * r + c]), Vector3::new(m[3], m[7], m[11]))
             }
             None => (Matrix3::identity(), Vector3::zeros()),
         };
@@ -82,6 +101,13 @@ pub fn load(group: &serde_json::Value, meshes: &Path) -> Result<Surface> {
         };
         for model in &models {
             let m = &model.mesh;
+            let vertices = m.positions.len() / 3;
+            if !m.texcoords.is_empty() && m.texcoords.len() != 2 * vertices {
+                bail!("{}: {} texture coordinates for {vertices} vertices", path.display(), m.texcoords.len() / 2);
+            }
+            if m.indices.iter().any(|&i| i as usize >= vertices) {
+                bail!("{}: a face refers to a vertex past the {vertices} it has", path.display());
+            }
             let p = |i: u32| {
                 let i = i as usize * 3;
                 let v = Vector3::new(m.positions[i] as f64, m.positions[i + 1] as f64, m.positions[i + 2] as f64);
@@ -159,16 +185,40 @@ impl Surface {
             }
         }
         let diameter = (0..3).map(|a| (hi[a] - lo[a]).powi(2)).sum::<f64>().sqrt();
-        Surface { points, colours, probes, probe_colours, diameter }
+        let all = tree(&points);
+        let mut members: HashMap<usize, Vec<usize>> = HashMap::new();
+        for (i, c) in colours.iter().enumerate() {
+            members.entry(colour_class(c)).or_default().push(i);
+        }
+        let classes = members
+            .into_iter()
+            .map(|(k, idx)| (k, (tree(&idx.iter().map(|&i| points[i]).collect::<Vec<_>>()), idx)))
+            .collect();
+        let mut d0: Vec<f64> = probes.iter().map(|p| all.nearest_one::<SquaredEuclidean>(p).distance.sqrt()).collect();
+        d0.sort_by(f64::total_cmp);
+        let far = 2.0 * d0.get((0.99 * d0.len().saturating_sub(1) as f64) as usize).copied().unwrap_or(0.0);
+        let mut s = Surface {
+            points,
+            colours,
+            probes,
+            probe_colours,
+            diameter,
+            tree: all,
+            classes,
+            far,
+            identity_misfit: (0.0, 0.0),
+        };
+        s.identity_misfit = s.misfit(&Sim3::identity());
+        s
     }
 
     /// How far the probes moved by `x` lie off the surface: the share farther from every sample
     /// than `far`, and the share whose colour disagrees with the nearest sample's.
-    fn misfit(&self, x: &Sim3, t: &Tree3, far: f64) -> (f64, f64) {
+    fn misfit(&self, x: &Sim3) -> (f64, f64) {
         let (mut off, mut disagree) = (0usize, 0usize);
         for (p, c) in self.probes.iter().zip(&self.probe_colours) {
-            let nn = t.nearest_one::<SquaredEuclidean>(&x.apply(p));
-            off += (nn.distance > far * far) as usize;
+            let nn = self.tree.nearest_one::<SquaredEuclidean>(&x.apply(p));
+            off += (nn.distance > self.far * self.far) as usize;
             disagree += (0..3).any(|a| (c[a] - self.colours[nn.item as usize][a]).abs() > COLOUR_AGREES) as usize;
         }
         let n = self.probes.len().max(1) as f64;
@@ -183,17 +233,6 @@ impl Surface {
     /// percentile distance, and no more than 1 % more of them off colour. The test is strict:
     /// a mug turned 2° about its axis (the handle moved) is no symmetry of it.
     pub fn nearest_symmetry(&self, d: &Sim3) -> Option<Sim3> {
-        let t3 = tree(&self.points);
-        // Colour classes: each channel in 8 levels.
-        let class = |c: &[f64; 3]| -> usize { (0..3).map(|a| ((c[a] * 8.0) as usize).min(7) << (3 * a)).sum() };
-        let mut members: std::collections::HashMap<usize, Vec<usize>> = std::collections::HashMap::new();
-        for (i, c) in self.colours.iter().enumerate() {
-            members.entry(class(c)).or_default().push(i);
-        }
-        let trees: std::collections::HashMap<usize, (Tree3, &Vec<usize>)> = members
-            .iter()
-            .map(|(k, idx)| (*k, (tree(&idx.iter().map(|&i| self.points[i]).collect::<Vec<_>>()), idx)))
-            .collect();
         let step = (self.probes.len() / 8000).max(1);
         let probes: Vec<usize> = (0..self.probes.len()).step_by(step).collect();
         // Rigid, moving the probes' centroid where `d` does.
@@ -205,9 +244,9 @@ impl Surface {
             let (mut from, mut to) = (Vec::with_capacity(probes.len()), Vec::with_capacity(probes.len()));
             for &i in &probes {
                 let q = x.apply(&self.probes[i]);
-                let j = match trees.get(&class(&self.probe_colours[i])) {
+                let j = match self.classes.get(&colour_class(&self.probe_colours[i])) {
                     Some((t, idx)) => idx[t.nearest_one::<SquaredEuclidean>(&q).item as usize],
-                    None => t3.nearest_one::<SquaredEuclidean>(&q).item as usize,
+                    None => self.tree.nearest_one::<SquaredEuclidean>(&q).item as usize,
                 };
                 from.push(self.probes[i]);
                 to.push(self.points[j]);
@@ -220,12 +259,8 @@ impl Surface {
                 break;
             }
         }
-        let mut d0: Vec<f64> =
-            self.probes.iter().map(|p| t3.nearest_one::<SquaredEuclidean>(p).distance.sqrt()).collect();
-        d0.sort_by(f64::total_cmp);
-        let far = 2.0 * d0[(0.99 * (d0.len() - 1) as f64) as usize];
-        let (off0, colour0) = self.misfit(&Sim3::identity(), &t3, far);
-        let (off, colour) = self.misfit(&x, &t3, far);
+        let (off0, colour0) = self.identity_misfit;
+        let (off, colour) = self.misfit(&x);
         (off <= off0 + 0.005 && colour <= colour0 + 0.01).then_some(x)
     }
 }
