@@ -229,6 +229,24 @@ struct PresentArgs {
     uint _pad1;
 };
 
+/// Push constants of the per-photo colour transform (appearance.comp and its backward
+/// appearance_backward.comp): out = M rgb + b, the 3x4 affine of Hierarchical 3DGS's exposure
+/// compensation, applied to a rendered image before the loss. Row c is (M[c][0..2], b[c]).
+struct AppearanceArgs {
+    vec4 row0;
+    vec4 row1;
+    vec4 row2;
+    uint pixels; // width * height
+    uint _pad0;
+    uint _pad1;
+    uint _pad2;
+};
+// Pixels per appearance invocation (a run, so the backward's sums are added per run, not per pixel).
+#define APPEARANCE_RUN 16
+// The backward's gradient sums: dL/dM row-major then dL/db (APPEARANCE_PARAMS floats), the same
+// order as the parameters (row c: M[c][0..2], b[c]).
+#define APPEARANCE_PARAMS 12
+
 // SSIM window: 11 x 11 Gaussian, sigma 1.5 (Wang et al. 2004; Inria's loss_utils.ssim), zero
 // padding at the image border as torch's conv2d with padding 5.
 #define SSIM_RADIUS 5

@@ -258,7 +258,8 @@ fn interrupted_and_resumed_runs_match_an_uninterrupted_one() {
     let base = tmp("resume-out");
     let cfg = config_file(
         &base,
-        "checkpoint_interval = 25\ntest_interval = 0\nsh_increase_interval = 20\n[densify]\nfrom_iter = 10\ninterval = 15\nopacity_reset_interval = 45\n",
+        // With colour transforms per photo: they, their moments and step counts resume too.
+        "checkpoint_interval = 25\ntest_interval = 0\nsh_increase_interval = 20\n[densify]\nfrom_iter = 10\ninterval = 15\nopacity_reset_interval = 45\n[appearance]\nmodel = \"affine\"\nfrom_iter = 10\n",
     );
     let (d, c) = (data.to_str().unwrap(), cfg.to_str().unwrap());
     // Bit-exact where runs repeat bit for bit (lavapipe, one thread); elsewhere the resumed run
@@ -278,6 +279,8 @@ fn interrupted_and_resumed_runs_match_an_uninterrupted_one() {
     assert!(o.ok, "{}", o.stderr);
     let (want, _) = read_checkpoint(&straight.join("checkpoint.bin")).unwrap();
     assert_eq!(want.iteration, 90);
+    assert_eq!(want.appearance.params.len(), 8);
+    assert!(want.appearance.steps.iter().all(|&s| s > 0));
 
     // Stopped by --iterations, then resumed.
     let split = base.join("split");

@@ -183,8 +183,8 @@ fn refit(
     let lr = cfg.learning_rates(cfg.lr.position_max_steps, ds.camera_extent());
     let mut psnr = Vec::new();
     for it in 1..=iterations {
-        let view = &ds.train[instgs_vk::train::view_index(seed, it, ds.train.len())];
-        psnr.push(trainer.step(view, &cfg, &lr, it)?.psnr);
+        let index = instgs_vk::train::view_index(seed, it, ds.train.len());
+        psnr.push(trainer.step(&ds.train[index], index, &cfg, &lr, it)?.psnr);
     }
     let last = &psnr[psnr.len().saturating_sub(ds.train.len())..];
     eprintln!(

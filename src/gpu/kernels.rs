@@ -34,6 +34,9 @@ pub struct Kernels {
     pub loss_ssim_v: Kernel,
     pub loss_cotangents_h: Kernel,
     pub loss_grad_v: Kernel,
+    /// The per-photo colour transform and its backward (render::appearance).
+    pub appearance: Kernel,
+    pub appearance_backward: Kernel,
     pub adam: Kernel,
     pub adam_vec4: Kernel,
     pub seg_accumulate: Kernel,
@@ -184,6 +187,11 @@ impl Kernels {
             loss_ssim_v: k("loss_ssim_v", atomics(spirv::LOSS_SSIM_V, spirv::LOSS_SSIM_V_CAS))?,
             loss_cotangents_h: k("loss_cotangents_h", spirv::LOSS_COTANGENTS_H)?,
             loss_grad_v: k("loss_grad_v", spirv::LOSS_GRAD_V)?,
+            appearance: k("appearance", spirv::APPEARANCE)?,
+            appearance_backward: k(
+                "appearance_backward",
+                atomics(spirv::APPEARANCE_BACKWARD, spirv::APPEARANCE_BACKWARD_CAS),
+            )?,
             adam: k("adam", spirv::ADAM)?,
             adam_vec4: k("adam_vec4", spirv::ADAM_VEC4)?,
             seg_accumulate: k("seg_accumulate", spirv::SEG_ACCUMULATE)?,

@@ -1,5 +1,6 @@
 //! Rendering: scene upload, the forward rasterizer and its backward recording, the GPU radix
 //! sort, level of detail, and the CPU reference twins every kernel is tested against.
+pub mod appearance;
 pub mod frames;
 pub mod lod;
 pub mod raster;

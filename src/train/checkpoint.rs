@@ -28,6 +28,10 @@ struct CheckpointHeader {
     /// What it was trained on (checkpoints written before this was recorded have none).
     #[serde(default)]
     dataset: Option<DatasetIdentity>,
+    /// Training views with a colour transform (0: none); their parameters, Adam moments and
+    /// step counts follow the transforms.
+    #[serde(default)]
+    appearance_views: usize,
 }
 
 /// Writes `st` atomically (temporary file + rename) after checking it is finite, so a bad state
@@ -42,6 +46,7 @@ pub fn write_checkpoint(path: &Path, st: &TrainState, cfg: &Config, dataset: Opt
         config: serde_json::to_value(cfg)?,
         layout: st.layout.clone(),
         dataset: dataset.cloned(),
+        appearance_views: st.appearance.params.len(),
     })?;
     crate::util::write_atomic(path, |f| {
         let mut w = std::io::BufWriter::new(f);
@@ -63,6 +68,11 @@ pub fn write_checkpoint(path: &Path, st: &TrainState, cfg: &Config, dataset: Opt
         for arr in [&st.xform_params, &st.xform_exp_avg, &st.xform_exp_avg_sq] {
             w.write_all(bytemuck::cast_slice(arr))?;
         }
+        let a = &st.appearance;
+        for arr in [&a.params, &a.exp_avg, &a.exp_avg_sq] {
+            w.write_all(bytemuck::cast_slice(arr))?;
+        }
+        w.write_all(bytemuck::cast_slice(&a.steps))?;
         w.flush()
     })
 }
@@ -148,6 +158,10 @@ pub fn checkpoint_from_bytes(data: &[u8], what: &str) -> Result<(TrainState, Con
     let xf: Vec<Vec<[f32; 8]>> = (0..3)
         .map(|_| Ok(bytemuck::pod_collect_to_vec(&f32s(instances.and_then(|i| i.checked_mul(8)))?)))
         .collect::<Result<_>>()?;
+    let views = header.appearance_views;
+    let ap: Vec<Vec<[f32; 12]>> =
+        (0..3).map(|_| Ok(bytemuck::pod_collect_to_vec(&f32s(views.checked_mul(12))?))).collect::<Result<_>>()?;
+    let steps: Vec<u32> = bytemuck::pod_collect_to_vec(&f32s(Some(views))?);
     if pos != data.len() {
         bail!("{what}: checkpoint has {} trailing bytes", data.len() - pos);
     }
@@ -172,6 +186,7 @@ pub fn checkpoint_from_bytes(data: &[u8], what: &str) -> Result<(TrainState, Con
         xform_params: xf[0].clone(),
         xform_exp_avg: xf[1].clone(),
         xform_exp_avg_sq: xf[2].clone(),
+        appearance: AppearanceState { params: ap[0].clone(), exp_avg: ap[1].clone(), exp_avg_sq: ap[2].clone(), steps },
     };
     // Values checked at the door: a checkpoint with a NaN or infinity in its parameters, Adam
     // moments, offsets or transforms is damaged (training on it would only spread them).
@@ -180,15 +195,20 @@ pub fn checkpoint_from_bytes(data: &[u8], what: &str) -> Result<(TrainState, Con
     let offsets = state.offset_exp_avg.iter().chain(&state.offset_exp_avg_sq).flatten();
     let deltas = state.offsets.d_means.iter().flatten().chain(state.offsets.d_sh0.iter().flatten());
     let xforms = state.xform_params.iter().chain(&state.xform_exp_avg).chain(&state.xform_exp_avg_sq).flatten();
+    let a = &state.appearance;
+    let colour = a.params.iter().chain(&a.exp_avg).chain(&a.exp_avg_sq).flatten();
     if !moments
         .chain(offsets)
         .chain(deltas)
         .chain(&state.offsets.d_opacities)
         .chain(xforms)
+        .chain(colour)
         .chain(&state.grad2d_accum)
         .all(|v| v.is_finite())
     {
-        bail!("{what}: damaged checkpoint: a non-finite value in its optimiser state, offsets or transforms");
+        bail!(
+            "{what}: damaged checkpoint: a non-finite value in its optimiser state, offsets, transforms or colour transforms"
+        );
     }
     state.to_instanced().with_context(|| format!("{what}: damaged instanced checkpoint"))?;
     let config =

@@ -23,9 +23,43 @@ pub struct Config {
     pub checkpoint_interval: u64,
     /// Instanced runs: optimise the instance transforms too (rates `lr.transform_*`).
     pub refine_transforms: bool,
+    pub appearance: AppearanceConfig,
     pub lr: LrConfig,
     pub densify: DensifyConfig,
     pub init: InitConfig,
+}
+
+/// `[appearance]`: the per-photo colour transforms (crate::render::appearance).
+#[derive(Clone, Debug, Deserialize, Serialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct AppearanceConfig {
+    /// "auto" (on for COLMAP datasets), "affine" or "none".
+    pub model: String,
+    pub lr_init: f64,
+    pub lr_final: f64,
+    pub from_iter: u64,
+}
+
+impl AppearanceConfig {
+    /// Whether a run on a dataset of `kind` ("colmap", "nerf-synthetic") learns transforms.
+    pub fn enabled(&self, kind: &str) -> bool {
+        match self.model.as_str() {
+            "affine" => true,
+            "auto" => kind == "colmap",
+            _ => false,
+        }
+    }
+
+    /// The Adam rate at iteration `it` of a schedule of `max_steps` (the position rate's,
+    /// `lr.position_max_steps`, so a run stopped and resumed with another `--iterations` keeps
+    /// its rates); 0 before `from_iter`.
+    pub fn lr(&self, it: u64, max_steps: u64) -> f64 {
+        if it <= self.from_iter {
+            return 0.0;
+        }
+        let t = (it as f64 / max_steps.max(1) as f64).clamp(0.0, 1.0);
+        (self.lr_init.ln() * (1.0 - t) + self.lr_final.ln() * t).exp()
+    }
 }
 
 #[derive(Clone, Debug, Deserialize, Serialize, PartialEq)]
@@ -166,6 +200,13 @@ impl Config {
         }
         if !(self.init.opacity > 0.0 && self.init.opacity < 1.0) {
             bail!("init.opacity must be in (0, 1)");
+        }
+        let a = &self.appearance;
+        if !matches!(a.model.as_str(), "auto" | "affine" | "none") {
+            bail!("appearance.model must be \"auto\", \"affine\" or \"none\", not {:?}", a.model);
+        }
+        if !(a.lr_init.is_finite() && a.lr_init > 0.0 && a.lr_final.is_finite() && a.lr_final > 0.0) {
+            bail!("appearance.lr_init and appearance.lr_final must be finite and positive");
         }
         Ok(())
     }

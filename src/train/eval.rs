@@ -56,40 +56,74 @@ pub fn eval(
     })?;
     bar.finish();
     if json {
-        let views: Vec<_> =
-            e.views.iter().map(|v| serde_json::json!({"name": v.name, "psnr": v.psnr, "ssim": v.ssim})).collect();
+        let views: Vec<_> = e.views.iter().map(ViewScore::json).collect();
         let v = serde_json::json!({
             "scene": scene_path.display().to_string(),
             "data": data.display().to_string(),
             "split": split,
             "psnr_mean": e.psnr,
             "ssim_mean": e.ssim,
+            "psnr_compensated_mean": e.psnr_compensated,
+            "ssim_compensated_mean": e.ssim_compensated,
+            "compensated": COMPENSATED_NOTE,
             "views": views,
         });
         println!("{}", serde_json::to_string_pretty(&v)?);
     } else {
+        println!("{:<24} {:>22}  {:>22}", "", "raw (whole image)", "compensated (right half)");
         for v in &e.views {
-            println!("{:<24} PSNR {:7.3} dB  SSIM {:.4}", v.name, v.psnr, v.ssim);
+            println!(
+                "{:<24} PSNR {:7.3} dB SSIM {:.4}  PSNR {:7.3} dB SSIM {:.4}",
+                v.name, v.psnr, v.ssim, v.psnr_compensated, v.ssim_compensated
+            );
         }
-        println!("{:<24} PSNR {:7.3} dB  SSIM {:.4}  ({} views)", "mean", e.psnr, e.ssim, e.views.len());
+        println!(
+            "{:<24} PSNR {:7.3} dB SSIM {:.4}  PSNR {:7.3} dB SSIM {:.4}  ({} views)",
+            "mean",
+            e.psnr,
+            e.ssim,
+            e.psnr_compensated,
+            e.ssim_compensated,
+            e.views.len()
+        );
     }
     Ok(())
 }
 
-/// PSNR and SSIM of one view.
+/// What the compensated scores are, in the JSON outputs.
+pub const COMPENSATED_NOTE: &str =
+    "the photo's colour transform (3x4 affine) fitted on its left half, PSNR/SSIM on its right half (Hierarchical 3DGS's protocol)";
+
+/// PSNR and SSIM of one view: raw (the render as it is, the whole image) and compensated (the
+/// photo's colour transform fitted on its left half, both measured on its right half:
+/// crate::render::appearance::compensated_scores).
 #[derive(Clone, Debug, PartialEq)]
 pub struct ViewScore {
     pub name: String,
     pub psnr: f64,
     pub ssim: f64,
+    pub psnr_compensated: f64,
+    pub ssim_compensated: f64,
 }
 
-/// Mean PSNR and SSIM over views, and each view's.
+/// Mean scores over views, and each view's.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Evaluation {
     pub psnr: f64,
     pub ssim: f64,
+    pub psnr_compensated: f64,
+    pub ssim_compensated: f64,
     pub views: Vec<ViewScore>,
+}
+
+impl ViewScore {
+    /// The view's entry of an `eval.json` / `eval --json`.
+    pub fn json(&self) -> serde_json::Value {
+        serde_json::json!({
+            "name": self.name, "psnr": self.psnr, "ssim": self.ssim,
+            "psnr_compensated": self.psnr_compensated, "ssim_compensated": self.ssim_compensated,
+        })
+    }
 }
 
 /// Renders `views` from `scene` and scores them against their images; `each` sees every
@@ -107,15 +141,24 @@ pub fn evaluate(
         let (w, h) = (v.camera.width as usize, v.camera.height as usize);
         let a: Vec<[f64; 3]> = f.image.iter().map(|p| [0, 1, 2].map(|c| p[c].clamp(0.0, 1.0) as f64)).collect();
         let b: Vec<[f64; 3]> = v.image.iter().map(|p| [p[0] as f64, p[1] as f64, p[2] as f64]).collect();
+        let (psnr_compensated, ssim_compensated) =
+            crate::render::appearance::compensated_scores(&f.image, &v.image, w, h);
         per.push(ViewScore {
             name: v.camera.name.clone(),
             psnr: crate::util::psnr(&f.image, &v.image),
             ssim: crate::render::reference::backward::ssim(&a, &b, w, h),
+            psnr_compensated,
+            ssim_compensated,
         });
         each(v, &f)?;
     }
     let n = per.len().max(1) as f64;
-    let psnr = per.iter().map(|p| p.psnr).sum::<f64>() / n;
-    let ssim = per.iter().map(|p| p.ssim).sum::<f64>() / n;
-    Ok(Evaluation { psnr, ssim, views: per })
+    let mean = |f: fn(&ViewScore) -> f64| per.iter().map(f).sum::<f64>() / n;
+    Ok(Evaluation {
+        psnr: mean(|p| p.psnr),
+        ssim: mean(|p| p.ssim),
+        psnr_compensated: mean(|p| p.psnr_compensated),
+        ssim_compensated: mean(|p| p.ssim_compensated),
+        views: per,
+    })
 }

@@ -28,7 +28,7 @@ pub mod trainer;
 pub use checkpoint::{checkpoint_dataset, checkpoint_from_bytes, checkpoint_path, read_checkpoint, write_checkpoint};
 pub use densify::{densify, initial_scene, knn_log_scales, reset_opacity, DensifyStats};
 pub use eval::{evaluate, Evaluation, ViewScore};
-pub use state::{Layout, LayoutGroup, TrainState};
+pub use state::{AppearanceState, Layout, LayoutGroup, TrainState};
 pub use trainer::{StepStats, Trainer};
 
 use std::io::Write;
@@ -70,6 +70,9 @@ pub struct RunOptions {
     pub resume: bool,
     /// Joint optimisation of this instanced scene (else plain training from the dataset).
     pub init: Option<InstancedScene>,
+    /// Fine-tuning of this plain scene at its full SH degree (the pruned baseline; the
+    /// configuration should not densify), instead of training from the dataset's points.
+    pub init_scene: Option<crate::model::scene::Scene>,
     /// Show progress: a bar on a terminal, else a line every 10 % or [`crate::util::LINE_SECONDS`] (false:
     /// a line every 10 % only).
     pub progress: bool,
@@ -78,12 +81,24 @@ pub struct RunOptions {
     /// Stop as Ctrl-C would once this many iterations of this session are done (tests of
     /// interrupting and resuming).
     pub stop_after: Option<u64>,
+    /// A fresh run that learns colour transforms starts from these (one per training view: the
+    /// joint stage from the plain stage's); else from the identity.
+    pub appearance: Option<Vec<crate::render::appearance::ColourTransform>>,
 }
 
 impl RunOptions {
     /// Plain training into `out` (no init, no label, no forced stop).
     pub fn new(out: PathBuf, resume: bool, progress: bool) -> RunOptions {
-        RunOptions { out, resume, init: None, progress, label: String::new(), stop_after: None }
+        RunOptions {
+            out,
+            resume,
+            init: None,
+            init_scene: None,
+            progress,
+            label: String::new(),
+            stop_after: None,
+            appearance: None,
+        }
     }
 }
 
@@ -234,11 +249,36 @@ pub fn run(gpu: &Arc<Gpu>, k: &Arc<Kernels>, ds: &Dataset, cfg: &Config, opts: &
         if ckpt.exists() {
             bail!("{} exists: continue it with --resume, or choose another --out", ckpt.display());
         }
-        match &opts.init {
-            Some(scene) => (TrainState::instanced(scene), Vec::new()),
-            None => (TrainState::new(initial_scene(ds, cfg)), Vec::new()),
+        let mut st = match (&opts.init, &opts.init_scene) {
+            (Some(scene), _) => TrainState::instanced(scene),
+            (None, Some(scene)) => {
+                let mut st = TrainState::new(scene.clone());
+                st.active_sh_degree = scene.sh_degree;
+                st
+            }
+            (None, None) => TrainState::new(initial_scene(ds, cfg)),
+        };
+        if cfg.appearance.enabled(ds.kind) {
+            st.appearance = match &opts.appearance {
+                Some(p) if p.len() == ds.train.len() => AppearanceState::from_params(p.clone()),
+                Some(p) => bail!(
+                    "{} colour transforms for {} training views: they belong to another dataset",
+                    p.len(),
+                    ds.train.len()
+                ),
+                None => AppearanceState::identity(ds.train.len()),
+            };
         }
+        (st, Vec::new())
     };
+    if state.appearance.params.len() != if cfg.appearance.enabled(ds.kind) { ds.train.len() } else { 0 } {
+        bail!(
+            "{}: the checkpoint holds {} colour transforms for {} training views; resume it with the configuration it was written with",
+            ckpt.display(),
+            state.appearance.params.len(),
+            ds.train.len()
+        );
+    }
     let mut trainer = Trainer::new(gpu, k, &state, cfg.refine_transforms)?;
     let write_metrics = |rows: &[MetricsRow]| -> Result<()> {
         let mut text = String::from(CSV_HEADER);
@@ -272,8 +312,9 @@ pub fn run(gpu: &Arc<Gpu>, k: &Arc<Kernels>, ds: &Dataset, cfg: &Config, opts: &
             st.scene.sh[0] = f32::NAN;
             trainer.load(&st)?;
         }
-        let view = &ds.train[view_index(cfg.seed, it, ds.train.len())];
-        let last = trainer.step(view, cfg, &lr, it)?;
+        let index = view_index(cfg.seed, it, ds.train.len());
+        let view = &ds.train[index];
+        let last = trainer.step(view, index, cfg, &lr, it)?;
         for (name, ms) in &trainer.passes {
             match pass_times.iter_mut().find(|(n, _)| n == name) {
                 Some(e) => e.1.push(*ms),
@@ -355,6 +396,9 @@ pub fn run(gpu: &Arc<Gpu>, k: &Arc<Kernels>, ds: &Dataset, cfg: &Config, opts: &
         write_checkpoint(&ckpt, &state, cfg, Some(&dataset))?;
         write_metrics(&rows)?;
     }
+    if !state.appearance.is_empty() {
+        write_appearance(&opts.out.join(APPEARANCE_FILE), ds, &state.appearance.params)?;
+    }
     match state.to_instanced()? {
         Some(inst) => {
             crate::formats::instgs::write(&inst, &opts.out.join("scene.instgs"), crate::formats::instgs::Dtype::F32)?
@@ -380,4 +424,57 @@ pub fn run(gpu: &Arc<Gpu>, k: &Arc<Kernels>, ds: &Dataset, cfg: &Config, opts: &
             })
             .collect(),
     })
+}
+
+/// The file a run that learns colour transforms writes them to, beside its scene.
+pub const APPEARANCE_FILE: &str = "appearance.json";
+
+/// Writes the training views' colour transforms: `{"model": "affine", "views": [{"name",
+/// "transform": [[M00, M01, M02, b0], [..], [..]]}]}` in the dataset's training order.
+pub fn write_appearance(
+    path: &std::path::Path,
+    ds: &Dataset,
+    params: &[crate::render::appearance::ColourTransform],
+) -> Result<()> {
+    let views: Vec<serde_json::Value> = ds
+        .train
+        .iter()
+        .zip(params)
+        .map(|(v, t)| serde_json::json!({"name": v.camera.name, "transform": [&t[0..4], &t[4..8], &t[8..12]]}))
+        .collect();
+    crate::util::write_json(path, &serde_json::json!({"model": "affine", "views": views}), true)
+}
+
+/// Reads [`write_appearance`]'s file for `ds`: one transform per training view, by name.
+pub fn read_appearance(
+    path: &std::path::Path,
+    ds: &Dataset,
+) -> Result<Vec<crate::render::appearance::ColourTransform>> {
+    #[derive(serde::Deserialize)]
+    struct File {
+        views: Vec<Entry>,
+    }
+    #[derive(serde::Deserialize)]
+    struct Entry {
+        name: String,
+        transform: [[f32; 4]; 3],
+    }
+    let what = path.display();
+    let text = std::fs::read_to_string(path).with_context(|| format!("{what}: cannot read"))?;
+    let f: File = serde_json::from_str(&text).with_context(|| format!("{what}: not a colour-transform file"))?;
+    let by_name: std::collections::BTreeMap<&str, &[[f32; 4]; 3]> =
+        f.views.iter().map(|e| (e.name.as_str(), &e.transform)).collect();
+    ds.train
+        .iter()
+        .map(|v| {
+            let t = by_name
+                .get(v.camera.name.as_str())
+                .ok_or_else(|| anyhow::anyhow!("{what}: no colour transform for training view {}", v.camera.name))?;
+            let flat: Vec<f32> = t.iter().flatten().copied().collect();
+            if !flat.iter().all(|x| x.is_finite()) {
+                bail!("{what}: the colour transform of {} is not finite", v.camera.name);
+            }
+            Ok(flat.try_into().expect("12 values"))
+        })
+        .collect()
 }

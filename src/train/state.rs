@@ -5,6 +5,7 @@ use anyhow::{bail, Result};
 
 use crate::model::instanced::{xform_params, Group, Instance, InstancedScene, Offsets, Similarity};
 use crate::model::scene::Scene;
+use crate::render::appearance::{ColourTransform, IDENTITY};
 
 /// Parameters per Gaussian of the five parameter groups (means, scales, quats, opacities, sh).
 pub(crate) fn strides(sh_degree: u32) -> [usize; 5] {
@@ -76,6 +77,68 @@ pub struct TrainState {
     pub xform_params: Vec<[f32; 8]>,
     pub xform_exp_avg: Vec<[f32; 8]>,
     pub xform_exp_avg_sq: Vec<[f32; 8]>,
+    /// The training photos' colour transforms (empty when the run learns none).
+    pub appearance: AppearanceState,
+}
+
+/// The per-photo colour transforms of a run (crate::render::appearance), one per training view
+/// in the dataset's order, with their Adam moments and how many steps each has taken (a photo's
+/// transform only steps when its photo is drawn).
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct AppearanceState {
+    pub params: Vec<ColourTransform>,
+    pub exp_avg: Vec<ColourTransform>,
+    pub exp_avg_sq: Vec<ColourTransform>,
+    pub steps: Vec<u32>,
+}
+
+impl AppearanceState {
+    /// `n` identity transforms with zero moments.
+    pub fn identity(n: usize) -> AppearanceState {
+        AppearanceState::from_params(vec![IDENTITY; n])
+    }
+
+    /// These transforms with zero moments (a new run that starts from another's transforms).
+    pub fn from_params(params: Vec<ColourTransform>) -> AppearanceState {
+        let n = params.len();
+        AppearanceState { params, exp_avg: vec![[0.0; 12]; n], exp_avg_sq: vec![[0.0; 12]; n], steps: vec![0; n] }
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.params.is_empty()
+    }
+
+    /// One Adam step of photo `i`'s transform on its gradient `grad` at rate `lr` (the twin of
+    /// `adam.comp`, in f64). The change is then spread back over all transforms so that their
+    /// mean stays the identity: the scene keeps the photos' average appearance (without it,
+    /// every transform could drift one way and the scene the other, and renders without a
+    /// transform — held-out views — would drift too).
+    pub fn step(&mut self, i: usize, grad: &[f32; 12], lr: f64) {
+        if lr <= 0.0 {
+            return;
+        }
+        self.steps[i] += 1;
+        let f = |a: &[f32; 12]| a.map(f64::from);
+        let (mut p, mut m, mut v) = (f(&self.params[i]), f(&self.exp_avg[i]), f(&self.exp_avg_sq[i]));
+        let before = p;
+        let a = crate::render::reference::backward::AdamStep {
+            lr,
+            beta1: crate::train::optim::BETA1,
+            beta2: crate::train::optim::BETA2,
+            eps: crate::train::optim::EPS as f64,
+            step: self.steps[i] as u64,
+        };
+        crate::render::reference::backward::adam(&mut p, &grad.map(f64::from), &mut m, &mut v, a);
+        self.params[i] = p.map(|x| x as f32);
+        self.exp_avg[i] = m.map(|x| x as f32);
+        self.exp_avg_sq[i] = v.map(|x| x as f32);
+        let n = self.params.len() as f64;
+        for t in &mut self.params {
+            for k in 0..12 {
+                t[k] -= ((p[k] - before[k]) / n) as f32;
+            }
+        }
+    }
 }
 
 impl TrainState {
@@ -100,6 +163,7 @@ impl TrainState {
             xform_params: Vec::new(),
             xform_exp_avg: Vec::new(),
             xform_exp_avg_sq: Vec::new(),
+            appearance: AppearanceState::default(),
         }
     }
 
@@ -146,6 +210,7 @@ impl TrainState {
             xform_params: scene.groups.iter().flat_map(|g| &g.instances).map(|i| xform_params(&i.transform)).collect(),
             xform_exp_avg: vec![[0.0; 8]; instances],
             xform_exp_avg_sq: vec![[0.0; 8]; instances],
+            appearance: AppearanceState::default(),
         }
     }
 
@@ -237,6 +302,12 @@ impl TrainState {
                 bail!("non-finite transform of instance {k} at iteration {}", self.iteration);
             }
         }
+        let a = &self.appearance;
+        for arr in [&a.params, &a.exp_avg, &a.exp_avg_sq] {
+            if let Some(k) = arr.iter().position(|p| !p.iter().all(|v| v.is_finite())) {
+                bail!("non-finite colour transform of training view {k} at iteration {}", self.iteration);
+            }
+        }
         Ok(())
     }
 
@@ -269,6 +340,7 @@ impl TrainState {
             grad2d_accum: rows.iter().map(|&(i, _)| self.grad2d_accum[i]).collect(),
             grad2d_count: rows.iter().map(|&(i, _)| self.grad2d_count[i]).collect(),
             max_radii: rows.iter().map(|&(i, keep)| if keep { self.max_radii[i] } else { 0 }).collect(),
+            appearance: self.appearance.clone(),
             // Densification is for plain runs only: no instancing parts.
             ..TrainState::new(Scene::default())
         }

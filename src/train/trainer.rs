@@ -8,6 +8,7 @@ use crate::dataset::View;
 use crate::gpu::kernels::Kernels;
 use crate::gpu::{CommandBuffer, Gpu};
 use crate::model::instanced::{xform_from_params, xform_param_grads, Offsets, Similarity};
+use crate::render::appearance::AppearanceBufs;
 use crate::render::raster::backward::Grads;
 use crate::render::raster::Rasterizer;
 use crate::render::upload::GpuScene;
@@ -40,7 +41,10 @@ pub struct Trainer {
     grads: Grads,
     adam: AdamState,
     pub raster: Rasterizer,
-    losses: Vec<LossBufs>,
+    /// Per image size: the loss buffers and, when the run learns colour transforms, theirs.
+    losses: Vec<(LossBufs, Option<AppearanceBufs>)>,
+    /// The training photos' colour transforms (host side; empty: none learned).
+    appearance: AppearanceState,
     cmd: CommandBuffer,
     timer: Option<crate::gpu::Timer>,
     /// GPU milliseconds per pass of the last iteration (forward passes, loss, backward, Adam).
@@ -62,8 +66,9 @@ impl Trainer {
             adam,
             raster: Rasterizer::new(gpu, k)?,
             losses: Vec::new(),
+            appearance: st.appearance.clone(),
             cmd: CommandBuffer::new(gpu)?,
-            timer: crate::gpu::Timer::new(gpu, 16)?,
+            timer: crate::gpu::Timer::new(gpu, 32)?,
             passes: Vec::new(),
         })
     }
@@ -110,6 +115,7 @@ impl Trainer {
         self.scene = scene;
         self.layout = st.layout.clone();
         self.xforms = [st.xform_params.clone(), st.xform_exp_avg.clone(), st.xform_exp_avg_sq.clone()];
+        self.appearance = st.appearance.clone();
         self.grads = grads;
         self.adam = adam;
         Ok(())
@@ -171,35 +177,65 @@ impl Trainer {
             },
             offset_exp_avg: to3(om),
             offset_exp_avg_sq: to3(ov),
+            appearance: self.appearance.clone(),
         })
     }
 
-    /// One iteration on `view`: forward, loss, backward and the Adam step (`step` from 1).
-    pub fn step(&mut self, view: &View, cfg: &Config, lr: &LearningRates, step: u64) -> Result<StepStats> {
+    /// One iteration on training view `index` (`view`): forward, the view's colour transform
+    /// when the run learns them, loss, backward and the Adam steps (`step` from 1).
+    pub fn step(
+        &mut self,
+        view: &View,
+        index: usize,
+        cfg: &Config,
+        lr: &LearningRates,
+        step: u64,
+    ) -> Result<StepStats> {
         let cam = &view.camera;
         let frame = self.raster.render(&self.scene, cam, cfg.background)?;
-        let li = match self.losses.iter().position(|l| l.width == cam.width && l.height == cam.height) {
+        let colour = self.appearance.params.get(index).copied();
+        let li = match self.losses.iter().position(|l| l.0.width == cam.width && l.0.height == cam.height) {
             Some(i) => i,
             None => {
-                self.losses.push(LossBufs::new(&self.gpu, cam.width, cam.height)?);
+                let pixels = (cam.width * cam.height) as usize;
+                let ab = colour.map(|_| AppearanceBufs::new(&self.gpu, pixels)).transpose()?;
+                self.losses.push((LossBufs::new(&self.gpu, cam.width, cam.height)?, ab));
                 self.losses.len() - 1
             }
         };
-        // One submission: target upload, loss, backward, Adam, loss sums back.
-        self.losses[li].target_upload.write_mapped(&view.image)?;
-        let lb = &self.losses[li];
+        // One submission: target upload, colour transform, loss, backward, Adam, sums back.
+        self.losses[li].0.target_upload.write_mapped(&view.image)?;
+        let (lb, ab) = (&self.losses[li].0, self.losses[li].1.as_ref());
         let image = self.raster.image_buffer().unwrap();
         let (k, scene, grads, adam, raster) = (&self.k, &self.scene, &self.grads, &self.adam, &self.raster);
         self.cmd.record_timed(self.timer.as_mut(), |rec| {
             lb.record_target_upload(rec)?;
-            record_loss(rec, k, image, lb, cfg.ssim_weight)?;
-            raster.record_backward(rec, scene, &lb.v_image, grads)?;
+            match (ab, &colour) {
+                (Some(ab), Some(t)) => {
+                    ab.record_apply(rec, k, image, t)?;
+                    record_loss(rec, k, &ab.adjusted, lb, cfg.ssim_weight)?;
+                    ab.record_backward(rec, k, image, &lb.v_image, t)?;
+                    raster.record_backward(rec, scene, &ab.v_render, grads)?;
+                }
+                _ => {
+                    record_loss(rec, k, image, lb, cfg.ssim_weight)?;
+                    raster.record_backward(rec, scene, &lb.v_image, grads)?;
+                }
+            }
             record_adam(rec, k, scene, grads, adam, lr, step)?;
             lb.record_sums_readback(rec)
         })?;
         self.cmd.submit_and_wait()?;
         let sums: Vec<f32> = lb.sums_readback.read_mapped(crate::shared::LOSS_SLOTS as usize)?;
         let (l1, ssim) = lb.means(&sums);
+        let psnr = match (ab, &colour) {
+            (Some(ab), Some(t)) => {
+                let g = ab.read_grads()?;
+                self.appearance.step(index, &g, cfg.appearance.lr(step, cfg.lr.position_max_steps));
+                crate::util::psnr(&crate::render::appearance::apply(t, &frame.image), &view.image)
+            }
+            _ => crate::util::psnr(&frame.image, &view.image),
+        };
         if self.refine && self.layout.is_some() {
             self.step_transforms(&cfg.lr, step)?;
         }
@@ -208,12 +244,7 @@ impl Trainer {
             self.passes.extend(t.results()?);
         }
         let w = cfg.ssim_weight as f64;
-        Ok(StepStats {
-            loss: (1.0 - w) * l1 + w * (1.0 - ssim),
-            l1,
-            ssim,
-            psnr: crate::util::psnr(&frame.image, &view.image),
-        })
+        Ok(StepStats { loss: (1.0 - w) * l1 + w * (1.0 - ssim), l1, ssim, psnr })
     }
 }
 
