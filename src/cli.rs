@@ -110,6 +110,11 @@ pub(crate) enum Cmd {
         /// Masks the dataset has are then not used for finding instances.
         #[arg(long, value_name = "auto|BOX|MASK.png", value_parser = parse_discover)]
         discover: Option<instgs_vk::discover::run::ExampleSpec>,
+        /// Pipeline: skip the "plain, pruned" baseline (the plain scene pruned to InstGS's GPU
+        /// memory and fine-tuned as long as the joint stage), which shows what instancing adds
+        /// over pruning alone.
+        #[arg(long)]
+        no_pruned_baseline: bool,
         /// Print a line every 10 % instead of a progress bar.
         #[arg(long)]
         quiet: bool,

@@ -192,7 +192,19 @@ fn run(cli: Cli) -> Result<()> {
             player::view(opts, cameras.as_deref(), (camera, &split), up, headless)
         }
         Cmd::BenchSort { keys, bits, repeats } => bench::bench_sort(device, keys, bits, repeats),
-        Cmd::Train { data, out, init, config, iterations, resume, quiet, from, until, discover } => {
+        Cmd::Train {
+            data,
+            out,
+            init,
+            config,
+            iterations,
+            resume,
+            quiet,
+            from,
+            until,
+            discover,
+            no_pruned_baseline,
+        } => {
             let args = pipeline::PipelineArgs {
                 data: data.data,
                 downscale: data.downscale,
@@ -203,6 +215,7 @@ fn run(cli: Cli) -> Result<()> {
                 from,
                 until,
                 discover,
+                pruned_baseline: !no_pruned_baseline,
                 progress: !quiet,
                 device,
             };

@@ -110,7 +110,9 @@ fn a_run_interrupted_in_every_stage_resumes_and_finishes() {
     let report = std::fs::read_to_string(parts.join("report.md")).unwrap();
     for needle in [
         "## Plain 3DGS against InstGS",
+        "| | plain 3DGS | plain, pruned | InstGS |",
         "PSNR (dB)",
+        "PSNR, colour-compensated",
         "PSNR on instance pixels",
         "FPS (median)",
         "held-out IoU",
@@ -128,9 +130,9 @@ fn a_run_interrupted_in_every_stage_resumes_and_finishes() {
     v["stages"]["instance"]["settings"]["instance"].as_object_mut().unwrap().remove("background_keep").unwrap();
     std::fs::write(&state, v.to_string()).unwrap();
     let o = run_bin(&args(d, p, c), &[]);
-    assert!(o.ok && o.stderr.matches("done earlier").count() == 6, "{}", o.stderr);
+    assert!(o.ok && o.stderr.matches("done earlier").count() == STAGES.len(), "{}", o.stderr);
     let o = run_bin(&[args(d, p, c), vec!["--from", "eval", "--until", "eval"]].concat(), &[]);
-    assert!(o.ok && o.stderr.contains("[5/6 eval] finished"), "{}", o.stderr);
+    assert!(o.ok && o.stderr.contains("[6/7 eval] finished"), "{}", o.stderr);
     assert!(!stage_done(&parts, "bench"));
     // Changed settings are not silently mixed with earlier results.
     std::fs::write(&cfg, format!("{TINY}\n[segment]\nalpha = 0.5\n")).unwrap();
@@ -165,7 +167,7 @@ fn poisoned_device_memory_changes_no_result() {
         assert!(o.ok, "{name}: {}", o.stderr);
         out
     });
-    for f in ["point_cloud.ply", "labels.json", "init.instgs", "scene.instgs", "joint/metrics.csv"] {
+    for f in ["point_cloud.ply", "labels.json", "init.instgs", "scene.instgs", "joint/metrics.csv", "pruned.ply"] {
         let [a, b] = [&runs[0], &runs[1]].map(|r| std::fs::read(r.join(f)).unwrap());
         if f.ends_with(".csv") {
             // Without the elapsed-time column.
@@ -256,7 +258,7 @@ fn assert_refused(o: &BinOut, out: &Path, needles: &[&str]) {
         assert!(last.contains(n), "'{last}' lacks '{n}'");
     }
     assert!(!out.join("checkpoint.bin").exists(), "training started");
-    assert!(!o.stderr.contains("[1/6 plain] started"), "{}", o.stderr);
+    assert!(!o.stderr.contains("[1/7 plain] started"), "{}", o.stderr);
 }
 
 #[test]
@@ -300,9 +302,9 @@ fn masks_that_do_not_match_the_images_are_refused_before_training() {
 #[test]
 fn per_frame_masks_from_a_2d_segmenter_are_associated_then_instanced() {
     // A 2D segmenter's output: ids renumbered independently in every frame, a category per id,
-    // no instances.json.
+    // no instances.json (its poses as ground_truth.json, matched to the instances by centre).
     let data = demo_copy("per-frame", |d| {
-        std::fs::remove_file(d.join("instances.json")).unwrap();
+        std::fs::rename(d.join("instances.json"), d.join("ground_truth.json")).unwrap();
         std::fs::remove_dir_all(d.join("masks/test")).unwrap();
         for (f, e) in std::fs::read_dir(d.join("masks/train")).unwrap().enumerate() {
             let path = e.unwrap().path();
@@ -354,6 +356,13 @@ fn per_frame_masks_from_a_2d_segmenter_are_associated_then_instanced() {
         .map(|r| r["gaussians"].as_u64().unwrap())
         .sum();
     assert_eq!(after, before.div_ceil(2) + plain, "background {before} → {after}");
+    // Pose errors against ground_truth.json: every accepted duck found its true one.
+    let accepted: Vec<&serde_json::Value> =
+        inst["instances"].as_array().unwrap().iter().filter(|r| r["status"] == "accepted").collect();
+    assert!(!accepted.is_empty());
+    for r in accepted {
+        assert!(r["rotation_error_deg"].as_f64().is_some(), "no ground truth matched: {r}");
+    }
 }
 
 #[test]

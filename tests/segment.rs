@@ -4,7 +4,7 @@ mod common;
 
 use common::*;
 use glam::Vec3;
-use instgs_vk::segment::{associate, instance_iou, segment, AssociateOptions};
+use instgs_vk::segment::{associate, instance_iou, instance_iou_per_frame, segment, AssociateOptions};
 
 /// Three instances of a random template in front of a wall; ten views and their masks rendered
 /// from the true labels: (plain scene, labels, views, masks).
@@ -216,6 +216,17 @@ fn association_recovers_instances_from_scrambled_per_frame_ids() {
         .count();
     let labelled = (0..plain.len()).filter(|&i| truth[i] != 0 && seg.labels[i] != 0).count();
     assert!(labelled > 300 && agree == labelled, "{agree} of {labelled}");
+    // Held-out IoU against such masks: each view's mask of the instance's category that overlaps
+    // it most, as the rewritten masks give it (the view that misses instance 3 is skipped).
+    for &id in &ids {
+        let per_frame =
+            instance_iou_per_frame(&gpu, &k, &plain, &seg.labels, &views, &scrambled, &cats, (id, "blob")).unwrap();
+        let global = instance_iou(&gpu, &k, &plain, &seg.labels, &views, &a.masks, id).unwrap();
+        let shown = a.members[&id].len();
+        assert_eq!(per_frame.len(), shown, "instance {id}");
+        let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len() as f64;
+        assert!(mean(&per_frame) > 0.7 && mean(&per_frame) >= mean(&global) - 1e-9, "{per_frame:?} {global:?}");
+    }
     assert_clean(&gpu);
 }
 
@@ -252,4 +263,13 @@ fn mask_and_category_files_are_checked() {
     std::fs::remove_file(masks.join("r_000.json")).unwrap();
     let e = format!("{:#}", load_frame_categories(&d, "train", &[view], &[mask]).unwrap_err());
     assert!(e.contains("r_000.json") && e.contains("cannot read"), "{e}");
+    // Mask names: the image's own name, or its stem with .png as 2D segmenters write them.
+    use instgs_vk::dataset::masks::mask_path;
+    let photo = d.join("images").join("img_001.jpg");
+    let e = format!("{:#}", mask_path(&d, "train", &photo).unwrap_err());
+    assert!(e.contains("img_001.jpg") && e.contains("img_001.png") && e.contains("missing"), "{e}");
+    m.save_with_format(masks.join("img_001.png"), image::ImageFormat::Png).unwrap();
+    assert_eq!(mask_path(&d, "train", &photo).unwrap(), masks.join("img_001.png"));
+    m.save_with_format(masks.join("img_001.jpg"), image::ImageFormat::Png).unwrap();
+    assert_eq!(mask_path(&d, "train", &photo).unwrap(), masks.join("img_001.jpg"));
 }

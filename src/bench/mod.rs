@@ -179,7 +179,7 @@ pub fn bench(
     }
     let Setup { gpu, k, scene, cams } = setup(device, view)?;
     let a = BenchInput { path: &view.scene, scene, render: render.clone(), forward: view.forward };
-    let b = compare.map(|(p, c, f)| BenchInput::read(p, c, f)).transpose()?;
+    let b: Vec<BenchInput> = compare.map(|(p, c, f)| BenchInput::read(p, c, f)).into_iter().collect::<Result<_>>()?;
     let v = bench_scenes(&gpu, &k, a, b, &cams, (frames, warmup), view.background, ("bench: ", ProgressMode::Auto))?;
     if let Some(path) = json {
         write_json(path, &v, true)?;
@@ -187,14 +187,16 @@ pub fn bench(
     Ok(())
 }
 
-/// Renders scene A (and B, interleaved A B A B …) from `cams`, prints the tables and returns
-/// the JSON report (A's numbers; with B also `compare`, `ratios` A over B and image agreement).
+/// Renders scene A (and the `others`, interleaved A B C A B C …) from `cams`, prints the tables
+/// and returns the JSON report: A's numbers; with others also `compare` (B's), `ratios` (A over
+/// B) and image agreement of A and B, and for every further scene an entry of `compare_more`
+/// (its numbers with its own `ratios`, A over it).
 #[allow(clippy::too_many_arguments)]
 pub fn bench_scenes(
     gpu: &Arc<Gpu>,
     k: &Arc<Kernels>,
     a: BenchInput,
-    b: Option<BenchInput>,
+    others: Vec<BenchInput>,
     cams: &[Camera],
     (frames, warmup): (usize, usize),
     background: [f32; 3],
@@ -202,10 +204,10 @@ pub fn bench_scenes(
 ) -> Result<serde_json::Value> {
     let render = serde_json::to_value(&a.render)?;
     let mut runs = vec![BenchScene::new(gpu, k, a)?];
-    if let Some(b) = b {
+    for b in others {
         runs.push(BenchScene::new(gpu, k, b)?);
     }
-    // Interleaved (A B A B …) so that clock and thermal drift hit both scenes alike.
+    // Interleaved (A B A B …) so that clock and thermal drift hit every scene alike.
     let mut bar = Progress::new(progress.0, "view", "views/s", cams.len() as u64, 0, progress.1);
     for (i, cam) in cams.iter().enumerate() {
         for _ in 0..warmup {
@@ -242,24 +244,26 @@ pub fn bench_scenes(
     v["frames"] = frames.into();
     v["allocated_gpu_bytes"] = gpu.allocated_bytes().into();
     v["cpu_rss_bytes"] = rss.into();
-    if let Some(b) = reports.get(1) {
+    let mut more = Vec::new();
+    for (j, b) in reports.iter().enumerate().skip(1) {
         let ratio = |key: &str| {
             let (x, y) = (reports[0][key].as_f64().unwrap_or(f64::NAN), b[key].as_f64().unwrap_or(f64::NAN));
             x / y
         };
         let ratios = serde_json::json!({
-            // Timing ratios pair each frame of A with the frame of B rendered right after it
-            // (same camera, same machine state) and take the median of those ratios.
-            "fps": paired_median(&runs[1].frame_ms, &runs[0].frame_ms),
-            "frame_ms": paired_median(&runs[0].frame_ms, &runs[1].frame_ms),
-            "wall_ms": paired_median(&runs[0].wall_ms, &runs[1].wall_ms),
+            // Timing ratios pair each frame of A with the frame of the other scene rendered
+            // right after it (same camera, same machine state) and take the median of those ratios.
+            "fps": paired_median(&runs[j].frame_ms, &runs[0].frame_ms),
+            "frame_ms": paired_median(&runs[0].frame_ms, &runs[j].frame_ms),
+            "wall_ms": paired_median(&runs[0].wall_ms, &runs[j].wall_ms),
             "scene_gpu_bytes": ratio("scene_gpu_bytes"),
             "frame_gpu_bytes": ratio("frame_gpu_bytes"),
             "file_bytes": ratio("file_bytes"),
             "intersections": ratio("intersections"),
         });
         println!(
-            "A over B: FPS {:.3}x (median of paired frames; wall-clock frame time {:.3}x), scene GPU bytes {:.3}x, file bytes {:.3}x, frame GPU bytes {:.3}x ({} interleaved frames each)",
+            "A over {}: FPS {:.3}x (median of paired frames; wall-clock frame time {:.3}x), scene GPU bytes {:.3}x, file bytes {:.3}x, frame GPU bytes {:.3}x ({} interleaved frames each)",
+            (b'A' + j as u8) as char,
             ratios["fps"].as_f64().unwrap_or(f64::NAN),
             ratios["wall_ms"].as_f64().unwrap_or(f64::NAN),
             ratios["scene_gpu_bytes"].as_f64().unwrap_or(f64::NAN),
@@ -267,14 +271,25 @@ pub fn bench_scenes(
             ratios["frame_gpu_bytes"].as_f64().unwrap_or(f64::NAN),
             runs[0].frame_ms.len()
         );
-        v["compare"] = b.clone();
-        v["ratios"] = ratios;
+        if j == 1 {
+            v["compare"] = b.clone();
+            v["ratios"] = ratios;
+        } else {
+            let mut entry = b.clone();
+            entry["ratios"] = ratios;
+            more.push(entry);
+        }
+    }
+    if !more.is_empty() {
+        v["compare_more"] = more.into();
+    }
+    if runs.len() > 1 {
         // Image agreement, outside the timed frames: A's frames against B's, and both against
         // an antialiased reference, B rendered at twice the resolution and box-filtered 2×2.
         // Identical images count as 100 dB.
         let db = |a: &[[f32; 4]], b: &[[f32; 4]]| crate::util::psnr(a, b).min(100.0);
         let (mut ab, mut a_ref, mut b_ref) = (Vec::new(), Vec::new(), Vec::new());
-        if let [a, b] = &mut runs[..] {
+        if let [a, b, ..] = &mut runs[..] {
             for cam in cams {
                 let fa = a.r.render(&a.gs, cam, background)?;
                 let fb = b.r.render(&b.gs, cam, background)?;

@@ -94,15 +94,30 @@ pub fn mask_from_bytes(bytes: &[u8], what: &str, width: u32, height: u32) -> Res
     bail!("{what}: mask is {w}x{h}, its image {width}x{height}");
 }
 
-/// The masks of `views` (`masks/<split>/<image name>.png` under `data`), resized views refused.
+/// The mask file of the image `image` under `data/masks/<split>/`: the image's own name
+/// (`r_000.png`, or `img_001.jpg` holding PNG bytes) or its stem with `.png` (`img_001.png`, as
+/// SAM-style tools, Gaussian Grouping and SAGA write them), the first that exists.
+pub fn mask_path(data: &Path, split: &str, image: &Path) -> Result<std::path::PathBuf> {
+    let dir = data.join("masks").join(split);
+    let name = image.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+    let stem = image.file_stem().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+    let candidates = [dir.join(&name), dir.join(format!("{stem}.png"))];
+    match candidates.iter().find(|p| p.is_file()) {
+        Some(p) => Ok(p.clone()),
+        None if name.ends_with(".png") => {
+            bail!("{}: the mask of image {} is missing", candidates[0].display(), image.display())
+        }
+        None => bail!(
+            "{}: the mask of image {} is missing (looked for {name} and {stem}.png)",
+            dir.display(),
+            image.display()
+        ),
+    }
+}
+
+/// The masks of `views` (see [`mask_path`] for their names), resized views refused.
 pub fn load_masks(data: &Path, split: &str, views: &[View]) -> Result<Vec<Vec<u16>>> {
-    views
-        .iter()
-        .map(|v| {
-            let name = v.path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
-            read_mask(&data.join("masks").join(split).join(&name), v.camera.width, v.camera.height)
-        })
-        .collect()
+    views.iter().map(|v| read_mask(&mask_path(data, split, &v.path)?, v.camera.width, v.camera.height)).collect()
 }
 
 /// The distinct non-zero ids of a mask, ascending.

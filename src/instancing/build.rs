@@ -26,7 +26,7 @@ pub fn instance(
     scene_path: &Path,
     labels: &Path,
     groups_path: &Path,
-    truth_path: Option<&Path>,
+    truth_path: Option<(&Path, TruthIds)>,
     opts: &crate::instancing::template::InstanceOptions,
     dtype: instgs::Dtype,
     prune: Option<(&Path, &mut KeepRule)>,
@@ -72,9 +72,16 @@ pub fn instance(
     }
     instgs::write(&inst, out, dtype)?;
     let truth = match truth_path {
-        Some(p) => crate::instancing::pose_error::read_ground_truth(p)?,
+        Some((p, ids)) => crate::instancing::pose_error::read_ground_truth(p)?.map(|t| match ids {
+            TruthIds::Same => t,
+            TruthIds::ByCentre => {
+                let centres = instance_centres(&scene, &labels);
+                crate::instancing::pose_error::match_by_centre(&t, &centres)
+            }
+        }),
         None => None,
     };
+    let truth_name = truth_path.map(|t| t.0.display().to_string()).unwrap_or_default();
     let mut rows = Vec::new();
     for r in &reports {
         let mut row = serde_json::json!({
@@ -109,8 +116,7 @@ pub fn instance(
             if let (Some(a), Some(b)) = (t.get(&r.reference), t.get(&r.id)) {
                 let (rot, trans, scale) = crate::instancing::pose_error::pose_error(&r.relative, a, b);
                 line += &format!(
-                    "; against {}: rotation {rot:.3}°, translation {:.3} % of the size, scale {:+.3} %",
-                    groups_path.display(),
+                    "; against {truth_name}: rotation {rot:.3}°, translation {:.3} % of the size, scale {:+.3} %",
                     100.0 * trans,
                     100.0 * scale
                 );
@@ -150,6 +156,29 @@ pub fn instance(
         write_json(path, &v, true)?;
     }
     Ok(v)
+}
+
+/// How a ground-truth file's instance ids relate to the run's.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum TruthIds {
+    /// The same ids (masks with ids shared by all views, grouped by the truth's own file).
+    Same,
+    /// Unrelated ids: matched by the instances' centres (`pose_error::match_by_centre`).
+    ByCentre,
+}
+
+/// Every labelled instance's centre: the opacity-weighted mean of its Gaussians' means.
+fn instance_centres(scene: &crate::model::scene::Scene, labels: &[u32]) -> std::collections::BTreeMap<u32, [f64; 3]> {
+    let mut sums: std::collections::BTreeMap<u32, ([f64; 3], f64)> = Default::default();
+    for (i, &l) in labels.iter().enumerate().filter(|(_, &l)| l != 0) {
+        let w = crate::math::sigmoid(scene.opacities[i]) as f64;
+        let e = sums.entry(l).or_default();
+        for a in 0..3 {
+            e.0[a] += w * scene.means[i][a] as f64;
+        }
+        e.1 += w;
+    }
+    sums.into_iter().map(|(l, (s, w))| (l, s.map(|v| v / w.max(1e-12)))).collect()
 }
 
 /// `instgs-vk compose`: an instanced scene from named template PLYs (`NAME=FILE`), a scene graph
@@ -252,7 +281,12 @@ pub struct InstanceRequest {
 pub fn instance_command(device: Option<String>, req: &InstanceRequest) -> Result<()> {
     let data = &req.data;
     let groups_file = req.groups.clone().unwrap_or_else(|| data.join("instances.json"));
-    let truth = req.groups.is_none().then_some(groups_file.as_path());
+    let gt_file = data.join(crate::instancing::pose_error::GROUND_TRUTH_FILE);
+    let truth = match &req.groups {
+        None => Some((groups_file.as_path(), TruthIds::Same)),
+        Some(_) if gt_file.exists() => Some((gt_file.as_path(), TruthIds::ByCentre)),
+        Some(_) => None,
+    };
     let has_views = data.join("transforms_train.json").exists() || data.join("sparse").is_dir();
     let mut check = if !req.render_check || !has_views {
         None

@@ -128,3 +128,29 @@ pub fn background_budget(
     }
     Ok(Budget { keep: hi, psnr_whole: whole, psnr_pruned: at_hi, budget_db, views: n, protected, trials })
 }
+
+/// The "plain, pruned" baseline: `scene`'s most significant Gaussians (by `significance`, the
+/// same measure the background budget ranks by, over the whole scene) that fit in `bytes` of
+/// GPU memory as a plain scene on `gpu` (what `bench` reports as `scene_gpu_bytes`). What a user
+/// would try before instancing: prune a plain scene to the instanced scene's size (LightGaussian's
+/// global significance pruning), then fine-tune it. Returns the kept indices, in scene order.
+pub fn prune_to_bytes(gpu: &Arc<Gpu>, scene: &Scene, significance: &[f32], bytes: u64) -> Result<Vec<usize>> {
+    if significance.len() != scene.len() {
+        bail!("{} significance values for {} Gaussians", significance.len(), scene.len());
+    }
+    let mut order: Vec<usize> = (0..scene.len()).collect();
+    order.sort_by(|&a, &b| significance[b].total_cmp(&significance[a]).then(a.cmp(&b)));
+    let whole = GpuScene::new(gpu, scene)?.gpu_bytes();
+    let mut n = ((scene.len() as f64 * bytes as f64 / whole.max(1) as f64).floor() as usize).min(scene.len());
+    loop {
+        let mut keep = order[..n].to_vec();
+        keep.sort_unstable();
+        if n == 0 {
+            bail!("a plain scene of one Gaussian already takes more than {bytes} bytes");
+        }
+        if GpuScene::new(gpu, &scene.select(&keep))?.gpu_bytes() <= bytes {
+            return Ok(keep);
+        }
+        n -= (n / 1000).max(1);
+    }
+}

@@ -70,3 +70,35 @@ pub fn pose_error(relative: &Sim3, first: &GroundTruthPose, this: &GroundTruthPo
     let d = (0..3).map(|i| (a[i] - b[i]).powi(2)).sum::<f64>().sqrt();
     (rot, d / first.size, relative.scale / truth.scale - 1.0)
 }
+
+/// The dataset file with ground-truth poses for masks whose ids are not the truth's (per-frame
+/// ids from a 2D segmenter, or instances found without masks): `instances.json`'s layout, ids
+/// matched to the run's instances by [`match_by_centre`] (`tools/make_capture.py` writes one).
+pub const GROUND_TRUTH_FILE: &str = "ground_truth.json";
+
+/// Ground-truth poses keyed by the run's instance ids: each instance (its Gaussians' centre,
+/// `centres`) takes the true instance whose centre is nearest, closest pairs first, one each,
+/// and only within half the true object's size (else it has no ground truth).
+pub fn match_by_centre(
+    truth: &BTreeMap<u32, GroundTruthPose>,
+    centres: &BTreeMap<u32, [f64; 3]>,
+) -> BTreeMap<u32, GroundTruthPose> {
+    let mut pairs: Vec<(f64, u32, u32)> = centres
+        .iter()
+        .flat_map(|(&id, c)| {
+            truth.iter().map(move |(&t, g)| {
+                let d = (0..3).map(|a| (c[a] - g.center[a]).powi(2)).sum::<f64>().sqrt();
+                (d, id, t)
+            })
+        })
+        .filter(|&(d, _, t)| d < 0.5 * truth[&t].size)
+        .collect();
+    pairs.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let (mut out, mut used) = (BTreeMap::new(), std::collections::BTreeSet::new());
+    for (_, id, t) in pairs {
+        if !out.contains_key(&id) && used.insert(t) {
+            out.insert(id, truth[&t].clone());
+        }
+    }
+    out
+}

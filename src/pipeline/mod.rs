@@ -75,14 +75,12 @@ fn check_masks(data: &Path, ds: &Dataset) -> Result<MaskIds> {
     let missing: Vec<String> = ds
         .train
         .iter()
-        .filter_map(|v| {
-            let name = v.path.file_name()?.to_string_lossy().into_owned();
-            (!dir.join(&name).exists()).then_some(name)
-        })
+        .filter(|v| crate::dataset::masks::mask_path(data, "train", &v.path).is_err())
+        .filter_map(|v| Some(v.path.file_name()?.to_string_lossy().into_owned()))
         .collect();
     if !missing.is_empty() {
         bail!(
-            "{}: {} of {} training views have no mask (first: {}); masks/train/ must hold one PNG per training image, with the image's name",
+            "{}: {} of {} training views have no mask (first: {}); masks/train/ must hold one PNG per training image, named as the image or as its stem with .png (img_001.jpg: img_001.jpg or img_001.png)",
             dir.display(),
             missing.len(),
             ds.train.len(),
@@ -182,6 +180,7 @@ fn settings(s: Stage, a: &PipelineArgs, cfg: &PipelineConfig) -> Result<serde_js
         },
         Stage::Instance => serde_json::to_value(&cfg.instance)?,
         Stage::Joint => serde_json::to_value(&cfg.joint)?,
+        Stage::Pruned => serde_json::json!({"baseline": a.pruned_baseline, "joint": serde_json::to_value(&cfg.joint)?}),
         Stage::Eval => serde_json::to_value(&cfg.eval)?,
         Stage::Bench => serde_json::to_value(&cfg.bench)?,
     };
@@ -194,6 +193,7 @@ fn stage_checkpoint(run: &Path, s: Stage) -> Option<PathBuf> {
     match s {
         Stage::Plain => Some(train::checkpoint_path(run)),
         Stage::Joint => Some(train::checkpoint_path(&run.join("joint"))),
+        Stage::Pruned => Some(train::checkpoint_path(&run.join("pruned"))),
         _ => None,
     }
 }
@@ -338,6 +338,19 @@ impl State {
     }
 }
 
+/// The "plain, pruned" baseline's scene in a run folder.
+pub const PRUNED_FILE: &str = "pruned.ply";
+
+/// What a training stage starts from.
+enum Init {
+    /// The dataset (plain 3DGS).
+    Dataset,
+    /// A plain scene, fine-tuned without densification (the pruned baseline).
+    Plain(crate::model::scene::Scene),
+    /// An instanced scene (joint optimisation).
+    Instanced(crate::model::instanced::InstancedScene),
+}
+
 struct Ctx<'a> {
     a: &'a PipelineArgs,
     cfg: &'a PipelineConfig,
@@ -382,7 +395,7 @@ impl Ctx<'_> {
                     eprintln!("{}: plain scene from {}", run.join("point_cloud.ply").display(), p.display());
                     return Ok(!interrupted());
                 }
-                self.train(run, None, &self.cfg.plain, s, hooked)
+                self.train(run, Init::Dataset, &self.cfg.plain, s, hooked)
             }
             Stage::Segment if self.mask_ids == MaskIds::Discovered => self.discover(),
             Stage::Segment => {
@@ -433,13 +446,18 @@ impl Ctx<'_> {
                     "pq8" => crate::formats::instgs::Dtype::Pq8,
                     _ => crate::formats::instgs::Dtype::F32,
                 };
+                // Ground-truth poses where the dataset has them: its groups file, or for ids that
+                // are not the truth's, ground_truth.json matched by the instances' centres.
+                use crate::instancing::build::TruthIds;
+                let gt = self.a.data.join(crate::instancing::pose_error::GROUND_TRUTH_FILE);
+                let by_centre = gt.exists().then(|| (gt.clone(), TruthIds::ByCentre));
                 let (groups, truth) = match self.mask_ids {
                     MaskIds::Global => {
                         let g = self.a.data.join("instances.json");
-                        (g.clone(), Some(g))
+                        (g.clone(), Some((g, TruthIds::Same)))
                     }
-                    MaskIds::PerFrame => (run.join("labels.json"), None),
-                    MaskIds::Discovered => (run.join("groups.json"), None),
+                    MaskIds::PerFrame => (run.join("labels.json"), by_centre),
+                    MaskIds::Discovered => (run.join("groups.json"), by_centre),
                 };
                 let mut check = if c.render_check {
                     // Masks select the views only where their ids are the labels' ids.
@@ -489,7 +507,7 @@ impl Ctx<'_> {
                     &run.join("point_cloud.ply"),
                     &run.join("labels.json"),
                     &groups,
-                    truth.as_deref(),
+                    truth.as_ref().map(|(p, ids)| (p.as_path(), *ids)),
                     &opts,
                     dtype,
                     Some((&run.join("significance.bin"), &mut rule)),
@@ -509,24 +527,30 @@ impl Ctx<'_> {
             Stage::Joint => {
                 let init = crate::formats::instgs::read(&run.join("init.instgs"))?;
                 let dir = run.join("joint");
-                if !self.train(&dir, Some(init), &self.cfg.joint, s, hooked)? {
+                if !self.train(&dir, Init::Instanced(init), &self.cfg.joint, s, hooked)? {
                     return Ok(false);
                 }
                 std::fs::rename(dir.join("scene.instgs"), run.join("scene.instgs"))
                     .with_context(|| format!("{}: cannot move the result", dir.join("scene.instgs").display()))?;
                 Ok(true)
             }
+            Stage::Pruned => self.pruned(hooked),
             Stage::Eval => self.eval(),
             Stage::Bench => {
                 let cams: Vec<_> = self.views().iter().map(|v| v.camera.clone()).collect();
                 let render = crate::render::lod::RenderConfig::load(None)?;
                 let a = run.join("scene.instgs");
                 let b = run.join("point_cloud.ply");
+                let c = run.join(PRUNED_FILE);
+                let mut others = vec![BenchInput::read(&b, render.clone(), Forward::Compute)?];
+                if self.a.pruned_baseline && c.exists() {
+                    others.push(BenchInput::read(&c, render.clone(), Forward::Compute)?);
+                }
                 let v = crate::bench::bench_scenes(
                     self.gpu,
                     self.k,
                     BenchInput::read(&a, render.clone(), Forward::Compute)?,
-                    Some(BenchInput::read(&b, render.clone(), Forward::Compute)?),
+                    others,
                     &cams,
                     (self.cfg.bench.frames, self.cfg.bench.warmup),
                     self.cfg.plain.background,
@@ -553,14 +577,30 @@ impl Ctx<'_> {
     fn train(
         &self,
         out: &Path,
-        init: Option<crate::model::instanced::InstancedScene>,
+        init: Init,
         cfg: &crate::train::config::Config,
         s: Stage,
         hooked: bool,
     ) -> Result<bool> {
         let resume = train::checkpoint_path(out).exists();
+        // The later stages start from the photos' colour transforms the plain stage learned.
+        let colours = self.run_dir().join(train::APPEARANCE_FILE);
+        let appearance = match init {
+            Init::Dataset => None,
+            _ if colours.exists() && cfg.appearance.enabled(self.ds.kind) => {
+                Some(train::read_appearance(&colours, self.ds)?)
+            }
+            _ => None,
+        };
+        let (init, init_scene) = match init {
+            Init::Dataset => (None, None),
+            Init::Instanced(scene) => (Some(scene), None),
+            Init::Plain(scene) => (None, Some(scene)),
+        };
         let opts = train::RunOptions {
             init,
+            init_scene,
+            appearance,
             label: s.label(),
             stop_after: hooked.then_some((cfg.iterations / 2).max(1)),
             ..train::RunOptions::new(out.to_path_buf(), resume, self.a.progress)
@@ -575,6 +615,70 @@ impl Ctx<'_> {
             r.iterations_per_second
         );
         Ok(!r.interrupted)
+    }
+
+    /// The "plain, pruned" baseline: the plain scene's most significant Gaussians that fit in
+    /// the InstGS scene's GPU memory (`compact::prune_to_bytes`), fine-tuned for as many
+    /// iterations as the joint stage with its schedule; `RUN/pruned.ply` and `RUN/pruned.json`.
+    /// Skipped (and an earlier result removed) with `--no-pruned-baseline`.
+    fn pruned(&self, hooked: bool) -> Result<bool> {
+        let run = self.run_dir();
+        let out = run.join(PRUNED_FILE);
+        if !self.a.pruned_baseline {
+            for p in [out, run.join("pruned.json")] {
+                if p.exists() {
+                    std::fs::remove_file(&p).with_context(|| format!("{}: cannot remove", p.display()))?;
+                }
+            }
+            eprintln!("{}skipped (--no-pruned-baseline)", Stage::Pruned.label());
+            return Ok(true);
+        }
+        let dir = run.join("pruned");
+        let init = if train::checkpoint_path(&dir).exists() {
+            // Resumed from its checkpoint: the pruned scene is in there.
+            crate::model::scene::Scene::default()
+        } else {
+            let plain = crate::formats::ply::read_ply(&run.join("point_cloud.ply"))?;
+            let sig_path = run.join("significance.bin");
+            let bytes = std::fs::read(&sig_path).with_context(|| format!("{}: cannot read", sig_path.display()))?;
+            if bytes.len() != 4 * plain.len() {
+                bail!(
+                    "{}: {} bytes for {} Gaussians; redo the segment stage (--from segment)",
+                    sig_path.display(),
+                    bytes.len(),
+                    plain.len()
+                );
+            }
+            let significance: Vec<f32> = bytemuck::pod_collect_to_vec(&bytes);
+            let render = crate::render::lod::RenderConfig::load(None)?;
+            let target = AnyScene::read(&run.join("init.instgs"))?.upload_for_rendering(self.gpu, &render)?.gpu_bytes();
+            let keep = crate::instancing::compact::prune_to_bytes(self.gpu, &plain, &significance, target)?;
+            let summary = serde_json::json!({
+                "gaussians": plain.len(), "kept": keep.len(), "target_gpu_bytes": target,
+                "ranking": "significance (blending weight summed over the training views)",
+                "fine_tune_iterations": self.cfg.joint.iterations,
+            });
+            eprintln!(
+                "{}kept {} of {} Gaussians ({:.1} %) to fit InstGS's {:.2} MB; fine-tuning {} iterations",
+                Stage::Pruned.label(),
+                keep.len(),
+                plain.len(),
+                100.0 * keep.len() as f64 / plain.len().max(1) as f64,
+                target as f64 / 1e6,
+                self.cfg.joint.iterations
+            );
+            std::fs::create_dir_all(&dir).with_context(|| format!("{}: cannot create", dir.display()))?;
+            crate::util::write_json(&dir.join("pruned.json"), &summary, true)?;
+            plain.select(&keep)
+        };
+        if !self.train(&dir, Init::Plain(init), &self.cfg.joint, Stage::Pruned, hooked)? {
+            return Ok(false);
+        }
+        for (from, to) in [(dir.join("point_cloud.ply"), out), (dir.join("pruned.json"), run.join("pruned.json"))] {
+            std::fs::copy(&from, &to)
+                .with_context(|| format!("{}: cannot copy to {}", from.display(), to.display()))?;
+        }
+        Ok(true)
     }
 
     /// The segment stage without masks: `crate::discover` finds the instances (labels.json,
@@ -652,7 +756,8 @@ impl Ctx<'_> {
         let n_images = self.cfg.eval.images.min(views.len());
         // Evenly spread views for the pictures.
         let pick: Vec<usize> = (0..n_images).map(|i| i * views.len() / n_images.max(1)).collect();
-        let mut plain_frames: BTreeMap<usize, Vec<[f32; 4]>> = BTreeMap::new();
+        // Per picked view, the baselines' frames (plain, then plain pruned) for the pictures.
+        let mut baseline_frames: BTreeMap<usize, Vec<Vec<[f32; 4]>>> = BTreeMap::new();
         // The split's masks, where it has them: PSNR over instance pixels (any id but 0) and
         // background pixels separately, to see where the two scenes differ.
         let masks = if self.a.data.join("masks").join(split).is_dir() {
@@ -663,7 +768,9 @@ impl Ctx<'_> {
             None
         };
         let mut results = Vec::new();
-        for (name, file) in [("plain", "point_cloud.ply"), ("instgs", "scene.instgs")] {
+        let pruned = self.a.pruned_baseline && run.join(PRUNED_FILE).exists();
+        let scenes = [("plain", "point_cloud.ply"), ("pruned", PRUNED_FILE), ("instgs", "scene.instgs")];
+        for (name, file) in scenes.into_iter().filter(|(n, _)| pruned || *n != "pruned") {
             let path = run.join(file);
             let scene = AnyScene::read(&path)?;
             let gs = scene.upload(self.gpu).with_context(|| path.display().to_string())?;
@@ -687,10 +794,10 @@ impl Ctx<'_> {
                     }
                 }
                 if pick.contains(&index) {
-                    if name == "plain" {
-                        plain_frames.insert(index, f.image.clone());
-                    } else {
+                    if name == "instgs" {
                         pictures.push((index, v.camera.name.clone(), f.image.clone()));
+                    } else {
+                        baseline_frames.entry(index).or_default().push(f.image.clone());
                     }
                 }
                 index += 1;
@@ -701,24 +808,36 @@ impl Ctx<'_> {
                 Err(_) if interrupted() => return Ok(false),
                 other => other?,
             };
-            eprintln!("{name}: {split} PSNR {:.3} dB, SSIM {:.4} ({} views)", e.psnr, e.ssim, e.views.len());
+            eprintln!(
+                "{name}: {split} PSNR {:.3} dB, SSIM {:.4}; compensated {:.3} dB, {:.4} ({} views)",
+                e.psnr,
+                e.ssim,
+                e.psnr_compensated,
+                e.ssim_compensated,
+                e.views.len()
+            );
             if name == "instgs" {
                 let dir = run.join("images");
                 std::fs::create_dir_all(&dir).with_context(|| format!("{}: cannot create", dir.display()))?;
                 for (i, view_name, img) in &pictures {
                     let v = &views[*i];
-                    let plain = plain_frames.get(i).ok_or_else(|| anyhow!("missing plain render"))?;
+                    let baselines = baseline_frames.get(i).ok_or_else(|| anyhow!("missing plain render"))?;
                     let (w, h) = (v.camera.width as usize, v.camera.height as usize);
                     let err = crate::util::error_image(img, &v.image);
-                    let strip = crate::util::side_by_side(&[&v.image, plain, img, &err], w, h);
-                    crate::util::save_png(&dir.join(format!("{view_name}.png")), 4 * w as u32, h as u32, &strip)?;
+                    let mut panels: Vec<&[[f32; 4]]> = vec![&v.image];
+                    panels.extend(baselines.iter().map(|b| &b[..]));
+                    panels.extend([&img[..], &err[..]]);
+                    let strip = crate::util::side_by_side(&panels, w, h);
+                    let n = panels.len() as u32;
+                    crate::util::save_png(&dir.join(format!("{view_name}.png")), n * w as u32, h as u32, &strip)?;
                 }
             }
-            let per: Vec<_> =
-                e.views.iter().map(|v| serde_json::json!({"name": v.name, "psnr": v.psnr, "ssim": v.ssim})).collect();
+            let per: Vec<_> = e.views.iter().map(train::ViewScore::json).collect();
             let mut out = serde_json::json!({
                 "scene": path.display().to_string(), "splats": scene.splats(),
-                "psnr_mean": e.psnr, "ssim_mean": e.ssim, "views": per,
+                "psnr_mean": e.psnr, "ssim_mean": e.ssim,
+                "psnr_compensated_mean": e.psnr_compensated, "ssim_compensated_mean": e.ssim_compensated,
+                "views": per,
             });
             for ((sum, n), key) in regions.into_iter().zip(["psnr_instances_mean", "psnr_background_mean"]) {
                 if n > 0 {
@@ -727,8 +846,10 @@ impl Ctx<'_> {
             }
             results.push((name, out));
         }
-        let mut v =
-            serde_json::json!({"split": split, "width": views[0].camera.width, "height": views[0].camera.height});
+        let mut v = serde_json::json!({
+            "split": split, "width": views[0].camera.width, "height": views[0].camera.height,
+            "compensated": train::eval::COMPENSATED_NOTE,
+        });
         for (name, r) in results {
             v[name] = r;
         }

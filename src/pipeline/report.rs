@@ -74,48 +74,78 @@ pub fn write(run: &Path, a: &PipelineArgs, stages: &[(Stage, bool, f64)]) -> Res
                 b["frames"]
             );
         }
-        let _ = writeln!(md, "\n| | plain 3DGS | InstGS | InstGS / plain |\n|---|---|---|---|");
+        // The "plain, pruned" column where the run has that baseline.
+        let pruned = eval.as_ref().is_some_and(|e| e.get("pruned").is_some())
+            || bench.as_ref().is_some_and(|b| b.get("compare_more").is_some());
+        if pruned {
+            let _ = writeln!(
+                md,
+                "*plain, pruned*: the plain scene pruned to InstGS's GPU memory by significance and fine-tuned as \
+                 long as the joint stage (`pruned.json`) — what instancing adds over pruning alone."
+            );
+            let _ = writeln!(
+                md,
+                "\n| | plain 3DGS | plain, pruned | InstGS | InstGS vs plain | InstGS vs plain, pruned |\n|---|---|---|---|---|---|"
+            );
+        } else {
+            let _ = writeln!(md, "\n| | plain 3DGS | InstGS | InstGS vs plain |\n|---|---|---|---|");
+        }
+        // One row: the plain, pruned and InstGS values, formatted; the comparisons (difference or
+        // ratio) of InstGS against plain and against pruned.
         let row = |md: &mut String,
                    name: &str,
-                   p: Option<f64>,
-                   i: Option<f64>,
+                   [p, q, i]: [Option<f64>; 3],
                    fmt: &dyn Fn(f64) -> String,
-                   ratio: Option<String>| {
+                   cmp: &dyn Fn(f64, f64) -> String| {
             let f = |v: Option<f64>| v.map(fmt).unwrap_or_else(|| "—".into());
-            let _ = writeln!(md, "| {name} | {} | {} | {} |", f(p), f(i), ratio.unwrap_or_else(|| "—".into()));
+            let c = |base: Option<f64>| base.zip(i).map(|(b, i)| cmp(b, i)).unwrap_or_else(|| "—".into());
+            if pruned {
+                let _ = writeln!(md, "| {name} | {} | {} | {} | {} | {} |", f(p), f(q), f(i), c(p), c(q));
+            } else {
+                let _ = writeln!(md, "| {name} | {} | {} | {} |", f(p), f(i), c(p));
+            }
         };
+        let db = |b: f64, i: f64| format!("{:+.2} dB", i - b);
+        let times = |b: f64, i: f64| format!("{:.3}×", i / b);
         if let Some(e) = &eval {
-            let (p, i) = (num(e, "plain.psnr_mean"), num(e, "instgs.psnr_mean"));
-            let d = p.zip(i).map(|(p, i)| format!("{:+.2} dB", i - p));
-            row(&mut md, "PSNR (dB)", p, i, &|v| format!("{v:.2}"), d);
+            let three = |key: &str| ["plain", "pruned", "instgs"].map(|s| num(e, &format!("{s}.{key}")));
+            row(&mut md, "PSNR (dB)", three("psnr_mean"), &|v| format!("{v:.2}"), &db);
             for (key, name) in [
                 ("psnr_instances_mean", "PSNR on instance pixels (dB)"),
                 ("psnr_background_mean", "PSNR on background pixels (dB)"),
             ] {
-                let (p, i) = (num(e, &format!("plain.{key}")), num(e, &format!("instgs.{key}")));
-                if p.is_some() || i.is_some() {
-                    let d = p.zip(i).map(|(p, i)| format!("{:+.2} dB", i - p));
-                    row(&mut md, name, p, i, &|v| format!("{v:.2}"), d);
+                let v = three(key);
+                if v.iter().any(Option::is_some) {
+                    row(&mut md, name, v, &|v| format!("{v:.2}"), &db);
                 }
             }
-            let (p, i) = (num(e, "plain.ssim_mean"), num(e, "instgs.ssim_mean"));
-            let d = p.zip(i).map(|(p, i)| format!("{:+.4}", i - p));
-            row(&mut md, "SSIM", p, i, &|v| format!("{v:.4}"), d);
+            row(&mut md, "SSIM", three("ssim_mean"), &|v| format!("{v:.4}"), &|b, i| format!("{:+.4}", i - b));
+            row(&mut md, "PSNR, colour-compensated (dB)", three("psnr_compensated_mean"), &|v| format!("{v:.2}"), &db);
+            row(
+                &mut md,
+                "SSIM, colour-compensated",
+                three("ssim_compensated_mean"),
+                &|v| format!("{v:.4}"),
+                &|b, i| format!("{:+.4}", i - b),
+            );
         }
         if let Some(b) = &bench {
-            let pair = |key: &str| (num(b, &format!("compare.{key}")), num(b, key));
-            let ratio = |key: &str| num(b, &format!("ratios.{key}")).map(|r| format!("{r:.3}×"));
-            let (p, i) = pair("splats");
-            let r = p.zip(i).map(|(p, i)| format!("{:.3}×", i / p));
-            row(&mut md, "splats rendered", p, i, &|v| format!("{v:.0}"), r);
-            let (p, i) = pair("scene_gpu_bytes");
-            row(&mut md, "scene memory on the GPU (MB)", p, i, &|v| mb(v), ratio("scene_gpu_bytes"));
-            let (p, i) = pair("file_bytes");
-            row(&mut md, "file size (MB)", p, i, &|v| mb(v), ratio("file_bytes"));
-            let (p, i) = pair("frame_ms_median");
-            row(&mut md, "frame time, median (ms)", p, i, &|v| format!("{v:.2}"), ratio("frame_ms"));
-            let (p, i) = pair("fps_median");
-            row(&mut md, "FPS (median)", p, i, &|v| format!("{v:.1}"), ratio("fps"));
+            // bench.json: InstGS's numbers, plain's under `compare`, pruned's under `compare_more`.
+            let three = |key: &str| [num(b, &format!("compare.{key}")), num(&b["compare_more"][0], key), num(b, key)];
+            row(&mut md, "splats rendered", three("splats"), &|v| format!("{v:.0}"), &times);
+            row(&mut md, "scene memory on the GPU (MB)", three("scene_gpu_bytes"), &mb, &times);
+            row(&mut md, "file size (MB)", three("file_bytes"), &mb, &times);
+            row(&mut md, "frame time, median (ms)", three("frame_ms_median"), &|v| format!("{v:.2}"), &times);
+            row(&mut md, "FPS (median)", three("fps_median"), &|v| format!("{v:.1}"), &times);
+        }
+        if let Some(e) = &eval {
+            let _ = writeln!(
+                md,
+                "\nColour-compensated: {} (raw: the render as it is, whole image).",
+                e["compensated"]
+                    .as_str()
+                    .unwrap_or("the photo's colour transform fitted on its left half, scored on its right half")
+            );
         }
         md.push('\n');
         if let Some(seg) = read(run, "segment.json") {
@@ -272,17 +302,26 @@ pub fn write(run: &Path, a: &PipelineArgs, stages: &[(Stage, bool, f64)]) -> Res
         md.push('\n');
     }
     if let Some(e) = &eval {
-        let _ = writeln!(md, "## Held-out views\n\nGround truth | plain 3DGS | InstGS | InstGS error × 4\n");
+        let panels = if e.get("pruned").is_some() {
+            "Ground truth | plain 3DGS | plain, pruned | InstGS | InstGS error × 4"
+        } else {
+            "Ground truth | plain 3DGS | InstGS | InstGS error × 4"
+        };
+        let _ = writeln!(md, "## Held-out views\n\n{panels}\n");
         for img in e["images"].as_array().into_iter().flatten() {
             if let Some(p) = img.as_str() {
                 let _ = writeln!(md, "![{p}]({p})\n");
             }
         }
     }
-    let curves: Vec<(&str, &str)> = [("plain 3DGS", "curves.png"), ("joint optimisation", "joint/curves.png")]
-        .into_iter()
-        .filter(|(_, p)| run.join(p).exists())
-        .collect();
+    let curves: Vec<(&str, &str)> = [
+        ("plain 3DGS", "curves.png"),
+        ("joint optimisation", "joint/curves.png"),
+        ("plain, pruned: fine-tuning", "pruned/curves.png"),
+    ]
+    .into_iter()
+    .filter(|(_, p)| run.join(p).exists())
+    .collect();
     if !curves.is_empty() {
         let _ = writeln!(md, "## Training curves\n");
         for (name, p) in curves {

@@ -12,13 +12,17 @@ pub enum Stage {
     Instance,
     /// Joint optimisation of templates, offsets and background.
     Joint,
-    /// Held-out PSNR/SSIM of plain and InstGS, side-by-side images.
+    /// The "plain, pruned" baseline: the plain scene pruned to InstGS's GPU memory and
+    /// fine-tuned as long as the joint stage (skipped with --no-pruned-baseline).
+    Pruned,
+    /// Held-out PSNR/SSIM of plain, plain pruned and InstGS, side-by-side images.
     Eval,
-    /// Frame times and memory, InstGS against plain.
+    /// Frame times and memory, InstGS against plain and plain pruned.
     Bench,
 }
 
-pub const STAGES: [Stage; 6] = [Stage::Plain, Stage::Segment, Stage::Instance, Stage::Joint, Stage::Eval, Stage::Bench];
+pub const STAGES: [Stage; 7] =
+    [Stage::Plain, Stage::Segment, Stage::Instance, Stage::Joint, Stage::Pruned, Stage::Eval, Stage::Bench];
 
 impl Stage {
     pub fn name(self) -> &'static str {
@@ -27,6 +31,7 @@ impl Stage {
             Stage::Segment => "segment",
             Stage::Instance => "instance",
             Stage::Joint => "joint",
+            Stage::Pruned => "pruned",
             Stage::Eval => "eval",
             Stage::Bench => "bench",
         }
@@ -56,6 +61,8 @@ pub struct PipelineArgs {
     pub until: Option<Stage>,
     /// Find the instances without masks (`crate::discover`) in the segment stage.
     pub discover: Option<crate::discover::run::ExampleSpec>,
+    /// Run the "plain, pruned" baseline stage (`--no-pruned-baseline`: false).
+    pub pruned_baseline: bool,
     pub progress: bool,
     pub device: Option<String>,
 }

@@ -204,26 +204,68 @@ pub fn instance_iou(
     masks: &[Vec<u16>],
     id: u32,
 ) -> Result<Vec<f64>> {
+    let regions = instance_regions(gpu, k, scene, labels, views, id)?;
+    Ok(regions.iter().zip(masks).filter_map(|(r, m)| iou(r, m, |mid| mid as u32 == id)).collect())
+}
+
+/// [`instance_iou`] against masks whose ids mean nothing across frames (a 2D segmenter's): in
+/// each view the instance's region is associated with the mask of its own category that
+/// overlaps it most (`categories[view]`: per-frame id → category); views where no mask of that
+/// category overlaps the region are skipped (the segmenter missed it, or the instance is out of
+/// sight).
+#[allow(clippy::too_many_arguments)]
+pub fn instance_iou_per_frame(
+    gpu: &Arc<Gpu>,
+    k: &Arc<Kernels>,
+    scene: &Scene,
+    labels: &[u32],
+    views: &[View],
+    masks: &[Vec<u16>],
+    categories: &[BTreeMap<u16, String>],
+    (id, category): (u32, &str),
+) -> Result<Vec<f64>> {
+    let regions = instance_regions(gpu, k, scene, labels, views, id)?;
+    Ok(regions
+        .iter()
+        .zip(masks)
+        .zip(categories)
+        .filter_map(|((r, m), cats)| {
+            cats.iter()
+                .filter(|(_, c)| c.as_str() == category)
+                .filter_map(|(&mid, _)| iou(r, m, |x| x == mid))
+                .filter(|&v| v > 0.0)
+                .max_by(f64::total_cmp)
+        })
+        .collect())
+}
+
+/// Per view, instance `id`'s rendered visible region (see [`instance_iou`]).
+fn instance_regions(
+    gpu: &Arc<Gpu>,
+    k: &Arc<Kernels>,
+    scene: &Scene,
+    labels: &[u32],
+    views: &[View],
+    id: u32,
+) -> Result<Vec<Vec<bool>>> {
     let mut s = scene.clone();
     s.sh_degree = 0;
     let c0 = crate::math::SH_C0_F32;
     s.sh = (0..scene.len()).flat_map(|i| [if labels[i] == id { 0.5 / c0 } else { -0.5 / c0 }; 3]).collect();
     let gs = GpuScene::new(gpu, &s)?;
     let mut r = Rasterizer::new(gpu, k)?;
-    let mut out = Vec::new();
-    for (v, m) in views.iter().zip(masks) {
-        let f = r.render(&gs, &v.camera, [0.0; 3])?;
-        let (mut inter, mut union) = (0u64, 0u64);
-        for (p, &mid) in f.image.iter().zip(m) {
-            let (a, b) = (p[0] > 0.5, mid as u32 == id);
-            inter += (a && b) as u64;
-            union += (a || b) as u64;
-        }
-        if union > 0 {
-            out.push(inter as f64 / union as f64);
-        }
+    views.iter().map(|v| Ok(r.render(&gs, &v.camera, [0.0; 3])?.image.iter().map(|p| p[0] > 0.5).collect())).collect()
+}
+
+/// IoU of a region and the mask pixels `hit` selects; None when neither has a pixel.
+fn iou(region: &[bool], mask: &[u16], hit: impl Fn(u16) -> bool) -> Option<f64> {
+    let (mut inter, mut union) = (0u64, 0u64);
+    for (&a, &mid) in region.iter().zip(mask) {
+        let b = hit(mid);
+        inter += (a && b) as u64;
+        union += (a || b) as u64;
     }
-    Ok(out)
+    (union > 0).then(|| inter as f64 / union as f64)
 }
 
 /// Parameters of [`associate`].

@@ -151,12 +151,19 @@ pub fn segment_scene(
             })
             .collect();
     }
-    // Held-out views with masks (ids meaningful across frames): the IoU of every instance's
-    // rendered visible region.
-    let test_masks = if ds.test.is_empty() || per_frame_ids {
+    // Held-out views with masks: the IoU of every instance's rendered visible region against
+    // its mask (per-frame ids: the overlapping mask of its category).
+    let test_masks = if ds.test.is_empty() {
         None
     } else {
-        crate::dataset::masks::load_masks(data, "test", &ds.test).ok()
+        crate::dataset::masks::load_masks(data, "test", &ds.test).ok().and_then(|m| {
+            let cats = if per_frame_ids {
+                Some(crate::dataset::masks::load_frame_categories(data, "test", &ds.test, &m).ok()?)
+            } else {
+                None
+            };
+            Some((m, cats))
+        })
     };
     let mut rows = Vec::new();
     for g in &groups {
@@ -164,8 +171,20 @@ pub fn segment_scene(
             let n = seg.labels.iter().filter(|&&l| l == id).count();
             let mut row = serde_json::json!({"group": g.name, "id": id, "gaussians": n});
             let iou = match &test_masks {
-                Some(m) if !m.is_empty() => {
-                    let v = crate::segment::instance_iou(gpu, k, scene, &seg.labels, &ds.test, m, id)?;
+                Some((m, cats)) if !m.is_empty() => {
+                    let v = match cats {
+                        None => crate::segment::instance_iou(gpu, k, scene, &seg.labels, &ds.test, m, id)?,
+                        Some(c) => crate::segment::instance_iou_per_frame(
+                            gpu,
+                            k,
+                            scene,
+                            &seg.labels,
+                            &ds.test,
+                            m,
+                            c,
+                            (id, &g.name),
+                        )?,
+                    };
                     let mean = v.iter().sum::<f64>() / v.len().max(1) as f64;
                     row["test_iou"] = mean.into();
                     row["test_views"] = v.len().into();

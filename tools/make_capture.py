@@ -1,0 +1,220 @@
+#!/usr/bin/env python3
+"""Turns a shared scene (NeRF-synthetic layout with instance masks, ../shared/data/scenes/*) into
+a capture as a user's phone or drone would give it, for measuring the pipeline on photos:
+
+- photos (JPEG, quality 90) with the effects of a real camera: exposure that differs from photo to
+  photo (+-0.2 EV), white balance (+-3 % per channel), the lens's vignetting (-25 % at the
+  corners) and sensor noise (shot and read noise), applied in linear light;
+- COLMAP poses, intrinsics (one PINHOLE camera) and points from SIFT features and exhaustive
+  matching (pycolmap's incremental mapper): the cameras are estimated, not the true ones;
+- per-frame masks as a 2D segmenter writes them (SAM, Gaussian Grouping, SAGA):
+  masks/<split>/<stem>.png with ids that mean nothing across frames, masks/<split>/<stem>.json
+  naming each id's category, some instances missed (10 %, and every one under 40 pixels) and
+  boundaries off by a pixel (each mask dilated or eroded at random); --global-masks keeps the
+  scene's ids and writes instances.json instead;
+- ground_truth.json: the scene's instances.json with every object pose mapped into COLMAP's
+  frame (through the similarity that best aligns the estimated camera centres with the true
+  ones), so pose errors can be measured against the truth;
+- capture.json: the seed, each photo's exposure and white balance, the alignment residual.
+
+The split follows what `instgs-vk` holds out of a COLMAP dataset: every 8th image by name.
+With --clean DIR, the same capture without the photo effects (same COLMAP model, same masks) is
+written to DIR too: the reference for what the effects cost.
+
+usage: make_capture.py SCENE_DIR OUT_DIR [--seed N] [--global-masks] [--clean DIR]
+       (tools/make-capture.sh runs it with pinned pycolmap, numpy and pillow)
+"""
+import argparse, json, os, shutil, sys
+
+import numpy as np
+import pycolmap
+from PIL import Image
+
+EV = 0.2  # exposure spread, +-EV stops
+WB = 0.03  # white balance spread per channel
+VIGNETTE = 0.25  # light lost at the image corners
+SHOT, READ = 0.0004, 1e-5  # noise variance = SHOT * x + READ (linear light)
+MISS, MIN_PIXELS = 0.10, 40  # segmenter: instances missed at random, and below this size
+JPEG_QUALITY = 90
+
+
+def srgb_to_linear(c):
+    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
+
+
+def linear_to_srgb(c):
+    c = np.clip(c, 0.0, 1.0)
+    return np.where(c <= 0.0031308, 12.92 * c, 1.055 * c ** (1 / 2.4) - 0.055)
+
+
+def photo_effects(rgb8, rng):
+    """The camera's effects on one photo (uint8 sRGB in and out) and what was drawn."""
+    h, w, _ = rgb8.shape
+    x = srgb_to_linear(rgb8.astype(np.float64) / 255.0)
+    ev = rng.uniform(-EV, EV)
+    wb = 1.0 + rng.uniform(-WB, WB, size=3)
+    yy, xx = np.mgrid[0:h, 0:w]
+    r2 = ((xx + 0.5 - w / 2) ** 2 + (yy + 0.5 - h / 2) ** 2) / ((w / 2) ** 2 + (h / 2) ** 2)
+    x = x * (2.0 ** ev) * wb[None, None, :] * (1.0 - VIGNETTE * r2)[:, :, None]
+    x = x + rng.normal(size=x.shape) * np.sqrt(SHOT * np.clip(x, 0, None) + READ)
+    out = np.round(linear_to_srgb(x) * 255.0).astype(np.uint8)
+    return out, {"exposure_ev": ev, "white_balance": wb.tolist()}
+
+
+def shift(m, dy, dx):
+    out = np.zeros_like(m)
+    h, w = m.shape
+    out[max(dy, 0):h + min(dy, 0), max(dx, 0):w + min(dx, 0)] = m[max(-dy, 0):h - max(dy, 0), max(-dx, 0):w - max(dx, 0)]
+    return out
+
+
+def segmenter_masks(ids, rng):
+    """Per-frame masks from a true id mask: random ids, misses, boundaries off by a pixel."""
+    out = np.zeros(ids.shape, np.uint16)
+    cats = {}
+    present = [int(i) for i in np.unique(ids) if i != 0]
+    new_ids = rng.choice(np.arange(1, 65536), size=len(present), replace=False)
+    for true_id, new in zip(present, new_ids):
+        m = ids == true_id
+        if m.sum() < MIN_PIXELS or rng.uniform() < MISS:
+            continue
+        grow = rng.integers(-1, 2)  # -1 erode, 0 keep, 1 dilate (3x3)
+        if grow != 0:
+            nb = [shift(m, dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1)]
+            m = np.logical_or.reduce(nb) if grow > 0 else np.logical_and.reduce(nb)
+        out[m & (out == 0)] = new
+        cats[str(int(new))] = true_id
+    return out, cats
+
+
+def umeyama(src, dst):
+    """s, R, t with dst ~ s R src + t (least squares)."""
+    ms, md = src.mean(0), dst.mean(0)
+    a, b = src - ms, dst - md
+    u, d, vt = np.linalg.svd(b.T @ a / len(src))
+    s_ = np.eye(3)
+    if np.linalg.det(u) * np.linalg.det(vt) < 0:
+        s_[2, 2] = -1
+    r = u @ s_ @ vt
+    s = np.trace(np.diag(d) @ s_) / (a ** 2).sum(1).mean()
+    return s, r, md - s * r @ ms
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("scene")
+    ap.add_argument("out")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--global-masks", action="store_true")
+    ap.add_argument("--clean")
+    a = ap.parse_args()
+    rng = np.random.default_rng(a.seed)
+    scene = json.load(open(os.path.join(a.scene, "instances.json")))
+    group_of = {i["id"]: g["name"] for g in scene["groups"] for i in g["instances"]}
+    frames = []
+    for split in ("train", "test"):
+        t = json.load(open(os.path.join(a.scene, f"transforms_{split}.json")))
+        frames += [(split, f) for f in t["frames"]]
+    if os.path.exists(a.out):
+        sys.exit(f"{a.out}: exists; choose another folder")
+    outs = [a.out] + ([a.clean] if a.clean else [])
+    for o in outs:
+        os.makedirs(os.path.join(o, "images"))
+    record = {"scene": os.path.abspath(a.scene), "seed": a.seed, "photos": {}}
+    truth_centres = {}
+    for k, (split, f) in enumerate(frames):
+        name = f"img_{k:03d}"
+        rgb = np.array(Image.open(os.path.join(a.scene, f["file_path"] + ".png")).convert("RGB"))
+        shot, drawn = photo_effects(rgb, rng)
+        Image.fromarray(shot).save(os.path.join(a.out, "images", name + ".jpg"), quality=JPEG_QUALITY)
+        if a.clean:
+            Image.fromarray(rgb).save(os.path.join(a.clean, "images", name + ".jpg"), quality=JPEG_QUALITY)
+        record["photos"][name] = dict(drawn, source=f["file_path"])
+        truth_centres[name + ".jpg"] = np.array(f["transform_matrix"])[:3, 3]
+    # COLMAP: SIFT, exhaustive matching, incremental mapping, on the photos with effects.
+    work = os.path.join(a.out, "colmap-work")
+    os.makedirs(work)
+    db = os.path.join(work, "database.db")
+    # Small photos (320x240) give few SIFT features with COLMAP's defaults: a lower peak
+    # threshold, domain-size pooling, guided matching and a mapper that accepts fewer inliers
+    # register them all (the settings COLMAP's documentation suggests for few-texture scenes).
+    reader = pycolmap.ImageReaderOptions()
+    reader.camera_model = "PINHOLE"
+    extraction = pycolmap.FeatureExtractionOptions()
+    extraction.sift.peak_threshold = 0.004
+    extraction.sift.domain_size_pooling = True
+    pycolmap.extract_features(db, os.path.join(a.out, "images"), camera_mode=pycolmap.CameraMode.SINGLE,
+                              reader_options=reader, extraction_options=extraction, device=pycolmap.Device.cpu)
+    matching = pycolmap.FeatureMatchingOptions()
+    matching.guided_matching = True
+    pycolmap.match_exhaustive(db, matching_options=matching, device=pycolmap.Device.cpu)
+    mapping = pycolmap.IncrementalPipelineOptions()
+    mapping.random_seed = a.seed
+    mapping.mapper.init_min_num_inliers = 50
+    mapping.mapper.abs_pose_min_num_inliers = 15
+    mapping.mapper.abs_pose_min_inlier_ratio = 0.15
+    maps = pycolmap.incremental_mapping(db, os.path.join(a.out, "images"), work, options=mapping)
+    if not maps:
+        sys.exit("COLMAP registered no images")
+    rec = max(maps.values(), key=lambda r: r.num_reg_images())
+    sparse = os.path.join(a.out, "sparse", "0")
+    os.makedirs(sparse)
+    rec.write_binary(sparse)
+    shutil.rmtree(work)
+    names = sorted(img.name for img in rec.images.values())
+    record["registered"] = len(names)
+    record["photos_taken"] = len(frames)
+    # The similarity that maps COLMAP's frame onto the scene's (camera centres, least squares).
+    est = np.array([next(i for i in rec.images.values() if i.name == n).projection_center() for n in names])
+    true = np.array([truth_centres[n] for n in names])
+    s, r, t = umeyama(est, true)
+    residual = np.linalg.norm((s * (r @ est.T)).T + t - true, axis=1)
+    record["alignment"] = {"scale": s, "rms_camera_centre_error": float(np.sqrt((residual ** 2).mean())),
+                           "max_camera_centre_error": float(residual.max())}
+    # Ground truth in COLMAP's frame: x_colmap = (R^T (x_world - t)) / s.
+    inv = np.eye(4)
+    inv[:3, :3] = r.T / s
+    inv[:3, 3] = -(r.T @ t) / s
+    gt = json.loads(json.dumps(scene))
+    for g in gt["groups"]:
+        for i in g["instances"]:
+            i["object_to_world"] = (inv @ np.array(i["object_to_world"])).tolist()
+            i["center_world"] = (inv[:3, :3] @ np.array(i["center_world"]) + inv[:3, 3]).tolist()
+            i["translation"] = (inv[:3, :3] @ np.array(i["translation"]) + inv[:3, 3]).tolist()
+            i["scale"] = i.get("scale", 1.0) / s
+    gt["frame"] = "COLMAP's (sparse/0), from the scene's world by the camera-centre alignment in capture.json"
+    # Masks: every photo COLMAP registered, in the split instgs-vk will put it in.
+    for k, n in enumerate(names):
+        stem = n[:-4]
+        split = "test" if k % 8 == 0 else "train"
+        src = record["photos"][stem]["source"]
+        ids = np.array(Image.open(os.path.join(a.scene, "masks", src + ".png")))
+        for o in outs:
+            os.makedirs(os.path.join(o, "masks", split), exist_ok=True)
+        if a.global_masks:
+            m, cats = ids.astype(np.uint16), None
+        else:
+            m, cats = segmenter_masks(ids, rng)
+        for o in outs:
+            Image.fromarray(m).save(os.path.join(o, "masks", split, stem + ".png"))
+            if cats is not None:
+                json.dump({i: group_of[c] for i, c in cats.items()}, open(os.path.join(o, "masks", split, stem + ".json"), "w"))
+    for o in outs:
+        json.dump(gt, open(os.path.join(o, "instances.json" if a.global_masks else "ground_truth.json"), "w"), indent=1)
+        json.dump(record, open(os.path.join(o, "capture.json"), "w"), indent=1)
+    if a.clean:
+        shutil.copytree(os.path.join(a.out, "sparse"), os.path.join(a.clean, "sparse"))
+        # Only the photos COLMAP registered, as in the capture.
+        for f in os.listdir(os.path.join(a.clean, "images")):
+            if f not in names:
+                os.remove(os.path.join(a.clean, "images", f))
+    for f in os.listdir(os.path.join(a.out, "images")):
+        if f not in names:
+            os.remove(os.path.join(a.out, "images", f))
+    al = record["alignment"]
+    print(f"{a.out}: {len(names)} of {len(frames)} photos registered; camera centres within "
+          f"{al['max_camera_centre_error']:.4f} (rms {al['rms_camera_centre_error']:.4f}) scene units of the truth")
+
+
+if __name__ == "__main__":
+    main()
