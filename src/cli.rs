@@ -280,6 +280,9 @@ pub(crate) enum Cmd {
         /// Acceptance: the render check's PSNR (dB) at least this.
         #[arg(long, allow_negative_numbers = true, value_parser = finite_f64, default_value_t = instgs_vk::instancing::template::Acceptance::default().min_render_psnr)]
         min_render_psnr: f64,
+        /// Acceptance: the render check compares at least this many views that show the instance.
+        #[arg(long, default_value_t = instgs_vk::instancing::template::Acceptance::default().min_render_views)]
+        min_render_views: usize,
         #[arg(long)]
         out: PathBuf,
     },

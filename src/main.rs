@@ -92,6 +92,7 @@ fn run(cli: Cli) -> Result<()> {
             scale_tolerance,
             min_render_iou,
             min_render_psnr,
+            min_render_views,
             out,
         } => {
             let accept = template::Acceptance {
@@ -99,6 +100,7 @@ fn run(cli: Cli) -> Result<()> {
                 scale_tolerance,
                 min_render_iou,
                 min_render_psnr,
+                min_render_views,
                 ..Default::default()
             };
             let opts = template::InstanceOptions {

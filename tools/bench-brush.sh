@@ -13,7 +13,9 @@
 # Environment: PEERS_SCRATCH (scratch folder, default ${TMPDIR:-/tmp}/instgs-peers);
 #   BRUSH_GIT, BURN_GIT: where to get brush and its git dependency burn (a URL or a local git
 #   directory; default GitHub). burn is taken as the tree of its pinned commit (git archive)
-#   and patched in by path, so a local mirror without burn's history works.
+#   and patched in by path, so a local mirror without burn's history works;
+#   INSTGS_BIN, BRUSH_BIN: binaries built beforehand (tools/gpu-rows.sh --prepare): nothing is
+#   cloned or built; BENCH_OUT: the results folder (default out/bench-brush).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 repo=$(pwd)
@@ -28,8 +30,12 @@ while [[ $# -gt 0 ]]; do
     esac
 done
 scratch=${PEERS_SCRATCH:-${TMPDIR:-/tmp}/instgs-peers}
-out=$repo/out/bench-brush
+out=${BENCH_OUT:-$repo/out/bench-brush}
 mkdir -p "$scratch" "$out"
+
+if [[ -n ${BRUSH_BIN:-} ]]; then
+    brush=$BRUSH_BIN
+else
 
 # Pinned commits (../shared/docs/peers.md): brush 83b7c71 and the burn commit its Cargo.lock names.
 BRUSH_REV=83b7c71f2148095285d8c2fa2bc961408fcf524d
@@ -74,10 +80,15 @@ echo "building brush $BRUSH_REV in $b (~40 min the first time on two cores)" >&2
 (cd "$b" && cargo build --release --quiet -p brush-app) 2> "$scratch/brush-build.log" \
     || { tail -30 "$scratch/brush-build.log" >&2; exit 1; }
 brush=$b/target/release/brush
+fi
 [[ $build_only == 0 ]] || exit 0
 
-cargo build --release --quiet --bin instgs-vk
-ours=$repo/target/release/instgs-vk
+if [[ -n ${INSTGS_BIN:-} ]]; then
+    ours=$INSTGS_BIN
+else
+    cargo build --release --quiet --bin instgs-vk
+    ours=$repo/target/release/instgs-vk
+fi
 export XDG_RUNTIME_DIR=${XDG_RUNTIME_DIR:-/tmp}
 name=$(basename "$data")
 work=$scratch/brush-$name

@@ -12,7 +12,9 @@
 #   playbot_lod2). Results: out/bench-peers/<scene>.json and a table on stdout.
 # Environment: PEERS_SCRATCH (scratch folder, default ${TMPDIR:-/tmp}/instgs-peers);
 #   WEB_SPLAT_GIT, CGMATH_GIT, SPLINES_GIT: where to clone web-splat and its two git
-#   dependencies from (a URL or a local git directory; default GitHub).
+#   dependencies from (a URL or a local git directory; default GitHub);
+#   INSTGS_BIN, WEB_SPLAT_HARNESS: binaries built beforehand (tools/gpu-rows.sh --prepare):
+#   nothing is cloned or built; BENCH_OUT: the results folder (default out/bench-peers).
 # lavapipe: web-splat's radix sort is wrong with more than one lavapipe thread for 65,536 keys
 # or more, so on a CPU device both sides run with LP_NUM_THREADS=1 (the harness saves its first
 # frame, web-splat-view0.png, next to ours, ours-view0.png, to check).
@@ -36,8 +38,12 @@ done
 [[ ${#scenes[@]} -gt 0 ]] || scenes=(../shared/data/splats/guitar.ply ../shared/data/splats/biker.ply ../shared/data/splats/playbot_lod2.ply)
 width=${size%x*} height=${size#*x}
 scratch=${PEERS_SCRATCH:-${TMPDIR:-/tmp}/instgs-peers}
-out=$repo/out/bench-peers
+out=${BENCH_OUT:-$repo/out/bench-peers}
 mkdir -p "$scratch" "$out"
+
+if [[ -n ${WEB_SPLAT_HARNESS:-} ]]; then
+    harness=$WEB_SPLAT_HARNESS
+else
 
 # Pinned commits (../shared/docs/peers.md).
 WEB_SPLAT_REV=959a3ecc2b649a2677fa6c56f4a1a19eb4c3fc80
@@ -211,10 +217,15 @@ EOF
 echo "building web-splat $WEB_SPLAT_REV and the harness in $h (~10 min the first time on two cores)" >&2
 cargo build --release --quiet --manifest-path "$h/Cargo.toml" 2> "$scratch/build.log" || { cat "$scratch/build.log" >&2; exit 1; }
 harness=$h/target/release/web-splat-harness
+fi
 [[ $build_only == 0 ]] || exit 0
 
-cargo build --release --quiet --bin instgs-vk
-ours=$repo/target/release/instgs-vk
+if [[ -n ${INSTGS_BIN:-} ]]; then
+    ours=$INSTGS_BIN
+else
+    cargo build --release --quiet --bin instgs-vk
+    ours=$repo/target/release/instgs-vk
+fi
 export XDG_RUNTIME_DIR=${XDG_RUNTIME_DIR:-/tmp}
 # One lavapipe thread on both sides (see above; Mesa's variable, no effect on a GPU).
 export LP_NUM_THREADS=1

@@ -14,8 +14,12 @@ export XDG_RUNTIME_DIR="${XDG_RUNTIME_DIR:-/tmp}"
 [[ $# -ge 2 ]] || { sed -n 8,9p "$0" >&2; exit 2; }
 ply=$1 out=$2 size=${3:-1920x1080} n=${4:-150} m=${5:-15}
 width=${size%x*} height=${size#*x}
-cargo build --release --quiet
-bin=./target/release/instgs-vk
+if [[ -n ${INSTGS_BIN:-} ]]; then
+    bin=$INSTGS_BIN   # built beforehand (tools/gpu-rows.sh)
+else
+    cargo build --release --quiet
+    bin=./target/release/instgs-vk
+fi
 mkdir -p "$out"
 # Centre and distance from the robust bounds (2nd–98th percentile of the means), as `render
 # --orbit` frames a scene: the bounding sphere fits the narrower field of view (50° across).

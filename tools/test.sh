@@ -11,6 +11,8 @@ bash tools/install-deps.sh
 export XDG_RUNTIME_DIR="${XDG_RUNTIME_DIR:-/tmp}"
 cargo test --release
 RUSTDOCFLAGS="-D warnings" cargo doc --no-deps --quiet   # the public docs build without a broken link
+echo "== GPU rows, smoke run (every row's code path, scaled down: tools/gpu-rows.sh)"
+bash tools/gpu-rows.sh --smoke > /dev/null
 kernel_tests=(--test gpu --test sort --test raster --test grad --test loss --test instgs --test segment --test lod)
 for width in 128 512; do
     echo "== kernel tests again, lavapipe vector width $width bits (subgroup size $((width / 32)))"

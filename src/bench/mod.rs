@@ -238,6 +238,7 @@ pub fn bench_scenes(
     }
     let mut v = reports[0].clone();
     v["device"] = gpu.info.name.clone().into();
+    v["driver"] = gpu.info.driver.clone().into();
     v["width"] = cams[0].width.into();
     v["height"] = cams[0].height.into();
     v["views"] = cams.len().into();

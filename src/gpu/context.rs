@@ -45,6 +45,9 @@ impl GpuOptions {
 pub struct DeviceInfo {
     pub name: String,
     pub kind: &'static str,
+    /// The driver's name and version as it reports them (VkPhysicalDeviceDriverProperties,
+    /// Vulkan 1.2), e.g. "NVIDIA 550.54.15" or "llvmpipe Mesa 22.3.6"; the API version without it.
+    pub driver: String,
     /// Subgroup size the device reports (lavapipe: 8).
     pub subgroup_size: u32,
     /// Smallest subgroup size the device may use (bounds shared arrays per subgroup).
@@ -226,11 +229,30 @@ impl Gpu {
         let has_ext = |n: &CStr| dev_exts.iter().any(|e| e.extension_name_as_c_str() == Ok(n));
         let has_size_control =
             has_ext(ash::ext::subgroup_size_control::NAME) || vk::api_version_minor(props.api_version) >= 3;
+        let mut driver_props = vk::PhysicalDeviceDriverProperties::default();
+        let has_driver_props =
+            has_ext(ash::khr::driver_properties::NAME) || vk::api_version_minor(props.api_version) >= 2;
         let mut props2 = vk::PhysicalDeviceProperties2::default().push_next(&mut subgroup);
         if has_size_control {
             props2 = props2.push_next(&mut size_control);
         }
+        if has_driver_props {
+            props2 = props2.push_next(&mut driver_props);
+        }
         unsafe { instance.get_physical_device_properties2(physical, &mut props2) };
+        let api = format!(
+            "Vulkan {}.{}.{}",
+            vk::api_version_major(props.api_version),
+            vk::api_version_minor(props.api_version),
+            vk::api_version_patch(props.api_version)
+        );
+        let driver = if has_driver_props {
+            let text = |c: Result<&CStr, _>| c.map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
+            let (name, info) = (text(driver_props.driver_name_as_c_str()), text(driver_props.driver_info_as_c_str()));
+            format!("{name} {info} ({api})").trim().to_string()
+        } else {
+            api
+        };
         let need = vk::SubgroupFeatureFlags::BASIC | vk::SubgroupFeatureFlags::ARITHMETIC;
         if !subgroup.supported_operations.contains(need)
             || !subgroup.supported_stages.contains(vk::ShaderStageFlags::COMPUTE)
@@ -319,6 +341,7 @@ impl Gpu {
         let info = DeviceInfo {
             name: chosen.1.clone(),
             kind: kind_rank(chosen.2).1,
+            driver,
             subgroup_size: subgroup.subgroup_size,
             min_subgroup_size,
             max_storage_buffer_range: props.limits.max_storage_buffer_range as u64,

@@ -91,6 +91,11 @@ pub struct Acceptance {
     /// Render check: PSNR (dB, after a non-negative colour mix for the instance's tint) at least
     /// this.
     pub min_render_psnr: f64,
+    /// Render check: compared in at least this many views (each showing the instance on at
+    /// least `verify::MIN_VIEW_PIXELS` pixels). A repetition worth instancing is an object seen
+    /// from several sides; a check that one view passes proves little (on a capture's plain
+    /// scene, `discover --auto` once paired two floor fragments on a single view).
+    pub min_render_views: usize,
     /// Pose hypotheses tried per instance, the most plausible first, over two RANSAC seeds.
     pub max_candidates: usize,
 }
@@ -102,6 +107,7 @@ impl Default for Acceptance {
             scale_tolerance: 0.25,
             min_render_iou: 0.85,
             min_render_psnr: 17.0,
+            min_render_views: 3,
             max_candidates: 6,
         }
     }
@@ -326,6 +332,12 @@ pub struct RenderScore {
 
 impl RenderScore {
     pub fn failure(&self, accept: &Acceptance) -> Option<String> {
+        if self.views < accept.min_render_views {
+            return Some(format!(
+                "seen in {} view(s) by the render check, fewer than {}",
+                self.views, accept.min_render_views
+            ));
+        }
         if self.iou.is_nan() || self.iou < accept.min_render_iou {
             return Some(format!("render IoU {:.2} below {:.2}", self.iou, accept.min_render_iou));
         }
@@ -1069,7 +1081,7 @@ mod tests {
     }
 
     fn score(pose_psnr: f64) -> RenderScore {
-        RenderScore { views: 1, iou: 1.0, psnr: pose_psnr, pose_psnr }
+        RenderScore { views: 12, iou: 1.0, psnr: pose_psnr, pose_psnr }
     }
 
     /// A symmetric object's render check: peaks of `peaks[i]` dB at turns of `modes[i]`° about

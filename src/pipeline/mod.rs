@@ -175,7 +175,9 @@ fn settings(s: Stage, a: &PipelineArgs, cfg: &PipelineConfig) -> Result<serde_js
             None => serde_json::to_value(&cfg.plain)?,
         },
         Stage::Segment => match &a.discover {
-            Some(spec) => serde_json::json!({"discover": format!("{spec:?}")}),
+            Some(spec) => {
+                serde_json::json!({"discover": format!("{spec:?}"), "instance": serde_json::to_value(&cfg.instance)?})
+            }
             None => serde_json::to_value(&cfg.segment)?,
         },
         Stage::Instance => serde_json::to_value(&cfg.instance)?,
@@ -338,6 +340,28 @@ impl State {
     }
 }
 
+/// Registration and acceptance as `[instance]` sets them (the instance stage's, and the
+/// discovery's in the segment stage).
+fn instance_options(c: &crate::train::config::InstanceStage) -> Result<crate::instancing::template::InstanceOptions> {
+    Ok(crate::instancing::template::InstanceOptions {
+        init: clap::ValueEnum::from_str(&c.init, true).map_err(|e| anyhow!("instance.init: {e}"))?,
+        with_scale: !c.rigid,
+        use_colour: c.colour,
+        colour_weight: c.colour_weight,
+        seed: c.seed,
+        accept: crate::instancing::template::Acceptance {
+            min_fitness: c.min_fitness,
+            scale_tolerance: c.scale_tolerance,
+            min_render_iou: c.min_render_iou,
+            min_render_psnr: c.min_render_psnr,
+            min_render_views: c.min_render_views,
+            ..Default::default()
+        },
+        synchronise: c.synchronise && c.render_check,
+        ..Default::default()
+    })
+}
+
 /// The "plain, pruned" baseline's scene in a run folder.
 pub const PRUNED_FILE: &str = "pruned.ply";
 
@@ -425,22 +449,7 @@ impl Ctx<'_> {
             }
             Stage::Instance => {
                 let c = &self.cfg.instance;
-                let opts = crate::instancing::template::InstanceOptions {
-                    init: clap::ValueEnum::from_str(&c.init, true).map_err(|e| anyhow!("instance.init: {e}"))?,
-                    with_scale: !c.rigid,
-                    use_colour: c.colour,
-                    colour_weight: c.colour_weight,
-                    seed: c.seed,
-                    accept: crate::instancing::template::Acceptance {
-                        min_fitness: c.min_fitness,
-                        scale_tolerance: c.scale_tolerance,
-                        min_render_iou: c.min_render_iou,
-                        min_render_psnr: c.min_render_psnr,
-                        ..Default::default()
-                    },
-                    synchronise: c.synchronise && c.render_check,
-                    ..Default::default()
-                };
+                let opts = instance_options(c)?;
                 let dtype = match c.offset_dtype.as_str() {
                     "f16" => crate::formats::instgs::Dtype::F16,
                     "pq8" => crate::formats::instgs::Dtype::Pq8,
@@ -690,13 +699,8 @@ impl Ctx<'_> {
         let scene = crate::formats::ply::read_ply(&run.join("point_cloud.ply"))?;
         let label = Stage::Segment.label();
         let started = Instant::now();
-        let opts = crate::discover::DiscoverOptions {
-            instance: crate::instancing::template::InstanceOptions {
-                seed: self.cfg.instance.seed,
-                ..Default::default()
-            },
-            ..Default::default()
-        };
+        let opts =
+            crate::discover::DiscoverOptions { instance: instance_options(&self.cfg.instance)?, ..Default::default() };
         let found = crate::discover::run::search(
             self.gpu,
             self.k,

@@ -266,6 +266,7 @@ pub struct InstanceStage {
     pub synchronise: bool,
     pub min_render_iou: f64,
     pub min_render_psnr: f64,
+    pub min_render_views: usize,
 }
 
 /// `[instance] background_keep`: "auto" or a fraction.
