@@ -26,5 +26,7 @@ python3 tools/fuzz_seeds.py mask "$seeds/mask_png"
 # A checkpoint: two iterations on the demo, cut down to its first two Gaussians.
 INSTGS_DEVICE=llvmpipe "$bin" train --data demo/ducks6-mini --out "$tmp/run" --until plain --iterations 2 \
     --downscale 4 --quiet 2>/dev/null
-python3 tools/fuzz_seeds.py checkpoint "$tmp/run/checkpoint.bin" "$seeds/checkpoint_parse/two.ckpt"
+python3 tools/fuzz_seeds.py checkpoint "$tmp/run/checkpoint.bin" "$seeds/checkpoint_parse/two-v2.ckpt"
+# .instgs version 2 (with its checksum) beside the version-1 seeds, which must still read.
+python3 tools/fuzz_seeds.py instgs-v2 "$seeds/instgs_parse/f32.instgs" "$seeds/instgs_parse/f32-v2.instgs"
 ls -R "$seeds" | head -60

@@ -291,7 +291,13 @@ fn bad_input_table() {
         ),
         ("colmap_colour_range", CAMERAS, IMAGES, "1 0 0 0 300 0 0 0.1\n", "colour is not in 0..255"),
         ("colmap_no_images", CAMERAS, "# nothing\n", POINTS, "no registered images"),
-        ("colmap_distorted", "1 OPENCV 64 48 50 50 32 24 0.5 0.1 0 0\n", IMAGES, POINTS, "undistort the images first"),
+        (
+            "colmap_full_opencv",
+            "1 FULL_OPENCV 64 48 50 50 32 24 0.5 0.1 0 0 0 0 0 0\n",
+            IMAGES,
+            POINTS,
+            "camera model FULL_OPENCV cannot be undistorted here",
+        ),
     ];
     for (name, cams, imgs, pts, needle) in colmap {
         colmap_dir(&t, name, cams, imgs, pts);
@@ -453,7 +459,14 @@ fn bad_input_table() {
     let cfg = Config::load(None).unwrap();
     let plain = |d: &Path| std::fs::remove_dir_all(d.join("masks")).unwrap();
     let demo_dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("demo/ducks6-mini");
-    for name in ["resume_none", "resume_nan", "resume_other_data", "resume_other_config", "resume_truncated"] {
+    for name in [
+        "resume_none",
+        "resume_nan",
+        "resume_other_data",
+        "resume_other_config",
+        "resume_truncated",
+        "resume_flipped_byte",
+    ] {
         let data = demo_copy(&t.dir(name), plain);
         let run = t.dir(name).join("run");
         std::fs::create_dir_all(&run).unwrap();
@@ -468,6 +481,7 @@ fn bad_input_table() {
                     test_views: 1,
                     width: 64,
                     height: 48,
+                    images: None,
                 };
                 write_checkpoint(&ckpt, &state, &cfg, Some(&other)).unwrap();
             }
@@ -480,7 +494,14 @@ fn bad_input_table() {
                 let mut b = std::fs::read(&ckpt).unwrap();
                 let hlen = u64::from_le_bytes(b[12..20].try_into().unwrap()) as usize;
                 if name == "resume_nan" {
+                    // A NaN written with a matching checksum: the values are checked too.
                     b[20 + hlen + 12..20 + hlen + 16].copy_from_slice(&f32::NAN.to_le_bytes());
+                    let body = b.len() - 4;
+                    let crc = crc32fast::hash(&b[..body]);
+                    b[body..].copy_from_slice(&crc.to_le_bytes());
+                } else if name == "resume_flipped_byte" {
+                    let at = b.len() / 2;
+                    b[at] ^= 0x10;
                 } else {
                     b.truncate(b.len() - 5);
                 }
@@ -492,7 +513,7 @@ fn bad_input_table() {
             "resume_nan" => &["checkpoint.bin", "non-finite"],
             "resume_other_data" => &["checkpoint.bin", "trained on other data: /elsewhere (3 training / 1 test views)"],
             "resume_other_config" => &["checkpoint.bin", "another configuration"],
-            _ => &["checkpoint.bin", "truncated checkpoint"],
+            _ => &["checkpoint.bin", "is damaged", "checksum"],
         };
         t.case(
             name,
@@ -508,6 +529,7 @@ fn bad_input_table() {
         test_views: 6,
         width: 160,
         height: 120,
+        images: None,
     };
     let run = t.dir("pipeline_other_run").join("run");
     std::fs::create_dir_all(&run).unwrap();

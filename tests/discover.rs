@@ -235,7 +235,12 @@ fn one_views_mask_lifts_to_the_copy_it_shows() {
     let dir = tempdir("discover-mask");
     let path = dir.join("view_14.png");
     image::GrayImage::from_raw(cam.width, cam.height, mask).unwrap().save(&path).unwrap();
-    let view = instgs_vk::dataset::View { camera: cam, image: img, path: dir.join("images").join("view_14.png") };
+    let view = instgs_vk::dataset::View {
+        camera: cam,
+        image: img,
+        path: dir.join("images").join("view_14.png"),
+        undistort: None,
+    };
     let mut lift = |v: &instgs_vk::dataset::View, m: &[u16]| -> anyhow::Result<Vec<u32>> {
         Ok(instgs_vk::segment::segment(&gpu, &k, &w.scene, std::slice::from_ref(v), &[m.to_vec()], &[1], 0.8)?.labels)
     };

@@ -469,7 +469,7 @@ fn rendered_views(scene: &InstancedScene, n: usize, phase: f32) -> Vec<instgs_vk
                 .iter()
                 .map(|p| [p[0].clamp(0.0, 1.0), p[1].clamp(0.0, 1.0), p[2].clamp(0.0, 1.0), 1.0])
                 .collect();
-            instgs_vk::dataset::View { camera, image, path: Default::default() }
+            instgs_vk::dataset::View { camera, image, path: Default::default(), undistort: None }
         })
         .collect()
 }

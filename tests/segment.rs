@@ -44,7 +44,7 @@ fn known_scene(
             let a = -0.6 + 1.2 * i as f32 / 9.0;
             let eye = Vec3::new(4.5 * a.sin(), -0.8, -4.5 * a.cos());
             let camera = look_at(eye, Vec3::ZERO, Vec3::new(0.0, -1.0, 0.0), 96, 64, 80.0);
-            instgs_vk::dataset::View { camera, image: Vec::new(), path: Default::default() }
+            instgs_vk::dataset::View { camera, image: Vec::new(), path: Default::default(), undistort: None }
         })
         .collect();
     let masks: Vec<Vec<u16>> = views
@@ -130,7 +130,12 @@ fn segmentation_scores_match_the_cpu_twin() {
             }
         })
         .collect();
-    let view = instgs_vk::dataset::View { camera: camera.clone(), image: Vec::new(), path: Default::default() };
+    let view = instgs_vk::dataset::View {
+        camera: camera.clone(),
+        image: Vec::new(),
+        path: Default::default(),
+        undistort: None,
+    };
     let alpha = 0.8;
     let seg = segment(&gpu, &k, &scene, &[view], std::slice::from_ref(&mask), &[1, 2], alpha).unwrap();
     let mut r = instgs_vk::render::raster::Rasterizer::new(&gpu, &k).unwrap();
@@ -246,7 +251,12 @@ fn mask_and_category_files_are_checked() {
     assert!(e.contains("rgb.png") && e.contains("greyscale"), "{e}");
     // Per-frame categories: every id of the mask needs one.
     let camera = look_at(Vec3::new(0.0, 0.0, -3.0), Vec3::ZERO, Vec3::new(0.0, -1.0, 0.0), 10, 8, 10.0);
-    let view = instgs_vk::dataset::View { camera, image: Vec::new(), path: d.join("train").join("r_000.png") };
+    let view = instgs_vk::dataset::View {
+        camera,
+        image: Vec::new(),
+        path: d.join("train").join("r_000.png"),
+        undistort: None,
+    };
     let mask = read_mask(&masks.join("r_000.png"), 10, 8).unwrap();
     let load = |text: &str| {
         std::fs::write(masks.join("r_000.json"), text).unwrap();

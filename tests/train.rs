@@ -89,24 +89,60 @@ fn colmap_text_and_binary_models_agree() {
 
 #[test]
 fn camera_models_and_distortion() {
+    use instgs_vk::model::camera::{transforms_from_str, Lens};
     let cam =
         |model: &str, params: Vec<f64>| dataset::ColmapCamera { model: model.into(), width: 640, height: 480, params };
+    let intr = |c| dataset::colmap_intrinsics(&c, "c");
     assert_eq!(
-        dataset::pinhole(&cam("SIMPLE_PINHOLE", vec![500.0, 320.0, 240.0]), "c").unwrap(),
-        [500.0, 500.0, 320.0, 240.0]
+        intr(cam("SIMPLE_PINHOLE", vec![500.0, 320.0, 240.0])).unwrap(),
+        ([500.0, 500.0, 320.0, 240.0], Lens::Pinhole)
+    );
+    assert_eq!(intr(cam("PINHOLE", vec![500.0, 510.0, 320.0, 240.0])).unwrap().0, [500.0, 510.0, 320.0, 240.0]);
+    // Zero distortion: a pinhole; real distortion: the lens, undistorted on load.
+    assert_eq!(intr(cam("SIMPLE_RADIAL", vec![500.0, 320.0, 240.0, 0.0])).unwrap().1, Lens::Pinhole);
+    assert_eq!(
+        intr(cam("OPENCV", vec![500.0, 500.0, 320.0, 240.0, 0.1, 0.01, 0.001, 0.002])).unwrap().1,
+        Lens::RadialTangential { k: [0.1, 0.01, 0.0, 0.0], p: [0.001, 0.002] }
     );
     assert_eq!(
-        dataset::pinhole(&cam("PINHOLE", vec![500.0, 510.0, 320.0, 240.0]), "c").unwrap(),
-        [500.0, 510.0, 320.0, 240.0]
+        intr(cam("OPENCV_FISHEYE", vec![500.0, 500.0, 320.0, 240.0, 0.1, 0.0, 0.0, 0.0])).unwrap().1,
+        Lens::Fisheye { k: [0.1, 0.0, 0.0, 0.0] }
     );
-    // Zero and negligible distortion: a pinhole.
-    assert!(dataset::pinhole(&cam("SIMPLE_RADIAL", vec![500.0, 320.0, 240.0, 0.0]), "c").is_ok());
-    assert!(dataset::pinhole(&cam("OPENCV", vec![500.0, 500.0, 320.0, 240.0, 1e-5, 0.0, 0.0, 0.0]), "c").is_ok());
-    // Real distortion: refused with advice.
-    let e = dataset::pinhole(&cam("RADIAL", vec![500.0, 320.0, 240.0, 0.05, 0.01]), "cam 3").unwrap_err().to_string();
-    assert!(e.contains("cam 3") && e.contains("image_undistorter"), "{e}");
-    let e = dataset::pinhole(&cam("OPENCV_FISHEYE", vec![0.0; 8]), "c").unwrap_err().to_string();
-    assert!(e.contains("not supported"), "{e}");
+    // A model we cannot undistort: refused, naming the camera and the model.
+    let e = dataset::colmap_intrinsics(&cam("FULL_OPENCV", vec![0.0; 12]), "cam 3").unwrap_err().to_string();
+    assert!(e.contains("cam 3") && e.contains("FULL_OPENCV") && e.contains("image_undistorter"), "{e}");
+
+    // Transforms files: nerfstudio's lens keys (top level, per frame over them).
+    let dir = std::path::Path::new("/nonexistent");
+    let frame = |extra: &str, m: &str| format!(r#"{{"file_path": "a", "transform_matrix": {m}{extra}}}"#);
+    let eye = "[[1,0,0,0],[0,1,0,0],[0,0,1,4],[0,0,0,1]]";
+    let file = |top: &str, frames: &[String]| {
+        format!(r#"{{"fl_x": 50, "w": 64, "h": 48{top}, "frames": [{}]}}"#, frames.join(","))
+    };
+    let load = |text: String| {
+        transforms_from_str(&text, dir, "t.json").map(|v| v.into_iter().map(|c| c.0).collect::<Vec<_>>())
+    };
+    let cams =
+        load(file(r#", "k1": -0.1, "p2": 0.01"#, &[frame("", eye), frame(r#", "k1": 0.0, "p2": 0.0"#, eye)])).unwrap();
+    assert_eq!(cams[0].lens, Lens::RadialTangential { k: [-0.1, 0.0, 0.0, 0.0], p: [0.0, 0.01] });
+    assert_eq!(cams[1].lens, Lens::Pinhole);
+    let cams = load(file(r#", "camera_model": "OPENCV_FISHEYE", "k2": 0.02"#, &[frame("", eye)])).unwrap();
+    assert_eq!(cams[0].lens, Lens::Fisheye { k: [0.0, 0.02, 0.0, 0.0] });
+    let e = load(file(r#", "camera_model": "EQUIRECTANGULAR""#, &[frame("", eye)])).unwrap_err().to_string();
+    assert!(e.contains("t.json") && e.contains("frame 0") && e.contains("EQUIRECTANGULAR"), "{e}");
+    // Camera-to-world matrices: a reflection, a shear, a bad last row are refused; a uniform
+    // scale is taken out.
+    for (m, needle) in [
+        ("[[-1,0,0,0],[0,1,0,0],[0,0,1,4],[0,0,0,1]]", "reflection"),
+        ("[[1,0.3,0,0],[0,1,0,0],[0,0,1,4],[0,0,0,1]]", "sheared"),
+        ("[[1,0,0,0],[0,1,0,0],[0,0,1,4],[0,0,1,1]]", "last row"),
+    ] {
+        let e = load(file("", &[frame("", eye), frame("", m)])).unwrap_err().to_string();
+        assert!(e.contains("t.json: frame 1") && e.contains(needle), "{e}");
+    }
+    let cams = load(file("", &[frame("", "[[2,0,0,0],[0,2,0,0],[0,0,2,4],[0,0,0,1]]")])).unwrap();
+    let plain = load(file("", &[frame("", eye)])).unwrap();
+    assert!((cams[0].viewmat - plain[0].viewmat).abs_diff_eq(glam::Mat4::ZERO, 1e-6));
 }
 
 #[test]

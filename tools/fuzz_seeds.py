@@ -133,6 +133,9 @@ def mask(d):
 def checkpoint(src, out):
     data = open(src, "rb").read()
     assert data[:8] == b"INSTGSCK"
+    (version,) = struct.unpack("<I", data[8:12])
+    if version >= 2:
+        data = data[:-4]  # the CRC-32 of the rest, written again below
     (hlen,) = struct.unpack("<Q", data[12:20])
     h = json.loads(data[20:20 + hlen])
     n, keep = h["gaussians"], 2
@@ -144,10 +147,31 @@ def checkpoint(src, out):
     assert pos == len(data), "a plain checkpoint"
     h["gaussians"] = keep
     hb = json.dumps(h).encode()
-    open(out, "wb").write(data[:12] + struct.pack("<Q", len(hb)) + hb + body)
+    out_bytes = data[:12] + struct.pack("<Q", len(hb)) + hb + body
+    if version >= 2:
+        out_bytes += struct.pack("<I", zlib.crc32(out_bytes))
+    open(out, "wb").write(out_bytes)
+
+
+def instgs_v2(src, out):
+    """A version-1 .instgs file as version 2: the same sections, the header's version 2, and the
+    CRC-32 of every byte before it at the end."""
+    data = open(src, "rb").read()
+    assert data[:8] == b"INSTGS\0\0"
+    (hlen,) = struct.unpack("<I", data[8:12])
+    h = json.loads(data[12:12 + hlen])
+    assert h["version"] == 1
+    sections = data[(12 + hlen + 15) // 16 * 16:]
+    h["version"] = 2
+    hb = json.dumps(h).encode()
+    head = data[:8] + struct.pack("<I", len(hb)) + hb
+    head += b"\0" * (-len(head) % 16)
+    body = head + sections
+    open(out, "wb").write(body + struct.pack("<I", zlib.crc32(body)))
 
 
 if __name__ == "__main__":
     cmd, args = sys.argv[1], sys.argv[2:]
     {"scene": scene, "ascii-scene": ascii_scene, "sog": sog, "points": points, "colmap": colmap,
-     "json": json_inputs, "configs": configs, "mask": mask, "checkpoint": checkpoint}[cmd](*args)
+     "json": json_inputs, "configs": configs, "mask": mask, "checkpoint": checkpoint,
+     "instgs-v2": instgs_v2}[cmd](*args)

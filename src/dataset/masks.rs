@@ -80,6 +80,12 @@ pub fn mask_from_bytes(bytes: &[u8], what: &str, width: u32, height: u32) -> Res
         image::DynamicImage::ImageLuma16(m) => m.pixels().map(|p| p.0[0]).collect(),
         other => bail!("{what}: a mask must be 8- or 16-bit greyscale, not {:?}", other.color()),
     };
+    fit_ids(img, (w, h), (width, height), what)
+}
+
+/// A mask of `w`×`h` for a view of `width`×`height`: as it is, or subsampled at each f×f block's
+/// centre pixel where it is an integer factor f larger (`--downscale f`).
+fn fit_ids(img: Vec<u16>, (w, h): (u32, u32), (width, height): (u32, u32), what: &str) -> Result<Vec<u16>> {
     if (w, h) == (width, height) {
         return Ok(img);
     }
@@ -115,9 +121,23 @@ pub fn mask_path(data: &Path, split: &str, image: &Path) -> Result<std::path::Pa
     }
 }
 
-/// The masks of `views` (see [`mask_path`] for their names), resized views refused.
+/// The masks of `views` (see [`mask_path`] for their names), resized views refused. A view whose
+/// photo was undistorted has its mask (of the photo's size) remapped the same way.
 pub fn load_masks(data: &Path, split: &str, views: &[View]) -> Result<Vec<Vec<u16>>> {
-    views.iter().map(|v| read_mask(&mask_path(data, split, &v.path)?, v.camera.width, v.camera.height)).collect()
+    views
+        .iter()
+        .map(|v| {
+            let path = mask_path(data, split, &v.path)?;
+            match &v.undistort {
+                None => read_mask(&path, v.camera.width, v.camera.height),
+                Some(u) => {
+                    let (w, h) = (u.source.width, u.source.height);
+                    let remapped = u.ids(&read_mask(&path, w, h)?);
+                    fit_ids(remapped, (w, h), (v.camera.width, v.camera.height), &path.display().to_string())
+                }
+            }
+        })
+        .collect()
 }
 
 /// The distinct non-zero ids of a mask, ascending.

@@ -5,10 +5,12 @@
 //! Cameras are converted to OpenCV (`viewmat` world → camera; COLMAP poses already are). Test
 //! split: NeRF-synthetic's test file; for COLMAP every 8th image in name order (Inria's
 //! `--eval`, llffhold 8). Initial points: `points3d.ply` (NeRF layout) or `points3D`.
-//! Camera models: PINHOLE and SIMPLE_PINHOLE; SIMPLE_RADIAL, RADIAL and OPENCV whose distortion
-//! moves no image corner by more than [`MAX_IGNORED_DISTORTION_PX`] are used as pinholes with a
-//! warning; others are refused (undistort with `colmap image_undistorter`).
+//! Camera models: pinholes; photos through a distorting lens (COLMAP's SIMPLE_RADIAL, RADIAL,
+//! OPENCV and fisheye models, nerfstudio's OPENCV and OPENCV_FISHEYE keys in a transforms file)
+//! are undistorted on load onto a pinhole camera ([`lens`]); other models are refused.
 
+pub mod content;
+pub mod lens;
 pub mod masks;
 use std::io::{BufRead, Read};
 use std::path::{Path, PathBuf};
@@ -16,16 +18,16 @@ use std::path::{Path, PathBuf};
 use anyhow::{anyhow, bail, Context, Result};
 use glam::{Mat3, Mat4, Quat, Vec3};
 
-use crate::model::camera::{load_transforms_with_images, Camera};
-
-/// Largest distortion displacement (pixels, at the image corners) treated as none.
-pub const MAX_IGNORED_DISTORTION_PX: f32 = 0.5;
+use crate::model::camera::{load_transforms_with_images, Camera, Lens};
 
 /// One view: its camera and its image (linear [0, 1] RGB as stored, a = 1).
 pub struct View {
+    /// A pinhole: a photo through a distorting lens is undistorted on load (`undistort`).
     pub camera: Camera,
     pub image: Vec<[f32; 4]>,
     pub path: PathBuf,
+    /// How the photo was undistorted (its masks are remapped the same way); None for a pinhole.
+    pub undistort: Option<lens::Undistort>,
 }
 
 /// Coloured points for initialisation.
@@ -104,6 +106,7 @@ impl Dataset {
             test_views: self.test.len(),
             width: first.0,
             height: first.1,
+            images: None,
         }
     }
 
@@ -127,6 +130,10 @@ pub struct DatasetIdentity {
     pub test_views: usize,
     pub width: u32,
     pub height: u32,
+    /// SHA-256 over every image's bytes ([`content::content_identity`]); checkpoints written
+    /// before it was recorded have none.
+    #[serde(default)]
+    pub images: Option<String>,
 }
 
 impl DatasetIdentity {
@@ -142,6 +149,8 @@ impl DatasetIdentity {
             ))
         } else if self.cameras != now.cameras {
             Some(format!("{was}); the cameras of {} differ", now.path))
+        } else if self.images.is_some() && now.images.is_some() && self.images != now.images {
+            Some(format!("{was}); the images of {} changed since (same names, other contents)", now.path))
         } else {
             None
         }
@@ -178,17 +187,32 @@ pub fn layout(dir: &Path) -> Result<&'static str> {
 /// The smallest image side `--downscale` may leave (one 16×16 tile).
 pub const MIN_IMAGE_SIDE: u32 = 16;
 
-/// Reads an image, checks its size, composites alpha over `background` and downscales.
-fn load_image(path: &Path, width: u32, height: u32, opts: &LoadOptions) -> Result<(Vec<[f32; 4]>, u32, u32)> {
+/// Reads an image, checks its size against `cam`'s, undistorts it where `cam` has a lens,
+/// composites alpha over `background` and downscales. Returns the pixels, the view's (pinhole)
+/// camera after all that, and the undistortion.
+fn load_image(
+    path: &Path,
+    cam: &Camera,
+    opts: &LoadOptions,
+) -> Result<(Vec<[f32; 4]>, Camera, Option<lens::Undistort>)> {
+    let (width, height) = (cam.width, cam.height);
     let img = image::open(path).with_context(|| format!("{}: cannot read image", path.display()))?;
     if img.width() != width || img.height() != height {
         bail!("{}: image is {}x{}, the camera says {width}x{height}", path.display(), img.width(), img.height());
     }
     let mut rgba = img.to_rgba32f();
-    let (mut w, mut h) = (width, height);
+    let undistort = if cam.lens == Lens::Pinhole {
+        None
+    } else {
+        let u = lens::Undistort::new(cam, &format!("{}: view {}", path.display(), cam.name))?;
+        let px: Vec<[f32; 4]> = rgba.pixels().map(|p| p.0).collect();
+        let flat: Vec<f32> = u.image(&px).into_iter().flatten().collect();
+        rgba = image::Rgba32FImage::from_raw(width, height, flat).expect("same size");
+        Some(u)
+    };
+    let mut camera = undistort.as_ref().map_or_else(|| cam.clone(), |u| u.target.clone());
     if opts.downscale > 1 {
-        w = width / opts.downscale;
-        h = height / opts.downscale;
+        let (w, h) = (width / opts.downscale, height / opts.downscale);
         if w < MIN_IMAGE_SIDE || h < MIN_IMAGE_SIDE {
             bail!(
                 "{}: --downscale {} makes this {width}x{height} image {w}x{h}; at most {} keeps both sides at {MIN_IMAGE_SIDE} pixels or more",
@@ -198,6 +222,7 @@ fn load_image(path: &Path, width: u32, height: u32, opts: &LoadOptions) -> Resul
             );
         }
         rgba = image::imageops::resize(&rgba, w, h, image::imageops::FilterType::Triangle);
+        camera = camera.resized(w, h);
     }
     let bg = opts.background;
     let px = rgba
@@ -208,7 +233,7 @@ fn load_image(path: &Path, width: u32, height: u32, opts: &LoadOptions) -> Resul
         })
         .map(|c| [c[0], c[1], c[2], 1.0])
         .collect();
-    Ok((px, w, h))
+    Ok((px, camera, undistort))
 }
 
 fn load_views(list: Vec<(Camera, PathBuf)>, opts: &LoadOptions) -> Result<Vec<View>> {
@@ -217,8 +242,8 @@ fn load_views(list: Vec<(Camera, PathBuf)>, opts: &LoadOptions) -> Result<Vec<Vi
             if !path.exists() {
                 bail!("{}: image of view '{}' is missing", path.display(), cam.name);
             }
-            let (image, w, h) = load_image(&path, cam.width, cam.height, opts)?;
-            Ok(View { camera: cam.resized(w, h), image, path })
+            let (image, camera, undistort) = load_image(&path, &cam, opts)?;
+            Ok(View { camera, image, path, undistort })
         })
         .collect()
 }
@@ -586,49 +611,28 @@ fn colmap_points_txt(m: &mut ColmapModel, text: &str, what: &str) -> Result<()> 
     Ok(())
 }
 
-/// Pinhole intrinsics (fx, fy, cx, cy) of a COLMAP camera, or an error for models that are not
-/// (nearly) pinhole. `what` names the camera in messages.
-pub fn pinhole(cam: &ColmapCamera, what: &str) -> Result<[f32; 4]> {
+/// The intrinsics (fx, fy, cx, cy) and lens of a COLMAP camera. Models with distortion we can
+/// undistort (SIMPLE_RADIAL, RADIAL, OPENCV, OPENCV_FISHEYE, SIMPLE_RADIAL_FISHEYE,
+/// RADIAL_FISHEYE) come with their lens, undistorted on load ([`lens`]); the others are refused
+/// with `what` (file, camera) and the model named.
+pub fn colmap_intrinsics(cam: &ColmapCamera, what: &str) -> Result<([f32; 4], Lens)> {
     let p = &cam.params;
-    let (f, distortion): ([f64; 4], Vec<f64>) = match cam.model.as_str() {
-        "SIMPLE_PINHOLE" => ([p[0], p[0], p[1], p[2]], vec![]),
-        "PINHOLE" => ([p[0], p[1], p[2], p[3]], vec![]),
-        "SIMPLE_RADIAL" => ([p[0], p[0], p[1], p[2]], vec![p[3], 0.0, 0.0, 0.0]),
-        "RADIAL" => ([p[0], p[0], p[1], p[2]], vec![p[3], p[4], 0.0, 0.0]),
-        "OPENCV" => ([p[0], p[1], p[2], p[3]], vec![p[4], p[5], p[6], p[7]]),
+    let rt = |k: [f64; 4], q: [f64; 2]| Lens::RadialTangential { k, p: q };
+    let (f, lens) = match cam.model.as_str() {
+        "SIMPLE_PINHOLE" => ([p[0], p[0], p[1], p[2]], Lens::Pinhole),
+        "PINHOLE" => ([p[0], p[1], p[2], p[3]], Lens::Pinhole),
+        "SIMPLE_RADIAL" => ([p[0], p[0], p[1], p[2]], rt([p[3], 0.0, 0.0, 0.0], [0.0; 2])),
+        "RADIAL" => ([p[0], p[0], p[1], p[2]], rt([p[3], p[4], 0.0, 0.0], [0.0; 2])),
+        "OPENCV" => ([p[0], p[1], p[2], p[3]], rt([p[4], p[5], 0.0, 0.0], [p[6], p[7]])),
+        "OPENCV_FISHEYE" => ([p[0], p[1], p[2], p[3]], Lens::Fisheye { k: [p[4], p[5], p[6], p[7]] }),
+        "SIMPLE_RADIAL_FISHEYE" => ([p[0], p[0], p[1], p[2]], Lens::Fisheye { k: [p[3], 0.0, 0.0, 0.0] }),
+        "RADIAL_FISHEYE" => ([p[0], p[0], p[1], p[2]], Lens::Fisheye { k: [p[3], p[4], 0.0, 0.0] }),
         other => bail!(
-            "{what}: camera model {other} is not supported; undistort the images to PINHOLE first (colmap image_undistorter)"
+            "{what}: camera model {other} cannot be undistorted here (PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV and the fisheye models can); run colmap image_undistorter and train on its PINHOLE model"
         ),
     };
-    if !distortion.is_empty() {
-        // Largest displacement of an image corner under the distortion (pixels).
-        let [fx, fy, cx, cy] = f;
-        let [k1, k2, p1, p2] = [distortion[0], distortion[1], distortion[2], distortion[3]];
-        let mut worst = 0.0f64;
-        for (u, v) in
-            [(0.0, 0.0), (cam.width as f64, 0.0), (0.0, cam.height as f64), (cam.width as f64, cam.height as f64)]
-        {
-            let (x, y) = ((u - cx) / fx, (v - cy) / fy);
-            let r2 = x * x + y * y;
-            let radial = k1 * r2 + k2 * r2 * r2;
-            let dx = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x);
-            let dy = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y;
-            worst = worst.max((dx * fx).hypot(dy * fy));
-        }
-        if worst > MAX_IGNORED_DISTORTION_PX as f64 {
-            bail!(
-                "{what}: {} distortion moves the image corners by up to {worst:.1} px; undistort the images first (colmap image_undistorter) and train on the PINHOLE model",
-                cam.model
-            );
-        }
-        if worst > 0.0 {
-            eprintln!(
-                "warning: {what}: {} distortion (≤ {worst:.2} px at the corners) is ignored; treated as a pinhole",
-                cam.model
-            );
-        }
-    }
-    Ok(f.map(|v| v as f32))
+    let lens = if matches!(lens, Lens::RadialTangential { .. }) && lens.is_pinhole() { Lens::Pinhole } else { lens };
+    Ok((f.map(|v| v as f32), lens))
 }
 
 /// Every registered image of a COLMAP model as (camera, image path), sorted by image name.
@@ -647,7 +651,7 @@ fn colmap_cameras(dir: &Path, model: &ColmapModel) -> Result<Vec<(Camera, PathBu
                     im.camera_id
                 )
             })?;
-            let intr = pinhole(cam, &format!("{}: camera {}", sparse.display(), im.camera_id))?;
+            let (intr, lens) = colmap_intrinsics(cam, &format!("{}: camera {}", sparse.display(), im.camera_id))?;
             let [w, x, y, z] = im.qvec.map(|v| v as f32);
             let rot = Mat3::from_quat(Quat::from_xyzw(x, y, z, w).normalize());
             let t = Vec3::new(im.tvec[0] as f32, im.tvec[1] as f32, im.tvec[2] as f32);
@@ -663,6 +667,7 @@ fn colmap_cameras(dir: &Path, model: &ColmapModel) -> Result<Vec<(Camera, PathBu
                 cx: intr[2],
                 cy: intr[3],
                 viewmat,
+                lens,
             };
             camera.validate().with_context(|| format!("{}: image {}", sparse.display(), im.name))?;
             Ok((camera, dir.join("images").join(&im.name)))
@@ -733,9 +738,27 @@ pub fn dataset_cameras_with_images(path: &Path, split: &str) -> Result<Vec<(Came
     }
 }
 
-/// [`dataset_cameras_with_images`] without the image files.
+/// [`dataset_cameras_with_images`] without the image files, as the rasterizer draws them: a
+/// camera with a lens becomes the pinhole camera its photo is undistorted onto when the dataset
+/// is loaded (the same view training and `eval` see), and a note says so once.
 pub fn dataset_cameras(path: &Path, split: &str) -> Result<Vec<Camera>> {
-    Ok(dataset_cameras_with_images(path, split)?.into_iter().map(|(c, _)| c).collect())
+    let cams: Vec<Camera> = dataset_cameras_with_images(path, split)?.into_iter().map(|(c, _)| c).collect();
+    if let Some(c) = cams.iter().find(|c| c.lens != Lens::Pinhole) {
+        eprintln!(
+            "note: {}: the cameras carry lens distortion ({}); renders are pinhole images, of the undistorted views that training and eval use (their photos are undistorted on load), not of the distorted photos",
+            path.display(),
+            c.lens.name()
+        );
+    }
+    cams.into_iter()
+        .map(|c| match c.lens {
+            Lens::Pinhole => Ok(c),
+            _ => {
+                let what = format!("{}: camera {}", path.display(), c.name);
+                Ok(lens::Undistort::new(&c, &what)?.target)
+            }
+        })
+        .collect()
 }
 
 /// `instgs-vk cameras`: the cameras of `data`'s `split` as a transforms.json (OpenGL c2w,

@@ -7,7 +7,9 @@
 //! 12  H bytes   JSON header (UTF-8)
 //!     padding   zeros up to the next multiple of 16: the data start D
 //! D   sections  little-endian arrays at header-declared offsets relative to D
+//! end−4  u32 LE  (version 2) CRC-32 (IEEE) of every byte before it
 //! ```
+//! Version 1 files (no checksum) still read.
 use std::io::Write;
 use std::path::Path;
 
@@ -19,7 +21,7 @@ use crate::model::instanced::{mat4_from_rows, mat4_to_rows, Group, Instance, Ins
 use crate::model::scene::Scene;
 
 pub const MAGIC: &[u8; 8] = b"INSTGS\0\0";
-pub const VERSION: u32 = 1;
+pub const VERSION: u32 = 2;
 /// Headers larger than this are refused (a corrupt length would otherwise allocate gigabytes).
 const MAX_HEADER: usize = 64 << 20;
 
@@ -190,6 +192,8 @@ pub fn to_bytes(scene: &InstancedScene, offset_dtype: Dtype) -> Vec<u8> {
         out.push(0);
     }
     out.extend_from_slice(&data);
+    let crc = crc32fast::hash(&out);
+    out.extend_from_slice(&crc.to_le_bytes());
     out
 }
 
@@ -229,14 +233,26 @@ fn split(bytes: &[u8]) -> Result<(Header, &[u8], u64)> {
     if value.get("format").and_then(|f| f.as_str()) != Some("instgs") {
         bail!("header: format is not \"instgs\"");
     }
-    match value.get("version").and_then(|v| v.as_u64()) {
-        Some(v) if v == VERSION as u64 => {}
-        Some(v) => bail!("header: version {v} is not supported (this build reads version {VERSION})"),
+    let end = match value.get("version").and_then(|v| v.as_u64()) {
+        Some(1) => bytes.len(),
+        Some(v) if v == VERSION as u64 => {
+            let body = bytes
+                .len()
+                .checked_sub(4)
+                .filter(|&b| b >= 12 + len)
+                .ok_or_else(|| anyhow!("cut short: no checksum"))?;
+            let stored = u32::from_le_bytes(bytes[body..].try_into().unwrap());
+            if crc32fast::hash(&bytes[..body]) != stored {
+                bail!("damaged: its checksum does not match its contents (a byte changed after it was written); write it again from its source");
+            }
+            body
+        }
+        Some(v) => bail!("header: version {v} is not supported (this build reads versions 1 and {VERSION})"),
         None => bail!("header: no version"),
-    }
+    };
     let header: Header = serde_json::from_value(value).map_err(|e| anyhow!("header: {e}"))?;
     let start = (12 + len).div_ceil(16) * 16;
-    let data = bytes.get(start..).unwrap_or(&[]);
+    let data = bytes.get(start..end).unwrap_or(&[]);
     Ok((header, data, start as u64))
 }
 

@@ -21,6 +21,71 @@ pub struct Camera {
     pub cy: f32,
     /// World → camera (OpenCV).
     pub viewmat: Mat4,
+    /// The lens's distortion as the camera file gives it. Rendering is pinhole: datasets undistort
+    /// their photos on load (`crate::dataset::lens`), and their cameras are pinholes after it.
+    pub lens: Lens,
+}
+
+/// A lens's distortion of normalised image coordinates (x = (u − cx) / fx, y = (v − cy) / fy):
+/// where a ray that a pinhole would image at (x, y) lands in the photo.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub enum Lens {
+    #[default]
+    Pinhole,
+    /// OpenCV's radial-tangential model: r² = x² + y², radial = 1 + k1 r² + k2 r⁴ + k3 r⁶ + k4 r⁸,
+    /// x' = x radial + 2 p1 x y + p2 (r² + 2x²), y' = y radial + p1 (r² + 2y²) + 2 p2 x y.
+    /// COLMAP's SIMPLE_RADIAL (k1), RADIAL (k1, k2) and OPENCV (k1, k2, p1, p2); nerfstudio's
+    /// OPENCV (k1..k4, p1, p2).
+    RadialTangential { k: [f64; 4], p: [f64; 2] },
+    /// OpenCV's fisheye (equidistant) model: θ = atan r, θd = θ (1 + k1 θ² + k2 θ⁴ + k3 θ⁶ +
+    /// k4 θ⁸), (x', y') = (θd / r) (x, y). COLMAP's OPENCV_FISHEYE, SIMPLE_RADIAL_FISHEYE (k1)
+    /// and RADIAL_FISHEYE (k1, k2); nerfstudio's OPENCV_FISHEYE.
+    Fisheye { k: [f64; 4] },
+}
+
+impl Lens {
+    /// The distorted point of (x, y).
+    pub fn distort(&self, x: f64, y: f64) -> (f64, f64) {
+        match *self {
+            Lens::Pinhole => (x, y),
+            Lens::RadialTangential { k, p } => {
+                let r2 = x * x + y * y;
+                let radial = 1.0 + r2 * (k[0] + r2 * (k[1] + r2 * (k[2] + r2 * k[3])));
+                (
+                    x * radial + 2.0 * p[0] * x * y + p[1] * (r2 + 2.0 * x * x),
+                    y * radial + p[0] * (r2 + 2.0 * y * y) + 2.0 * p[1] * x * y,
+                )
+            }
+            Lens::Fisheye { k } => {
+                let r = x.hypot(y);
+                if r < 1e-12 {
+                    return (x, y);
+                }
+                let t = r.atan();
+                let t2 = t * t;
+                let td = t * (1.0 + t2 * (k[0] + t2 * (k[1] + t2 * (k[2] + t2 * k[3]))));
+                (x * td / r, y * td / r)
+            }
+        }
+    }
+
+    /// Whether it distorts at all.
+    pub fn is_pinhole(&self) -> bool {
+        match self {
+            Lens::Pinhole => true,
+            Lens::RadialTangential { k, p } => k.iter().chain(p).all(|&v| v == 0.0),
+            Lens::Fisheye { .. } => false,
+        }
+    }
+
+    /// The model's name as OpenCV / COLMAP / nerfstudio call it.
+    pub fn name(&self) -> &'static str {
+        match self {
+            Lens::Pinhole => "PINHOLE",
+            Lens::RadialTangential { .. } => "OPENCV",
+            Lens::Fisheye { .. } => "OPENCV_FISHEYE",
+        }
+    }
 }
 
 impl Camera {
@@ -55,6 +120,7 @@ impl Camera {
             cx: intr[2],
             cy: intr[3],
             viewmat: (c2w * flip).inverse(),
+            lens: Lens::Pinhole,
         }
     }
 
@@ -94,8 +160,57 @@ struct TransformsFile {
     cy: Option<f32>,
     w: Option<f32>,
     h: Option<f32>,
+    #[serde(flatten)]
+    lens: LensKeys,
     #[serde(default)]
     frames: Vec<Frame>,
+}
+
+/// nerfstudio's lens keys (top level, or per frame overriding them).
+#[derive(serde::Deserialize, Default, Clone)]
+struct LensKeys {
+    camera_model: Option<String>,
+    k1: Option<f64>,
+    k2: Option<f64>,
+    k3: Option<f64>,
+    k4: Option<f64>,
+    p1: Option<f64>,
+    p2: Option<f64>,
+}
+
+impl LensKeys {
+    /// These keys with `frame`'s where it has them.
+    fn over(&self, frame: &LensKeys) -> LensKeys {
+        LensKeys {
+            camera_model: frame.camera_model.clone().or(self.camera_model.clone()),
+            k1: frame.k1.or(self.k1),
+            k2: frame.k2.or(self.k2),
+            k3: frame.k3.or(self.k3),
+            k4: frame.k4.or(self.k4),
+            p1: frame.p1.or(self.p1),
+            p2: frame.p2.or(self.p2),
+        }
+    }
+
+    /// The lens (nerfstudio's convention: OPENCV unless `camera_model` says otherwise); models
+    /// that cannot be undistorted to a pinhole are refused with `what` and the model named.
+    fn lens(&self, what: &str) -> Result<Lens> {
+        let z = |v: Option<f64>| v.unwrap_or(0.0);
+        let k = [z(self.k1), z(self.k2), z(self.k3), z(self.k4)];
+        let p = [z(self.p1), z(self.p2)];
+        if let Some(v) = k.iter().chain(&p).find(|v| !v.is_finite()) {
+            bail!("{what}: distortion parameter {v} is not finite");
+        }
+        let lens = match self.camera_model.as_deref().unwrap_or("OPENCV") {
+            "PINHOLE" | "SIMPLE_PINHOLE" | "OPENCV" | "RADIAL" | "SIMPLE_RADIAL" => Lens::RadialTangential { k, p },
+            "OPENCV_FISHEYE" if p == [0.0, 0.0] => Lens::Fisheye { k },
+            "OPENCV_FISHEYE" => bail!("{what}: OPENCV_FISHEYE takes k1..k4 only, not p1 or p2"),
+            other => bail!(
+                "{what}: camera_model {other} cannot be undistorted to a pinhole here (PINHOLE, OPENCV and OPENCV_FISHEYE can); convert its images to a pinhole camera first"
+            ),
+        };
+        Ok(if lens.is_pinhole() && !matches!(lens, Lens::Fisheye { .. }) { Lens::Pinhole } else { lens })
+    }
 }
 
 /// A frame; its own intrinsics (nerfstudio's per-frame keys) override the file's.
@@ -109,6 +224,44 @@ struct Frame {
     cy: Option<f32>,
     w: Option<f32>,
     h: Option<f32>,
+    #[serde(flatten)]
+    lens: LensKeys,
+}
+
+/// The camera-to-world matrix of a frame, checked: a rotation (or a rotation times a uniform
+/// scale, which is taken out; `scaled` is set) and a translation, last row (0, 0, 0, 1).
+fn rigid_c2w(m: Mat4, what: &str, scaled: &mut bool) -> Result<Mat4> {
+    let row = m.row(3);
+    if (row - Vec4::new(0.0, 0.0, 0.0, 1.0)).abs().max_element() > 1e-4 {
+        bail!(
+            "{what}: transform_matrix's last row is {:?}, not (0, 0, 0, 1): not a camera-to-world matrix",
+            row.to_array()
+        );
+    }
+    let r = glam::Mat3::from_mat4(m);
+    let det = r.determinant();
+    if !(det.is_finite() && det.abs() > 1e-12) {
+        bail!("{what}: transform_matrix's rotation part is singular (determinant {det})");
+    }
+    if det < 0.0 {
+        bail!("{what}: transform_matrix's rotation part is a reflection (determinant {det:.3} < 0), not a rotation");
+    }
+    let s = det.cbrt();
+    let rtr = (r.transpose() * r) * (1.0 / (s * s));
+    let off = (rtr.x_axis - Vec3::X)
+        .abs()
+        .max_element()
+        .max((rtr.y_axis - Vec3::Y).abs().max_element())
+        .max((rtr.z_axis - Vec3::Z).abs().max_element());
+    if off > 1e-3 {
+        bail!("{what}: transform_matrix's rotation part is sheared or scaled unevenly (RᵀR deviates from a multiple of I by {off:.3}), not a rotation");
+    }
+    if (s - 1.0).abs() > 1e-4 {
+        *scaled = true;
+        let r = r * (1.0 / s);
+        return Ok(Mat4::from_cols(r.x_axis.extend(0.0), r.y_axis.extend(0.0), r.z_axis.extend(0.0), m.w_axis));
+    }
+    Ok(m)
 }
 
 /// Loads the cameras of a NeRF-synthetic `transforms_*.json`. The image size comes from `w`/`h`
@@ -144,6 +297,7 @@ pub fn transforms_from_str(text: &str, dir: &Path, what: &str) -> Result<Vec<(Ca
         bail!("{what}: image size {w}x{h} is empty");
     }
     let mut cams = Vec::new();
+    let mut scaled = false;
     for (k, f) in tf.frames.iter().enumerate() {
         let (w, h) = (f.w.unwrap_or(w), f.h.unwrap_or(h));
         if !(w >= 1.0 && h >= 1.0) {
@@ -158,7 +312,9 @@ pub fn transforms_from_str(text: &str, dir: &Path, what: &str) -> Result<Vec<(Ca
         let fy = f.fl_y.or(tf.fl_y).unwrap_or(fx);
         let intr = [fx, fy, f.cx.or(tf.cx).unwrap_or(0.5 * w), f.cy.or(tf.cy).unwrap_or(0.5 * h)];
         // transform_matrix is row-major.
-        let c2w = Mat4::from_cols_array_2d(&f.transform_matrix).transpose();
+        let frame = format!("{what}: frame {k} ({})", f.file_path);
+        let c2w = rigid_c2w(Mat4::from_cols_array_2d(&f.transform_matrix).transpose(), &frame, &mut scaled)?;
+        let lens = tf.lens.over(&f.lens).lens(&frame)?;
         let name = Path::new(&f.file_path)
             .file_name()
             .map(|n| n.to_string_lossy().into_owned())
@@ -168,9 +324,12 @@ pub fn transforms_from_str(text: &str, dir: &Path, what: &str) -> Result<Vec<(Ca
             .find_map(|e| name.strip_suffix(e))
             .unwrap_or(&name)
             .to_string();
-        let cam = Camera::from_c2w_opengl(&name, c2w, w.round() as u32, h.round() as u32, intr);
+        let cam = Camera { lens, ..Camera::from_c2w_opengl(&name, c2w, w.round() as u32, h.round() as u32, intr) };
         cam.validate().with_context(|| format!("{what}: frame {k}"))?;
         cams.push((cam, image_path(dir, &f.file_path)));
+    }
+    if scaled {
+        eprintln!("note: {what}: rotations scaled uniformly in transform_matrix were normalised to rotations");
     }
     Ok(cams)
 }
@@ -185,10 +344,27 @@ pub fn transforms_json(cams: &[Camera], images: &[String]) -> serde_json::Value 
         .zip(images)
         .map(|(c, file)| {
             let m = c.c2w_opengl().transpose().to_cols_array_2d();
-            serde_json::json!({
+            let mut f = serde_json::json!({
                 "file_path": file, "transform_matrix": m,
                 "fl_x": c.fx, "fl_y": c.fy, "cx": c.cx, "cy": c.cy, "w": c.width, "h": c.height,
-            })
+            });
+            // nerfstudio's lens keys where the camera has a lens.
+            match c.lens {
+                Lens::Pinhole => {}
+                Lens::RadialTangential { k, p } => {
+                    f["camera_model"] = "OPENCV".into();
+                    for (key, v) in ["k1", "k2", "k3", "k4", "p1", "p2"].iter().zip(k.iter().chain(&p)) {
+                        f[*key] = (*v).into();
+                    }
+                }
+                Lens::Fisheye { k } => {
+                    f["camera_model"] = "OPENCV_FISHEYE".into();
+                    for (key, v) in ["k1", "k2", "k3", "k4"].iter().zip(&k) {
+                        f[*key] = (*v).into();
+                    }
+                }
+            }
+            f
         })
         .collect();
     let c = &cams[0];
@@ -267,7 +443,17 @@ pub fn level_camera(name: String, eye: Vec3, forward: Vec3, up: Vec3, width: u32
     let y = z.cross(x);
     let c2w = Mat4::from_cols(x.extend(0.0), y.extend(0.0), z.extend(0.0), eye.extend(1.0));
     let fx = 0.5 * width as f32 / (0.5 * fov_x).tan();
-    Camera { name, width, height, fx, fy: fx, cx: 0.5 * width as f32, cy: 0.5 * height as f32, viewmat: c2w.inverse() }
+    Camera {
+        name,
+        width,
+        height,
+        fx,
+        fy: fx,
+        cx: 0.5 * width as f32,
+        cy: 0.5 * height as f32,
+        viewmat: c2w.inverse(),
+        lens: Lens::Pinhole,
+    }
 }
 
 fn orbit(o: &Orbit, n: usize, width: u32, height: u32) -> Vec<Camera> {

@@ -124,6 +124,10 @@ struct StageRecord {
     /// Wall seconds over all attempts (a killed attempt's time is lost).
     seconds: f64,
     attempts: u32,
+    /// What the dataset's images and masks held when the stage ran (runs from before this was
+    /// recorded have none).
+    #[serde(default)]
+    content: Option<crate::dataset::content::ContentIdentity>,
 }
 
 #[derive(Clone, Debug, Default, Serialize, Deserialize)]
@@ -225,11 +229,30 @@ pub fn run(a: PipelineArgs) -> Result<()> {
     std::fs::create_dir_all(&a.out).with_context(|| format!("{}: cannot create", a.out.display()))?;
     let run = a.out.as_path();
     let mut state = State::read(run)?;
+    // Images or masks edited in place since a stage ran: that stage and what follows are redone.
+    let scan = crate::dataset::content::content_identity(&ds, &a.data, run)?;
+    let content = scan.id.clone();
+    let mut from = a.from;
+    if let Some((s, what)) = STAGES.iter().copied().find_map(|s| {
+        let was = state.stages.get(s.name())?.content.as_ref()?;
+        let images = was.images != content.images && !(s == Stage::Plain && a.init.is_some());
+        let masks = was.masks != content.masks && s != Stage::Plain;
+        (images || masks).then_some((s, if images { "images" } else { "masks" }))
+    }) {
+        if from.is_none_or(|f| f > s) {
+            eprintln!(
+                "note: the {what} of {} changed since stage {} ran (same names, other contents): it and the stages after it are redone",
+                a.data.display(),
+                s.name()
+            );
+            from = Some(s);
+        }
+    }
     // A stage already run (or begun) with other settings is not silently reused. Keys added to
     // the configuration since it ran count as their defaults.
     let defaults = PipelineConfig::load(None)?;
     // Checked before --from changes anything; the stages --from redoes are not checked.
-    for s in STAGES.iter().copied().filter(|&s| s <= until && a.from.is_none_or(|f| s < f)) {
+    for s in STAGES.iter().copied().filter(|&s| s <= until && from.is_none_or(|f| s < f)) {
         if let Some(r) = state.stages.get(s.name()) {
             let mut recorded = settings(s, &a, &defaults)?;
             crate::util::json_overlay(&mut recorded, &r.settings);
@@ -243,7 +266,7 @@ pub fn run(a: PipelineArgs) -> Result<()> {
             }
         }
     }
-    if let Some(from) = a.from {
+    if let Some(from) = from {
         for s in STAGES.iter().copied().filter(|&s| s >= from) {
             state.stages.remove(s.name());
             if let Some(c) = stage_checkpoint(run, s) {
@@ -258,6 +281,14 @@ pub fn run(a: PipelineArgs) -> Result<()> {
     // trained on other data (a plain run of another dataset, say) is refused before anything runs.
     for s in STAGES.iter().copied().filter(|&s| s <= until && !state.done(s)) {
         if let Some(c) = stage_checkpoint(run, s).filter(|c| c.exists()) {
+            if !train::checkpoint_is_whole(&c)? {
+                bail!(
+                    "{} is damaged: its checksum does not match its contents (a byte changed after it was written); redo stage {} with --from {}",
+                    c.display(),
+                    s.name(),
+                    s.name()
+                );
+            }
             if let Some(why) = train::checkpoint_dataset(&c)?.and_then(|was| was.mismatch(&ds.identity())) {
                 bail!(
                     "{}: the checkpoint of stage {} was trained on other data: {why}; choose another --out",
@@ -268,6 +299,7 @@ pub fn run(a: PipelineArgs) -> Result<()> {
         }
     }
     let (gpu, k) = crate::gpu::kernels::open_device(a.device.clone())?;
+    scan.save()?;
     eprintln!(
         "{}: {what}, {}; {}",
         a.data.display(),
@@ -289,6 +321,7 @@ pub fn run(a: PipelineArgs) -> Result<()> {
         eprintln!("{}started", s.label());
         let rec = state.stages.entry(s.name().into()).or_default();
         rec.settings = settings(s, &a, &cfg)?;
+        rec.content = Some(content.clone());
         rec.attempts += 1;
         state.write(run)?;
         let hooked = hook.as_deref() == Some(s.name());

@@ -12,7 +12,8 @@ use crate::train::config::Config;
 use crate::train::state::*;
 
 const MAGIC: &[u8; 8] = b"INSTGSCK";
-const VERSION: u32 = 1;
+/// 2: the file ends in a CRC-32 of every byte before it (version 1 files, without, still read).
+const VERSION: u32 = 2;
 
 #[derive(serde::Serialize, serde::Deserialize)]
 struct CheckpointHeader {
@@ -49,7 +50,7 @@ pub fn write_checkpoint(path: &Path, st: &TrainState, cfg: &Config, dataset: Opt
         appearance_views: st.appearance.params.len(),
     })?;
     crate::util::write_atomic(path, |f| {
-        let mut w = std::io::BufWriter::new(f);
+        let mut w = CrcWriter { inner: std::io::BufWriter::new(f), crc: crc32fast::Hasher::new() };
         w.write_all(MAGIC)?;
         w.write_all(&VERSION.to_le_bytes())?;
         w.write_all(&(header.len() as u64).to_le_bytes())?;
@@ -73,8 +74,27 @@ pub fn write_checkpoint(path: &Path, st: &TrainState, cfg: &Config, dataset: Opt
             w.write_all(bytemuck::cast_slice(arr))?;
         }
         w.write_all(bytemuck::cast_slice(&a.steps))?;
-        w.flush()
+        let crc = w.crc.clone().finalize();
+        w.inner.write_all(&crc.to_le_bytes())?;
+        w.inner.flush()
     })
+}
+
+/// A writer that keeps the CRC-32 of what went through it.
+struct CrcWriter<W: Write> {
+    inner: W,
+    crc: crc32fast::Hasher,
+}
+
+impl<W: Write> Write for CrcWriter<W> {
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        let n = self.inner.write(buf)?;
+        self.crc.update(&buf[..n]);
+        Ok(n)
+    }
+    fn flush(&mut self) -> std::io::Result<()> {
+        self.inner.flush()
+    }
 }
 
 /// Reads a checkpoint; returns the state and the configuration it was written with.
@@ -103,8 +123,8 @@ fn check_prefix(data: &[u8], what: &str) -> Result<usize> {
         bail!("{what}: not an instgs-vk checkpoint");
     }
     let version = u32::from_le_bytes(data[8..12].try_into().unwrap());
-    if version != VERSION {
-        bail!("{what}: checkpoint version {version}, this build reads {VERSION}");
+    if version != 1 && version != VERSION {
+        bail!("{what}: checkpoint version {version}, this build reads versions 1 and {VERSION}");
     }
     let hlen = u64::from_le_bytes(data[12..20].try_into().unwrap());
     usize::try_from(hlen).ok().filter(|&h| h <= (1 << 30)).ok_or_else(|| anyhow!("{what}: damaged checkpoint header"))
@@ -121,9 +141,34 @@ fn parse_header(bytes: &[u8], hlen: usize, what: &str) -> Result<CheckpointHeade
     Ok(header)
 }
 
+/// Whether the checkpoint at `path` is whole: its checksum matches its contents (version 1
+/// files, which have none, count as whole). Nothing else is parsed.
+pub fn checkpoint_is_whole(path: &Path) -> Result<bool> {
+    let data = std::fs::read(path).with_context(|| format!("{}: cannot read checkpoint", path.display()))?;
+    check_prefix(&data, &path.display().to_string())?;
+    Ok(checked_body(&data).is_some())
+}
+
+/// The bytes before the checksum of a version-2 checkpoint when the checksum matches them
+/// (version 1: all the bytes); None when it does not. `data` has passed [`check_prefix`].
+fn checked_body(data: &[u8]) -> Option<&[u8]> {
+    if u32::from_le_bytes(data[8..12].try_into().unwrap()) < 2 {
+        return Some(data);
+    }
+    let body = &data[..data.len().saturating_sub(4).max(20)];
+    let stored = data.get(body.len()..).and_then(|t| t.try_into().ok()).map(u32::from_le_bytes)?;
+    (stored == crc32fast::hash(body)).then_some(body)
+}
+
 /// [`read_checkpoint`] on bytes in memory; `what` names them in errors.
 pub fn checkpoint_from_bytes(data: &[u8], what: &str) -> Result<(TrainState, Config)> {
     let hlen = check_prefix(data, what)?;
+    // Version 2: the last 4 bytes are the CRC-32 of the rest, checked before anything is read.
+    let Some(data) = checked_body(data) else {
+        bail!(
+            "{what} is damaged: its checksum does not match its contents (a byte changed after it was written); remove it and train again (a pipeline: the same command with --from <its stage>)"
+        );
+    };
     let header = parse_header(data.get(20..).and_then(|d| d.get(..hlen)).unwrap_or_default(), hlen, what)?;
     let n = header.gaussians;
     let st = strides(header.sh_degree);
@@ -186,7 +231,13 @@ pub fn checkpoint_from_bytes(data: &[u8], what: &str) -> Result<(TrainState, Con
         xform_params: xf[0].clone(),
         xform_exp_avg: xf[1].clone(),
         xform_exp_avg_sq: xf[2].clone(),
-        appearance: AppearanceState { params: ap[0].clone(), exp_avg: ap[1].clone(), exp_avg_sq: ap[2].clone(), steps },
+        appearance: AppearanceState {
+            params: ap[0].clone(),
+            exp_avg: ap[1].clone(),
+            exp_avg_sq: ap[2].clone(),
+            steps,
+            free: [true; 12],
+        },
     };
     // Values checked at the door: a checkpoint with a NaN or infinity in its parameters, Adam
     // moments, offsets or transforms is damaged (training on it would only spread them).

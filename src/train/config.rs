@@ -33,7 +33,8 @@ pub struct Config {
 #[derive(Clone, Debug, Deserialize, Serialize, PartialEq)]
 #[serde(deny_unknown_fields)]
 pub struct AppearanceConfig {
-    /// "auto" (on for COLMAP datasets), "affine" or "none".
+    /// "auto" (COLMAP datasets: [`AppearanceConfig::AUTO`]; others none), "affine", "gain" or
+    /// "none".
     pub model: String,
     pub lr_init: f64,
     pub lr_final: f64,
@@ -41,12 +42,30 @@ pub struct AppearanceConfig {
 }
 
 impl AppearanceConfig {
-    /// Whether a run on a dataset of `kind` ("colmap", "nerf-synthetic") learns transforms.
-    pub fn enabled(&self, kind: &str) -> bool {
+    /// The model "auto" picks for photos (COLMAP datasets).
+    pub const AUTO: &'static str = "affine";
+
+    /// The model a run on a dataset of `kind` ("colmap", "nerf-synthetic") learns, if any.
+    pub fn model_for(&self, kind: &str) -> Option<&str> {
         match self.model.as_str() {
-            "affine" => true,
-            "auto" => kind == "colmap",
-            _ => false,
+            "auto" if kind == "colmap" => Some(Self::AUTO),
+            "affine" | "gain" => Some(self.model.as_str()),
+            _ => None,
+        }
+    }
+
+    /// Whether a run on a dataset of `kind` learns transforms.
+    pub fn enabled(&self, kind: &str) -> bool {
+        self.model_for(kind).is_some()
+    }
+
+    /// Which of a transform's 12 parameters (row c: M[c][0..2], b[c]) learn under `model`:
+    /// all for "affine"; the diagonal gains and the offsets for "gain" (exposure and white
+    /// balance, no mixing of channels).
+    pub fn free_params(model: &str) -> [bool; 12] {
+        match model {
+            "gain" => std::array::from_fn(|i| i % 4 == 3 || i % 4 == i / 4),
+            _ => [true; 12],
         }
     }
 
@@ -202,8 +221,8 @@ impl Config {
             bail!("init.opacity must be in (0, 1)");
         }
         let a = &self.appearance;
-        if !matches!(a.model.as_str(), "auto" | "affine" | "none") {
-            bail!("appearance.model must be \"auto\", \"affine\" or \"none\", not {:?}", a.model);
+        if !matches!(a.model.as_str(), "auto" | "affine" | "gain" | "none") {
+            bail!("appearance.model must be \"auto\", \"affine\", \"gain\" or \"none\", not {:?}", a.model);
         }
         if !(a.lr_init.is_finite() && a.lr_init > 0.0 && a.lr_final.is_finite() && a.lr_final > 0.0) {
             bail!("appearance.lr_init and appearance.lr_final must be finite and positive");

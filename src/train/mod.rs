@@ -25,7 +25,9 @@ pub mod session;
 pub mod state;
 pub mod trainer;
 
-pub use checkpoint::{checkpoint_dataset, checkpoint_from_bytes, checkpoint_path, read_checkpoint, write_checkpoint};
+pub use checkpoint::{
+    checkpoint_dataset, checkpoint_from_bytes, checkpoint_is_whole, checkpoint_path, read_checkpoint, write_checkpoint,
+};
 pub use densify::{densify, initial_scene, knn_log_scales, reset_opacity, DensifyStats};
 pub use eval::{evaluate, Evaluation, ViewScore};
 pub use state::{AppearanceState, Layout, LayoutGroup, TrainState};
@@ -40,7 +42,7 @@ use std::time::Instant;
 use anyhow::{bail, Context, Result};
 use rand::{Rng, SeedableRng};
 
-use crate::dataset::Dataset;
+use crate::dataset::{Dataset, DatasetIdentity};
 use crate::gpu::kernels::Kernels;
 use crate::gpu::Gpu;
 use crate::model::instanced::InstancedScene;
@@ -221,7 +223,8 @@ pub fn run(gpu: &Arc<Gpu>, k: &Arc<Kernels>, ds: &Dataset, cfg: &Config, opts: &
     }
     let extent = ds.camera_extent();
     let ckpt = checkpoint_path(&opts.out);
-    let dataset = ds.identity();
+    let scan = crate::dataset::content::content_identity(ds, &ds.dir, &opts.out)?;
+    let dataset = DatasetIdentity { images: Some(scan.id.images.clone()), ..ds.identity() };
     let metrics_path = opts.out.join("metrics.csv");
     let (mut state, mut rows) = if opts.resume {
         if let Some(was) = checkpoint_dataset(&ckpt)? {
@@ -271,6 +274,9 @@ pub fn run(gpu: &Arc<Gpu>, k: &Arc<Kernels>, ds: &Dataset, cfg: &Config, opts: &
         }
         (st, Vec::new())
     };
+    if let Some(model) = cfg.appearance.model_for(ds.kind) {
+        state.appearance.free = crate::train::config::AppearanceConfig::free_params(model);
+    }
     if state.appearance.params.len() != if cfg.appearance.enabled(ds.kind) { ds.train.len() } else { 0 } {
         bail!(
             "{}: the checkpoint holds {} colour transforms for {} training views; resume it with the configuration it was written with",
@@ -280,6 +286,7 @@ pub fn run(gpu: &Arc<Gpu>, k: &Arc<Kernels>, ds: &Dataset, cfg: &Config, opts: &
         );
     }
     let mut trainer = Trainer::new(gpu, k, &state, cfg.refine_transforms)?;
+    scan.save()?;
     let write_metrics = |rows: &[MetricsRow]| -> Result<()> {
         let mut text = String::from(CSV_HEADER);
         text.push('\n');
@@ -429,7 +436,7 @@ pub fn run(gpu: &Arc<Gpu>, k: &Arc<Kernels>, ds: &Dataset, cfg: &Config, opts: &
 /// The file a run that learns colour transforms writes them to, beside its scene.
 pub const APPEARANCE_FILE: &str = "appearance.json";
 
-/// Writes the training views' colour transforms: `{"model": "affine", "views": [{"name",
+/// Writes the training views' colour transforms: `{"views": [{"name",
 /// "transform": [[M00, M01, M02, b0], [..], [..]]}]}` in the dataset's training order.
 pub fn write_appearance(
     path: &std::path::Path,
@@ -442,7 +449,7 @@ pub fn write_appearance(
         .zip(params)
         .map(|(v, t)| serde_json::json!({"name": v.camera.name, "transform": [&t[0..4], &t[4..8], &t[8..12]]}))
         .collect();
-    crate::util::write_json(path, &serde_json::json!({"model": "affine", "views": views}), true)
+    crate::util::write_json(path, &serde_json::json!({"views": views}), true)
 }
 
 /// Reads [`write_appearance`]'s file for `ds`: one transform per training view, by name.

@@ -90,6 +90,9 @@ pub struct AppearanceState {
     pub exp_avg: Vec<ColourTransform>,
     pub exp_avg_sq: Vec<ColourTransform>,
     pub steps: Vec<u32>,
+    /// Which parameters learn (the model's: `AppearanceConfig::free_params`; set by the run
+    /// from its configuration, not stored in checkpoints).
+    pub free: [bool; 12],
 }
 
 impl AppearanceState {
@@ -101,7 +104,13 @@ impl AppearanceState {
     /// These transforms with zero moments (a new run that starts from another's transforms).
     pub fn from_params(params: Vec<ColourTransform>) -> AppearanceState {
         let n = params.len();
-        AppearanceState { params, exp_avg: vec![[0.0; 12]; n], exp_avg_sq: vec![[0.0; 12]; n], steps: vec![0; n] }
+        AppearanceState {
+            params,
+            exp_avg: vec![[0.0; 12]; n],
+            exp_avg_sq: vec![[0.0; 12]; n],
+            steps: vec![0; n],
+            free: [true; 12],
+        }
     }
 
     pub fn is_empty(&self) -> bool {
@@ -128,7 +137,8 @@ impl AppearanceState {
             eps: crate::train::optim::EPS as f64,
             step: self.steps[i] as u64,
         };
-        crate::render::reference::backward::adam(&mut p, &grad.map(f64::from), &mut m, &mut v, a);
+        let g: [f64; 12] = std::array::from_fn(|k| if self.free[k] { grad[k] as f64 } else { 0.0 });
+        crate::render::reference::backward::adam(&mut p, &g, &mut m, &mut v, a);
         self.params[i] = p.map(|x| x as f32);
         self.exp_avg[i] = m.map(|x| x as f32);
         self.exp_avg_sq[i] = v.map(|x| x as f32);

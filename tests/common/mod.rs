@@ -88,6 +88,7 @@ pub fn look_at(eye: Vec3, target: Vec3, up: Vec3, width: u32, height: u32, fx: f
         cx: 0.5 * width as f32 + 3.0,
         cy: 0.5 * height as f32 - 2.0,
         viewmat: c2w.inverse(),
+        lens: Default::default(),
     }
 }
 
