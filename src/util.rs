@@ -22,6 +22,73 @@ pub fn write_atomic(path: &Path, f: impl FnOnce(&mut std::fs::File) -> std::io::
     result.with_context(|| format!("{}: cannot write", path.display()))
 }
 
+/// Writes a folder's files through a temporary sibling folder: `f` writes them into the folder
+/// it is given; only when it succeeds are they moved into `dir` (created if needed; files of
+/// `dir` that `f` did not write stay, those it wrote replace theirs, `last` — a file that marks
+/// the folder complete, such as SOG's meta.json — moved last). On failure nothing in `dir`
+/// changes, and a `dir` this call would have created does not appear.
+pub fn write_dir_atomic(dir: &Path, last: Option<&str>, f: impl FnOnce(&Path) -> Result<()>) -> Result<()> {
+    let name = dir.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_else(|| "out".into());
+    let parent = dir.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
+    std::fs::create_dir_all(parent).with_context(|| format!("{}: cannot create folder", parent.display()))?;
+    let tmp = parent.join(format!(".{name}.{}.tmp", std::process::id()));
+    let _ = std::fs::remove_dir_all(&tmp);
+    std::fs::create_dir(&tmp).with_context(|| format!("{}: cannot create folder", tmp.display()))?;
+    let result = f(&tmp).and_then(|()| {
+        if !dir.exists() {
+            return std::fs::rename(&tmp, dir).with_context(|| format!("{}: cannot write", dir.display()));
+        }
+        let mut files: Vec<std::path::PathBuf> = Vec::new();
+        for e in std::fs::read_dir(&tmp)? {
+            files.push(e?.path());
+        }
+        files.sort_by_key(|p| last.is_some_and(|l| p.file_name().is_some_and(|n| n == l)));
+        for p in files {
+            let to = dir.join(p.file_name().expect("a file name"));
+            std::fs::rename(&p, &to).with_context(|| format!("{}: cannot write", to.display()))?;
+        }
+        Ok(())
+    });
+    let _ = std::fs::remove_dir_all(&tmp);
+    result
+}
+
+/// A run folder this run creates ([`NewFolder::create`]): if the run fails before the folder
+/// holds anything worth resuming (a finished stage, a training checkpoint), dropping the guard
+/// removes it again, so an error leaves no empty or half-written folder behind.
+pub struct NewFolder {
+    path: std::path::PathBuf,
+    keep: bool,
+}
+
+impl NewFolder {
+    /// Creates `path` (and its parents); None when it existed already (then nothing is removed).
+    pub fn create(path: &Path) -> Result<Option<NewFolder>> {
+        let fresh = !path.exists();
+        std::fs::create_dir_all(path).with_context(|| format!("{}: cannot create", path.display()))?;
+        Ok(fresh.then(|| NewFolder { path: path.to_path_buf(), keep: false }))
+    }
+
+    /// The folder stays whatever happens next.
+    pub fn keep(&mut self) {
+        self.keep = true;
+    }
+}
+
+impl Drop for NewFolder {
+    fn drop(&mut self) {
+        fn has_checkpoint(d: &Path) -> bool {
+            std::fs::read_dir(d).into_iter().flatten().flatten().any(|e| {
+                let p = e.path();
+                p.file_name().is_some_and(|n| n == "checkpoint.bin") || (p.is_dir() && has_checkpoint(&p))
+            })
+        }
+        if !self.keep && !has_checkpoint(&self.path) {
+            let _ = std::fs::remove_dir_all(&self.path);
+        }
+    }
+}
+
 /// Writes `v` as JSON, atomically.
 pub fn write_json(path: &Path, v: &serde_json::Value, pretty: bool) -> Result<()> {
     let text = if pretty { serde_json::to_string_pretty(v)? } else { serde_json::to_string(v)? };

@@ -654,8 +654,160 @@ fn bad_input_table() {
     // ---- Outputs: a writer refuses a name it cannot write.
     t.case("convert_unknown_extension", &["convert", tiny, "{d}/x.txt"], &["x.txt", ".ply"]);
 
+    // ---- Issue 45: cameras we cannot model are refused, never drawn as pinholes.
+    let head = r#""camera_angle_x": 0.8, "w": 64, "h": 48,"#;
+    for (name, edit, needles) in [
+        ("cameras_reflection", ("[[1,0,0,0]", "[[-1,0,0,0]"), vec!["t.json: frame 0", "reflection"]),
+        ("cameras_shear", ("[[1,0,0,0]", "[[1,0.4,0,0]"), vec!["t.json: frame 0", "sheared"]),
+        ("cameras_last_row", ("[0,0,0,1]]", "[0,0,2,1]]"), vec!["t.json: frame 0", "last row"]),
+        (
+            "cameras_equirectangular",
+            (head, &format!(r#"{head} "camera_model": "EQUIRECTANGULAR","#)),
+            vec!["t.json: frame 0", "EQUIRECTANGULAR"],
+        ),
+        (
+            "cameras_fisheye_tangential",
+            (head, &format!(r#"{head} "camera_model": "OPENCV_FISHEYE", "p1": 0.01,"#)),
+            vec!["t.json: frame 0", "OPENCV_FISHEYE takes k1..k4 only"],
+        ),
+    ] {
+        t.put(name, "t.json", transforms(head, &["a"]).replacen(edit.0, edit.1, 1));
+        let args = render("{d}/t.json");
+        t.case(name, &args, &needles);
+    }
+    for (name, cams, needle) in [
+        ("colmap_fov", "1 FOV 64 48 50 50 32 24 0.1\n", "camera model FOV cannot be undistorted"),
+        ("colmap_thin_prism", "1 THIN_PRISM_FISHEYE 64 48 50 50 32 24 0 0 0 0 0 0 0 0\n", "THIN_PRISM_FISHEYE cannot"),
+    ] {
+        colmap_dir(&t, name, cams, IMAGES, POINTS);
+        t.case(name, &["cameras", "{d}/m", "--out", "{d}/c.json"], &["camera 1", needle]);
+    }
+    // A lens whose distortion folds over inside the image: training refuses its photos.
+    let data = demo_copy(&t.dir("dataset_lens_folds"), |d| {
+        for split in ["train", "test"] {
+            let p = d.join(format!("transforms_{split}.json"));
+            let mut v: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&p).unwrap()).unwrap();
+            v["k1"] = (-3.0).into();
+            std::fs::write(&p, v.to_string()).unwrap();
+        }
+    });
+    t.case("dataset_lens_folds", &train(data.to_str().unwrap()), &["r_000.png", "OPENCV distortion folds over"]);
+
+    // ---- What we wrote, we can prove we wrote: a changed byte is refused.
+    let v2 =
+        std::fs::read(Path::new(env!("CARGO_MANIFEST_DIR")).join("fuzz/seeds/instgs_parse/f32-v2.instgs")).unwrap();
+    let mut flipped = v2.clone();
+    let at = flipped.len() - 40;
+    flipped[at] ^= 0x04;
+    t.put("instgs_flipped_byte", "s.instgs", flipped);
+    t.case("instgs_flipped_byte", &["info", "{d}/s.instgs"], &["s.instgs", "damaged", "checksum"]);
+    let mut v3 = v2.clone();
+    let at = v3.windows(12).position(|w| w == b"\"version\": 2").expect("the seed's version") + 11;
+    v3[at] = b'3';
+    t.put("instgs_version_3", "s.instgs", v3);
+    t.case("instgs_version_3", &["info", "{d}/s.instgs"], &["s.instgs", "version 3 is not supported"]);
+
+    // ---- Every readable file means one thing.
+    {
+        use std::io::Write;
+        // .spz version 2 (gzip) whose header counts 1 Gaussian and whose data holds 2.
+        let mut raw = b"NGSP".to_vec();
+        raw.extend_from_slice(&2u32.to_le_bytes());
+        raw.extend_from_slice(&1u32.to_le_bytes());
+        raw.extend_from_slice(&[0, 12, 0, 0]);
+        raw.extend(std::iter::repeat_n(0u8, 2 * (9 + 1 + 3 + 3 + 3)));
+        let mut gz = flate2::write::GzEncoder::new(Vec::new(), flate2::Compression::default());
+        gz.write_all(&raw).unwrap();
+        t.put("spz_count_small", "s.spz", gz.finish().unwrap());
+        t.case("spz_count_small", &["info", "{d}/s.spz"], &["s.spz", "the count is wrong"]);
+    }
+    // SOG images of one scene in two sizes.
+    let sog = t.dir("sog_sizes_differ");
+    assert!(run_bin(&["convert", tiny, sog.join("src/meta.json").to_str().unwrap()], &[]).ok);
+    let meta: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(sog.join("src/meta.json")).unwrap()).unwrap();
+    let quats = meta["quats"]["files"][0].as_str().unwrap().to_string();
+    image::RgbaImage::new(8, 8).save_with_format(sog.join("src").join(&quats), image::ImageFormat::WebP).unwrap();
+    t.case("sog_sizes_differ", &["info", "{d}/src/meta.json"], &[quats.as_str(), "share one size"]);
+    // compose: one template name twice; SH degrees that differ; a scale past any similarity's.
+    t.put(
+        "compose_name_twice",
+        "g.json",
+        format!(r#"[{{"template_id": "t", "instances": [{{"instance_id": "1", "transform": {identity}}}]}}]"#),
+    );
+    let mut args = compose("{d}/g.json").to_vec();
+    args.extend(["--template".to_string(), format!("t={tiny}")]);
+    t.case("compose_name_twice", &args, &["--template t=", "given twice"]);
+    t.put("compose_sh_degrees", "zero.ply", ply_with(HEADER, &ONE));
+    t.put(
+        "compose_sh_degrees",
+        "g.json",
+        format!(
+            r#"[{{"template_id": "t", "instances": [{{"instance_id": "1", "transform": {identity}}}]}}, {{"template_id": "z", "instances": [{{"instance_id": "2", "transform": {identity}}}]}}]"#
+        ),
+    );
+    let mut args = compose("{d}/g.json").to_vec();
+    args.extend(["--template".into(), "z={d}/zero.ply".into()]);
+    t.case("compose_sh_degrees", &args, &["zero.ply", "template \"z\" has SH degree 0", "degree 1"]);
+    t.put(
+        "graph_huge_scale",
+        "g.json",
+        r#"[{"template_id": "t", "instances": [{"instance_id": "1", "transform": [[1e30,0,0,0],[0,1e30,0,0],[0,0,1e30,0],[0,0,0,1]]}]}]"#,
+    );
+    t.case("graph_huge_scale", &compose("{d}/g.json"), &["scale", "out of range"]);
+    // Configuration values out of their range: the key and the file named.
+    for (name, text, needles) in [
+        (
+            "config_grad_threshold",
+            "[densify]\ngrad_threshold = -1\n",
+            vec!["c.toml", "densify.grad_threshold must be above 0"],
+        ),
+        (
+            "config_min_opacity",
+            "[densify]\nmin_opacity = 1.5\n",
+            vec!["c.toml", "densify.min_opacity must be in [0, 1]"],
+        ),
+        ("config_ssim_weight", "ssim_weight = 2.0\n", vec!["c.toml", "ssim_weight must be in [0, 1]"]),
+        ("config_background", "background = [0.0, 2.0, 0.0]\n", vec!["c.toml", "background must be in [0, 1]"]),
+        ("config_percent_dense", "[densify]\npercent_dense = -0.1\n", vec!["c.toml", "densify.percent_dense"]),
+        ("config_appearance_model", "[appearance]\nmodel = \"sometimes\"\n", vec!["c.toml", "appearance.model"]),
+        (
+            "config_appearance_lr",
+            "[appearance]\nlr_init = -0.1\n",
+            vec!["c.toml", "appearance.lr_init must be above 0"],
+        ),
+        ("config_joint_rate", "[joint.lr]\nopacity = -1.0\n", vec!["c.toml [joint]", "lr.opacity must be at least 0"]),
+        (
+            "config_render_views",
+            "[instance]\nmin_render_views = 0\n",
+            vec!["c.toml", "instance.min_render_views must be at least 1"],
+        ),
+        ("config_budget", "[instance]\nbackground_budget_db = -3.0\n", vec!["c.toml", "instance.background_budget_db"]),
+    ] {
+        let data = demo_copy(&t.dir(name), |d| std::fs::write(d.join("c.toml"), text).unwrap());
+        let mut args = train(data.to_str().unwrap()).to_vec();
+        args.extend(["--config".to_string(), "{d}/data/c.toml".to_string()]);
+        t.case(name, &args, &needles);
+    }
+
+    // ---- An error a user can act on.
+    let far = [ONE.as_slice(), &[1e30, 0.0, 0.0, 0.5, 0.5, 0.5, 1.0, -3.0, -3.0, -3.0, 1.0, 0.0, 0.0, 0.0]].concat();
+    t.put("scene_far_point", "s.ply", ply_with(&HEADER.replace("vertex 1", "vertex 2"), &far));
+    t.case(
+        "scene_far_point",
+        &["render", "--scene", "{d}/s.ply", "--orbit", "2", "--out", "{d}/out"],
+        &["s.ply", "too large to frame"],
+    );
+    // Outputs appear whole or not at all: an output that cannot be made leaves nothing behind.
+    t.put("render_out_is_file", "out", "a file, not a folder");
+    t.case("render_out_is_file", &["render", "--scene", tiny, "--orbit", "2", "--out", "{d}/out"], &["out"]);
+    t.put("sog_out_is_file", "dir", "a file");
+    t.case("sog_out_is_file", &["convert", tiny, "{d}/dir/meta.json"], &["dir"]);
+    t.put("train_out_under_file", "f", "a file");
+    t.case("train_out_under_file", &["train", "--data", demo, "--out", "{d}/f/run", "--iterations", "2"], &["f/run"]);
+
     // Run the table.
-    assert!(t.cases.len() >= 60, "{} cases", t.cases.len());
+    assert!(t.cases.len() >= 90, "{} cases", t.cases.len());
     let mut failures = Vec::new();
     for c in &t.cases {
         let before = files_under(&c.dir);

@@ -397,3 +397,87 @@ fn a_colmap_point_that_is_not_finite_is_refused_at_the_door() {
     let e = format!("{:#}", instgs_vk::dataset::read_colmap(&sparse).unwrap_err());
     assert!(e.contains("points3D.bin") && e.contains("non-finite"), "{e}");
 }
+
+/// SOG's means are lerp(mins, maxs, q) whatever the bounds' order: a file written with them
+/// swapped (and every q mirrored) reads as the same scene.
+#[test]
+fn sog_bounds_in_either_order_read_the_same() {
+    let source = read_ply(&shared_data("splats/playbot_lod6.ply")).unwrap();
+    let dir = tmp("sog-swapped");
+    formats::sog::write_sog(&source, &dir.join("meta.json")).unwrap();
+    let before = formats::read_scene(&dir).unwrap();
+    let meta_path = dir.join("meta.json");
+    let mut meta: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&meta_path).unwrap()).unwrap();
+    let m = meta["means"].clone();
+    meta["means"]["mins"] = m["maxs"].clone();
+    meta["means"]["maxs"] = m["mins"].clone();
+    for k in 0..2 {
+        let f = dir.join(m["files"][k].as_str().unwrap());
+        let mut img = image::open(&f).unwrap().to_rgba8();
+        for p in img.pixels_mut() {
+            for c in 0..3 {
+                p.0[c] = 255 - p.0[c];
+            }
+        }
+        let mut bytes = Vec::new();
+        image::codecs::webp::WebPEncoder::new_lossless(&mut bytes)
+            .encode(img.as_raw(), img.width(), img.height(), image::ExtendedColorType::Rgba8)
+            .unwrap();
+        std::fs::write(&f, bytes).unwrap();
+    }
+    std::fs::write(&meta_path, meta.to_string()).unwrap();
+    let after = formats::read_scene(&dir).unwrap();
+    let e = max_errors(&before, &after);
+    assert!(e[0] <= 1e-5 * 10.0, "positions moved by {}", e[0]);
+}
+
+/// A .splat's name decides, whatever its first bytes look like (a row whose x starts with
+/// gzip's magic is still a row).
+#[test]
+fn a_splat_file_is_read_as_splat_whatever_its_first_bytes() {
+    let dir = tmp("splat-gzip-like");
+    std::fs::create_dir_all(&dir).unwrap();
+    let mut row = [0u8; 32];
+    row[0..4].copy_from_slice(&[0x1f, 0x8b, 0x08, 0x3f]);
+    row[12..24].copy_from_slice(&[0.01f32, 0.01, 0.01].iter().flat_map(|v| v.to_le_bytes()).collect::<Vec<_>>());
+    row[24..28].copy_from_slice(&[200, 100, 50, 255]);
+    row[28..32].copy_from_slice(&[255, 128, 128, 128]);
+    let p = dir.join("s.splat");
+    std::fs::write(&p, row).unwrap();
+    assert_eq!(formats::detect(&p).unwrap(), Format::Splat);
+    assert_eq!(formats::read_scene(&p).unwrap().len(), 1);
+}
+
+/// Multi-file outputs appear whole or not at all: a write that fails halfway leaves the folder
+/// as it was (an existing SOG still reads the same) and no temporary folder behind.
+#[test]
+fn a_failed_folder_write_changes_nothing() {
+    let source = read_ply(&shared_data("splats/playbot_lod6.ply")).unwrap();
+    let dir = tmp("sog-overwrite");
+    std::fs::create_dir_all(&dir).unwrap();
+    let out = dir.join("sog");
+    formats::sog::write_sog(&source, &out.join("meta.json")).unwrap();
+    let snapshot = |d: &Path| -> Vec<(String, Vec<u8>)> {
+        let mut v: Vec<_> = std::fs::read_dir(d)
+            .unwrap()
+            .map(|e| e.unwrap().path())
+            .map(|p| (p.file_name().unwrap().to_string_lossy().into_owned(), std::fs::read(&p).unwrap()))
+            .collect();
+        v.sort();
+        v
+    };
+    let before = snapshot(&out);
+    let e = instgs_vk::util::write_dir_atomic(&out, Some("meta.json"), |tmp| {
+        std::fs::write(tmp.join("meta.json"), "{}")?;
+        std::fs::write(tmp.join("means_l.webp"), "half")?;
+        anyhow::bail!("disk full (simulated)")
+    });
+    assert!(e.is_err());
+    assert_eq!(snapshot(&out), before, "the old SOG changed");
+    assert_eq!(std::fs::read_dir(&dir).unwrap().count(), 1, "a temporary folder stayed behind");
+    assert_eq!(formats::read_scene(&out).unwrap().len(), source.len());
+    // A folder the failed write would have created does not appear.
+    let fresh = dir.join("fresh");
+    assert!(instgs_vk::util::write_dir_atomic(&fresh, None, |_| anyhow::bail!("no")).is_err());
+    assert!(!fresh.exists());
+}

@@ -89,6 +89,15 @@ pub fn detect(path: &Path) -> Result<Format> {
     };
     let head = &head[..n];
     let ext = path.extension().map(|e| e.to_string_lossy().to_ascii_lowercase()).unwrap_or_default();
+    // .splat has no magic of its own: its name decides before any sniffing (a legal file may
+    // start with bytes that look like another format's).
+    if ext == "splat" {
+        let len = std::fs::metadata(path).with_context(|| format!("{what}: cannot read"))?.len();
+        if len % 32 != 0 || len == 0 {
+            bail!("{what}: a .splat file holds 32-byte rows, but it is {len} bytes long");
+        }
+        return Ok(Format::Splat);
+    }
     if head.starts_with(b"ply\n") || head.starts_with(b"ply\r\n") {
         return Ok(Format::Ply);
     }
@@ -102,13 +111,6 @@ pub fn detect(path: &Path) -> Result<Format> {
     let named_meta = path.file_name().is_some_and(|n| n.eq_ignore_ascii_case("meta.json"));
     if first == Some(&b'{') && (named_meta || is_sog_meta(path)) {
         return Ok(Format::Sog);
-    }
-    if ext == "splat" {
-        let len = std::fs::metadata(path).with_context(|| format!("{what}: cannot read"))?.len();
-        if len % 32 != 0 || len == 0 {
-            bail!("{what}: a .splat file holds 32-byte rows, but it is {len} bytes long");
-        }
-        return Ok(Format::Splat);
     }
     let detected = if head.starts_with(b"\x89PNG") {
         "a PNG image"

@@ -136,12 +136,25 @@ pub fn sog_from_meta(text: &str, what: &str, load: &mut Loader) -> Result<Scene>
     let sh0_of = Lookup::new(what, "sh0", &meta.sh0, v1, if v1 { 4 } else { 3 })?;
     let one =
         |c: &SogTable, name: &str| c.files.first().cloned().ok_or_else(|| anyhow!("{what}: \"{name}\" names no file"));
-    let (_, _, lo) = sog_image(load, &meta.means.files[0], n)?;
-    let (_, _, hi) = sog_image(load, &meta.means.files[1], n)?;
+    // Every per-Gaussian image of one scene has one size (texel i is Gaussian i in all of them).
+    let mut size = None;
+    let mut per_gaussian = |load: &mut Loader, name: &str| -> Result<Vec<u8>> {
+        let (w, h, bytes) = sog_image(load, name, n)?;
+        match size {
+            None => size = Some((w, h, name.to_string())),
+            Some((w0, h0, ref first)) if (w0, h0) != (w, h) => {
+                bail!("{what}: {name} is {w}×{h} texels, {first} {w0}×{h0}: the images of one scene share one size")
+            }
+            Some(_) => {}
+        }
+        Ok(bytes)
+    };
+    let lo = per_gaussian(load, &meta.means.files[0])?;
+    let hi = per_gaussian(load, &meta.means.files[1])?;
     let quat_file = meta.quats.files.first().ok_or_else(|| anyhow!("{what}: \"quats\" names no file"))?;
-    let (_, _, quats) = sog_image(load, quat_file, n)?;
-    let (_, _, scales) = sog_image(load, &one(&meta.scales, "scales")?, n)?;
-    let (_, _, sh0) = sog_image(load, &one(&meta.sh0, "sh0")?, n)?;
+    let quats = per_gaussian(load, quat_file)?;
+    let scales = per_gaussian(load, &one(&meta.scales, "scales")?)?;
+    let sh0 = per_gaussian(load, &one(&meta.sh0, "sh0")?)?;
     // The SH palette: (coefficients, centroids image width, its bytes, labels, entries, lookup).
     let mut palette = None;
     let mut degree = 0;
@@ -182,7 +195,7 @@ pub fn sog_from_meta(text: &str, what: &str, load: &mut Loader) -> Result<Scene>
             if count > ch * 64 {
                 bail!("{what}: shN count {count} exceeds its centroids image ({} entries)", ch * 64);
             }
-            let (_, _, labels) = sog_image(load, &sh.files[1], n)?;
+            let labels = per_gaussian(load, &sh.files[1])?;
             degree = bands;
             palette = Some((coeffs, cw, centroids, labels, count, lookup));
         }
@@ -193,9 +206,9 @@ pub fn sog_from_meta(text: &str, what: &str, load: &mut Loader) -> Result<Scene>
     for i in 0..n {
         let o = i * 4;
         s.means.push(std::array::from_fn(|a| {
+            // The format's lerp(mins, maxs, q), whatever the bounds' order.
             let q = (lo[o + a] as u32 | (hi[o + a] as u32) << 8) as f32 / 65535.0;
-            let range = if m.maxs[a] > m.mins[a] { m.maxs[a] - m.mins[a] } else { 1.0 };
-            unlog(m.mins[a] + range * q)
+            unlog(m.mins[a] + (m.maxs[a] - m.mins[a]) * q)
         }));
         let tag = quats[o + 3];
         if !(252..=255).contains(&tag) {
@@ -318,10 +331,18 @@ fn write_webp(path: &Path, w: usize, h: usize, rgba: &[u8]) -> Result<()> {
 /// smallest-three 8-bit, scales and sh0 through 256-entry codebooks (1D k-means), opacity 8-bit,
 /// SH bands as a palette of at most [`SOG_PALETTE`] k-means centres (10 Lloyd iterations) whose
 /// coefficients go through a third codebook.
+/// The files are written into a temporary sibling folder first and moved in only when all were
+/// written (`meta.json` last): a failure leaves an existing SOG folder as it was.
 pub fn write_sog(scene: &Scene, meta: &Path) -> Result<()> {
     scene.validate(&format!("{}: not written", meta.display()))?;
     let dir = meta.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
-    std::fs::create_dir_all(dir).with_context(|| format!("{}: cannot create", dir.display()))?;
+    let name = meta.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_else(|| "meta.json".into());
+    crate::util::write_dir_atomic(dir, Some(&name), |tmp| write_sog_files(scene, &tmp.join(&name)))
+}
+
+/// [`write_sog`]'s files, written into `meta`'s folder.
+fn write_sog_files(scene: &Scene, meta: &Path) -> Result<()> {
+    let dir = meta.parent().expect("a folder");
     let n = scene.len();
     let coeffs = scene.sh_coeffs();
     let w = ((n as f64).sqrt().ceil() as usize).div_ceil(4) * 4;

@@ -104,6 +104,17 @@ pub fn read_spz(what: &str, bytes: &[u8]) -> Result<Scene> {
         if body.len() < total {
             bail!("{what}: truncated: {} of {} bytes of Gaussian data", body.len(), total);
         }
+        // The streams are laid end to end, each count × stride bytes: more data than the
+        // header's count needs means the count is wrong, and every stream after the first
+        // would be read from the wrong place.
+        let mut extra = [0u8; 1];
+        if gz.read(&mut extra).map_err(|e| anyhow!("{what}: corrupt gzip stream: {e}"))? > 0 {
+            let more = 1 + std::io::copy(&mut gz, &mut std::io::sink()).unwrap_or(0);
+            bail!(
+                "{what}: the decompressed data holds {more} bytes more than the header's {} Gaussians need: the count is wrong",
+                h.count
+            );
+        }
         let mut streams = Vec::new();
         let mut at = 0;
         for s in strides {

@@ -192,15 +192,24 @@ pub fn compose(
     out: &Path,
 ) -> Result<()> {
     let mut loaded = Vec::new();
+    let mut seen = std::collections::BTreeMap::new();
     for t in templates {
         let Some((name, file)) = t.split_once('=') else {
             bail!("--template {t:?}: expected NAME=FILE.ply");
         };
+        if let Some(first) = seen.insert(name, file) {
+            bail!("--template {name}= is given twice ({first} and {file}); give each template name once");
+        }
         loaded.push((name.to_string(), crate::formats::read_scene(Path::new(file))?));
     }
     let graph = crate::model::instanced::read_scene_graph(graph)?;
+    let background_path = background;
     let background = background.map(read_ply).transpose()?;
-    let scene = crate::model::instanced::compose(loaded, graph, background, random_offsets)?;
+    let names: Vec<String> = templates.to_vec();
+    let scene = crate::model::instanced::compose(loaded, graph, background, random_offsets).with_context(|| {
+        let bg = background_path.map(|p| format!(", --background {}", p.display())).unwrap_or_default();
+        format!("--template {}{bg}", names.join(" --template "))
+    })?;
     instgs::write(&scene, out, dtype)?;
     eprintln!(
         "wrote {}: {} groups, {} splats from {} parameter rows",

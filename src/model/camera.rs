@@ -477,6 +477,26 @@ pub fn orbit_around(scene: &crate::model::scene::Scene, n: usize, up: UpAxis, wi
     orbit_around_points(&scene.means, n, up, width, height)
 }
 
+/// [`orbit_around_points`] for a scene read from `what`, refused with the scene named when its
+/// robust bounds are too far out to frame (a camera there would not be finite).
+pub fn scene_orbit(
+    means: &[[f32; 3]],
+    n: usize,
+    up: UpAxis,
+    width: u32,
+    height: u32,
+    what: &str,
+) -> Result<Vec<Camera>> {
+    let cams = orbit_around_points(means, n, up, width, height);
+    if cams.iter().any(|c| c.validate().is_err()) {
+        let (lo, hi) = crate::model::scene::robust_bounds(means, 0.02);
+        bail!(
+            "{what}: the scene's extent ({lo:?} .. {hi:?}, 2nd–98th percentile of its Gaussians' means) is too large to frame a camera around: are some positions wrong?"
+        );
+    }
+    Ok(cams)
+}
+
 /// [`orbit_around`] for splat means.
 pub fn orbit_around_points(means: &[[f32; 3]], n: usize, up: UpAxis, width: u32, height: u32) -> Vec<Camera> {
     let (lo, hi) = crate::model::scene::robust_bounds(means, 0.02);

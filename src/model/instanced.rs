@@ -45,11 +45,16 @@ impl Similarity {
             bail!("{what}: the transform's last row is {row3}, not (0, 0, 0, 1)");
         }
         let a = Mat3::from_mat4(m);
-        let det = a.determinant();
+        // In f64: a uniform scale of 1e30 has a determinant of 1e90, past f32.
+        let det = glam::DMat3::from_cols_array(&a.to_cols_array().map(f64::from)).determinant();
         if det <= 0.0 {
             bail!("{what}: the transform's determinant is {det}; reflections and degenerate transforms are not similarities");
         }
-        let r = a * (1.0 / det.cbrt());
+        let scale = det.cbrt();
+        if !(1e-6..=1e6).contains(&scale) {
+            bail!("{what}: the transform's scale {scale:e} is out of range (a similarity's uniform scale must lie in 1e-6..1e6)");
+        }
+        let r = a * (1.0 / scale as f32);
         let err = (r.transpose() * r - Mat3::IDENTITY).to_cols_array().iter().fold(0.0f32, |e, v| e.max(v.abs()));
         if err > 1e-3 {
             bail!("{what}: the transform is not a rotation times a uniform scale (|RᵀR − I| = {err:.2e})");
@@ -518,8 +523,18 @@ pub fn compose(
         background = Scene { sh_degree, ..Scene::default() };
     }
     let scene = InstancedScene { sh_degree, background, groups };
-    if scene.background.sh_degree != sh_degree || scene.groups.iter().any(|g| g.template.sh_degree != sh_degree) {
-        bail!("templates and background must share one SH degree");
+    if let Some(g) = scene.groups.iter().find(|g| g.template.sh_degree != sh_degree) {
+        bail!(
+            "template {:?} has SH degree {} and the first template degree {sh_degree}: templates and background must share one SH degree (convert them to one degree first)",
+            g.name,
+            g.template.sh_degree
+        );
+    }
+    if scene.background.sh_degree != sh_degree {
+        bail!(
+            "the background has SH degree {} and the templates {sh_degree}: templates and background must share one SH degree (convert them to one degree first)",
+            scene.background.sh_degree
+        );
     }
     scene.validate("composed scene")?;
     Ok(scene)

@@ -226,7 +226,7 @@ pub fn run(a: PipelineArgs) -> Result<()> {
         // Read now: a bad file is refused before anything runs.
         crate::formats::read_scene(p)?;
     }
-    std::fs::create_dir_all(&a.out).with_context(|| format!("{}: cannot create", a.out.display()))?;
+    let mut fresh = crate::util::NewFolder::create(&a.out)?;
     let run = a.out.as_path();
     let mut state = State::read(run)?;
     // Images or masks edited in place since a stage ran: that stage and what follows are redone.
@@ -332,11 +332,17 @@ pub fn run(a: PipelineArgs) -> Result<()> {
         match result {
             Ok(true) => {
                 rec.done = true;
+                if let Some(f) = fresh.as_mut() {
+                    f.keep();
+                }
                 state.write(run)?;
                 eprintln!("{}finished in {:.1} s", s.label(), t0.elapsed().as_secs_f64());
                 report::write(run, &a, &State::read(run)?.summary())?;
             }
             Ok(false) => {
+                if let Some(f) = fresh.as_mut() {
+                    f.keep();
+                }
                 state.write(run)?;
                 report::write(run, &a, &state.summary())?;
                 bail!(
@@ -347,6 +353,9 @@ pub fn run(a: PipelineArgs) -> Result<()> {
             Err(e) => {
                 state.write(run)?;
                 if interrupted() {
+                    if let Some(f) = fresh.as_mut() {
+                        f.keep();
+                    }
                     bail!("interrupted in stage {} ({e:#}); run the same command again to resume", s.name());
                 }
                 return Err(e.context(format!("stage {}", s.name())));

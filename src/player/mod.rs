@@ -144,7 +144,6 @@ pub fn run_headless(opts: &PlayerOptions, scene: &AnyScene, start: ViewCamera) -
     if frames == 0 {
         bail!("--frames must be at least 1");
     }
-    std::fs::create_dir_all(out).with_context(|| format!("{}: cannot create folder", out.display()))?;
     let gpu = Gpu::new(&GpuOptions::from_env(opts.device.clone()))?;
     eprintln!("device: {}", gpu.describe());
     let k = Kernels::new(&gpu)?;
@@ -152,13 +151,17 @@ pub fn run_headless(opts: &PlayerOptions, scene: &AnyScene, start: ViewCamera) -
     let mut r = Rasterizer::new(&gpu, &k)?;
     r.set_forward(opts.forward)?;
     let mut gpu_ms = Vec::new();
-    for i in 0..frames {
-        let mut view = start.clone();
-        view.orbit(std::f32::consts::TAU * i as f32 / frames as f32, 0.0);
-        let f = r.render(&gs, &view.camera(opts.width, opts.height), opts.background)?;
-        crate::util::save_png(&out.join(format!("frame_{i:03}.png")), f.width, f.height, &f.image)?;
-        gpu_ms.push(f.passes.iter().map(|p| p.1).sum::<f64>());
-    }
+    // Into a temporary sibling folder, moved into `out` once every frame is written.
+    crate::util::write_dir_atomic(out, None, |tmp| {
+        for i in 0..frames {
+            let mut view = start.clone();
+            view.orbit(std::f32::consts::TAU * i as f32 / frames as f32, 0.0);
+            let f = r.render(&gs, &view.camera(opts.width, opts.height), opts.background)?;
+            crate::util::save_png(&tmp.join(format!("frame_{i:03}.png")), f.width, f.height, &f.image)?;
+            gpu_ms.push(f.passes.iter().map(|p| p.1).sum::<f64>());
+        }
+        Ok(())
+    })?;
     report(&gpu, frames, &mut gpu_ms, None)?;
     eprintln!("wrote {frames} frames to {}", out.display());
     Ok(())
@@ -878,7 +881,15 @@ pub fn view(
                 .nth(camera)
                 .ok_or_else(|| anyhow::anyhow!("{}: --camera {camera} is out of range ({n} cameras)", path.display()))?
         }
-        None => crate::model::camera::orbit_around_points(&means, 1, up, opts.width, opts.height).remove(0),
+        None => crate::model::camera::scene_orbit(
+            &means,
+            1,
+            up,
+            opts.width,
+            opts.height,
+            &opts.scene_path.display().to_string(),
+        )?
+        .remove(0),
     };
     let start = ViewCamera::from_camera(&start, centre, up.vector());
     drop(means);

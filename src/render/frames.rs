@@ -54,13 +54,14 @@ pub fn cameras(view: &FrameSpec, scene: &AnyScene) -> Result<Vec<Camera>> {
             }
         }
         (None, Some(0)) => bail!("--orbit needs at least 1 camera"),
-        (None, Some(n)) => camera::orbit_around_points(
+        (None, Some(n)) => camera::scene_orbit(
             &scene.means(),
             n,
             view.up,
             view.width.unwrap_or(640),
             view.height.unwrap_or(480),
-        ),
+            &view.scene.display().to_string(),
+        )?,
         (None, None) => bail!("give --cameras FILE or --orbit N"),
     };
     Ok(cams)
@@ -88,27 +89,30 @@ pub fn setup(device: Option<String>, view: &FrameSpec) -> Result<Setup> {
 pub fn render(device: Option<String>, view: &FrameSpec, out: &Path) -> Result<()> {
     let Setup { gpu, k, scene, cams } = setup(device, view)?;
     unique_names(cams.iter().map(|c| c.name.as_str()), view.cameras.as_deref().unwrap_or(&view.scene))?;
-    std::fs::create_dir_all(out).with_context(|| format!("{}: cannot create folder", out.display()))?;
     let gs = scene.upload(&gpu).with_context(|| view.scene.display().to_string())?;
     let mut r = Rasterizer::new(&gpu, &k)?;
     r.set_forward(view.forward)?;
     let mut per_pass: Vec<(String, Vec<f64>)> = Vec::new();
-    for cam in &cams {
-        let f = r.render(&gs, cam, view.background)?;
-        let path = out.join(format!("{}.png", cam.name));
-        save_png(&path, f.width, f.height, &f.image)?;
-        let total: f64 = f.passes.iter().map(|p| p.1).sum();
-        println!(
-            "{}  {}x{}  visible {}  intersections {}  gpu {:.2} ms",
-            path.display(),
-            f.width,
-            f.height,
-            f.visible,
-            f.intersections,
-            total
-        );
-        collect(&mut per_pass, &f.passes);
-    }
+    // Into a temporary sibling folder, moved into `out` once every frame is written.
+    crate::util::write_dir_atomic(out, None, |tmp| {
+        for cam in &cams {
+            let f = r.render(&gs, cam, view.background)?;
+            save_png(&tmp.join(format!("{}.png", cam.name)), f.width, f.height, &f.image)?;
+            let path = out.join(format!("{}.png", cam.name));
+            let total: f64 = f.passes.iter().map(|p| p.1).sum();
+            println!(
+                "{}  {}x{}  visible {}  intersections {}  gpu {:.2} ms",
+                path.display(),
+                f.width,
+                f.height,
+                f.visible,
+                f.intersections,
+                total
+            );
+            collect(&mut per_pass, &f.passes);
+        }
+        Ok(())
+    })?;
     print_passes(&per_pass);
     Ok(())
 }

@@ -3,7 +3,7 @@
 use std::path::Path;
 use std::sync::Arc;
 
-use anyhow::{bail, Context, Result};
+use anyhow::{bail, Result};
 
 use crate::gpu::kernels::{open_device, Kernels};
 use crate::gpu::Gpu;
@@ -53,14 +53,16 @@ pub fn segment(
         })?;
     }
     if let Some(dir) = export_dir {
-        std::fs::create_dir_all(dir).with_context(|| format!("{}: cannot create", dir.display()))?;
-        for id in seg.ids.iter().copied().chain([0]) {
-            let part = crate::segment::subset(&scene, &seg.labels, id);
-            let name = if id == 0 { "background.ply".to_string() } else { format!("instance_{id}.ply") };
-            if !part.is_empty() {
-                crate::formats::ply::write_ply(&part, &dir.join(name))?;
+        crate::util::write_dir_atomic(dir, None, |tmp| {
+            for id in seg.ids.iter().copied().chain([0]) {
+                let part = crate::segment::subset(&scene, &seg.labels, id);
+                let name = if id == 0 { "background.ply".to_string() } else { format!("instance_{id}.ply") };
+                if !part.is_empty() {
+                    crate::formats::ply::write_ply(&part, &tmp.join(name))?;
+                }
             }
-        }
+            Ok(())
+        })?;
     }
     Ok(())
 }

@@ -196,36 +196,12 @@ impl Config {
     }
 
     pub fn validate(&self) -> Result<()> {
-        if self.sh_degree > 3 {
-            bail!("sh_degree must be 0..=3");
-        }
-        if !(0.0..=1.0).contains(&self.ssim_weight) {
-            bail!("ssim_weight must be in [0, 1]");
-        }
-        if self.background.iter().any(|c| !(0.0..=1.0).contains(c)) {
-            bail!("background must be RGB in [0, 1]");
-        }
-        let lr = &self.lr;
-        let rates = [lr.sh0, lr.sh_rest, lr.opacity, lr.scaling, lr.rotation];
-        let transform_rates = [lr.transform_rotation, lr.transform_translation, lr.transform_scale];
-        if rates.iter().chain(&transform_rates).any(|v| !(v.is_finite() && *v >= 0.0))
-            || !(lr.position_init > 0.0 && lr.position_final > 0.0)
-            || !(lr.spatial_scale.is_finite() && lr.spatial_scale >= 0.0)
-        {
-            bail!("learning rates must be finite and non-negative (position ones positive)");
-        }
-        if self.densify.interval == 0 || self.sh_increase_interval == 0 {
-            bail!("densify.interval and sh_increase_interval must be positive");
-        }
-        if !(self.init.opacity > 0.0 && self.init.opacity < 1.0) {
-            bail!("init.opacity must be in (0, 1)");
-        }
-        let a = &self.appearance;
-        if !matches!(a.model.as_str(), "auto" | "affine" | "gain" | "none") {
-            bail!("appearance.model must be \"auto\", \"affine\", \"gain\" or \"none\", not {:?}", a.model);
-        }
-        if !(a.lr_init.is_finite() && a.lr_init > 0.0 && a.lr_final.is_finite() && a.lr_final > 0.0) {
-            bail!("appearance.lr_init and appearance.lr_final must be finite and positive");
+        check_ranges(&serde_json::to_value(self)?, "", TRAINING_RANGES)?;
+        if !matches!(self.appearance.model.as_str(), "auto" | "affine" | "gain" | "none") {
+            bail!(
+                "appearance.model must be \"auto\", \"affine\", \"gain\" or \"none\", not {:?}",
+                self.appearance.model
+            );
         }
         Ok(())
     }
@@ -313,7 +289,7 @@ pub struct BenchStage {
 
 #[derive(Clone, Debug, Deserialize, Serialize, PartialEq)]
 #[serde(deny_unknown_fields)]
-struct PipelineTables {
+pub(crate) struct PipelineTables {
     segment: SegmentStage,
     instance: InstanceStage,
     eval: EvalStage,
@@ -365,25 +341,7 @@ impl PipelineConfig {
             BackgroundKeep::Auto(a) if a == "auto" => {}
             _ => bail!("{what}: instance.background_keep must be \"auto\" or a fraction in (0, 1]"),
         }
-        let i = &t.instance;
-        for (key, v, lo, hi) in [
-            ("min_fitness", i.min_fitness, 0.0, 1.0),
-            ("scale_tolerance", i.scale_tolerance, 0.0, 10.0),
-            ("min_render_iou", i.min_render_iou, 0.0, 1.0),
-            ("min_render_psnr", i.min_render_psnr, 0.0, 100.0),
-            ("background_budget_db", i.background_budget_db, 0.0, 100.0),
-            ("outline_fraction", i.outline_fraction, 0.0, 10.0),
-        ] {
-            if !(v >= lo && v <= hi) {
-                bail!("{what}: instance.{key} must be in [{lo}, {hi}], not {v}");
-            }
-        }
-        if t.bench.frames == 0 {
-            bail!("{what}: bench.frames must be at least 1");
-        }
-        if !(t.segment.alpha.is_finite() && t.segment.alpha >= 0.0) {
-            bail!("{what}: segment.alpha must be finite and non-negative");
-        }
+        check_ranges(&serde_json::to_value(&t)?, "", PIPELINE_RANGES).map_err(|e| anyhow!("{what}: {e}"))?;
         Ok(PipelineConfig { plain, joint, segment: t.segment, instance: t.instance, eval: t.eval, bench: t.bench })
     }
 
@@ -396,4 +354,103 @@ impl PipelineConfig {
             }
         }
     }
+}
+
+/// Where a configuration value must lie.
+#[derive(Clone, Copy, Debug)]
+pub enum Bound {
+    /// lo ≤ v ≤ hi.
+    In(f64, f64),
+    /// lo < v < hi.
+    Inside(f64, f64),
+    /// v ≥ lo.
+    AtLeast(f64),
+    /// v > lo.
+    Above(f64),
+}
+
+impl Bound {
+    fn holds(self, v: f64) -> bool {
+        v.is_finite()
+            && match self {
+                Bound::In(lo, hi) => v >= lo && v <= hi,
+                Bound::Inside(lo, hi) => v > lo && v < hi,
+                Bound::AtLeast(lo) => v >= lo,
+                Bound::Above(lo) => v > lo,
+            }
+    }
+
+    fn describe(self) -> String {
+        match self {
+            Bound::In(lo, hi) => format!("in [{lo}, {hi}]"),
+            Bound::Inside(lo, hi) => format!("in ({lo}, {hi})"),
+            Bound::AtLeast(lo) => format!("at least {lo}"),
+            Bound::Above(lo) => format!("above {lo}"),
+        }
+    }
+}
+
+/// The range of every training value that has one (plain and joint configurations): the one
+/// table of ranges, checked after the files are merged. Arrays: every element.
+pub const TRAINING_RANGES: &[(&str, Bound)] = &[
+    ("iterations", Bound::AtLeast(1.0)),
+    ("sh_degree", Bound::In(0.0, 3.0)),
+    ("sh_increase_interval", Bound::AtLeast(1.0)),
+    ("background", Bound::In(0.0, 1.0)),
+    ("ssim_weight", Bound::In(0.0, 1.0)),
+    ("lr.position_init", Bound::Above(0.0)),
+    ("lr.position_final", Bound::Above(0.0)),
+    ("lr.position_max_steps", Bound::AtLeast(1.0)),
+    ("lr.spatial_scale", Bound::AtLeast(0.0)),
+    ("lr.sh0", Bound::AtLeast(0.0)),
+    ("lr.sh_rest", Bound::AtLeast(0.0)),
+    ("lr.opacity", Bound::AtLeast(0.0)),
+    ("lr.scaling", Bound::AtLeast(0.0)),
+    ("lr.rotation", Bound::AtLeast(0.0)),
+    ("lr.transform_rotation", Bound::AtLeast(0.0)),
+    ("lr.transform_translation", Bound::AtLeast(0.0)),
+    ("lr.transform_scale", Bound::AtLeast(0.0)),
+    ("densify.interval", Bound::AtLeast(1.0)),
+    ("densify.grad_threshold", Bound::Above(0.0)),
+    ("densify.percent_dense", Bound::In(0.0, 1.0)),
+    ("densify.min_opacity", Bound::In(0.0, 1.0)),
+    ("densify.max_world_scale", Bound::Above(0.0)),
+    ("densify.max_splats", Bound::AtLeast(1.0)),
+    ("init.opacity", Bound::Inside(0.0, 1.0)),
+    ("appearance.lr_init", Bound::Above(0.0)),
+    ("appearance.lr_final", Bound::Above(0.0)),
+];
+
+/// The ranges of the pipeline's own tables (`[segment]`, `[instance]`, `[eval]`, `[bench]`).
+pub const PIPELINE_RANGES: &[(&str, Bound)] = &[
+    ("segment.alpha", Bound::AtLeast(0.0)),
+    ("instance.colour_weight", Bound::AtLeast(0.0)),
+    ("instance.min_fitness", Bound::In(0.0, 1.0)),
+    ("instance.scale_tolerance", Bound::In(0.0, 10.0)),
+    ("instance.min_render_iou", Bound::In(0.0, 1.0)),
+    ("instance.min_render_psnr", Bound::In(0.0, 100.0)),
+    ("instance.min_render_views", Bound::AtLeast(1.0)),
+    ("instance.background_budget_db", Bound::In(0.0, 100.0)),
+    ("instance.outline_fraction", Bound::In(0.0, 10.0)),
+    ("bench.frames", Bound::AtLeast(1.0)),
+];
+
+/// Checks every key of `table` that `v` holds (numbers; arrays element by element) against its
+/// bound; the error names the key (`prefix` + key) and the value.
+pub fn check_ranges(v: &serde_json::Value, prefix: &str, table: &[(&str, Bound)]) -> Result<()> {
+    for (key, bound) in table {
+        let Some(x) = key.split('.').try_fold(v, |v, k| v.get(k)) else { continue };
+        let values: Vec<&serde_json::Value> = match x {
+            serde_json::Value::Array(a) => a.iter().collect(),
+            other => vec![other],
+        };
+        for y in values {
+            if let Some(n) = y.as_f64() {
+                if !bound.holds(n) {
+                    bail!("{prefix}{key} must be {}, not {n}", bound.describe());
+                }
+            }
+        }
+    }
+    Ok(())
 }

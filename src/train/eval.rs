@@ -39,21 +39,34 @@ pub fn eval(
     }
     .with_context(|| scene_path.display().to_string())?;
     let mut r = Rasterizer::new(&gpu, &k)?;
-    if let Some(dir) = out {
+    if out.is_some() {
         crate::render::frames::unique_names(views.iter().map(|v| v.camera.name.as_str()), data)?;
-        std::fs::create_dir_all(dir).with_context(|| format!("{}: cannot create", dir.display()))?;
     }
     let mut bar = Progress::new("eval: ", "view", "views/s", views.len() as u64, 0, ProgressMode::Auto);
     let mut done = 0;
-    let e = evaluate(&mut r, &gs, views, background, |v, f| {
-        done += 1;
-        bar.set(done, "");
-        let Some(dir) = out else { return Ok(()) };
-        save_png(&dir.join(format!("{}.png", v.camera.name)), f.width, f.height, &f.image)?;
-        let err = crate::util::error_image(&f.image, &v.image);
-        let cmp = crate::util::side_by_side(&[&v.image, &f.image, &err], f.width as usize, f.height as usize);
-        save_png(&dir.join(format!("{}_compare.png", v.camera.name)), 3 * f.width, f.height, &cmp)
-    })?;
+    let mut score = |dir: Option<&Path>| {
+        evaluate(&mut r, &gs, views, background, |v, f| {
+            done += 1;
+            bar.set(done, "");
+            let Some(dir) = dir else { return Ok(()) };
+            save_png(&dir.join(format!("{}.png", v.camera.name)), f.width, f.height, &f.image)?;
+            let err = crate::util::error_image(&f.image, &v.image);
+            let cmp = crate::util::side_by_side(&[&v.image, &f.image, &err], f.width as usize, f.height as usize);
+            save_png(&dir.join(format!("{}_compare.png", v.camera.name)), 3 * f.width, f.height, &cmp)
+        })
+    };
+    // Pictures into a temporary sibling folder, moved into `out` when all are written.
+    let e = match out {
+        Some(dir) => {
+            let mut e = None;
+            crate::util::write_dir_atomic(dir, None, |tmp| {
+                e = Some(score(Some(tmp))?);
+                Ok(())
+            })?;
+            e.expect("evaluated")
+        }
+        None => score(None)?,
+    };
     bar.finish();
     if json {
         let views: Vec<_> = e.views.iter().map(ViewScore::json).collect();

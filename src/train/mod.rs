@@ -217,7 +217,7 @@ fn fault_nan_at() -> Option<u64> {
 /// `metrics.csv`, `point_cloud.ply` and `curves.png`. With `opts.resume` it continues from the
 /// checkpoint (the configuration must match the one it was written with, iterations aside).
 pub fn run(gpu: &Arc<Gpu>, k: &Arc<Kernels>, ds: &Dataset, cfg: &Config, opts: &RunOptions) -> Result<RunSummary> {
-    std::fs::create_dir_all(&opts.out).with_context(|| format!("{}: cannot create", opts.out.display()))?;
+    let mut fresh = crate::util::NewFolder::create(&opts.out)?;
     if ds.train.is_empty() {
         bail!("the dataset has no training views");
     }
@@ -284,6 +284,10 @@ pub fn run(gpu: &Arc<Gpu>, k: &Arc<Kernels>, ds: &Dataset, cfg: &Config, opts: &
             state.appearance.params.len(),
             ds.train.len()
         );
+    }
+    for v in &ds.train {
+        crate::train::optim::LossBufs::check_size(gpu, v.camera.width, v.camera.height)
+            .with_context(|| v.path.display().to_string())?;
     }
     let mut trainer = Trainer::new(gpu, k, &state, cfg.refine_transforms)?;
     scan.save()?;
@@ -360,7 +364,11 @@ pub fn run(gpu: &Arc<Gpu>, k: &Arc<Kernels>, ds: &Dataset, cfg: &Config, opts: &
             }
             state.check_finite().context("training diverged; the last good checkpoint is kept")?;
             if state.scene.is_empty() {
-                bail!("densification pruned every splat at iteration {it}");
+                bail!(
+                    "densification pruned every splat at iteration {it}: every opacity fell below densify.min_opacity ({}) or every size grew past densify.max_world_scale ({} × the scene extent); lower densify.min_opacity or raise densify.max_world_scale in the --config",
+                    d.min_opacity,
+                    d.max_world_scale
+                );
             }
             trainer.load(&state)?;
         }
@@ -393,6 +401,9 @@ pub fn run(gpu: &Arc<Gpu>, k: &Arc<Kernels>, ds: &Dataset, cfg: &Config, opts: &
             trainer.scene.len
         );
         progress.set(it, &msg);
+    }
+    if let Some(f) = fresh.as_mut() {
+        f.keep();
     }
     // The iterations' own time (held-out evaluations included), not the run's end below.
     let loop_secs = t0.elapsed().as_secs_f64();

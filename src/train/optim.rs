@@ -36,12 +36,25 @@ pub struct LossBufs {
 }
 
 impl LossBufs {
-    pub fn new(gpu: &Arc<Gpu>, width: u32, height: u32) -> Result<LossBufs> {
+    /// Refuses an image the loss's largest buffer (the SSIM moments, 60 bytes a pixel) cannot
+    /// hold on `gpu`, with the `--downscale` that would fit.
+    pub fn check_size(gpu: &Gpu, width: u32, height: u32) -> Result<()> {
         let px = width as u64 * height as u64;
         let planes = (SSIM_MOMENTS * 3) as u64 * px * 4;
-        if planes > gpu.info.max_storage_buffer_range {
-            bail!("image {width}x{height} is too large for the loss buffers on this device (maxStorageBufferRange {} bytes); use --downscale", gpu.info.max_storage_buffer_range);
+        let limit = gpu.info.max_storage_buffer_range;
+        if planes > limit {
+            let factor = ((planes as f64 / limit as f64).sqrt().ceil() as u32).max(2);
+            bail!(
+                "image {width}x{height} is too large for the training loss's buffers on this device ({planes} bytes, over maxStorageBufferRange {limit}); train with --downscale {factor} or more"
+            );
         }
+        Ok(())
+    }
+
+    pub fn new(gpu: &Arc<Gpu>, width: u32, height: u32) -> Result<LossBufs> {
+        LossBufs::check_size(gpu, width, height)?;
+        let px = width as u64 * height as u64;
+        let planes = (SSIM_MOMENTS * 3) as u64 * px * 4;
         Ok(LossBufs {
             width,
             height,
