@@ -227,7 +227,7 @@ fn equivalent(
     let reference = instgs_vk::segment::subset(scene, labels, r.reference);
     let own = instgs_vk::segment::subset(scene, labels, r.id);
     let truth = gt[&r.reference].object_to_world.compose(&gt[&r.id].object_to_world.inverse());
-    let by_truth = template::transform_gaussians(&reference, &template::sim3_to_similarity(&truth.inverse()));
+    let by_truth = instgs_vk::model::instanced::transform_gaussians(&reference, &template::sim3_to_similarity(&truth.inverse()));
     let mut alike = instgs_vk::instancing::verify::ImageCheck::new(gpu, k, cams.to_vec(), None)?;
     if alike.score(&reference, &by_truth, r.id, &r.relative)?.is_some_and(|s| s.iou >= 0.95 && s.psnr >= 30.0) {
         return Ok(true);

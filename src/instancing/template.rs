@@ -25,7 +25,7 @@ use crate::dataset::masks::InstanceGroup;
 use crate::instancing::synchronise::{synchronise, Synchronised};
 use crate::math::SH_C0_F32;
 use crate::math::{logit, sigmoid};
-use crate::model::instanced::{quat_mul, Group, Instance, InstancedScene, Offsets, ShRotation, Similarity};
+use crate::model::instanced::{transform_gaussians, Group, Instance, InstancedScene, Offsets, Similarity};
 use crate::model::scene::Scene;
 use crate::register::{
     candidates, centroid, farthest_point_sample, icp, median_spacing, object_size, principal_axes, reverse_fitness,
@@ -402,21 +402,6 @@ pub fn sim3_to_similarity(x: &Sim3) -> Similarity {
     )
 }
 
-/// `part` (world Gaussians) mapped by `x`, every parameter: means, rotations, log scales, SH.
-pub fn transform_gaussians(part: &Scene, x: &Similarity) -> Scene {
-    let mut out = part.clone();
-    let q = x.quat_wxyz();
-    let ln_s = x.scale.ln();
-    let rot = ShRotation::new(x.rotation, part.sh_degree);
-    let c = part.sh_coeffs() * 3;
-    for i in 0..part.len() {
-        out.means[i] = (x.rotation * (Vec3::from(part.means[i]) * x.scale) + x.translation).to_array();
-        out.quats[i] = quat_mul(q, part.quats[i]);
-        out.scales[i] = part.scales[i].map(|s| s + ln_s);
-        rot.apply(&mut out.sh[i * c..(i + 1) * c]);
-    }
-    out
-}
 
 /// Drops background Gaussians (label 0) of little significance: keeps every instance Gaussian
 /// and the ⌈keep × background⌉ background Gaussians of the largest `significance` (e.g.

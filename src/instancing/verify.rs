@@ -19,7 +19,8 @@ use nalgebra::{DMatrix, DVector};
 
 use crate::gpu::kernels::Kernels;
 use crate::gpu::Gpu;
-use crate::instancing::template::{sim3_to_similarity, transform_gaussians, RenderCheck, RenderScore};
+use crate::instancing::template::{sim3_to_similarity, RenderCheck, RenderScore};
+use crate::model::instanced::transform_gaussians;
 use crate::model::camera::Camera;
 use crate::model::scene::Scene;
 use crate::register::Sim3;

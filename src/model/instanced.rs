@@ -566,3 +566,19 @@ pub fn xform_param_grads(params: &[f32; 8], terms: &[f32]) -> [f64; 8] {
     let v_q = (v_qn - qn * qn.dot(v_qn)) / len;
     [v_q.x, v_q.y, v_q.z, v_q.w, t[0], t[1], t[2], t[3]]
 }
+
+/// `part` (world Gaussians) mapped by `x`, every parameter: means, rotations, log scales, SH.
+pub fn transform_gaussians(part: &Scene, x: &Similarity) -> Scene {
+    let mut out = part.clone();
+    let q = x.quat_wxyz();
+    let ln_s = x.scale.ln();
+    let rot = ShRotation::new(x.rotation, part.sh_degree);
+    let c = part.sh_coeffs() * 3;
+    for i in 0..part.len() {
+        out.means[i] = (x.rotation * (Vec3::from(part.means[i]) * x.scale) + x.translation).to_array();
+        out.quats[i] = quat_mul(q, part.quats[i]);
+        out.scales[i] = part.scales[i].map(|s| s + ln_s);
+        rot.apply(&mut out.sh[i * c..(i + 1) * c]);
+    }
+    out
+}
