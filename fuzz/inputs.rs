@@ -95,7 +95,7 @@ pub fn run(target: &str, data: &[u8]) -> Result<()> {
                     model::instanced::scene_graph_from_str(text, what)?;
                 }
                 _ => {
-                    instancing::template::labels_from_bytes(content, "json", what, 4)?;
+                    instancing::labels::labels_from_bytes(content, "json", what, 4)?;
                 }
             }
         }

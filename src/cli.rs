@@ -71,7 +71,7 @@ pub(crate) enum Cmd {
         compare_forward: Option<Forward>,
     },
     /// The main job. On a dataset with instance masks (DIR/masks/train/): the whole InstGS
-    /// pipeline, plain → segment → instance → joint → eval → bench, into one run folder with a
+    /// pipeline, plain → segment → instance → joint → pruned → eval → bench, into one run folder with a
     /// report (RUN/report.md); a re-run resumes. Without masks: plain 3DGS training, or with
     /// --discover the pipeline with the instances found without masks. With --init
     /// SCENE.instgs: joint optimisation of that instanced scene only.
@@ -80,7 +80,7 @@ pub(crate) enum Cmd {
         data: DataArgs,
         /// Run folder. Plain: checkpoint.bin, metrics.csv, curves.png, point_cloud.ply. Pipeline:
         /// also labels.json, init.instgs, scene.instgs, joint/, eval.json, bench.json, images/,
-        /// pipeline.json and report.md (see the README).
+        /// pipeline.json and report.md (docs/pipeline.md).
         #[arg(long)]
         out: PathBuf,
         /// SCENE.ply: a plain 3DGS scene trained by any 3DGS tool replaces the plain stage.
@@ -269,19 +269,19 @@ pub(crate) enum Cmd {
         #[arg(long)]
         no_synchronise: bool,
         /// Acceptance: both fitnesses at least this.
-        #[arg(long, allow_negative_numbers = true, value_parser = unit_f64, default_value_t = instgs_vk::instancing::template::Acceptance::default().min_fitness)]
+        #[arg(long, allow_negative_numbers = true, value_parser = unit_f64, default_value_t = instgs_vk::instancing::pose::Acceptance::default().min_fitness)]
         min_fitness: f64,
         /// Acceptance: scale within this relative distance of the clouds' size ratio.
-        #[arg(long, allow_negative_numbers = true, value_parser = non_negative_f64, default_value_t = instgs_vk::instancing::template::Acceptance::default().scale_tolerance)]
+        #[arg(long, allow_negative_numbers = true, value_parser = non_negative_f64, default_value_t = instgs_vk::instancing::pose::Acceptance::default().scale_tolerance)]
         scale_tolerance: f64,
         /// Acceptance: the render check's median silhouette IoU at least this.
-        #[arg(long, allow_negative_numbers = true, value_parser = unit_f64, default_value_t = instgs_vk::instancing::template::Acceptance::default().min_render_iou)]
+        #[arg(long, allow_negative_numbers = true, value_parser = unit_f64, default_value_t = instgs_vk::instancing::pose::Acceptance::default().min_render_iou)]
         min_render_iou: f64,
         /// Acceptance: the render check's PSNR (dB) at least this.
-        #[arg(long, allow_negative_numbers = true, value_parser = finite_f64, default_value_t = instgs_vk::instancing::template::Acceptance::default().min_render_psnr)]
+        #[arg(long, allow_negative_numbers = true, value_parser = finite_f64, default_value_t = instgs_vk::instancing::pose::Acceptance::default().min_render_psnr)]
         min_render_psnr: f64,
         /// Acceptance: the render check compares at least this many views that show the instance.
-        #[arg(long, default_value_t = instgs_vk::instancing::template::Acceptance::default().min_render_views)]
+        #[arg(long, default_value_t = instgs_vk::instancing::pose::Acceptance::default().min_render_views)]
         min_render_views: usize,
         #[arg(long)]
         out: PathBuf,
@@ -336,7 +336,7 @@ pub(crate) enum Cmd {
     },
     #[cfg(feature = "player")]
     /// The standalone player: a window with the scene, orbit/fly camera and FPS overlay (see
-    /// the README for the controls), or with --headless frames saved to PNG files.
+    /// docs/usage.md for the controls), or with --headless frames saved to PNG files.
     View {
         /// Scene file (.ply: Inria 3DGS or SuperSplat compressed; .instgs).
         scene: PathBuf,

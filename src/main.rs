@@ -95,7 +95,7 @@ fn run(cli: Cli) -> Result<()> {
             min_render_views,
             out,
         } => {
-            let accept = template::Acceptance {
+            let accept = instgs_vk::instancing::pose::Acceptance {
                 min_fitness,
                 scale_tolerance,
                 min_render_iou,

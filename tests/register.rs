@@ -343,7 +343,7 @@ fn about(c: [f64; 3], d: Sim3, x: Sim3) -> Sim3 {
 
 #[test]
 fn degenerate_poses_are_refused_by_the_geometric_checks() {
-    use instgs_vk::instancing::template::{Acceptance, PoseCheck};
+    use instgs_vk::instancing::pose::{Acceptance, PoseCheck};
     let mut rng = Rng::new(11);
     let reference = object(&mut rng, 4000);
     let truth = random_sim3(&mut rng, 1.0);

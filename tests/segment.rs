@@ -5,6 +5,7 @@ mod common;
 use common::*;
 use glam::Vec3;
 use instgs_vk::segment::{associate, instance_iou, instance_iou_per_frame, segment, AssociateOptions};
+use instgs_vk::util::ProgressMode;
 
 /// Three instances of a random template in front of a wall; ten views and their masks rendered
 /// from the true labels: (plain scene, labels, views, masks).
@@ -196,7 +197,17 @@ fn association_recovers_instances_from_scrambled_per_frame_ids() {
         cats.push(c);
         key.push(map.into_iter().map(|(t, n)| (n, t)).collect());
     }
-    let a = associate(&gpu, &k, &plain, &views, &scrambled, &cats, &AssociateOptions::default()).unwrap();
+    let a = associate(
+        &gpu,
+        &k,
+        &plain,
+        &views,
+        &scrambled,
+        &cats,
+        &AssociateOptions::default(),
+        ("", ProgressMode::Tenths),
+    )
+    .unwrap();
     assert_eq!(a.groups.len(), 1);
     assert_eq!(a.groups[0].ids, [1, 2, 3]);
     // Each instance gathers exactly one true instance's masks, one per view.

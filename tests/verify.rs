@@ -8,7 +8,8 @@ mod common;
 use common::*;
 use glam::Vec3;
 use instgs_vk::dataset::masks::InstanceGroup;
-use instgs_vk::instancing::template::{instantiate, InstanceOptions, RenderCheck};
+use instgs_vk::instancing::pose::RenderCheck;
+use instgs_vk::instancing::template::{instantiate, InstanceOptions};
 use instgs_vk::instancing::verify::ImageCheck;
 use instgs_vk::model::camera::Camera;
 use instgs_vk::model::scene::Scene;
@@ -174,7 +175,7 @@ fn a_flipped_or_shrunk_pose_fails_the_render_check() {
     let mut check = ImageCheck::new(&gpu, &k, cameras(12), None).unwrap();
     let (one, two) = (instgs_vk::segment::subset(&plain, &labels, 1), instgs_vk::segment::subset(&plain, &labels, 2));
     let truth = poses[1].compose(&poses[0].inverse());
-    let a = instgs_vk::instancing::template::Acceptance::default();
+    let a = instgs_vk::instancing::pose::Acceptance::default();
     let good = check.score(&two, &one, 1, &truth).unwrap().expect("visible");
     assert_eq!(good.failure(&a), None, "{good:?}");
     let centre = poses[1].translation;

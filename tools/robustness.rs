@@ -38,8 +38,9 @@ use std::path::PathBuf;
 use anyhow::{bail, Context, Result};
 use instgs_vk::gpu::kernels::Kernels;
 use instgs_vk::gpu::{Gpu, GpuOptions};
+use instgs_vk::instancing::pose::{self, RenderCheck};
 use instgs_vk::instancing::pose_error::GroundTruthPose;
-use instgs_vk::instancing::template::{self, InstanceOptions, RenderCheck};
+use instgs_vk::instancing::template::{self, InstanceOptions};
 use instgs_vk::model::scene::Scene;
 use instgs_vk::register::{centroid, Sim3};
 use rand::{Rng, SeedableRng};
@@ -227,7 +228,8 @@ fn equivalent(
     let reference = instgs_vk::segment::subset(scene, labels, r.reference);
     let own = instgs_vk::segment::subset(scene, labels, r.id);
     let truth = gt[&r.reference].object_to_world.compose(&gt[&r.id].object_to_world.inverse());
-    let by_truth = instgs_vk::model::instanced::transform_gaussians(&reference, &template::sim3_to_similarity(&truth.inverse()));
+    let by_truth =
+        instgs_vk::model::instanced::transform_gaussians(&reference, &pose::sim3_to_similarity(&truth.inverse()));
     let mut alike = instgs_vk::instancing::verify::ImageCheck::new(gpu, k, cams.to_vec(), None)?;
     if alike.score(&reference, &by_truth, r.id, &r.relative)?.is_some_and(|s| s.iou >= 0.95 && s.psnr >= 30.0) {
         return Ok(true);
@@ -235,10 +237,10 @@ fn equivalent(
     let (Some(at_truth), Some(accepted)) = (check.score(&reference, &own, r.id, &truth)?, r.render) else {
         return Ok(false);
     };
-    let opaque = template::registration_cloud(&reference, InstanceOptions::default().min_opacity).0;
+    let opaque = pose::registration_cloud(&reference, InstanceOptions::default().min_opacity).0;
     let (centre, size) = (centroid(&opaque), instgs_vk::register::object_size(&opaque));
     let (refined, at_refined) =
-        template::refine_pose(check, &reference, &own, r.id, truth, at_truth, centre, size, false, 0..4)?;
+        pose::refine_pose(check, &reference, &own, r.id, truth, at_truth, centre, size, false, 0..4)?;
     eprintln!(
         "  {} {}: the instance's own render against the reference placed by the accepted pose {:.2} dB, by the true pose {:.2} dB, refined ({:.2}° away) {:.2} dB",
         r.group,
@@ -284,7 +286,7 @@ fn main() -> Result<()> {
         }
     }
     let scene = instgs_vk::formats::ply::read_ply(&run.join("point_cloud.ply"))?;
-    let labels = template::read_labels(&run.join("labels.json"), scene.len())?;
+    let labels = instgs_vk::instancing::labels::read_labels(&run.join("labels.json"), scene.len())?;
     let groups_path = data.join("instances.json");
     let groups = instgs_vk::dataset::masks::read_groups(&groups_path)?;
     let truth = instgs_vk::instancing::pose_error::read_ground_truth(&groups_path)?

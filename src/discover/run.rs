@@ -10,8 +10,8 @@ use anyhow::{bail, Context, Result};
 use glam::Vec3;
 
 use crate::discover::{auto, from_example, DiscoverOptions, Discovery};
+use crate::instancing::pose::RenderCheck;
 use crate::instancing::pose_error::{pose_error, read_ground_truth, GroundTruthPose};
-use crate::instancing::template::RenderCheck;
 use crate::instancing::verify::ImageCheck;
 use crate::model::scene::Scene;
 use crate::register::{object_size, Sim3};
@@ -74,7 +74,7 @@ pub fn example_gaussians(
             .filter(|&i| (0..3).all(|a| (b[a]..=b[a + 3]).contains(&(scene.means[i][a] as f64))))
             .collect(),
         ExampleSpec::Label { labels, id } => {
-            let l = crate::instancing::template::read_labels(labels, scene.len())?;
+            let l = crate::instancing::labels::read_labels(labels, scene.len())?;
             let idx: Vec<usize> = (0..l.len()).filter(|&i| l[i] == *id).collect();
             if idx.is_empty() {
                 bail!("{}: no Gaussian has label {id}", labels.display());

@@ -8,7 +8,8 @@ use anyhow::{bail, Context, Result};
 use crate::formats::instgs::{self, Dtype};
 use crate::formats::ply::read_ply;
 use crate::gpu::kernels::open_device;
-use crate::instancing::template::{InstanceOptions, RenderCheck};
+use crate::instancing::pose::RenderCheck;
+use crate::instancing::template::InstanceOptions;
 use crate::instancing::verify::ImageCheck;
 use crate::util::write_json;
 
@@ -30,14 +31,14 @@ pub fn instance(
     opts: &crate::instancing::template::InstanceOptions,
     dtype: instgs::Dtype,
     prune: Option<(&Path, &mut KeepRule)>,
-    check: Option<&mut dyn crate::instancing::template::RenderCheck>,
+    check: Option<&mut dyn crate::instancing::pose::RenderCheck>,
     report: Option<&Path>,
     out: &Path,
 ) -> Result<serde_json::Value> {
     use crate::instancing::template;
     let scene = crate::formats::read_scene(scene_path)?;
     let labels_path = labels;
-    let labels = template::read_labels(labels_path, scene.len())?;
+    let labels = crate::instancing::labels::read_labels(labels_path, scene.len())?;
     let groups = crate::dataset::masks::read_groups(groups_path)?;
     let mut opts = opts.clone();
     opts.starts = read_starting_poses(groups_path)?;

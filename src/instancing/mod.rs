@@ -1,9 +1,12 @@
-//! From segmented instances to an instanced scene: templates and per-instance transforms
-//! ([`template`]), the render check of every registered pose ([`verify`]), the group's poses
+//! From segmented instances to an instanced scene: per-Gaussian labels ([`labels`]), the pose
+//! of each instance decided against the data ([`pose`]), templates and offsets ([`template`]),
+//! the render check of every registered pose ([`verify`]), the group's poses
 //! synchronised over every pair of its instances ([`synchronise`]), and background compaction
 //! ([`compact`]).
 pub mod build;
 pub mod compact;
+pub mod labels;
+pub mod pose;
 pub mod pose_error;
 pub mod synchronise;
 pub mod template;

@@ -1,4 +1,4 @@
-//! The render check of a registered pose ([`crate::instancing::template::RenderCheck`]) on the GPU: the
+//! The render check of a registered pose ([`crate::instancing::pose::RenderCheck`]) on the GPU: the
 //! reference instance's Gaussians, placed by the pose where the instance stands, and the
 //! instance's own Gaussians are each rendered alone (over black) from the training cameras that
 //! see the instance best, and compared ([`compare`]): the placed silhouette (alpha > 0.5) with
@@ -19,9 +19,9 @@ use nalgebra::{DMatrix, DVector};
 
 use crate::gpu::kernels::Kernels;
 use crate::gpu::Gpu;
-use crate::instancing::template::{sim3_to_similarity, RenderCheck, RenderScore};
-use crate::model::instanced::transform_gaussians;
+use crate::instancing::pose::{sim3_to_similarity, RenderCheck, RenderScore};
 use crate::model::camera::Camera;
+use crate::model::instanced::transform_gaussians;
 use crate::model::scene::Scene;
 use crate::register::Sim3;
 use crate::render::raster::Rasterizer;

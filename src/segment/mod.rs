@@ -26,6 +26,7 @@ use crate::render::raster::backward::Grads;
 use crate::render::raster::Rasterizer;
 use crate::render::upload::GpuScene;
 use crate::shared::{SegArgs, MAX_GROUPS, WG_SIZE};
+use crate::util::{Progress, ProgressMode};
 
 /// Per-Gaussian results: the instance id (0 = background) and g per instance.
 pub struct Segmentation {
@@ -324,7 +325,9 @@ fn count_and(a: &Bits, b: &Bits) -> usize {
 /// Gaussians one mask claims that the other view sees, the share the other mask claims too.
 /// Pairs are merged greedily from the highest rate down to `threshold`, never joining two masks
 /// of one view; clusters spanning at least `min_views` views become instances (numbered by
-/// their first view and id), the rest is dropped.
+/// their first view and id), the rest is dropped. `progress` (label, mode) reports the lifting
+/// per view and the pairing per mask.
+#[allow(clippy::too_many_arguments)]
 pub fn associate(
     gpu: &Arc<Gpu>,
     k: &Arc<Kernels>,
@@ -333,6 +336,7 @@ pub fn associate(
     masks: &[Vec<u16>],
     categories: &[BTreeMap<u16, String>],
     o: &AssociateOptions,
+    progress: (&str, ProgressMode),
 ) -> Result<Association> {
     if views.len() != masks.len() || views.len() != categories.len() {
         bail!("{} views, {} masks, {} category maps", views.len(), masks.len(), categories.len());
@@ -345,7 +349,10 @@ pub fn associate(
     // Lifted masks: (view, id, category, claimed Gaussians); seen Gaussians per view.
     let mut lifted: Vec<(usize, u16, &str, Bits)> = Vec::new();
     let mut seen: Vec<Bits> = Vec::new();
+    let label = format!("{}association: lifting masks: ", progress.0);
+    let mut bar = Progress::new(&label, "view", "views/s", views.len() as u64, 0, progress.1);
     for (v, (view, mask)) in views.iter().zip(masks).enumerate() {
+        bar.set(v as u64, "");
         scorer.clear()?;
         scorer.add_view(view, mask, &frame_ids[v])?;
         let s = scorer.read()?;
@@ -358,8 +365,13 @@ pub fn associate(
             lifted.push((v, id as u16, cat, claimed));
         }
     }
+    bar.set(views.len() as u64, "");
+    bar.finish();
+    let label = format!("{}association: pairing masks: ", progress.0);
+    let mut bar = Progress::new(&label, "mask", "masks/s", lifted.len() as u64, 0, progress.1);
     let mut pairs: Vec<(f64, usize, usize)> = Vec::new();
     for a in 0..lifted.len() {
+        bar.set(a as u64, "");
         for b in a + 1..lifted.len() {
             let (la, lb) = (&lifted[a], &lifted[b]);
             if la.0 == lb.0 || la.2 != lb.2 {
@@ -376,6 +388,8 @@ pub fn associate(
             }
         }
     }
+    bar.set(lifted.len() as u64, "");
+    bar.finish();
     pairs.sort_by(|x, y| y.0.total_cmp(&x.0).then((x.1, x.2).cmp(&(y.1, y.2))));
     // Union-find with the set of views of every cluster at its root.
     let mut parent: Vec<usize> = (0..lifted.len()).collect();

@@ -100,7 +100,7 @@ pub fn segment_scene(
     let groups = if per_frame_ids {
         let cats = crate::dataset::masks::load_frame_categories(data, split, views, &masks)?;
         let o = crate::segment::AssociateOptions { alpha, ..Default::default() };
-        let a = crate::segment::associate(gpu, k, scene, views, &masks, &cats, &o)?;
+        let a = crate::segment::associate(gpu, k, scene, views, &masks, &cats, &o, progress)?;
         let total: usize = a.members.values().map(Vec::len).sum::<usize>() + a.dropped.len();
         println!(
             "association: {} masks of {} views → {} instances in {} groups ({} masks in no instance of ≥ {} views)",

@@ -1,6 +1,6 @@
 //! `curves.png`: a training run's curves, drawn with plotters (bitmap backend) and set in
 //! DejaVu Sans (bundled through the `dejavu` crate, so every machine draws the same text; the
-//! font's licence is in the README's credits).
+//! font's licence is in docs/building.md).
 //!
 //! Left panel: the training loss per iteration, (1 − λ)·L1 + λ·D-SSIM as the optimiser sees it,
 //! on a log axis. Right panel: PSNR in dB of the training view of each iteration (grey) and of

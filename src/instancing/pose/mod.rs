@@ -1,0 +1,578 @@
+//! The pose of one instance on its group's reference, decided against the data: registration
+//! hypotheses ([`crate::register`]) checked geometrically ([`PoseCheck`]) and, with a
+//! [`RenderCheck`], against the training views; rival poses, turns about the scene's up axis,
+//! refinement on the renders and the group's synchronisation. A pose that fails every check is
+//! refused ([`Acceptance`]); [`crate::instancing::template`] then leaves the instance plain.
+
+use anyhow::{Context, Result};
+use glam::{Mat3, Quat, Vec3};
+
+use crate::instancing::synchronise::synchronise;
+use crate::instancing::template::{InstanceOptions, InstanceReport, Status};
+use crate::math::sigmoid;
+use crate::math::SH_C0_F32;
+use crate::model::instanced::Similarity;
+use crate::model::scene::Scene;
+use crate::register::{
+    candidates, centroid, icp, median_spacing, object_size, principal_axes, reverse_fitness, support_plane,
+    voxel_downsample, RegisterOptions, Sim3,
+};
+use nalgebra::Vector3;
+
+/// The checks a registered pose must pass before its instance shares the group's template
+/// (configuration `[instance]`, configs/pipeline.toml). A pose that fails them all leaves the
+/// instance plain: its Gaussians stay in the scene as background.
+#[derive(Clone, Debug, PartialEq, serde::Serialize)]
+pub struct Acceptance {
+    /// Both fitnesses ([`PoseCheck`]) at least this: the instance's Gaussians lie on the
+    /// reference's and the reference's on the instance's.
+    pub min_fitness: f64,
+    /// The pose's scale within this relative distance of the two clouds' size ratio.
+    pub scale_tolerance: f64,
+    /// Render check ([`RenderCheck`]): median silhouette IoU at least this.
+    pub min_render_iou: f64,
+    /// Render check: PSNR (dB, after a non-negative colour mix for the instance's tint) at least
+    /// this.
+    pub min_render_psnr: f64,
+    /// Render check: compared in at least this many views (each showing the instance on at
+    /// least `verify::MIN_VIEW_PIXELS` pixels). A repetition worth instancing is an object seen
+    /// from several sides; a check that one view passes proves little (on a capture's plain
+    /// scene, `discover --auto` once paired two floor fragments on a single view).
+    pub min_render_views: usize,
+    /// Pose hypotheses tried per instance, the most plausible first, over two RANSAC seeds.
+    pub max_candidates: usize,
+}
+
+impl Default for Acceptance {
+    fn default() -> Self {
+        Acceptance {
+            min_fitness: 0.5,
+            scale_tolerance: 0.25,
+            min_render_iou: 0.85,
+            min_render_psnr: 17.0,
+            min_render_views: 3,
+            max_candidates: 6,
+        }
+    }
+}
+/// An instance's registration cloud: the means and base colours (RGB of the SH DC, at least
+/// 0.01) of its Gaussians of opacity ≥ `min_opacity` (all of them when fewer than 16 are).
+pub fn registration_cloud(part: &Scene, min_opacity: f32) -> (Vec<[f64; 3]>, Vec<[f64; 3]>) {
+    let mut idx: Vec<usize> = (0..part.len()).filter(|&i| sigmoid(part.opacities[i]) >= min_opacity).collect();
+    if idx.len() < 16 {
+        idx = (0..part.len()).collect();
+    }
+    let c = part.sh_coeffs() * 3;
+    let rgb = |i: usize| std::array::from_fn(|a| (0.5 + SH_C0_F32 * part.sh[i * c + a]).max(0.01) as f64);
+    (idx.iter().map(|&i| to_f64(part.means[i])).collect(), idx.iter().map(|&i| rgb(i)).collect())
+}
+/// The geometric checks of a pose (instance world → reference world) on the two instances'
+/// opaque Gaussian means, both voxel-downsampled at half the registration voxel.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PoseCheck {
+    /// Fraction of the instance's points with a reference point near ([`PoseCheck::measure`]).
+    pub fitness: f64,
+    /// Fraction of the reference's points with a (moved) instance point near.
+    pub fitness_reverse: f64,
+    /// The pose's scale over the clouds' size ratio ([`object_size`]): 1 when they agree.
+    pub scale_ratio: f64,
+    /// det of the pose's rotation part (+1 for a rotation, −1 for a mirror).
+    pub determinant: f64,
+}
+
+impl PoseCheck {
+    /// The identity pose of the reference onto itself.
+    pub fn perfect() -> PoseCheck {
+        PoseCheck { fitness: 1.0, fitness_reverse: 1.0, scale_ratio: 1.0, determinant: 1.0 }
+    }
+
+    /// Measures `x` (instance → reference) on the two clouds with the registration `voxel`.
+    /// Counterparts are sought within one voxel, or twice the sparser cloud's median point
+    /// spacing where that is larger (a coarser reconstruction's Gaussians lie farther apart).
+    pub fn measure(instance: &[[f64; 3]], reference: &[[f64; 3]], x: &Sim3, voxel: f64) -> PoseCheck {
+        let (a, b) = (voxel_downsample(instance, voxel / 2.0), voxel_downsample(reference, voxel / 2.0));
+        let size = object_size(instance);
+        let expected = if size > 0.0 { object_size(reference) / size } else { f64::NAN };
+        let spacing = (median_spacing(&a) * x.scale).max(median_spacing(&b));
+        let dist = voxel.max(2.0 * spacing);
+        PoseCheck {
+            fitness: reverse_fitness(&x.inverse(), &b, &a, dist / x.scale),
+            fitness_reverse: reverse_fitness(x, &a, &b, dist),
+            scale_ratio: x.scale / expected,
+            determinant: x.rotation.determinant(),
+        }
+    }
+
+    /// Why `x` fails `accept`'s geometric checks (None: it passes). `rigid`: the scale must be 1.
+    pub fn failure(&self, x: &Sim3, accept: &Acceptance, rigid: bool) -> Option<String> {
+        let finite = x.rotation.iter().chain(x.translation.iter()).all(|v| v.is_finite()) && x.scale.is_finite();
+        let orthonormal = (x.rotation * x.rotation.transpose() - nalgebra::Matrix3::identity()).norm() < 1e-6;
+        if !finite || !orthonormal {
+            return Some("the pose is not a similarity".into());
+        }
+        if self.determinant < 0.0 {
+            return Some("the pose mirrors the object".into());
+        }
+        if x.scale <= 0.0 || (rigid && (x.scale - 1.0).abs() > 1e-9) {
+            return Some(format!("scale {:.4} is not allowed", x.scale));
+        }
+        // Registration holds the scale inside the band: a scale at its edge (within 1 %) was
+        // stopped there, not determined by the clouds.
+        if !rigid && (self.scale_ratio.is_nan() || (self.scale_ratio - 1.0).abs() >= accept.scale_tolerance - 0.01) {
+            return Some(format!(
+                "scale {:.4} is {:.2}× the clouds' size ratio, at or past the edge of its ±{:.0} % band",
+                x.scale,
+                self.scale_ratio,
+                100.0 * accept.scale_tolerance
+            ));
+        }
+        if self.fitness.min(self.fitness_reverse) < accept.min_fitness {
+            return Some(format!(
+                "fitness {:.2} / reverse {:.2} below {:.2}",
+                self.fitness, self.fitness_reverse, accept.min_fitness
+            ));
+        }
+        None
+    }
+}
+
+/// A pose checked against the training images: the reference's Gaussians placed where the
+/// instance is and both rendered alone.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct RenderScore {
+    /// Views compared.
+    pub views: usize,
+    /// Median over views of the silhouettes' IoU (alpha > 0.5).
+    pub iou: f64,
+    /// PSNR (dB) of the placed reference against the instance's own render over the pixels of
+    /// either silhouette, after a least-squares non-negative mix of the colour channels (the
+    /// instance's tint; [`crate::instancing::verify::compare`]): what acceptance asks.
+    pub psnr: f64,
+    /// The same PSNR after a least-squares gain per channel only (clamped to [1/4, 4]): what
+    /// the choice between hypotheses and the pose refinement climb. Three colour parameters
+    /// instead of nine absorb less of a misplaced pose's error, so the pictures pin the pose
+    /// down more sharply (climbing the mix, one demo run accepted a duck 5.8° off).
+    pub pose_psnr: f64,
+}
+
+impl RenderScore {
+    pub fn failure(&self, accept: &Acceptance) -> Option<String> {
+        if self.views < accept.min_render_views {
+            return Some(format!(
+                "seen in {} view(s) by the render check, fewer than {}",
+                self.views, accept.min_render_views
+            ));
+        }
+        if self.iou.is_nan() || self.iou < accept.min_render_iou {
+            return Some(format!("render IoU {:.2} below {:.2}", self.iou, accept.min_render_iou));
+        }
+        if self.psnr.is_nan() || self.psnr < accept.min_render_psnr {
+            return Some(format!("render PSNR {:.1} dB below {:.1}", self.psnr, accept.min_render_psnr));
+        }
+        None
+    }
+}
+
+/// Renders a pose check ([`crate::instancing::verify::ImageCheck`] on the GPU; tests may bring their own).
+pub trait RenderCheck {
+    /// `reference` and `instance`: the two instances' Gaussians in world space; `x`: instance
+    /// world → reference world. None when the instance shows in no view.
+    fn score(&mut self, reference: &Scene, instance: &Scene, id: u32, x: &Sim3) -> Result<Option<RenderScore>>;
+}
+pub(crate) fn to_f64(p: [f32; 3]) -> [f64; 3] {
+    p.map(|c| c as f64)
+}
+
+pub fn sim3_to_similarity(x: &Sim3) -> Similarity {
+    let r = Mat3::from_cols_array(&std::array::from_fn(|i| x.rotation[(i % 3, i / 3)] as f32));
+    Similarity::from_parts(
+        Quat::from_mat3(&r).normalize(),
+        x.scale as f32,
+        Vec3::new(x.translation.x as f32, x.translation.y as f32, x.translation.z as f32),
+    )
+}
+/// Registers instance `k` onto the reference `r` and checks the hypotheses, the most plausible
+/// first, over two RANSAC seeds (up to `max_candidates`). Without a render check the first that
+/// passes the geometric checks ([`PoseCheck::failure`]) is kept. With one, every hypothesis
+/// that passes them is rendered; the best-rendering one whose silhouettes agree
+/// ([`Acceptance::min_render_iou`]) is refined against the renders ([`refine_pose`]) and kept
+/// if it still passes every check. Returns the pose and the verdict; `report` receives the kept
+/// (or, when refused, the most plausible) pose's checks.
+#[allow(clippy::too_many_arguments)]
+pub fn register_and_check(
+    parts: &[Scene],
+    opaque: &[Vec<[f64; 3]>],
+    colours: &[Vec<[f64; 3]>],
+    k: usize,
+    r: usize,
+    reg: &RegisterOptions,
+    o: &InstanceOptions,
+    render_check: &mut Option<&mut dyn RenderCheck>,
+    report: &mut InstanceReport,
+    group: &str,
+    ids: &[u32],
+) -> Result<(Sim3, Status)> {
+    let a = &o.accept;
+    let rigid = !o.with_scale;
+    // The most plausible pose tried and why it failed, for a refusal.
+    let mut first: Option<(Sim3, PoseCheck, Option<RenderScore>, String)> = None;
+    // Hypotheses whose silhouettes agree, with their render checks.
+    let mut rendered: Vec<(Sim3, RenderScore)> = Vec::new();
+    let mut tried = 0;
+    let mut last_error = None;
+    let context = || format!("group {group:?}: render check of instance {}", ids[k]);
+    'seeds: for attempt in 0..2u64 {
+        let ro = RegisterOptions { seed: o.seed + k as u64 + 1000 * attempt, ..reg.clone() };
+        let rgb = |i: usize| o.use_colour.then(|| colours[i].as_slice());
+        let mut found = match candidates(&opaque[k], rgb(k), &opaque[r], rgb(r), &ro) {
+            Ok(c) => c,
+            Err(e) => {
+                last_error = Some(format!("{e:#}"));
+                continue;
+            }
+        };
+        // A starting pose (instance → common frame → reference), polished by ICP, goes first.
+        if let (0, Some(a), Some(b)) = (attempt, o.starts.get(&ids[k]), o.starts.get(&ids[r])) {
+            let range = o.with_scale.then(|| (1.0 / (1.0 + reg.scale_tolerance), 1.0 + reg.scale_tolerance));
+            let scaled = range.map(|(lo, hi)| {
+                let s = b.inverse().compose(a).scale;
+                (s * lo, s * hi)
+            });
+            let x = icp(&opaque[k], &opaque[r], b.inverse().compose(a), 1.5 * reg.voxel, 30, scaled, true);
+            let mut start = found[0].clone();
+            start.transform = x;
+            found.insert(0, start);
+        }
+        report.shape_ambiguous |= found[0].shape_ambiguous;
+        for cand in found {
+            if tried >= a.max_candidates {
+                break 'seeds;
+            }
+            tried += 1;
+            let x = cand.transform;
+            let check = PoseCheck::measure(&opaque[k], &opaque[r], &x, reg.voxel);
+            if let Some(why) = check.failure(&x, a, rigid) {
+                first.get_or_insert((x, check, None, why));
+                continue;
+            }
+            let Some(rc) = render_check.as_deref_mut() else {
+                report.check = check;
+                report.tried = tried;
+                return Ok((x, Status::Accepted));
+            };
+            let Some(score) = rc.score(&parts[r], &parts[k], ids[k], &x).with_context(context)? else {
+                first.get_or_insert((x, check, None, "the instance shows in no training view".into()));
+                continue;
+            };
+            if score.iou < a.min_render_iou {
+                first.get_or_insert((x, check, Some(score), score.failure(a).unwrap_or_default()));
+            } else {
+                rendered.push((x, score));
+            }
+        }
+        if !rendered.is_empty() {
+            break;
+        }
+    }
+    if let (true, Some(rc)) = (report.shape_ambiguous, render_check.as_deref_mut()) {
+        const QUARTERS: [f64; 3] = [90.0, 180.0, 270.0];
+        let axes = principal_axes(&opaque[r]);
+        tried += turns(rc, parts, opaque, (k, r), reg, a, rigid, ids[k], (&axes, &QUARTERS), &mut rendered)
+            .with_context(context)?;
+        if let Some(up) = o.up {
+            let up = [nalgebra::Unit::new_normalize(up)];
+            tried += turns(rc, parts, opaque, (k, r), reg, a, rigid, ids[k], (&up, &UP_TURNS_DEG), &mut rendered)
+                .with_context(context)?;
+        }
+    }
+    report.tried = tried;
+    if let (false, Some(rc)) = (rendered.is_empty(), render_check.as_deref_mut()) {
+        let (centre, size) = (centroid(&opaque[r]), object_size(&opaque[r]));
+        let (x, score, refined) =
+            refine_rivals(rc, &parts[r], &parts[k], ids[k], rendered, centre, size, rigid).with_context(context)?;
+        report.refined = refined;
+        let check = PoseCheck::measure(&opaque[k], &opaque[r], &x, reg.voxel);
+        report.check = check;
+        report.render = Some(score);
+        return Ok(match check.failure(&x, a, rigid).or_else(|| score.failure(a)) {
+            None => (x, Status::Accepted),
+            Some(why) => (x, Status::Refused(why)),
+        });
+    }
+    match first {
+        Some((x, check, score, why)) => {
+            report.check = check;
+            report.render = score;
+            Ok((x, Status::Refused(why)))
+        }
+        None => Ok((
+            Sim3::identity(),
+            Status::Refused(format!("registration failed: {}", last_error.unwrap_or_else(|| "no hypothesis".into()))),
+        )),
+    }
+}
+
+/// Distinct poses (more than [`RIVAL_DEG`] apart) refined against the images.
+pub const RIVAL_DEG: f64 = 10.0;
+/// A distinct pose is refined too when its render check is within this many dB of the best.
+pub const RIVAL_DB: f64 = 3.0;
+/// At most this many distinct poses are refined per instance.
+pub const MAX_RIVALS: usize = 3;
+
+/// The hypotheses worth refining against the images: the best-rendering one (`pose_psnr`) and
+/// each other distinct one (more than [`RIVAL_DEG`] from those before it) within [`RIVAL_DB`]
+/// of it, at most [`MAX_RIVALS`], the best first. Where the shape is symmetric (a ball's 72°
+/// turns) the unrefined hypotheses are a few degrees off each of its modes and the
+/// best-rendering one before refinement need not be the best after (one tabletop ball was
+/// accepted at its 72° turn, 0.28 dB below the true pose, BENCHMARKS.md).
+pub fn rival_poses(mut rendered: Vec<(Sim3, RenderScore)>) -> Vec<(Sim3, RenderScore)> {
+    rendered.sort_by(|a, b| b.1.pose_psnr.total_cmp(&a.1.pose_psnr));
+    let top = rendered.first().map_or(f64::NAN, |b| b.1.pose_psnr);
+    let mut rivals: Vec<(Sim3, RenderScore)> = Vec::new();
+    for (x, s) in rendered {
+        if rivals.len() < MAX_RIVALS
+            && s.pose_psnr >= top - RIVAL_DB
+            && rivals.iter().all(|(y, _)| y.rotation_error_deg(&x) > RIVAL_DEG)
+        {
+            rivals.push((x, s));
+        }
+    }
+    rivals
+}
+
+/// The turns about the scene's up axis tried where the shape leaves the pose open (degrees):
+/// every k/n of a turn for n = 2…6, the discrete symmetries an object standing on a floor may
+/// have about its vertical axis (a brick's half and quarter turns, a ball's fifths).
+pub const UP_TURNS_DEG: [f64; 11] = [60.0, 72.0, 90.0, 120.0, 144.0, 180.0, 216.0, 240.0, 270.0, 288.0, 300.0];
+
+/// Where the shape leaves the pose open, the best-rendering hypothesis of `rendered` turned by
+/// each of `angles_deg` about each of `axes` (through the reference's centroid) is checked too,
+/// each turn not within [`RIVAL_DEG`] of a hypothesis already there: the discrete symmetries of
+/// boxes, bricks, cans and balls, which the registration's candidates need not all contain (a
+/// tabletop brick with a square footprint was accepted a quarter turn off, a ball a fifth of a
+/// turn off, the true pose never tried). Each turn is polished by ICP (an axis of the cloud is
+/// a few degrees off the object's); those that pass the geometric checks and the silhouette
+/// IoU join `rendered`. Returns how many were tried.
+#[allow(clippy::too_many_arguments)]
+fn turns(
+    rc: &mut dyn RenderCheck,
+    parts: &[Scene],
+    opaque: &[Vec<[f64; 3]>],
+    (k, r): (usize, usize),
+    reg: &RegisterOptions,
+    a: &Acceptance,
+    rigid: bool,
+    id: u32,
+    (axes, angles_deg): (&[nalgebra::Unit<Vector3<f64>>], &[f64]),
+    rendered: &mut Vec<(Sim3, RenderScore)>,
+) -> Result<usize> {
+    let Some(top) = rendered.iter().max_by(|x, y| x.1.pose_psnr.total_cmp(&y.1.pose_psnr)).map(|b| b.0) else {
+        return Ok(0);
+    };
+    let c = centroid(&opaque[r]);
+    let scale_range =
+        (!rigid).then(|| (top.scale / (1.0 + reg.scale_tolerance), top.scale * (1.0 + reg.scale_tolerance)));
+    let mut tried = 0;
+    for axis in axes {
+        for angle in angles_deg {
+            let turn = *nalgebra::Rotation3::from_axis_angle(axis, angle.to_radians()).matrix();
+            let x = Sim3 { rotation: turn, ..Sim3::identity() }.about(&c).compose(&top);
+            let x = icp(&opaque[k], &opaque[r], x, 1.5 * reg.voxel, 30, scale_range, true);
+            if rendered.iter().any(|(y, _)| y.rotation_error_deg(&x) < RIVAL_DEG) {
+                continue;
+            }
+            tried += 1;
+            if PoseCheck::measure(&opaque[k], &opaque[r], &x, reg.voxel).failure(&x, a, rigid).is_some() {
+                continue;
+            }
+            if let Some(score) = rc.score(&parts[r], &parts[k], id, &x)? {
+                if score.iou >= a.min_render_iou {
+                    rendered.push((x, score));
+                }
+            }
+        }
+    }
+    Ok(tried)
+}
+
+/// The scene's up axis for [`UP_TURNS_DEG`]: the normal of the dominant plane of the opaque
+/// means of `scene`'s Gaussians `background` (2.5 median spacings thick, on a voxel grid that
+/// fine), when that plane holds at least a fifth of the occupied cells and 100 of them — a
+/// floor or a table. None otherwise (objects floating in an empty scene): no turns about an up
+/// axis.
+pub fn up_axis(scene: &Scene, background: &[usize], min_opacity: f32, seed: u64) -> Option<Vector3<f64>> {
+    let pts: Vec<[f64; 3]> = background
+        .iter()
+        .filter(|&&i| sigmoid(scene.opacities[i]) >= min_opacity)
+        .map(|&i| to_f64(scene.means[i]))
+        .collect();
+    if pts.len() < 3 {
+        return None;
+    }
+    let thickness = 2.5 * median_spacing(&pts);
+    let cells = voxel_downsample(&pts, thickness);
+    let (n, _, on) = support_plane(&cells, thickness, seed)?;
+    (on >= 100 && 5 * on >= cells.len()).then_some(n)
+}
+
+/// Refines each of the [`rival_poses`] among `rendered` (hypotheses with their render checks,
+/// at least one) against the images ([`refine_pose`], levels `0..4`) and returns the one that
+/// renders best after refinement, its score and how many were refined.
+#[allow(clippy::too_many_arguments)]
+pub fn refine_rivals(
+    rc: &mut dyn RenderCheck,
+    reference: &Scene,
+    instance: &Scene,
+    id: u32,
+    rendered: Vec<(Sim3, RenderScore)>,
+    centre: nalgebra::Vector3<f64>,
+    size: f64,
+    rigid: bool,
+) -> Result<(Sim3, RenderScore, usize)> {
+    let rivals = rival_poses(rendered);
+    let n = rivals.len();
+    let mut kept: Option<(Sim3, RenderScore)> = None;
+    for (x, score) in rivals {
+        let (x, score) = refine_pose(rc, reference, instance, id, x, score, centre, size, rigid, 0..4)?;
+        if kept.as_ref().is_none_or(|b| score.pose_psnr > b.1.pose_psnr) {
+            kept = Some((x, score));
+        }
+    }
+    let (x, score) = kept.context("no hypothesis to refine")?;
+    Ok((x, score, n))
+}
+
+/// Seconds between the progress lines of a long step (the group's synchronisation).
+const PROGRESS_SECONDS: f64 = 10.0;
+
+/// [`synchronise`]s the accepted poses of a group and keeps each synchronised pose that still
+/// passes every check (both fitnesses, scale, the render check against the reference); one
+/// that fails keeps its registration onto the reference alone. Reports say which.
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn synchronise_group(
+    rc: &mut dyn RenderCheck,
+    parts: &[Scene],
+    opaque: &[Vec<[f64; 3]>],
+    ids: &[u32],
+    r: usize,
+    relative: &mut [Option<Sim3>],
+    reg: &RegisterOptions,
+    o: &InstanceOptions,
+    reports: &mut [InstanceReport],
+    progress: &mut impl FnMut(&str),
+) -> Result<()> {
+    let rigid = !o.with_scale;
+    // A pair a → b: refined against a's views from the pose the registrations imply, steps
+    // from 1° (the start is within a few degrees).
+    // Pairs take seconds each on a CPU device: a line every PROGRESS_SECONDS.
+    let accepted = relative.iter().enumerate().filter(|&(k, p)| k != r && p.is_some()).count();
+    let pairs = accepted * accepted.saturating_sub(1) / 2;
+    let (mut done, mut last) = (0, std::time::Instant::now());
+    let synced = synchronise(opaque, r, relative, |a, b, start| {
+        done += 1;
+        if last.elapsed().as_secs_f64() >= PROGRESS_SECONDS {
+            progress(&format!("synchronising the group's poses: pair {done} of {pairs}"));
+            last = std::time::Instant::now();
+        }
+        let Some(score) = rc.score(&parts[b], &parts[a], ids[a], &start)? else { return Ok(None) };
+        let (centre, size) = (centroid(&opaque[b]), object_size(&opaque[b]));
+        Ok(Some(refine_pose(rc, &parts[b], &parts[a], ids[a], start, score, centre, size, rigid, 1..4)?.0))
+    })?;
+    for (k, s) in synced.iter().enumerate() {
+        let Some(s) = s else { continue };
+        let check = PoseCheck::measure(&opaque[k], &opaque[r], &s.pose, reg.voxel);
+        let score = rc.score(&parts[r], &parts[k], ids[k], &s.pose)?;
+        let failure = check.failure(&s.pose, &o.accept, rigid).or_else(|| match score {
+            Some(score) => score.failure(&o.accept),
+            None => Some("the instance shows in no training view".into()),
+        });
+        let report = &mut reports[k];
+        match failure {
+            None => {
+                relative[k] = Some(s.pose);
+                report.relative = s.pose;
+                report.check = check;
+                report.render = score;
+                report.synchronised = Some(*s);
+                progress(&format!(
+                    "{}: synchronised with the group's other instances (moved {:.2}°, estimates within {:.2}°)",
+                    ids[k], s.moved_deg, s.spread_deg
+                ));
+            }
+            Some(why) => progress(&format!(
+                "{}: synchronised pose (moved {:.2}°) fails a check ({why}); the registration onto {} is kept",
+                ids[k], s.moved_deg, ids[r]
+            )),
+        }
+    }
+    Ok(())
+}
+
+/// Pose refinement against the images: a pattern search over a small similarity `D` applied
+/// after `x` about the reference's `centre` (rotation about three axes, translation along three,
+/// and log scale unless `rigid`), each step kept when the render check's `pose_psnr` rises
+/// and repeated while it keeps rising; at `levels` l the steps are 2° / 1 % of `size` / 1 % of
+/// scale times 2^−l, the next level when no move helps (`0..4`: 2° down to 0.25°; at most 120
+/// renders of the check). Registration on a few hundred Gaussian means leaves a few degrees of
+/// error that the pictures still show; the check's optimum is where the reference's pictures
+/// match the instance's.
+#[allow(clippy::too_many_arguments)]
+pub fn refine_pose(
+    rc: &mut dyn RenderCheck,
+    reference: &Scene,
+    instance: &Scene,
+    id: u32,
+    x: Sim3,
+    score: RenderScore,
+    centre: nalgebra::Vector3<f64>,
+    size: f64,
+    rigid: bool,
+    levels: std::ops::Range<i32>,
+) -> Result<(Sim3, RenderScore)> {
+    let (mut x, mut score) = (x, score);
+    let mut evaluations = 0;
+    let params = if rigid { 6 } else { 7 };
+    for level in levels {
+        let f = 0.5f64.powi(level);
+        let mut improved = true;
+        while improved && evaluations < 120 {
+            improved = false;
+            for p in 0..params {
+                for sign in [1.0, -1.0] {
+                    let step = sign * f;
+                    let mut d = Sim3::identity();
+                    match p {
+                        0..=2 => {
+                            let axis = nalgebra::Vector3::ith_axis(p);
+                            d.rotation =
+                                *nalgebra::Rotation3::from_axis_angle(&axis, (2.0 * step).to_radians()).matrix();
+                        }
+                        3..=5 => d.translation[p - 3] = 0.01 * step * size,
+                        _ => d.scale = (0.01 * step).exp(),
+                    }
+                    let d = d.about(&centre);
+                    let mut y = d.compose(&x);
+                    let mut moved = false;
+                    // A step that helps is repeated while it helps (a long way costs one
+                    // render check per step rather than a sweep).
+                    while evaluations < 120 {
+                        evaluations += 1;
+                        match rc.score(reference, instance, id, &y)? {
+                            Some(s) if s.pose_psnr > score.pose_psnr + 0.01 => {
+                                (x, score, improved, moved) = (y, s, true, true);
+                                y = d.compose(&x);
+                            }
+                            _ => break,
+                        }
+                    }
+                    if moved {
+                        break;
+                    }
+                }
+            }
+        }
+    }
+    Ok((x, score))
+}
+#[cfg(test)]
+mod tests;
