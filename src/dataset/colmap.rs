@@ -311,7 +311,7 @@ fn colmap_points_txt(m: &mut ColmapModel, text: &str, what: &str) -> Result<()> 
 
 /// The intrinsics (fx, fy, cx, cy) and lens of a COLMAP camera. Models with distortion we can
 /// undistort (SIMPLE_RADIAL, RADIAL, OPENCV, OPENCV_FISHEYE, SIMPLE_RADIAL_FISHEYE,
-/// RADIAL_FISHEYE) come with their lens, undistorted on load ([`lens`]); the others are refused
+/// RADIAL_FISHEYE) come with their lens, undistorted on load ([`super::lens`]); the others are refused
 /// with `what` (file, camera) and the model named.
 pub fn colmap_intrinsics(cam: &ColmapCamera, what: &str) -> Result<([f32; 4], Lens)> {
     let p = &cam.params;

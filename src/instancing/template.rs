@@ -71,7 +71,7 @@ pub struct InstanceOptions {
     pub synchronise: bool,
     /// The scene's up axis (a unit normal of the floor the objects stand on; its sign does not
     /// matter): shape-ambiguous instances also try their best hypothesis turned about it
-    /// ([`UP_TURNS_DEG`]). `None`: [`instantiate`] finds it from the background ([`up_axis`]).
+    /// ([`UP_TURNS_DEG`](crate::instancing::pose::UP_TURNS_DEG)). `None`: [`instantiate`] finds it from the background ([`up_axis`]).
     pub up: Option<Vector3<f64>>,
 }
 
@@ -162,7 +162,7 @@ pub struct InstanceReport {
     pub render: Option<RenderScore>,
     /// Pose hypotheses tried.
     pub tried: usize,
-    /// Distinct poses refined against the images ([`rival_poses`]; 0 without a render check).
+    /// Distinct poses refined against the images ([`rival_poses`](crate::instancing::pose::rival_poses); 0 without a render check).
     pub refined: usize,
     /// Another pose fitted the shape nearly as well; colour decided (when used).
     pub shape_ambiguous: bool,

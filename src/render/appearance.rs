@@ -2,7 +2,7 @@
 //! Hierarchical 3DGS (Kerbl et al. 2024, its exposure compensation, since merged into Inria's
 //! 3DGS as `--train_test_exp`) learns for every training photo and applies to the render before
 //! the loss, so exposure and white-balance changes from photo to photo are not baked into the
-//! scene. A transform is 12 floats, row c = (M[c][0], M[c][1], M[c][2], b[c]) on linear [0, 1]
+//! scene. A transform is 12 floats, row c = `(M[c][0], M[c][1], M[c][2], b[c])` on linear `[0, 1]`
 //! RGB as the images are stored; [`IDENTITY`] leaves a render as it is.
 //!
 //! The GPU passes are `glsl/appearance.comp` (apply) and `glsl/appearance_backward.comp`
@@ -20,7 +20,7 @@ use crate::gpu::kernels::Kernels;
 use crate::gpu::{Buffer, Gpu, Recorder};
 use crate::shared::{AppearanceArgs, APPEARANCE_PARAMS, APPEARANCE_RUN, WG_SIZE};
 
-/// One photo's colour transform: rows (M[c][0], M[c][1], M[c][2], b[c]) for c = r, g, b.
+/// One photo's colour transform: rows `(M[c][0], M[c][1], M[c][2], b[c])` for c = r, g, b.
 pub type ColourTransform = [f32; APPEARANCE_PARAMS as usize];
 
 /// The transform that changes nothing.

@@ -59,7 +59,7 @@ impl AppearanceConfig {
         self.model_for(kind).is_some()
     }
 
-    /// Which of a transform's 12 parameters (row c: M[c][0..2], b[c]) learn under `model`:
+    /// Which of a transform's 12 parameters (row c: `M[c][0..2]`, `b[c]`) learn under `model`:
     /// all for "affine"; the diagonal gains and the offsets for "gain" (exposure and white
     /// balance, no mixing of channels).
     pub fn free_params(model: &str) -> [bool; 12] {

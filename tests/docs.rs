@@ -1,0 +1,178 @@
+//! The documentation stays true: the README stays short, every relative link of the README,
+//! BENCHMARKS and docs/ leads to a file (and heading) that exists, every flag the binary accepts
+//! is in docs/usage.md, and no source file outgrows its room.
+use std::collections::BTreeSet;
+use std::fs;
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+fn root() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+}
+
+fn pages() -> Vec<PathBuf> {
+    let mut pages = vec![root().join("README.md"), root().join("BENCHMARKS.md")];
+    let mut docs: Vec<PathBuf> = fs::read_dir(root().join("docs"))
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .filter(|p| p.extension().is_some_and(|e| e == "md"))
+        .collect();
+    docs.sort();
+    pages.extend(docs);
+    pages
+}
+
+/// GitHub's anchor of a heading: lower case, punctuation dropped, spaces to hyphens.
+fn slug(heading: &str) -> String {
+    heading
+        .trim()
+        .to_lowercase()
+        .chars()
+        .filter_map(|c| match c {
+            ' ' => Some('-'),
+            c if c.is_alphanumeric() || c == '-' || c == '_' => Some(c),
+            _ => None,
+        })
+        .collect()
+}
+
+fn anchors(text: &str) -> BTreeSet<String> {
+    let mut in_code = false;
+    let mut out = BTreeSet::new();
+    for line in text.lines() {
+        if line.starts_with("```") {
+            in_code = !in_code;
+        } else if !in_code && line.starts_with('#') {
+            out.insert(slug(line.trim_start_matches('#')));
+        }
+    }
+    out
+}
+
+/// Markdown links `[text](target)` outside code blocks.
+fn links(text: &str) -> Vec<String> {
+    let mut in_code = false;
+    let mut out = Vec::new();
+    for line in text.lines() {
+        if line.starts_with("```") {
+            in_code = !in_code;
+            continue;
+        }
+        if in_code {
+            continue;
+        }
+        let mut rest = line;
+        while let Some(i) = rest.find("](") {
+            let tail = &rest[i + 2..];
+            let Some(end) = tail.find(')') else { break };
+            out.push(tail[..end].to_string());
+            rest = &tail[end..];
+        }
+    }
+    out
+}
+
+#[test]
+fn the_readme_is_read_in_five_minutes() {
+    let readme = fs::read_to_string(root().join("README.md")).unwrap();
+    let lines = readme.lines().count();
+    assert!(lines <= 200, "README.md has {lines} lines; the manual (docs/) takes the rest");
+    for command in ["bash tools/demo.sh", "bash tools/test.sh"] {
+        assert!(readme.contains(command), "README.md lacks the set-up command {command}");
+    }
+}
+
+#[test]
+fn every_page_starts_with_what_it_is_for_and_its_links_resolve() {
+    let mut dead = Vec::new();
+    for page in pages() {
+        let text = fs::read_to_string(&page).unwrap();
+        assert!(text.starts_with("# "), "{} does not start with its title", page.display());
+        for link in links(&text) {
+            if link.contains("://") || link.starts_with("mailto:") {
+                continue;
+            }
+            let (file, anchor) = match link.split_once('#') {
+                Some((f, a)) => (f, Some(a)),
+                None => (link.as_str(), None),
+            };
+            let target = if file.is_empty() { page.clone() } else { page.parent().unwrap().join(file) };
+            if !target.exists() {
+                dead.push(format!("{}: {link} (no such file)", page.display()));
+                continue;
+            }
+            if let Some(anchor) = anchor {
+                let text = fs::read_to_string(&target).unwrap_or_default();
+                if !anchors(&text).contains(anchor) {
+                    dead.push(format!("{}: {link} (no such heading)", page.display()));
+                }
+            }
+        }
+    }
+    assert!(dead.is_empty(), "dead links:\n{}", dead.join("\n"));
+}
+
+fn help(args: &[&str]) -> String {
+    let out = Command::new(env!("CARGO_BIN_EXE_instgs-vk")).args(args).arg("--help").output().unwrap();
+    assert!(out.status.success(), "instgs-vk {args:?} --help failed");
+    String::from_utf8(out.stdout).unwrap()
+}
+
+#[test]
+fn every_flag_is_in_the_manual() {
+    let usage = fs::read_to_string(root().join("docs/usage.md")).unwrap();
+    let top = help(&[]);
+    let commands: Vec<String> = top
+        .lines()
+        .skip_while(|l| !l.starts_with("Commands:"))
+        .skip(1)
+        .take_while(|l| l.starts_with("  "))
+        .filter_map(|l| l.split_whitespace().next().map(str::to_string))
+        .filter(|c| c != "help")
+        .collect();
+    assert!(commands.len() >= 10, "commands not found in the help: {commands:?}");
+    let mut missing = Vec::new();
+    for command in &commands {
+        assert!(usage.contains(command.as_str()), "docs/usage.md lacks the command {command}");
+        let text = help(&[command.as_str()]);
+        for word in text.split(|c: char| !(c.is_alphanumeric() || c == '-')) {
+            let Some(flag) = word.strip_prefix("--") else { continue };
+            if flag.is_empty() || flag == "help" || !flag.starts_with(|c: char| c.is_ascii_lowercase()) {
+                continue;
+            }
+            if !usage.contains(&format!("--{flag}")) {
+                missing.push(format!("{command} --{flag}"));
+            }
+        }
+    }
+    missing.sort();
+    missing.dedup();
+    assert!(missing.is_empty(), "flags missing from docs/usage.md:\n{}", missing.join("\n"));
+}
+
+fn sources(dir: &Path, out: &mut Vec<PathBuf>) {
+    for entry in fs::read_dir(dir).unwrap() {
+        let path = entry.unwrap().path();
+        if path.is_dir() {
+            sources(&path, out);
+        } else if path.extension().is_some_and(|e| e == "rs") {
+            out.push(path);
+        }
+    }
+}
+
+#[test]
+fn source_files_fit_their_room() {
+    const MAX_LINES: usize = 700;
+    let mut files = Vec::new();
+    sources(&root().join("src"), &mut files);
+    let mut large: Vec<String> = files
+        .iter()
+        .filter_map(|f| {
+            let n = fs::read_to_string(f).unwrap().lines().count();
+            (n > MAX_LINES).then(|| format!("{} ({n} lines)", f.strip_prefix(root()).unwrap().display()))
+        })
+        .collect();
+    large.sort();
+    assert!(large.is_empty(), "source files above {MAX_LINES} lines:\n{}", large.join("\n"));
+}
