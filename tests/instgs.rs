@@ -63,11 +63,11 @@ fn write_then_read_is_exact() {
     assert_eq!(instgs::from_bytes(&bytes, "mem").unwrap(), s);
 }
 
-/// (header JSON, data) of a file.
+/// (header JSON, data) of a version-2 file (its CRC-32 trailer left off).
 fn split(bytes: &[u8]) -> (serde_json::Value, Vec<u8>) {
     let len = u32::from_le_bytes(bytes[8..12].try_into().unwrap()) as usize;
     let start = (12 + len).div_ceil(16) * 16;
-    (serde_json::from_slice(&bytes[12..12 + len]).unwrap(), bytes[start..].to_vec())
+    (serde_json::from_slice(&bytes[12..12 + len]).unwrap(), bytes[start..bytes.len() - 4].to_vec())
 }
 
 fn join(header: &serde_json::Value, data: &[u8]) -> Vec<u8> {
@@ -79,6 +79,9 @@ fn join(header: &serde_json::Value, data: &[u8]) -> Vec<u8> {
         out.push(0);
     }
     out.extend_from_slice(data);
+    // Sealed with a fresh CRC-32, so the reader's other checks are what refuse an edit.
+    let crc = crc32fast::hash(&out);
+    out.extend_from_slice(&crc.to_le_bytes());
     out
 }
 
@@ -98,7 +101,7 @@ fn malformed_files_are_refused_with_clear_errors() {
     let cases: Vec<(String, &str)> = vec![
         (err(b"PLY\n"), "magic"),
         (err(&good[..11]), "magic"),
-        (err(&good[..good.len() / 2]), "runs past the end"),
+        (err(&good[..good.len() / 2]), "damaged"),
         (err(&[&good[..8], &u32::MAX.to_le_bytes()[..], &good[12..]].concat()), "header length"),
         (err(&join(&serde_json::json!("{"), &data)), "format"),
         (
@@ -109,7 +112,7 @@ fn malformed_files_are_refused_with_clear_errors() {
             },
             "malformed JSON",
         ),
-        (edit(&|h| h["version"] = 2.into()), "version 2 is not supported"),
+        (edit(&|h| h["version"] = 3.into()), "version 3 is not supported"),
         (edit(&|h| h["format"] = "ply".into()), "format"),
         (edit(&|h| h["groups"][0]["template_gaussians"] = 8.into()), "shape"),
         (edit(&|h| h["background_gaussians"] = 4.into()), "shape"),

@@ -54,7 +54,7 @@ pub fn content_identity(ds: &Dataset, data: &Path, run: &Path) -> Result<Content
     let mut cache: BTreeMap<String, Cached> =
         std::fs::read_to_string(&cache_path).ok().and_then(|t| serde_json::from_str(&t).ok()).unwrap_or_default();
     let before = cache.clone();
-    let images: Vec<PathBuf> = ds.train.iter().chain(&ds.test).map(|v| v.path.clone()).collect();
+    let views: Vec<&crate::dataset::View> = ds.train.iter().chain(&ds.test).collect();
     let mut masks = Vec::new();
     collect_files(&data.join("masks"), &mut masks);
     masks.sort();
@@ -69,7 +69,24 @@ pub fn content_identity(ds: &Dataset, data: &Path, run: &Path) -> Result<Content
         }
         Ok(hex(&h.finalize()))
     };
-    let id = ContentIdentity { images: digest(&images)?, masks: digest(&masks)? };
+    let masks = digest(&masks)?;
+    // A view made in memory (no file behind it) is identified by its pixels.
+    let images = if views.is_empty() {
+        String::new()
+    } else {
+        let mut h = Sha256::new();
+        for v in &views {
+            match v.path.as_os_str().is_empty() {
+                true => h.update(bytemuck::cast_slice::<[f32; 4], u8>(&v.image)),
+                false => {
+                    h.update(v.path.strip_prefix(data).unwrap_or(&v.path).to_string_lossy().as_bytes());
+                    h.update(file_digest(&v.path, &mut cache)?.as_bytes());
+                }
+            }
+        }
+        hex(&h.finalize())
+    };
+    let id = ContentIdentity { images, masks };
     let changed = cache != before;
     Ok(ContentScan { id, cache, path: cache_path, changed })
 }
