@@ -238,7 +238,7 @@ pub(crate) enum Cmd {
         /// Template initialisation: max (the largest instance kept whole; measured best), merge
         /// (the paper's merge-and-sample) or first.
         #[arg(long, value_enum, default_value = "max")]
-        init: instgs_vk::instancing::template::TemplateInit,
+        init: instgs_vk::instancing::options::TemplateInit,
         /// Rigid registration (no per-instance scale).
         #[arg(long)]
         rigid: bool,
@@ -269,19 +269,19 @@ pub(crate) enum Cmd {
         #[arg(long)]
         no_synchronise: bool,
         /// Acceptance: both fitnesses at least this.
-        #[arg(long, allow_negative_numbers = true, value_parser = unit_f64, default_value_t = instgs_vk::instancing::pose::Acceptance::default().min_fitness)]
+        #[arg(long, allow_negative_numbers = true, value_parser = unit_f64, default_value_t = instgs_vk::instancing::options::Acceptance::default().min_fitness)]
         min_fitness: f64,
         /// Acceptance: scale within this relative distance of the clouds' size ratio.
-        #[arg(long, allow_negative_numbers = true, value_parser = non_negative_f64, default_value_t = instgs_vk::instancing::pose::Acceptance::default().scale_tolerance)]
+        #[arg(long, allow_negative_numbers = true, value_parser = non_negative_f64, default_value_t = instgs_vk::instancing::options::Acceptance::default().scale_tolerance)]
         scale_tolerance: f64,
         /// Acceptance: the render check's median silhouette IoU at least this.
-        #[arg(long, allow_negative_numbers = true, value_parser = unit_f64, default_value_t = instgs_vk::instancing::pose::Acceptance::default().min_render_iou)]
+        #[arg(long, allow_negative_numbers = true, value_parser = unit_f64, default_value_t = instgs_vk::instancing::options::Acceptance::default().min_render_iou)]
         min_render_iou: f64,
         /// Acceptance: the render check's PSNR (dB) at least this.
-        #[arg(long, allow_negative_numbers = true, value_parser = finite_f64, default_value_t = instgs_vk::instancing::pose::Acceptance::default().min_render_psnr)]
+        #[arg(long, allow_negative_numbers = true, value_parser = finite_f64, default_value_t = instgs_vk::instancing::options::Acceptance::default().min_render_psnr)]
         min_render_psnr: f64,
         /// Acceptance: the render check compares at least this many views that show the instance.
-        #[arg(long, default_value_t = instgs_vk::instancing::pose::Acceptance::default().min_render_views)]
+        #[arg(long, default_value_t = instgs_vk::instancing::options::Acceptance::default().min_render_views)]
         min_render_views: usize,
         #[arg(long)]
         out: PathBuf,

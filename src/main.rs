@@ -8,7 +8,6 @@ use clap::Parser;
 
 mod cli;
 use cli::{Cli, Cmd};
-use instgs_vk::instancing::template;
 #[cfg(feature = "player")]
 use instgs_vk::player;
 use instgs_vk::render::lod::RenderConfig;
@@ -95,7 +94,7 @@ fn run(cli: Cli) -> Result<()> {
             min_render_views,
             out,
         } => {
-            let accept = instgs_vk::instancing::pose::Acceptance {
+            let accept = instgs_vk::instancing::options::Acceptance {
                 min_fitness,
                 scale_tolerance,
                 min_render_iou,
@@ -103,7 +102,7 @@ fn run(cli: Cli) -> Result<()> {
                 min_render_views,
                 ..Default::default()
             };
-            let opts = template::InstanceOptions {
+            let opts = instgs_vk::instancing::options::InstanceOptions {
                 init,
                 with_scale: !rigid,
                 use_colour: !geometry_only,

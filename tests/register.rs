@@ -7,7 +7,8 @@ mod common;
 use common::*;
 use glam::Vec3;
 use instgs_vk::dataset::masks::InstanceGroup;
-use instgs_vk::instancing::template::{instantiate, InstanceOptions, TemplateInit};
+use instgs_vk::instancing::options::{InstanceOptions, TemplateInit};
+use instgs_vk::instancing::template::instantiate;
 use instgs_vk::register::{
     farthest_point_sample, fpfh, normals, register, support_plane, umeyama, voxel_downsample, RegisterOptions, Sim3,
 };
@@ -343,7 +344,8 @@ fn about(c: [f64; 3], d: Sim3, x: Sim3) -> Sim3 {
 
 #[test]
 fn degenerate_poses_are_refused_by_the_geometric_checks() {
-    use instgs_vk::instancing::pose::{Acceptance, PoseCheck};
+    use instgs_vk::instancing::options::Acceptance;
+    use instgs_vk::instancing::pose::PoseCheck;
     let mut rng = Rng::new(11);
     let reference = object(&mut rng, 4000);
     let truth = random_sim3(&mut rng, 1.0);

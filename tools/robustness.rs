@@ -38,9 +38,10 @@ use std::path::PathBuf;
 use anyhow::{bail, Context, Result};
 use instgs_vk::gpu::kernels::Kernels;
 use instgs_vk::gpu::{Gpu, GpuOptions};
+use instgs_vk::instancing::options::InstanceOptions;
 use instgs_vk::instancing::pose::{self, RenderCheck};
 use instgs_vk::instancing::pose_error::GroundTruthPose;
-use instgs_vk::instancing::template::{self, InstanceOptions};
+use instgs_vk::instancing::template;
 use instgs_vk::model::scene::Scene;
 use instgs_vk::register::{centroid, Sim3};
 use rand::{Rng, SeedableRng};
@@ -222,7 +223,7 @@ fn equivalent(
     check: &mut dyn RenderCheck,
     scene: &Scene,
     labels: &[u32],
-    r: &template::InstanceReport,
+    r: &pose::InstanceReport,
     gt: &BTreeMap<u32, GroundTruthPose>,
 ) -> Result<bool> {
     let reference = instgs_vk::segment::subset(scene, labels, r.reference);

@@ -6,8 +6,9 @@ use anyhow::Result;
 use kiddo::SquaredEuclidean;
 use rand::{Rng, SeedableRng};
 
+use crate::instancing::options::{InstanceOptions, Status};
+use crate::instancing::pose::InstanceReport;
 use crate::instancing::pose::{register_and_check, registration_cloud, RenderCheck};
-use crate::instancing::template::{InstanceOptions, InstanceReport, Status};
 use crate::math::{sigmoid, tree};
 use crate::model::scene::Scene;
 use crate::register::{centroid, fpfh, icp, normals, object_size, umeyama_bounded, Sim3, FPFH_DIM};

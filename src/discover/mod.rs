@@ -35,8 +35,9 @@ use std::collections::HashMap;
 use anyhow::Result;
 use kiddo::SquaredEuclidean;
 
+use crate::instancing::options::{InstanceOptions, Status};
+use crate::instancing::pose::InstanceReport;
 use crate::instancing::pose::{register_and_check, RenderCheck};
-use crate::instancing::template::{InstanceOptions, InstanceReport, Status};
 use crate::math::tree;
 use crate::model::scene::Scene;
 use crate::register::{centroid, median_spacing, object_size, Sim3};

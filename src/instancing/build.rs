@@ -8,8 +8,8 @@ use anyhow::{bail, Context, Result};
 use crate::formats::instgs::{self, Dtype};
 use crate::formats::ply::read_ply;
 use crate::gpu::kernels::open_device;
+use crate::instancing::options::InstanceOptions;
 use crate::instancing::pose::RenderCheck;
-use crate::instancing::template::InstanceOptions;
 use crate::instancing::verify::ImageCheck;
 use crate::util::write_json;
 
@@ -28,7 +28,7 @@ pub fn instance(
     labels: &Path,
     groups_path: &Path,
     truth_path: Option<(&Path, TruthIds)>,
-    opts: &crate::instancing::template::InstanceOptions,
+    opts: &crate::instancing::options::InstanceOptions,
     dtype: instgs::Dtype,
     prune: Option<(&Path, &mut KeepRule)>,
     check: Option<&mut dyn crate::instancing::pose::RenderCheck>,

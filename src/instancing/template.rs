@@ -21,175 +21,16 @@ use glam::Vec3;
 use kiddo::SquaredEuclidean;
 
 use crate::dataset::masks::InstanceGroup;
+use crate::instancing::options::{InstanceOptions, Status, TemplateInit};
 use crate::instancing::pose::{
-    register_and_check, registration_cloud, sim3_to_similarity, synchronise_group, to_f64, up_axis, Acceptance,
-    PoseCheck, RenderCheck, RenderScore,
+    register_and_check, registration_cloud, sim3_to_similarity, synchronise_group, to_f64, up_axis, InstanceReport,
+    RenderCheck,
 };
-use crate::instancing::synchronise::Synchronised;
 use crate::math::{logit, sigmoid};
 use crate::model::instanced::{transform_gaussians, Group, Instance, InstancedScene, Offsets, Similarity};
 use crate::model::scene::Scene;
-use crate::register::{centroid, farthest_point_sample, object_size, RegisterOptions, Sim3};
+use crate::register::{centroid, farthest_point_sample, object_size, Sim3};
 use crate::train::knn_log_scales;
-use nalgebra::Vector3;
-
-#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
-pub enum TemplateInit {
-    /// Merge all aligned instances, farthest-point sample to the mean count, re-initialise all
-    /// but positions and SH DC (paper).
-    Merge,
-    /// The instance with the most Gaussians, kept whole (the default: measured 0.2–0.5 dB better
-    /// than `Merge` on the shared scenes, BENCHMARKS.md).
-    Max,
-    /// The group's first instance.
-    First,
-}
-
-#[derive(Clone, Debug)]
-pub struct InstanceOptions {
-    pub init: TemplateInit,
-    /// Estimate a uniform scale per instance (registration and ICP).
-    pub with_scale: bool,
-    /// Register with the Gaussians' base colours too ([`crate::register::register_coloured`]),
-    /// for symmetric shapes.
-    pub use_colour: bool,
-    /// [`RegisterOptions::colour_weight`].
-    pub colour_weight: f64,
-    /// Gaussians below this opacity take no part in registration and merging.
-    pub min_opacity: f32,
-    /// Registration voxel = this fraction of the reference instance's size ([`object_size`]).
-    pub voxel_fraction: f64,
-    pub seed: u64,
-    /// What a pose must pass before its instance is instanced.
-    pub accept: Acceptance,
-    /// Starting poses (instance id → a common frame, e.g. `discover`'s `to_reference`): where
-    /// an instance and its group's reference both have one, the pose they imply is tried first.
-    pub starts: BTreeMap<u32, Sim3>,
-    /// With a render check and three or more accepted instances besides a group's reference,
-    /// register them onto each other too and keep the synchronised poses
-    /// ([`crate::instancing::synchronise`]).
-    pub synchronise: bool,
-    /// The scene's up axis (a unit normal of the floor the objects stand on; its sign does not
-    /// matter): shape-ambiguous instances also try their best hypothesis turned about it
-    /// ([`UP_TURNS_DEG`](crate::instancing::pose::UP_TURNS_DEG)). `None`: [`instantiate`] finds it from the background ([`up_axis`]).
-    pub up: Option<Vector3<f64>>,
-}
-
-impl InstanceOptions {
-    /// Registration settings for a reference object of `size` ([`object_size`]).
-    pub fn register_options(&self, size: f64) -> RegisterOptions {
-        RegisterOptions {
-            voxel: size * self.voxel_fraction,
-            with_scale: self.with_scale,
-            scale_tolerance: self.accept.scale_tolerance,
-            colour_weight: self.colour_weight,
-            seed: self.seed,
-            ..RegisterOptions::for_size(size)
-        }
-    }
-}
-
-impl Default for InstanceOptions {
-    fn default() -> Self {
-        InstanceOptions {
-            init: TemplateInit::Max,
-            with_scale: true,
-            use_colour: true,
-            colour_weight: 1.0,
-            min_opacity: 0.05,
-            voxel_fraction: 0.04,
-            seed: 0,
-            accept: Acceptance::default(),
-            starts: BTreeMap::new(),
-            synchronise: true,
-            up: None,
-        }
-    }
-}
-
-/// What became of one instance.
-#[derive(Clone, Debug, PartialEq)]
-pub enum Status {
-    /// The group's reference: the instance the others are registered onto (the one with the
-    /// most opaque Gaussians); its frame is the template's.
-    Reference,
-    /// Registered; every check passed.
-    Accepted,
-    /// No pose passed the checks; the instance stays plain (background Gaussians).
-    Refused(String),
-    /// Its group kept fewer than two instances, so the whole group stays plain.
-    Plain(String),
-}
-
-impl Status {
-    pub fn instanced(&self) -> bool {
-        matches!(self, Status::Reference | Status::Accepted)
-    }
-
-    /// "reference", "accepted", "refused" or "plain".
-    pub fn name(&self) -> &'static str {
-        match self {
-            Status::Reference => "reference",
-            Status::Accepted => "accepted",
-            Status::Refused(_) => "refused",
-            Status::Plain(_) => "plain",
-        }
-    }
-
-    pub fn reason(&self) -> Option<&str> {
-        match self {
-            Status::Refused(r) | Status::Plain(r) => Some(r),
-            _ => None,
-        }
-    }
-}
-
-/// The outcome for one instance.
-#[derive(Clone, Debug)]
-pub struct InstanceReport {
-    pub group: String,
-    pub id: u32,
-    /// The group's reference instance.
-    pub reference: u32,
-    /// Gaussians labelled with the instance.
-    pub gaussians: usize,
-    /// Instance world → reference's world, the pose kept (identity for the reference; for a
-    /// refused instance the most plausible pose tried, for the record).
-    pub relative: Sim3,
-    /// The checks of that pose.
-    pub check: PoseCheck,
-    /// Its render check, where one ran.
-    pub render: Option<RenderScore>,
-    /// Pose hypotheses tried.
-    pub tried: usize,
-    /// Distinct poses refined against the images ([`rival_poses`](crate::instancing::pose::rival_poses); 0 without a render check).
-    pub refined: usize,
-    /// Another pose fitted the shape nearly as well; colour decided (when used).
-    pub shape_ambiguous: bool,
-    /// The kept pose is the group's synchronised one ([`crate::instancing::synchronise`]).
-    pub synchronised: Option<Synchronised>,
-    pub status: Status,
-}
-
-impl InstanceReport {
-    /// A report before registration: the identity pose, perfect checks, status reference.
-    pub fn new(group: &str, id: u32, reference: u32, gaussians: usize) -> InstanceReport {
-        InstanceReport {
-            group: group.to_string(),
-            id,
-            reference,
-            gaussians,
-            relative: Sim3::identity(),
-            check: PoseCheck::perfect(),
-            render: None,
-            tried: 0,
-            refined: 0,
-            shape_ambiguous: false,
-            synchronised: None,
-            status: Status::Reference,
-        }
-    }
-}
 
 /// Drops background Gaussians (label 0) of little significance: keeps every instance Gaussian
 /// and the ⌈keep × background⌉ background Gaussians of the largest `significance` (e.g.
@@ -219,7 +60,7 @@ pub fn prune_background(
 }
 
 /// Registers every group's instances onto the group's reference (the instance with the most
-/// opaque Gaussians), checks each pose ([`PoseCheck`], and [`RenderCheck`] when given), builds
+/// opaque Gaussians), checks each pose ([`PoseCheck`](crate::instancing::pose::PoseCheck), and [`RenderCheck`] when given), builds
 /// templates and offsets from the accepted instances. A refused instance's Gaussians stay
 /// background, as do a whole group's when fewer than two of its instances are left; Gaussians
 /// of no group's instance stay background. `progress` receives one line per step.

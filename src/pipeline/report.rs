@@ -28,6 +28,22 @@ pub fn write(run: &Path, a: &PipelineArgs, stages: &[(Stage, bool, f64)]) -> Res
          every stage's settings.\n",
         env!("CARGO_PKG_VERSION")
     );
+    stages_section(&mut md, stages);
+    let eval = read(run, "eval.json");
+    let bench = read(run, "bench.json");
+    comparison_section(&mut md, run, eval.as_ref(), bench.as_ref());
+    segmentation_section(&mut md, run);
+    registration_section(&mut md, run);
+    pictures_section(&mut md, eval.as_ref());
+    curves_section(&mut md, run);
+    crate::util::write_atomic(&run.join("report.md"), |f| {
+        use std::io::Write;
+        f.write_all(md.as_bytes())
+    })
+}
+
+/// The stage table: status and seconds of every stage.
+fn stages_section(md: &mut String, stages: &[(Stage, bool, f64)]) {
     let _ = writeln!(md, "## Stages\n\n| stage | status | time (s) |\n|---|---|---|");
     let mut total = 0.0;
     for s in STAGES {
@@ -41,9 +57,15 @@ pub fn write(run: &Path, a: &PipelineArgs, stages: &[(Stage, bool, f64)]) -> Res
         let _ = writeln!(md, "| {} | {status} | {t} |", s.name());
     }
     let _ = writeln!(md, "| total | | {total:.1} |\n");
+}
 
-    let eval = read(run, "eval.json");
-    let bench = read(run, "bench.json");
+/// Plain 3DGS against InstGS (and the pruned baseline): quality from eval.json, speed and memory from bench.json.
+fn comparison_section(
+    md: &mut String,
+    run: &Path,
+    eval: Option<&serde_json::Value>,
+    bench: Option<&serde_json::Value>,
+) {
     if eval.is_some() || bench.is_some() {
         let _ = writeln!(md, "## Plain 3DGS against InstGS\n");
         if let Some(e) = &eval {
@@ -109,34 +131,30 @@ pub fn write(run: &Path, a: &PipelineArgs, stages: &[(Stage, bool, f64)]) -> Res
         let times = |b: f64, i: f64| format!("{:.3}×", i / b);
         if let Some(e) = &eval {
             let three = |key: &str| ["plain", "pruned", "instgs"].map(|s| num(e, &format!("{s}.{key}")));
-            row(&mut md, "PSNR (dB)", three("psnr_mean"), &|v| format!("{v:.2}"), &db);
+            row(md, "PSNR (dB)", three("psnr_mean"), &|v| format!("{v:.2}"), &db);
             for (key, name) in [
                 ("psnr_instances_mean", "PSNR on instance pixels (dB)"),
                 ("psnr_background_mean", "PSNR on background pixels (dB)"),
             ] {
                 let v = three(key);
                 if v.iter().any(Option::is_some) {
-                    row(&mut md, name, v, &|v| format!("{v:.2}"), &db);
+                    row(md, name, v, &|v| format!("{v:.2}"), &db);
                 }
             }
-            row(&mut md, "SSIM", three("ssim_mean"), &|v| format!("{v:.4}"), &|b, i| format!("{:+.4}", i - b));
-            row(&mut md, "PSNR, colour-compensated (dB)", three("psnr_compensated_mean"), &|v| format!("{v:.2}"), &db);
-            row(
-                &mut md,
-                "SSIM, colour-compensated",
-                three("ssim_compensated_mean"),
-                &|v| format!("{v:.4}"),
-                &|b, i| format!("{:+.4}", i - b),
-            );
+            row(md, "SSIM", three("ssim_mean"), &|v| format!("{v:.4}"), &|b, i| format!("{:+.4}", i - b));
+            row(md, "PSNR, colour-compensated (dB)", three("psnr_compensated_mean"), &|v| format!("{v:.2}"), &db);
+            row(md, "SSIM, colour-compensated", three("ssim_compensated_mean"), &|v| format!("{v:.4}"), &|b, i| {
+                format!("{:+.4}", i - b)
+            });
         }
         if let Some(b) = &bench {
             // bench.json: InstGS's numbers, plain's under `compare`, pruned's under `compare_more`.
             let three = |key: &str| [num(b, &format!("compare.{key}")), num(&b["compare_more"][0], key), num(b, key)];
-            row(&mut md, "splats rendered", three("splats"), &|v| format!("{v:.0}"), &times);
-            row(&mut md, "scene memory on the GPU (MB)", three("scene_gpu_bytes"), &mb, &times);
-            row(&mut md, "file size (MB)", three("file_bytes"), &mb, &times);
-            row(&mut md, "frame time, median (ms)", three("frame_ms_median"), &|v| format!("{v:.2}"), &times);
-            row(&mut md, "FPS (median)", three("fps_median"), &|v| format!("{v:.1}"), &times);
+            row(md, "splats rendered", three("splats"), &|v| format!("{v:.0}"), &times);
+            row(md, "scene memory on the GPU (MB)", three("scene_gpu_bytes"), &mb, &times);
+            row(md, "file size (MB)", three("file_bytes"), &mb, &times);
+            row(md, "frame time, median (ms)", three("frame_ms_median"), &|v| format!("{v:.2}"), &times);
+            row(md, "FPS (median)", three("fps_median"), &|v| format!("{v:.1}"), &times);
         }
         if let Some(e) = &eval {
             let _ = writeln!(
@@ -191,7 +209,10 @@ pub fn write(run: &Path, a: &PipelineArgs, stages: &[(Stage, bool, f64)]) -> Res
             }
         }
     }
+}
 
+/// The segmentation's instances (or the instances discovered without masks).
+fn segmentation_section(md: &mut String, run: &Path) {
     if let Some(s) = read(run, "segment.json").filter(|s| s["method"] == "discover") {
         let _ = writeln!(
             md,
@@ -219,6 +240,10 @@ pub fn write(run: &Path, a: &PipelineArgs, stages: &[(Stage, bool, f64)]) -> Res
         }
         let _ = writeln!(md, "| background | | {} | |\n", s["background"]);
     }
+}
+
+/// Registration and templates: every instance's checks and pose errors.
+fn registration_section(md: &mut String, run: &Path) {
     if let Some(s) = read(run, "instance.json") {
         let _ = writeln!(
             md,
@@ -301,6 +326,10 @@ pub fn write(run: &Path, a: &PipelineArgs, stages: &[(Stage, bool, f64)]) -> Res
         }
         md.push('\n');
     }
+}
+
+/// The held-out views' pictures.
+fn pictures_section(md: &mut String, eval: Option<&serde_json::Value>) {
     if let Some(e) = &eval {
         let panels = if e.get("pruned").is_some() {
             "Ground truth | plain 3DGS | plain, pruned | InstGS | InstGS error × 4"
@@ -314,6 +343,10 @@ pub fn write(run: &Path, a: &PipelineArgs, stages: &[(Stage, bool, f64)]) -> Res
             }
         }
     }
+}
+
+/// The training curves of the stages that trained.
+fn curves_section(md: &mut String, run: &Path) {
     let curves: Vec<(&str, &str)> = [
         ("plain 3DGS", "curves.png"),
         ("joint optimisation", "joint/curves.png"),
@@ -328,8 +361,4 @@ pub fn write(run: &Path, a: &PipelineArgs, stages: &[(Stage, bool, f64)]) -> Res
             let _ = writeln!(md, "{name}:\n\n![{name}]({p})\n");
         }
     }
-    crate::util::write_atomic(&run.join("report.md"), |f| {
-        use std::io::Write;
-        f.write_all(md.as_bytes())
-    })
 }

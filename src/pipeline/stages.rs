@@ -21,14 +21,14 @@ use super::{interrupted, MaskIds, PipelineArgs, Stage};
 
 /// Registration and acceptance as `[instance]` sets them (the instance stage's, and the
 /// discovery's in the segment stage).
-fn instance_options(c: &crate::train::config::InstanceStage) -> Result<crate::instancing::template::InstanceOptions> {
-    Ok(crate::instancing::template::InstanceOptions {
+fn instance_options(c: &crate::train::config::InstanceStage) -> Result<crate::instancing::options::InstanceOptions> {
+    Ok(crate::instancing::options::InstanceOptions {
         init: clap::ValueEnum::from_str(&c.init, true).map_err(|e| anyhow!("instance.init: {e}"))?,
         with_scale: !c.rigid,
         use_colour: c.colour,
         colour_weight: c.colour_weight,
         seed: c.seed,
-        accept: crate::instancing::pose::Acceptance {
+        accept: crate::instancing::options::Acceptance {
             min_fitness: c.min_fitness,
             scale_tolerance: c.scale_tolerance,
             min_render_iou: c.min_render_iou,

@@ -253,7 +253,7 @@ pub struct InstanceStage {
     pub background_budget_db: f64,
     /// Background Gaussians within this fraction of an instance's size rank first.
     pub outline_fraction: f64,
-    /// Acceptance of registered poses (crate::instancing::pose::Acceptance).
+    /// Acceptance of registered poses (crate::instancing::options::Acceptance).
     pub min_fitness: f64,
     pub scale_tolerance: f64,
     pub render_check: bool,

@@ -7,8 +7,8 @@
 use anyhow::{Context, Result};
 use glam::{Mat3, Quat, Vec3};
 
-use crate::instancing::synchronise::synchronise;
-use crate::instancing::template::{InstanceOptions, InstanceReport, Status};
+use crate::instancing::options::{Acceptance, InstanceOptions, Status};
+use crate::instancing::synchronise::{synchronise, Synchronised};
 use crate::math::sigmoid;
 use crate::math::SH_C0_F32;
 use crate::model::instanced::Similarity;
@@ -19,42 +19,53 @@ use crate::register::{
 };
 use nalgebra::Vector3;
 
-/// The checks a registered pose must pass before its instance shares the group's template
-/// (configuration `[instance]`, configs/pipeline.toml). A pose that fails them all leaves the
-/// instance plain: its Gaussians stay in the scene as background.
-#[derive(Clone, Debug, PartialEq, serde::Serialize)]
-pub struct Acceptance {
-    /// Both fitnesses ([`PoseCheck`]) at least this: the instance's Gaussians lie on the
-    /// reference's and the reference's on the instance's.
-    pub min_fitness: f64,
-    /// The pose's scale within this relative distance of the two clouds' size ratio.
-    pub scale_tolerance: f64,
-    /// Render check ([`RenderCheck`]): median silhouette IoU at least this.
-    pub min_render_iou: f64,
-    /// Render check: PSNR (dB, after a non-negative colour mix for the instance's tint) at least
-    /// this.
-    pub min_render_psnr: f64,
-    /// Render check: compared in at least this many views (each showing the instance on at
-    /// least `verify::MIN_VIEW_PIXELS` pixels). A repetition worth instancing is an object seen
-    /// from several sides; a check that one view passes proves little (on a capture's plain
-    /// scene, `discover --auto` once paired two floor fragments on a single view).
-    pub min_render_views: usize,
-    /// Pose hypotheses tried per instance, the most plausible first, over two RANSAC seeds.
-    pub max_candidates: usize,
+/// The outcome for one instance.
+#[derive(Clone, Debug)]
+pub struct InstanceReport {
+    pub group: String,
+    pub id: u32,
+    /// The group's reference instance.
+    pub reference: u32,
+    /// Gaussians labelled with the instance.
+    pub gaussians: usize,
+    /// Instance world → reference's world, the pose kept (identity for the reference; for a
+    /// refused instance the most plausible pose tried, for the record).
+    pub relative: Sim3,
+    /// The checks of that pose.
+    pub check: PoseCheck,
+    /// Its render check, where one ran.
+    pub render: Option<RenderScore>,
+    /// Pose hypotheses tried.
+    pub tried: usize,
+    /// Distinct poses refined against the images ([`rival_poses`]; 0 without a render check).
+    pub refined: usize,
+    /// Another pose fitted the shape nearly as well; colour decided (when used).
+    pub shape_ambiguous: bool,
+    /// The kept pose is the group's synchronised one ([`crate::instancing::synchronise`]).
+    pub synchronised: Option<Synchronised>,
+    pub status: Status,
 }
 
-impl Default for Acceptance {
-    fn default() -> Self {
-        Acceptance {
-            min_fitness: 0.5,
-            scale_tolerance: 0.25,
-            min_render_iou: 0.85,
-            min_render_psnr: 17.0,
-            min_render_views: 3,
-            max_candidates: 6,
+impl InstanceReport {
+    /// A report before registration: the identity pose, perfect checks, status reference.
+    pub fn new(group: &str, id: u32, reference: u32, gaussians: usize) -> InstanceReport {
+        InstanceReport {
+            group: group.to_string(),
+            id,
+            reference,
+            gaussians,
+            relative: Sim3::identity(),
+            check: PoseCheck::perfect(),
+            render: None,
+            tried: 0,
+            refined: 0,
+            shape_ambiguous: false,
+            synchronised: None,
+            status: Status::Reference,
         }
     }
 }
+
 /// An instance's registration cloud: the means and base colours (RGB of the SH DC, at least
 /// 0.01) of its Gaussians of opacity ≥ `min_opacity` (all of them when fewer than 16 are).
 pub fn registration_cloud(part: &Scene, min_opacity: f32) -> (Vec<[f64; 3]>, Vec<[f64; 3]>) {
