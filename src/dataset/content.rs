@@ -58,34 +58,31 @@ pub fn content_identity(ds: &Dataset, data: &Path, run: &Path) -> Result<Content
     let mut masks = Vec::new();
     collect_files(&data.join("masks"), &mut masks);
     masks.sort();
-    let mut digest = |files: &[PathBuf]| -> Result<String> {
+    // Each file counts with its name inside the dataset and its contents; a view made in memory
+    // (no file behind it) by its pixels.
+    let mut digest = |files: &[(Option<&Path>, &[[f32; 4]])]| -> Result<String> {
         if files.is_empty() {
             return Ok(String::new());
         }
         let mut h = Sha256::new();
-        for f in files {
-            h.update(f.strip_prefix(data).unwrap_or(f).to_string_lossy().as_bytes());
-            h.update(file_digest(f, &mut cache)?.as_bytes());
+        for (f, pixels) in files {
+            match f {
+                Some(f) => {
+                    h.update(f.strip_prefix(data).unwrap_or(f).to_string_lossy().as_bytes());
+                    h.update(file_digest(f, &mut cache)?.as_bytes());
+                }
+                None => h.update(bytemuck::cast_slice::<[f32; 4], u8>(pixels)),
+            }
         }
         Ok(hex(&h.finalize()))
     };
-    let masks = digest(&masks)?;
-    // A view made in memory (no file behind it) is identified by its pixels.
-    let images = if views.is_empty() {
-        String::new()
-    } else {
-        let mut h = Sha256::new();
-        for v in &views {
-            match v.path.as_os_str().is_empty() {
-                true => h.update(bytemuck::cast_slice::<[f32; 4], u8>(&v.image)),
-                false => {
-                    h.update(v.path.strip_prefix(data).unwrap_or(&v.path).to_string_lossy().as_bytes());
-                    h.update(file_digest(&v.path, &mut cache)?.as_bytes());
-                }
-            }
-        }
-        hex(&h.finalize())
-    };
+    let masks = digest(&masks.iter().map(|m| (Some(m.as_path()), &[][..])).collect::<Vec<_>>())?;
+    let images = digest(
+        &views
+            .iter()
+            .map(|v| ((!v.path.as_os_str().is_empty()).then_some(v.path.as_path()), &v.image[..]))
+            .collect::<Vec<_>>(),
+    )?;
     let id = ContentIdentity { images, masks };
     let changed = cache != before;
     Ok(ContentScan { id, cache, path: cache_path, changed })
