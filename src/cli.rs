@@ -75,50 +75,7 @@ pub(crate) enum Cmd {
     /// report (RUN/report.md); a re-run resumes. Without masks: plain 3DGS training, or with
     /// --discover the pipeline with the instances found without masks. With --init
     /// SCENE.instgs: joint optimisation of that instanced scene only.
-    Train {
-        #[command(flatten)]
-        data: DataArgs,
-        /// Run folder. Plain: checkpoint.bin, metrics.csv, curves.png, point_cloud.ply. Pipeline:
-        /// also labels.json, init.instgs, scene.instgs, joint/, eval.json, bench.json, images/,
-        /// pipeline.json and report.md (docs/pipeline.md).
-        #[arg(long)]
-        out: PathBuf,
-        /// SCENE.ply: a plain 3DGS scene trained by any 3DGS tool replaces the plain stage.
-        /// SCENE.instgs: optimise this instanced scene jointly (configs/instanced.toml applies).
-        #[arg(long)]
-        init: Option<PathBuf>,
-        /// Configuration (TOML, only the keys to change): configs/default.toml's keys for plain
-        /// training; a pipeline adds [joint], [segment], [instance], [eval], [bench]
-        /// (configs/pipeline.toml).
-        #[arg(long)]
-        config: Option<PathBuf>,
-        /// Iterations of the (plain) training (overrides the configuration's).
-        #[arg(long, allow_negative_numbers = true, value_parser = positive_u64)]
-        iterations: Option<u64>,
-        /// Continue from OUT/checkpoint.bin (plain or joint-only runs; a pipeline always resumes).
-        #[arg(long)]
-        resume: bool,
-        /// Pipeline: redo this stage and the ones after it (their earlier results are replaced).
-        #[arg(long, value_enum)]
-        from: Option<pipeline::Stage>,
-        /// Pipeline: stop after this stage.
-        #[arg(long, value_enum)]
-        until: Option<pipeline::Stage>,
-        /// Pipeline without instance masks: find the instances with `discover` instead of
-        /// segmenting by masks — `auto`, a box `xmin,ymin,zmin,xmax,ymax,zmax`, or one
-        /// training view's mask of one instance (MASK.png, named like the view's image).
-        /// Masks the dataset has are then not used for finding instances.
-        #[arg(long, value_name = "auto|BOX|MASK.png", value_parser = parse_discover)]
-        discover: Option<instgs_vk::discover::run::ExampleSpec>,
-        /// Pipeline: skip the "plain, pruned" baseline (the plain scene pruned to InstGS's GPU
-        /// memory and fine-tuned as long as the joint stage), which shows what instancing adds
-        /// over pruning alone.
-        #[arg(long)]
-        no_pruned_baseline: bool,
-        /// Print a line every 10 % instead of a progress bar.
-        #[arg(long)]
-        quiet: bool,
-    },
+    Train(TrainArgs),
     /// PSNR and SSIM of a scene on a dataset's held-out (or training) views.
     Eval {
         /// Scene file (.ply or .instgs).
@@ -220,170 +177,16 @@ pub(crate) enum Cmd {
     },
     /// Registration and template initialisation (paper §4.2): a segmented plain scene becomes an
     /// instanced scene (.instgs) ready for joint optimisation (`train --init`).
-    Instance {
-        /// The trained plain scene (.ply) that was segmented.
-        #[arg(long)]
-        scene: PathBuf,
-        /// Its per-Gaussian labels (labels.json or labels.bin from `segment`).
-        #[arg(long)]
-        labels: PathBuf,
-        /// Dataset folder: DIR/instances.json groups the instance ids and names the groups; when
-        /// it carries ground-truth poses, the recovered transforms are checked against them.
-        #[arg(long)]
-        data: PathBuf,
-        /// Group the ids by this file instead of DIR/instances.json (e.g. the labels.json of
-        /// `segment --per-frame-ids`, which carries the associated groups); no ground truth then.
-        #[arg(long)]
-        groups: Option<PathBuf>,
-        /// Template initialisation: max (the largest instance kept whole; measured best), merge
-        /// (the paper's merge-and-sample) or first.
-        #[arg(long, value_enum, default_value = "max")]
-        init: instgs_vk::instancing::options::TemplateInit,
-        /// Rigid registration (no per-instance scale).
-        #[arg(long)]
-        rigid: bool,
-        /// Register by shape alone (no colour-aware ICP).
-        #[arg(long)]
-        geometry_only: bool,
-        /// Weight of colour in the colour-aware ICP: a normalised colour difference of 1 counts
-        /// as 2 registration voxels × this.
-        #[arg(long, allow_negative_numbers = true, value_parser = non_negative_f64, default_value_t = 1.0)]
-        colour_weight: f64,
-        /// Seed of RANSAC.
-        #[arg(long, allow_negative_numbers = true, value_parser = natural_u64, default_value_t = 0)]
-        seed: u64,
-        /// Storage type of the offsets in the file.
-        #[arg(long, value_enum, default_value = "f32")]
-        offset_dtype: OffsetDtype,
-        /// Also write a JSON report (per instance: registration and, with ground truth, errors).
-        #[arg(long)]
-        report: Option<PathBuf>,
-        /// Downscale factor of the dataset's training images for the render check.
-        #[arg(long, allow_negative_numbers = true, value_parser = positive_u32, default_value_t = 1)]
-        downscale: u32,
-        /// Skip the render check (poses are then checked by geometry alone).
-        #[arg(long)]
-        no_render_check: bool,
-        /// Keep each pose registered onto the reference alone: no synchronisation over the
-        /// pairs of a group's accepted instances (it needs the render check).
-        #[arg(long)]
-        no_synchronise: bool,
-        /// Acceptance: both fitnesses at least this.
-        #[arg(long, allow_negative_numbers = true, value_parser = unit_f64, default_value_t = instgs_vk::instancing::options::Acceptance::default().min_fitness)]
-        min_fitness: f64,
-        /// Acceptance: scale within this relative distance of the clouds' size ratio.
-        #[arg(long, allow_negative_numbers = true, value_parser = non_negative_f64, default_value_t = instgs_vk::instancing::options::Acceptance::default().scale_tolerance)]
-        scale_tolerance: f64,
-        /// Acceptance: the render check's median silhouette IoU at least this.
-        #[arg(long, allow_negative_numbers = true, value_parser = unit_f64, default_value_t = instgs_vk::instancing::options::Acceptance::default().min_render_iou)]
-        min_render_iou: f64,
-        /// Acceptance: the render check's PSNR (dB) at least this.
-        #[arg(long, allow_negative_numbers = true, value_parser = finite_f64, default_value_t = instgs_vk::instancing::options::Acceptance::default().min_render_psnr)]
-        min_render_psnr: f64,
-        /// Acceptance: the render check compares at least this many views that show the instance.
-        #[arg(long, default_value_t = instgs_vk::instancing::options::Acceptance::default().min_render_views)]
-        min_render_views: usize,
-        #[arg(long)]
-        out: PathBuf,
-    },
+    Instance(InstanceArgs),
     /// Find repeated objects in a plain scene without per-instance masks: the copies of one
     /// example (--example, --box) or, with --auto, groups of objects standing on the scene's
     /// support plane. Writes a labels file and a groups file for `instance` (every copy checked
     /// as the instance stage checks a pose, the render check against the training views).
-    Discover {
-        /// The trained plain scene (any format `info` reads).
-        #[arg(long)]
-        scene: PathBuf,
-        /// Dataset folder: its training views drive the render check and a mask example; where
-        /// its instances.json carries ground-truth poses, the result is compared with them
-        /// (never used in the search).
-        #[arg(long)]
-        data: PathBuf,
-        /// The example: a label id of --labels, or one instance's mask in one training view
-        /// (a grey PNG named like the view's image, or with --view).
-        #[arg(long, conflicts_with_all = ["auto", "bbox"])]
-        example: Option<String>,
-        /// The example: the Gaussians in xmin,ymin,zmin,xmax,ymax,zmax (world units).
-        #[arg(long = "box", value_name = "XMIN,YMIN,ZMIN,XMAX,YMAX,ZMAX", conflicts_with = "auto")]
-        bbox: Option<String>,
-        /// No example: propose the groups (support plane, clusters on it, registered together).
-        #[arg(long)]
-        auto: bool,
-        /// The labels file of --example ID.
-        #[arg(long)]
-        labels: Option<PathBuf>,
-        /// The training view of --example MASK.png (default: the view whose image has its name).
-        #[arg(long)]
-        view: Option<String>,
-        /// The id in --example MASK.png to take (default: its only non-zero id).
-        #[arg(long)]
-        mask_id: Option<u16>,
-        /// Downscale factor of the training images.
-        #[arg(long, allow_negative_numbers = true, value_parser = positive_u32, default_value_t = 1)]
-        downscale: u32,
-        /// Skip the render check (copies are then checked by geometry alone).
-        #[arg(long)]
-        no_render_check: bool,
-        /// Seed of RANSAC.
-        #[arg(long, allow_negative_numbers = true, value_parser = natural_u64, default_value_t = 0)]
-        seed: u64,
-        /// The labels file written ({ids, labels}).
-        #[arg(long)]
-        out: PathBuf,
-        /// The groups file written (default: groups.json beside --out).
-        #[arg(long)]
-        groups: Option<PathBuf>,
-    },
+    Discover(DiscoverArgs),
     #[cfg(feature = "player")]
     /// The standalone player: a window with the scene, orbit/fly camera and FPS overlay (see
     /// docs/usage.md for the controls), or with --headless frames saved to PNG files.
-    View {
-        /// Scene file (.ply: Inria 3DGS or SuperSplat compressed; .instgs).
-        scene: PathBuf,
-        /// Start from a dataset's camera: a transforms_*.json file, or a NeRF-synthetic or
-        /// COLMAP folder. Default: framing the scene's bounds.
-        #[arg(long)]
-        cameras: Option<PathBuf>,
-        /// Which of those cameras.
-        #[arg(long, allow_negative_numbers = true, value_parser = natural_usize, default_value_t = 0, requires = "cameras")]
-        camera: usize,
-        /// Which cameras of a dataset folder: train, test or all.
-        #[arg(long, default_value = "train", requires = "cameras")]
-        split: String,
-        /// Which world axis is up (orbit and fly moves).
-        #[arg(long, value_enum, default_value = "-y", allow_hyphen_values = true)]
-        up: UpAxis,
-        /// Window (or headless frame) width.
-        #[arg(long, allow_negative_numbers = true, value_parser = positive_u32, default_value_t = 1280)]
-        width: u32,
-        /// Window (or headless frame) height.
-        #[arg(long, allow_negative_numbers = true, value_parser = positive_u32, default_value_t = 720)]
-        height: u32,
-        /// Background colour r,g,b in [0, 1] (B cycles black, white, grey).
-        #[arg(long, allow_hyphen_values = true, default_value = "0,0,0", value_parser = parse_rgb)]
-        background: [f32; 3],
-        /// Wait for vertical sync (default: off, immediate or mailbox presentation).
-        #[arg(long)]
-        vsync: bool,
-        /// No FPS overlay (H toggles it).
-        #[arg(long)]
-        no_overlay: bool,
-        /// Exit after N frames (windowed: the last one is saved as a screenshot in --out).
-        #[arg(long, allow_negative_numbers = true, value_parser = positive_u64)]
-        frames: Option<u64>,
-        /// Folder for screenshots (windowed) or frames (headless).
-        #[arg(long)]
-        out: Option<PathBuf>,
-        /// No window: render --frames N turntable frames offscreen into --out DIR.
-        #[arg(long, requires_all = ["frames", "out"])]
-        headless: bool,
-        #[command(flatten)]
-        render: RenderArgs,
-        /// How the depth-sorted splats become pixels: compute (the blend kernel), quads (the
-        /// fixed-function rasterizer) or auto (whichever renders the first frame faster).
-        #[arg(long, value_enum, default_value = "auto")]
-        forward: Forward,
-    },
+    View(PlayerArgs),
     /// Time the GPU radix sort against Rust's sort_unstable on the same random keys.
     BenchSort {
         /// Number of keys.
@@ -396,6 +199,220 @@ pub(crate) enum Cmd {
         #[arg(long, allow_negative_numbers = true, value_parser = positive_usize, default_value_t = 5)]
         repeats: usize,
     },
+}
+
+// `train`'s arguments (Cmd::Train).
+#[derive(Args)]
+pub(crate) struct TrainArgs {
+    #[command(flatten)]
+    pub(crate) data: DataArgs,
+    /// Run folder. Plain: checkpoint.bin, metrics.csv, curves.png, point_cloud.ply. Pipeline:
+    /// also labels.json, init.instgs, scene.instgs, joint/, eval.json, bench.json, images/,
+    /// pipeline.json and report.md (docs/pipeline.md).
+    #[arg(long)]
+    pub(crate) out: PathBuf,
+    /// SCENE.ply: a plain 3DGS scene trained by any 3DGS tool replaces the plain stage.
+    /// SCENE.instgs: optimise this instanced scene jointly (configs/instanced.toml applies).
+    #[arg(long)]
+    pub(crate) init: Option<PathBuf>,
+    /// Configuration (TOML, only the keys to change): configs/default.toml's keys for plain
+    /// training; a pipeline adds [joint], [segment], [instance], [eval], [bench]
+    /// (configs/pipeline.toml).
+    #[arg(long)]
+    pub(crate) config: Option<PathBuf>,
+    /// Iterations of the (plain) training (overrides the configuration's).
+    #[arg(long, allow_negative_numbers = true, value_parser = positive_u64)]
+    pub(crate) iterations: Option<u64>,
+    /// Continue from OUT/checkpoint.bin (plain or joint-only runs; a pipeline always resumes).
+    #[arg(long)]
+    pub(crate) resume: bool,
+    /// Pipeline: redo this stage and the ones after it (their earlier results are replaced).
+    #[arg(long, value_enum)]
+    pub(crate) from: Option<pipeline::Stage>,
+    /// Pipeline: stop after this stage.
+    #[arg(long, value_enum)]
+    pub(crate) until: Option<pipeline::Stage>,
+    /// Pipeline without instance masks: find the instances with `discover` instead of
+    /// segmenting by masks — `auto`, a box `xmin,ymin,zmin,xmax,ymax,zmax`, or one
+    /// training view's mask of one instance (MASK.png, named like the view's image).
+    /// Masks the dataset has are then not used for finding instances.
+    #[arg(long, value_name = "auto|BOX|MASK.png", value_parser = parse_discover)]
+    pub(crate) discover: Option<instgs_vk::discover::run::ExampleSpec>,
+    /// Pipeline: skip the "plain, pruned" baseline (the plain scene pruned to InstGS's GPU
+    /// memory and fine-tuned as long as the joint stage), which shows what instancing adds
+    /// over pruning alone.
+    #[arg(long)]
+    pub(crate) no_pruned_baseline: bool,
+    /// Print a line every 10 % instead of a progress bar.
+    #[arg(long)]
+    pub(crate) quiet: bool,
+}
+
+// `instance`'s arguments (Cmd::Instance).
+#[derive(Args)]
+pub(crate) struct InstanceArgs {
+    /// The trained plain scene (.ply) that was segmented.
+    #[arg(long)]
+    pub(crate) scene: PathBuf,
+    /// Its per-Gaussian labels (labels.json or labels.bin from `segment`).
+    #[arg(long)]
+    pub(crate) labels: PathBuf,
+    /// Dataset folder: DIR/instances.json groups the instance ids and names the groups; when
+    /// it carries ground-truth poses, the recovered transforms are checked against them.
+    #[arg(long)]
+    pub(crate) data: PathBuf,
+    /// Group the ids by this file instead of DIR/instances.json (e.g. the labels.json of
+    /// `segment --per-frame-ids`, which carries the associated groups); no ground truth then.
+    #[arg(long)]
+    pub(crate) groups: Option<PathBuf>,
+    /// Template initialisation: max (the largest instance kept whole; measured best), merge
+    /// (the paper's merge-and-sample) or first.
+    #[arg(long, value_enum, default_value = "max")]
+    pub(crate) init: instgs_vk::instancing::options::TemplateInit,
+    /// Rigid registration (no per-instance scale).
+    #[arg(long)]
+    pub(crate) rigid: bool,
+    /// Register by shape alone (no colour-aware ICP).
+    #[arg(long)]
+    pub(crate) geometry_only: bool,
+    /// Weight of colour in the colour-aware ICP: a normalised colour difference of 1 counts
+    /// as 2 registration voxels × this.
+    #[arg(long, allow_negative_numbers = true, value_parser = non_negative_f64, default_value_t = 1.0)]
+    pub(crate) colour_weight: f64,
+    /// Seed of RANSAC.
+    #[arg(long, allow_negative_numbers = true, value_parser = natural_u64, default_value_t = 0)]
+    pub(crate) seed: u64,
+    /// Storage type of the offsets in the file.
+    #[arg(long, value_enum, default_value = "f32")]
+    pub(crate) offset_dtype: OffsetDtype,
+    /// Also write a JSON report (per instance: registration and, with ground truth, errors).
+    #[arg(long)]
+    pub(crate) report: Option<PathBuf>,
+    /// Downscale factor of the dataset's training images for the render check.
+    #[arg(long, allow_negative_numbers = true, value_parser = positive_u32, default_value_t = 1)]
+    pub(crate) downscale: u32,
+    /// Skip the render check (poses are then checked by geometry alone).
+    #[arg(long)]
+    pub(crate) no_render_check: bool,
+    /// Keep each pose registered onto the reference alone: no synchronisation over the
+    /// pairs of a group's accepted instances (it needs the render check).
+    #[arg(long)]
+    pub(crate) no_synchronise: bool,
+    /// Acceptance: both fitnesses at least this.
+    #[arg(long, allow_negative_numbers = true, value_parser = unit_f64, default_value_t = instgs_vk::instancing::options::Acceptance::default().min_fitness)]
+    pub(crate) min_fitness: f64,
+    /// Acceptance: scale within this relative distance of the clouds' size ratio.
+    #[arg(long, allow_negative_numbers = true, value_parser = non_negative_f64, default_value_t = instgs_vk::instancing::options::Acceptance::default().scale_tolerance)]
+    pub(crate) scale_tolerance: f64,
+    /// Acceptance: the render check's median silhouette IoU at least this.
+    #[arg(long, allow_negative_numbers = true, value_parser = unit_f64, default_value_t = instgs_vk::instancing::options::Acceptance::default().min_render_iou)]
+    pub(crate) min_render_iou: f64,
+    /// Acceptance: the render check's PSNR (dB) at least this.
+    #[arg(long, allow_negative_numbers = true, value_parser = finite_f64, default_value_t = instgs_vk::instancing::options::Acceptance::default().min_render_psnr)]
+    pub(crate) min_render_psnr: f64,
+    /// Acceptance: the render check compares at least this many views that show the instance.
+    #[arg(long, default_value_t = instgs_vk::instancing::options::Acceptance::default().min_render_views)]
+    pub(crate) min_render_views: usize,
+    #[arg(long)]
+    pub(crate) out: PathBuf,
+}
+
+// `discover`'s arguments (Cmd::Discover).
+#[derive(Args)]
+pub(crate) struct DiscoverArgs {
+    /// The trained plain scene (any format `info` reads).
+    #[arg(long)]
+    pub(crate) scene: PathBuf,
+    /// Dataset folder: its training views drive the render check and a mask example; where
+    /// its instances.json carries ground-truth poses, the result is compared with them
+    /// (never used in the search).
+    #[arg(long)]
+    pub(crate) data: PathBuf,
+    /// The example: a label id of --labels, or one instance's mask in one training view
+    /// (a grey PNG named like the view's image, or with --view).
+    #[arg(long, conflicts_with_all = ["auto", "bbox"])]
+    pub(crate) example: Option<String>,
+    /// The example: the Gaussians in xmin,ymin,zmin,xmax,ymax,zmax (world units).
+    #[arg(long = "box", value_name = "XMIN,YMIN,ZMIN,XMAX,YMAX,ZMAX", conflicts_with = "auto")]
+    pub(crate) bbox: Option<String>,
+    /// No example: propose the groups (support plane, clusters on it, registered together).
+    #[arg(long)]
+    pub(crate) auto: bool,
+    /// The labels file of --example ID.
+    #[arg(long)]
+    pub(crate) labels: Option<PathBuf>,
+    /// The training view of --example MASK.png (default: the view whose image has its name).
+    #[arg(long)]
+    pub(crate) view: Option<String>,
+    /// The id in --example MASK.png to take (default: its only non-zero id).
+    #[arg(long)]
+    pub(crate) mask_id: Option<u16>,
+    /// Downscale factor of the training images.
+    #[arg(long, allow_negative_numbers = true, value_parser = positive_u32, default_value_t = 1)]
+    pub(crate) downscale: u32,
+    /// Skip the render check (copies are then checked by geometry alone).
+    #[arg(long)]
+    pub(crate) no_render_check: bool,
+    /// Seed of RANSAC.
+    #[arg(long, allow_negative_numbers = true, value_parser = natural_u64, default_value_t = 0)]
+    pub(crate) seed: u64,
+    /// The labels file written ({ids, labels}).
+    #[arg(long)]
+    pub(crate) out: PathBuf,
+    /// The groups file written (default: groups.json beside --out).
+    #[arg(long)]
+    pub(crate) groups: Option<PathBuf>,
+}
+
+// `view`'s arguments (Cmd::View).
+#[cfg(feature = "player")]
+#[derive(Args)]
+pub(crate) struct PlayerArgs {
+    /// Scene file (.ply: Inria 3DGS or SuperSplat compressed; .instgs).
+    pub(crate) scene: PathBuf,
+    /// Start from a dataset's camera: a transforms_*.json file, or a NeRF-synthetic or
+    /// COLMAP folder. Default: framing the scene's bounds.
+    #[arg(long)]
+    pub(crate) cameras: Option<PathBuf>,
+    /// Which of those cameras.
+    #[arg(long, allow_negative_numbers = true, value_parser = natural_usize, default_value_t = 0, requires = "cameras")]
+    pub(crate) camera: usize,
+    /// Which cameras of a dataset folder: train, test or all.
+    #[arg(long, default_value = "train", requires = "cameras")]
+    pub(crate) split: String,
+    /// Which world axis is up (orbit and fly moves).
+    #[arg(long, value_enum, default_value = "-y", allow_hyphen_values = true)]
+    pub(crate) up: UpAxis,
+    /// Window (or headless frame) width.
+    #[arg(long, allow_negative_numbers = true, value_parser = positive_u32, default_value_t = 1280)]
+    pub(crate) width: u32,
+    /// Window (or headless frame) height.
+    #[arg(long, allow_negative_numbers = true, value_parser = positive_u32, default_value_t = 720)]
+    pub(crate) height: u32,
+    /// Background colour r,g,b in [0, 1] (B cycles black, white, grey).
+    #[arg(long, allow_hyphen_values = true, default_value = "0,0,0", value_parser = parse_rgb)]
+    pub(crate) background: [f32; 3],
+    /// Wait for vertical sync (default: off, immediate or mailbox presentation).
+    #[arg(long)]
+    pub(crate) vsync: bool,
+    /// No FPS overlay (H toggles it).
+    #[arg(long)]
+    pub(crate) no_overlay: bool,
+    /// Exit after N frames (windowed: the last one is saved as a screenshot in --out).
+    #[arg(long, allow_negative_numbers = true, value_parser = positive_u64)]
+    pub(crate) frames: Option<u64>,
+    /// Folder for screenshots (windowed) or frames (headless).
+    #[arg(long)]
+    pub(crate) out: Option<PathBuf>,
+    /// No window: render --frames N turntable frames offscreen into --out DIR.
+    #[arg(long, requires_all = ["frames", "out"])]
+    pub(crate) headless: bool,
+    #[command(flatten)]
+    pub(crate) render: RenderArgs,
+    /// How the depth-sorted splats become pixels: compute (the blend kernel), quads (the
+    /// fixed-function rasterizer) or auto (whichever renders the first frame faster).
+    #[arg(long, value_enum, default_value = "auto")]
+    pub(crate) forward: Forward,
 }
 
 #[derive(Clone, Copy, clap::ValueEnum)]

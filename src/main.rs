@@ -72,156 +72,12 @@ fn run(cli: Cli) -> Result<()> {
         Cmd::Segment { scene, data, split, alpha, out, export_dir, per_frame_ids } => {
             segment::run::segment(device, &scene, &data, &split, alpha, &out, export_dir.as_deref(), per_frame_ids)
         }
-        Cmd::Instance {
-            scene,
-            labels,
-            data,
-            groups,
-            init,
-            rigid,
-            geometry_only,
-            colour_weight,
-            seed,
-            offset_dtype,
-            report,
-            downscale,
-            no_render_check,
-            no_synchronise,
-            min_fitness,
-            scale_tolerance,
-            min_render_iou,
-            min_render_psnr,
-            min_render_views,
-            out,
-        } => {
-            let accept = instgs_vk::instancing::options::Acceptance {
-                min_fitness,
-                scale_tolerance,
-                min_render_iou,
-                min_render_psnr,
-                min_render_views,
-                ..Default::default()
-            };
-            let opts = instgs_vk::instancing::options::InstanceOptions {
-                init,
-                with_scale: !rigid,
-                use_colour: !geometry_only,
-                colour_weight,
-                seed,
-                accept,
-                synchronise: !no_synchronise,
-                ..Default::default()
-            };
-            let req = instancing::build::InstanceRequest {
-                scene,
-                labels,
-                data,
-                groups,
-                opts,
-                offset_dtype: offset_dtype.into(),
-                report,
-                downscale,
-                render_check: !no_render_check,
-                out,
-            };
-            instancing::build::instance_command(device, &req)
-        }
-        Cmd::Discover {
-            scene,
-            data,
-            example,
-            bbox,
-            auto,
-            labels,
-            view,
-            mask_id,
-            downscale,
-            no_render_check,
-            seed,
-            out,
-            groups,
-        } => {
-            use instgs_vk::discover::run::{discover_command, DiscoverRequest, ExampleSpec};
-            let example = match (example, bbox, auto) {
-                (_, _, true) => ExampleSpec::Auto,
-                (_, Some(b), _) => ExampleSpec::Box(cli::parse_box(&b).map_err(anyhow::Error::msg)?),
-                (Some(e), None, false) => match (e.parse::<u32>(), labels) {
-                    (Ok(id), Some(labels)) => ExampleSpec::Label { labels, id },
-                    (Ok(_), None) => anyhow::bail!("--example {e}: a label id needs --labels FILE"),
-                    (Err(_), _) => ExampleSpec::Mask { path: e.into(), view, id: mask_id },
-                },
-                (None, None, false) => anyhow::bail!("discover needs --example, --box or --auto"),
-            };
-            let mut opts = instgs_vk::discover::DiscoverOptions::default();
-            opts.instance.seed = seed;
-            let groups = groups.unwrap_or_else(|| out.with_file_name("groups.json"));
-            let req =
-                DiscoverRequest { scene, data, example, opts, render_check: !no_render_check, downscale, out, groups };
-            discover_command(device, &req).map(|_| ())
-        }
+        Cmd::Instance(args) => instance(device, args),
+        Cmd::Discover(args) => discover(device, args),
         #[cfg(feature = "player")]
-        Cmd::View {
-            scene,
-            cameras,
-            camera,
-            split,
-            up,
-            width,
-            height,
-            background,
-            vsync,
-            no_overlay,
-            frames,
-            out,
-            headless,
-            render,
-            forward,
-        } => {
-            let opts = player::PlayerOptions {
-                render: render.load()?,
-                forward,
-                scene_path: scene,
-                device,
-                width,
-                height,
-                background,
-                vsync,
-                overlay: !no_overlay,
-                frames,
-                out,
-            };
-            player::view(opts, cameras.as_deref(), (camera, &split), up, headless)
-        }
+        Cmd::View(args) => view(device, args),
         Cmd::BenchSort { keys, bits, repeats } => bench::bench_sort(device, keys, bits, repeats),
-        Cmd::Train {
-            data,
-            out,
-            init,
-            config,
-            iterations,
-            resume,
-            quiet,
-            from,
-            until,
-            discover,
-            no_pruned_baseline,
-        } => {
-            let args = pipeline::PipelineArgs {
-                data: data.data,
-                downscale: data.downscale,
-                out,
-                init,
-                config,
-                iterations,
-                from,
-                until,
-                discover,
-                pruned_baseline: !no_pruned_baseline,
-                progress: !quiet,
-                device,
-            };
-            pipeline::train(args, resume)
-        }
+        Cmd::Train(args) => train(device, args),
         Cmd::Eval { scene, data, split, json, out, background, lod, render_config } => {
             let render = lod.then(|| RenderConfig::load(render_config.as_deref())).transpose()?;
             train::eval::eval(
@@ -237,4 +93,160 @@ fn run(cli: Cli) -> Result<()> {
             )
         }
     }
+}
+
+fn instance(device: Option<String>, args: cli::InstanceArgs) -> Result<()> {
+    let cli::InstanceArgs {
+        scene,
+        labels,
+        data,
+        groups,
+        init,
+        rigid,
+        geometry_only,
+        colour_weight,
+        seed,
+        offset_dtype,
+        report,
+        downscale,
+        no_render_check,
+        no_synchronise,
+        min_fitness,
+        scale_tolerance,
+        min_render_iou,
+        min_render_psnr,
+        min_render_views,
+        out,
+    } = args;
+    let accept = instgs_vk::instancing::options::Acceptance {
+        min_fitness,
+        scale_tolerance,
+        min_render_iou,
+        min_render_psnr,
+        min_render_views,
+        ..Default::default()
+    };
+    let opts = instgs_vk::instancing::options::InstanceOptions {
+        init,
+        with_scale: !rigid,
+        use_colour: !geometry_only,
+        colour_weight,
+        seed,
+        accept,
+        synchronise: !no_synchronise,
+        ..Default::default()
+    };
+    let req = instancing::build::InstanceRequest {
+        scene,
+        labels,
+        data,
+        groups,
+        opts,
+        offset_dtype: offset_dtype.into(),
+        report,
+        downscale,
+        render_check: !no_render_check,
+        out,
+    };
+    instancing::build::instance_command(device, &req)
+}
+
+fn discover(device: Option<String>, args: cli::DiscoverArgs) -> Result<()> {
+    let cli::DiscoverArgs {
+        scene,
+        data,
+        example,
+        bbox,
+        auto,
+        labels,
+        view,
+        mask_id,
+        downscale,
+        no_render_check,
+        seed,
+        out,
+        groups,
+    } = args;
+    use instgs_vk::discover::run::{discover_command, DiscoverRequest, ExampleSpec};
+    let example = match (example, bbox, auto) {
+        (_, _, true) => ExampleSpec::Auto,
+        (_, Some(b), _) => ExampleSpec::Box(cli::parse_box(&b).map_err(anyhow::Error::msg)?),
+        (Some(e), None, false) => match (e.parse::<u32>(), labels) {
+            (Ok(id), Some(labels)) => ExampleSpec::Label { labels, id },
+            (Ok(_), None) => anyhow::bail!("--example {e}: a label id needs --labels FILE"),
+            (Err(_), _) => ExampleSpec::Mask { path: e.into(), view, id: mask_id },
+        },
+        (None, None, false) => anyhow::bail!("discover needs --example, --box or --auto"),
+    };
+    let mut opts = instgs_vk::discover::DiscoverOptions::default();
+    opts.instance.seed = seed;
+    let groups = groups.unwrap_or_else(|| out.with_file_name("groups.json"));
+    let req = DiscoverRequest { scene, data, example, opts, render_check: !no_render_check, downscale, out, groups };
+    discover_command(device, &req).map(|_| ())
+}
+
+#[cfg(feature = "player")]
+fn view(device: Option<String>, args: cli::PlayerArgs) -> Result<()> {
+    let cli::PlayerArgs {
+        scene,
+        cameras,
+        camera,
+        split,
+        up,
+        width,
+        height,
+        background,
+        vsync,
+        no_overlay,
+        frames,
+        out,
+        headless,
+        render,
+        forward,
+    } = args;
+    let opts = player::PlayerOptions {
+        render: render.load()?,
+        forward,
+        scene_path: scene,
+        device,
+        width,
+        height,
+        background,
+        vsync,
+        overlay: !no_overlay,
+        frames,
+        out,
+    };
+    player::view(opts, cameras.as_deref(), (camera, &split), up, headless)
+}
+
+fn train(device: Option<String>, args: cli::TrainArgs) -> Result<()> {
+    let cli::TrainArgs {
+        data,
+        out,
+        init,
+        config,
+        iterations,
+        resume,
+        quiet,
+        from,
+        until,
+        discover,
+        no_pruned_baseline,
+    } = args;
+    let args = pipeline::PipelineArgs {
+        data: data.data,
+        downscale: data.downscale,
+        out,
+        init,
+        config,
+        iterations,
+        from,
+        until,
+        discover,
+        pruned_baseline: !no_pruned_baseline,
+        progress: !quiet,
+        device,
+    };
+    pipeline::train(args, resume)
 }

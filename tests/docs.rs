@@ -171,3 +171,53 @@ fn source_files_fit_their_room() {
     large.sort();
     assert!(large.is_empty(), "source files above {MAX_LINES} lines:\n{}", large.join("\n"));
 }
+
+/// The functions of `text` with their first line (1-based) and length in lines: a line that
+/// declares a `fn` with a body, to the line that closes it at the same indentation (rustfmt's
+/// layout, which the test command checks too).
+fn function_lengths(text: &str) -> Vec<(usize, usize, String)> {
+    let lines: Vec<&str> = text.lines().collect();
+    let mut out = Vec::new();
+    for (i, line) in lines.iter().enumerate() {
+        let body = line.trim_start();
+        let indent = &line[..line.len() - body.len()];
+        let decl = ["pub(crate) ", "pub(super) ", "pub ", "const ", "unsafe ", "async ", "extern \"C\" "]
+            .iter()
+            .fold(body, |b, p| b.strip_prefix(p).unwrap_or(b));
+        if !decl.starts_with("fn ") {
+            continue;
+        }
+        let Some(open) = (i..lines.len()).find(|&j| lines[j].ends_with('{') || lines[j].ends_with(';')) else {
+            continue;
+        };
+        if lines[open].ends_with(';') {
+            continue;
+        }
+        let close = format!("{indent}}}");
+        if let Some(end) = (open + 1..lines.len()).find(|&j| lines[j] == close) {
+            let name = decl[3..].split(['(', '<']).next().unwrap_or("").to_string();
+            out.push((i + 1, end - i + 1, name));
+        }
+    }
+    out
+}
+
+#[test]
+fn functions_fit_their_room() {
+    const MAX_LINES: usize = 150;
+    let mut files = Vec::new();
+    sources(&root().join("src"), &mut files);
+    let mut long: Vec<String> = Vec::new();
+    for f in &files {
+        for (line, n, name) in function_lengths(&fs::read_to_string(f).unwrap()) {
+            if n > MAX_LINES {
+                long.push(format!("{}:{line} {name} ({n} lines)", f.strip_prefix(root()).unwrap().display()));
+            }
+        }
+    }
+    long.sort();
+    assert!(long.is_empty(), "functions above {MAX_LINES} lines:\n{}", long.join("\n"));
+    // The measure itself: this file's own test functions are found with their lengths.
+    let own = function_lengths(&fs::read_to_string(root().join("tests/docs.rs")).unwrap());
+    assert!(own.iter().any(|(_, n, name)| name == "functions_fit_their_room" && *n > 10), "{own:?}");
+}

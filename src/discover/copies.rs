@@ -11,7 +11,7 @@ use crate::instancing::pose::InstanceReport;
 use crate::instancing::pose::{register_and_check, registration_cloud, RenderCheck};
 use crate::math::{sigmoid, tree};
 use crate::model::scene::Scene;
-use crate::register::{centroid, fpfh, icp, normals, object_size, umeyama_bounded, Sim3, FPFH_DIM};
+use crate::register::{centroid, fpfh, icp, normals, object_size, umeyama_bounded, RegisterOptions, Sim3, FPFH_DIM};
 
 use super::{find_support, DiscoverOptions, Discovery, FoundGroup, Member, Support};
 
@@ -111,6 +111,35 @@ pub(crate) fn object_cloud(
     registration_cloud(part, min_opacity)
 }
 
+/// One reference's search: its points, features and reach, and the scene's available opaque
+/// points (voxelised once; a voxel leaves the search when all its Gaussians are taken).
+struct Search<'a> {
+    scene: &'a Scene,
+    support: Option<&'a Support>,
+    io: InstanceOptions,
+    reg: RegisterOptions,
+    ref_scene: Scene,
+    /// The reference's registration cloud (points and colours).
+    e_pts: Vec<[f64; 3]>,
+    e_rgb: Vec<[f64; 3]>,
+    /// Its voxel centres, their FPFH features, their centroid, its size and reach (every
+    /// Gaussian of it, floor patches included, from that centre).
+    e: Vec<[f64; 3]>,
+    fe: Vec<[f64; FPFH_DIM]>,
+    e_centre: [f64; 3],
+    size: f64,
+    radius: f64,
+    /// The scene's available opaque Gaussians (`pool`), their voxel centres, the pool members of
+    /// each voxel and the voxels' features.
+    pool: Vec<usize>,
+    s: Vec<[f64; 3]>,
+    cells: Vec<Vec<usize>>,
+    fs: Vec<[f64; FPFH_DIM]>,
+    /// Scale range of a placement (None: rigid), inlier distance.
+    range: Option<(f64, f64)>,
+    dist: f64,
+}
+
 /// Searches `available` Gaussians of `scene` for copies of the reference (`reference`: scene
 /// indices) and checks each; accepted copies' Gaussians are taken out of `available`. Ids are
 /// drawn from `next_id`; `progress` gets one line per candidate.
@@ -127,49 +156,163 @@ pub(crate) fn search_copies(
     refused: &mut Vec<String>,
     progress: &mut dyn FnMut(&str),
 ) -> Result<Vec<Member>> {
-    // Shape-ambiguous copies also try turns about the support plane's normal.
-    let io = &InstanceOptions { up: o.instance.up.or(support.map(|s| s.normal)), ..o.instance.clone() };
-    let ref_scene = scene.select(&reference.gaussians);
-    let (e_pts, e_rgb) = object_cloud(&ref_scene, support, io.min_opacity);
-    let size = object_size(&e_pts);
-    let reg = io.register_options(size);
-    let voxel = reg.voxel;
-    let (e, _) = voxel_cells(&e_pts, voxel);
-    if e.len() < 8 || size <= 0.0 {
-        refused.push(format!("{group}: the reference has too few points to search with ({} voxels)", e.len()));
+    let Some(search) = Search::new(scene, reference, support, available, o, group, refused) else {
         return Ok(Vec::new());
-    }
-    let fe = fpfh(&e, &normals(&e, 2.0 * voxel, 30), 5.0 * voxel, 100);
-    // The scene's opaque available Gaussians, voxelised once; a voxel leaves the search when
-    // all its Gaussians are taken.
-    // The slab of the support plane takes no part in matching: each copy's own bottom is
-    // claimed with it.
-    let pool: Vec<usize> = (0..scene.len())
-        .filter(|&i| available[i] && opaque(scene, i, io.min_opacity))
-        .filter(|&i| support.is_none_or(|s| s.height(scene.means[i]) > 1.5 * s.thickness))
-        .collect();
-    let pool_pts: Vec<[f64; 3]> = pool.iter().map(|&i| f64s(scene.means[i])).collect();
-    if pool_pts.len() < 8 {
-        return Ok(Vec::new());
-    }
-    let (s, cells) = voxel_cells(&pool_pts, voxel);
-    let fs = fpfh(&s, &normals(&s, 2.0 * voxel, 30), 5.0 * voxel, 100);
-    let range = io.with_scale.then(|| (1.0 / (1.0 + io.accept.scale_tolerance), 1.0 + io.accept.scale_tolerance));
-    let dist = 1.5 * voxel;
-    let mut rng = rand_pcg::Pcg64::seed_from_u64(io.seed ^ 0x5eed);
+    };
+    let mut rng = rand_pcg::Pcg64::seed_from_u64(search.io.seed ^ 0x5eed);
     let mut found = Vec::new();
     // Placements refused so far (their centres): not proposed again.
     let mut tried: Vec<[f64; 3]> = Vec::new();
-    let e_centre = centroid(&e);
-    // The example's reach from that centre: every Gaussian of it (floor patches included).
-    let radius = ref_scene.means.iter().map(|m| dist2(&f64s(*m), &e_centre.into()).sqrt()).fold(0.0, f64::max);
     'rounds: while found.len() < o.max_copies {
-        let gone: Vec<bool> = cells.iter().map(|m| m.iter().all(|&j| !available[pool[j]])).collect();
-        // Each example point paired with its 4 nearest scene features.
-        let corr: Vec<(usize, usize)> =
-            (0..e.len()).flat_map(|i| nearest_k(&fe[i], &fs, 4, &gone).into_iter().map(move |j| (i, j))).collect();
-        if corr.len() < 3 {
+        let best = search.placements(available, &tried, o, &mut rng);
+        if best.is_empty() {
             break;
+        }
+        for (inliers, x) in best.into_iter().take(o.placements_per_round) {
+            let placed_centre = x.apply(&search.e_centre);
+            tried.push(placed_centre);
+            let Some(claim) = search.candidate(available, x, o) else { continue };
+            let id = *next_id;
+            let where_ = format!("[{:.3}, {:.3}, {:.3}]", placed_centre[0], placed_centre[1], placed_centre[2]);
+            let part = scene.select(&claim);
+            let (c_pts, c_rgb) = object_cloud(&part, support, search.io.min_opacity);
+            if c_pts.len() < search.e_pts.len() / 4 {
+                refused.push(format!(
+                    "{group}: candidate at {where_}: {} opaque Gaussians where the reference has {}",
+                    c_pts.len(),
+                    search.e_pts.len()
+                ));
+                continue;
+            }
+            // The render check keys its cache by id: each candidate gets its own.
+            let check_id = CHECK_IDS.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+            let mut report = InstanceReport::new(group, id, reference.id, claim.len());
+            let parts = [search.ref_scene.clone(), part];
+            let (pose, status) = register_and_check(
+                &parts,
+                &[search.e_pts.clone(), c_pts],
+                &[search.e_rgb.clone(), c_rgb],
+                1,
+                0,
+                &search.reg,
+                &search.io,
+                render_check,
+                &mut report,
+                group,
+                &[reference.id, check_id],
+            )?;
+            report.relative = pose;
+            report.status = status.clone();
+            let scores = format!(
+                "fitness {:.2} / {:.2}, scale {:.3}{}; placed with {:.0} % of {} points landing",
+                report.check.fitness,
+                report.check.fitness_reverse,
+                pose.scale,
+                report.render.map(|s| format!(", render IoU {:.2} PSNR {:.1} dB", s.iou, s.psnr)).unwrap_or_default(),
+                inliers as f64 / 10.0,
+                search.e.len()
+            );
+            match status {
+                Status::Accepted => {
+                    *next_id += 1;
+                    for &i in &claim {
+                        available[i] = false;
+                    }
+                    progress(&format!("{group}: copy {id} at {where_}, {} Gaussians ({scores})", claim.len()));
+                    found.push(Member { id, gaussians: claim, relative: pose, report: Some(report) });
+                    continue 'rounds;
+                }
+                other => {
+                    let why = other.reason().unwrap_or("refused").to_string();
+                    progress(&format!("{group}: candidate at {where_} refused: {why} ({scores})"));
+                    refused.push(format!("{group}: candidate at {where_}: {why}"));
+                }
+            }
+        }
+        break;
+    }
+    Ok(found)
+}
+
+impl<'a> Search<'a> {
+    /// The search's data, or None (with the reason in `refused` where it is the reference's)
+    /// when the reference or the scene has too few points to search with.
+    fn new(
+        scene: &'a Scene,
+        reference: &Member,
+        support: Option<&'a Support>,
+        available: &[bool],
+        o: &DiscoverOptions,
+        group: &str,
+        refused: &mut Vec<String>,
+    ) -> Option<Search<'a>> {
+        // Shape-ambiguous copies also try turns about the support plane's normal.
+        let io = InstanceOptions { up: o.instance.up.or(support.map(|s| s.normal)), ..o.instance.clone() };
+        let ref_scene = scene.select(&reference.gaussians);
+        let (e_pts, e_rgb) = object_cloud(&ref_scene, support, io.min_opacity);
+        let size = object_size(&e_pts);
+        let reg = io.register_options(size);
+        let voxel = reg.voxel;
+        let (e, _) = voxel_cells(&e_pts, voxel);
+        if e.len() < 8 || size <= 0.0 {
+            refused.push(format!("{group}: the reference has too few points to search with ({} voxels)", e.len()));
+            return None;
+        }
+        let fe = fpfh(&e, &normals(&e, 2.0 * voxel, 30), 5.0 * voxel, 100);
+        // The slab of the support plane takes no part in matching: each copy's own bottom is
+        // claimed with it.
+        let pool: Vec<usize> = (0..scene.len())
+            .filter(|&i| available[i] && opaque(scene, i, io.min_opacity))
+            .filter(|&i| support.is_none_or(|s| s.height(scene.means[i]) > 1.5 * s.thickness))
+            .collect();
+        let pool_pts: Vec<[f64; 3]> = pool.iter().map(|&i| f64s(scene.means[i])).collect();
+        if pool_pts.len() < 8 {
+            return None;
+        }
+        let (s, cells) = voxel_cells(&pool_pts, voxel);
+        let fs = fpfh(&s, &normals(&s, 2.0 * voxel, 30), 5.0 * voxel, 100);
+        let range = io.with_scale.then(|| (1.0 / (1.0 + io.accept.scale_tolerance), 1.0 + io.accept.scale_tolerance));
+        let e_centre: [f64; 3] = centroid(&e).into();
+        let radius = ref_scene.means.iter().map(|m| dist2(&f64s(*m), &e_centre).sqrt()).fold(0.0, f64::max);
+        Some(Search {
+            scene,
+            support,
+            dist: 1.5 * voxel,
+            io,
+            reg,
+            ref_scene,
+            e_pts,
+            e_rgb,
+            e,
+            fe,
+            e_centre,
+            size,
+            radius,
+            pool,
+            s,
+            cells,
+            fs,
+            range,
+        })
+    }
+
+    /// One round of RANSAC over FPFH pairs (each example voxel with its 4 nearest available
+    /// scene features, triples drawn near each other): the placements whose probe points land on
+    /// available scene points, one per place, most inliers (per mille) first.
+    fn placements(
+        &self,
+        available: &[bool],
+        tried: &[[f64; 3]],
+        o: &DiscoverOptions,
+        rng: &mut rand_pcg::Pcg64,
+    ) -> Vec<(usize, Sim3)> {
+        let (e, s, size, dist) = (&self.e, &self.s, self.size, self.dist);
+        let gone: Vec<bool> = self.cells.iter().map(|m| m.iter().all(|&j| !available[self.pool[j]])).collect();
+        let corr: Vec<(usize, usize)> = (0..e.len())
+            .flat_map(|i| nearest_k(&self.fe[i], &self.fs, 4, &gone).into_iter().map(move |j| (i, j)))
+            .collect();
+        if corr.len() < 3 {
+            return Vec::new();
         }
         // Correspondences binned by their scene point on a grid of the example's size.
         let cell = |p: &[f64; 3]| p.map(|c| (c / size).floor() as i64);
@@ -212,14 +355,14 @@ pub(crate) fn search_copies(
             if (0..3).any(|i| (0..i).any(|k| corr[idx[i]].0 == corr[idx[k]].0 || corr[idx[i]].1 == corr[idx[k]].1)) {
                 continue;
             }
-            if !edges_fit(&a, &b, reg.edge_ratio, range) {
+            if !edges_fit(&a, &b, self.reg.edge_ratio, self.range) {
                 continue;
             }
-            let Some(x) = umeyama_bounded(&a, &b, range) else { continue };
+            let Some(x) = umeyama_bounded(&a, &b, self.range) else { continue };
             if a.iter().zip(&b).any(|(p, q)| dist2(&x.apply(p), q) > dist * dist) {
                 continue;
             }
-            let placed = x.apply(&e_centre.into());
+            let placed = x.apply(&self.e_centre);
             if tried.iter().any(|t| dist2(t, &placed) < (0.5 * size).powi(2)) {
                 continue;
             }
@@ -243,7 +386,7 @@ pub(crate) fn search_copies(
             }
             // One entry per placement (centres closer than half the size are one place).
             if let Some(k) =
-                best.iter().position(|(_, y)| dist2(&y.apply(&e_centre.into()), &placed) < (0.5 * size).powi(2))
+                best.iter().position(|(_, y)| dist2(&y.apply(&self.e_centre), &placed) < (0.5 * size).powi(2))
             {
                 if inliers > best[k].0 {
                     best[k] = (inliers, x);
@@ -253,98 +396,39 @@ pub(crate) fn search_copies(
             }
         }
         best.sort_by_key(|b| std::cmp::Reverse(b.0));
-        if best.is_empty() {
-            break;
-        }
-        for (inliers, x) in best.into_iter().take(o.placements_per_round) {
-            let placed_centre = x.apply(&e_centre.into());
-            tried.push(placed_centre);
-            // ICP of the example onto the available opaque scene points around the placement
-            // (the slab's too: the example's bottom meets them).
-            let local: Vec<[f64; 3]> = (0..scene.len())
-                .filter(|&i| available[i] && opaque(scene, i, io.min_opacity))
-                .map(|i| f64s(scene.means[i]))
-                .filter(|p| dist2(p, &placed_centre) <= (0.75 * size * x.scale).powi(2))
-                .collect();
-            if local.len() < 8 {
-                continue;
-            }
-            let x = icp(&e_pts, &local, x, dist, 30, range, false);
-            let x = icp(&e_pts, &local, x, 0.5 * voxel, 30, range, false);
-            // The candidate copy: available Gaussians near a placed reference Gaussian.
-            let placed: Vec<[f64; 3]> = ref_scene.means.iter().map(|m| x.apply(&f64s(*m))).collect();
-            let t = tree(&placed);
-            let reach = (o.claim_voxels * voxel * x.scale).powi(2);
-            let claim: Vec<usize> = (0..scene.len())
-                .filter(|&i| available[i])
-                .filter(|&i| {
-                    let p = f64s(scene.means[i]);
-                    dist2(&p, &placed_centre) <= (1.05 * radius * x.scale).powi(2)
-                        && t.nearest_one::<SquaredEuclidean>(&p).distance <= reach
-                })
-                .collect();
-            // Of those, the object's: the floor around it stays.
-            let claim = support.and_then(|s| s.object_gaussians(scene, &claim, io.min_opacity)).unwrap_or(claim);
-            let where_ = format!("[{:.3}, {:.3}, {:.3}]", placed_centre[0], placed_centre[1], placed_centre[2]);
-            let part = scene.select(&claim);
-            let (c_pts, c_rgb) = object_cloud(&part, support, io.min_opacity);
-            if c_pts.len() < e_pts.len() / 4 {
-                refused.push(format!(
-                    "{group}: candidate at {where_}: {} opaque Gaussians where the reference has {}",
-                    c_pts.len(),
-                    e_pts.len()
-                ));
-                continue;
-            }
-            let id = *next_id;
-            // The render check keys its cache by id: each candidate gets its own.
-            let check_id = CHECK_IDS.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-            let mut report = InstanceReport::new(group, id, reference.id, claim.len());
-            let parts = [ref_scene.clone(), part];
-            let (pose, status) = register_and_check(
-                &parts,
-                &[e_pts.clone(), c_pts],
-                &[e_rgb.clone(), c_rgb],
-                1,
-                0,
-                &reg,
-                io,
-                render_check,
-                &mut report,
-                group,
-                &[reference.id, check_id],
-            )?;
-            report.relative = pose;
-            report.status = status.clone();
-            let scores = format!(
-                "fitness {:.2} / {:.2}, scale {:.3}{}; placed with {:.0} % of {} points landing",
-                report.check.fitness,
-                report.check.fitness_reverse,
-                pose.scale,
-                report.render.map(|s| format!(", render IoU {:.2} PSNR {:.1} dB", s.iou, s.psnr)).unwrap_or_default(),
-                inliers as f64 / 10.0,
-                e.len()
-            );
-            match status {
-                Status::Accepted => {
-                    *next_id += 1;
-                    for &i in &claim {
-                        available[i] = false;
-                    }
-                    progress(&format!("{group}: copy {id} at {where_}, {} Gaussians ({scores})", claim.len()));
-                    found.push(Member { id, gaussians: claim, relative: pose, report: Some(report) });
-                    continue 'rounds;
-                }
-                other => {
-                    let why = other.reason().unwrap_or("refused").to_string();
-                    progress(&format!("{group}: candidate at {where_} refused: {why} ({scores})"));
-                    refused.push(format!("{group}: candidate at {where_}: {why}"));
-                }
-            }
-        }
-        break;
+        best
     }
-    Ok(found)
+
+    /// A placement refined by ICP onto the available opaque scene points around it (the slab's
+    /// too: the example's bottom meets them) and the Gaussians it claims: available ones near a
+    /// placed reference Gaussian, less the floor around it. None when too few points are there.
+    fn candidate(&self, available: &[bool], x: Sim3, o: &DiscoverOptions) -> Option<Vec<usize>> {
+        let (scene, io, size, voxel) = (self.scene, &self.io, self.size, self.reg.voxel);
+        let placed_centre = x.apply(&self.e_centre);
+        let local: Vec<[f64; 3]> = (0..scene.len())
+            .filter(|&i| available[i] && opaque(scene, i, io.min_opacity))
+            .map(|i| f64s(scene.means[i]))
+            .filter(|p| dist2(p, &placed_centre) <= (0.75 * size * x.scale).powi(2))
+            .collect();
+        if local.len() < 8 {
+            return None;
+        }
+        let x = icp(&self.e_pts, &local, x, self.dist, 30, self.range, false);
+        let x = icp(&self.e_pts, &local, x, 0.5 * voxel, 30, self.range, false);
+        let placed: Vec<[f64; 3]> = self.ref_scene.means.iter().map(|m| x.apply(&f64s(*m))).collect();
+        let t = tree(&placed);
+        let reach = (o.claim_voxels * voxel * x.scale).powi(2);
+        let claim: Vec<usize> = (0..scene.len())
+            .filter(|&i| available[i])
+            .filter(|&i| {
+                let p = f64s(scene.means[i]);
+                dist2(&p, &placed_centre) <= (1.05 * self.radius * x.scale).powi(2)
+                    && t.nearest_one::<SquaredEuclidean>(&p).distance <= reach
+            })
+            .collect();
+        let claim = self.support.and_then(|s| s.object_gaussians(scene, &claim, io.min_opacity)).unwrap_or(claim);
+        Some(claim)
+    }
 }
 
 /// Finds the copies of the example (`example`: scene indices, the group's reference).

@@ -161,22 +161,22 @@ pub fn clusters(points: &[[f64; 3]], link: f64) -> Vec<Vec<usize>> {
     out
 }
 
-/// Finds groups of repeated objects with no example ([`auto`] in the module docs).
-pub fn auto(
+/// The objects standing on the support plane, each as its scene Gaussians (sorted): clusters of
+/// the opaque Gaussians above the slab (`op`, their means `pts`) linked within three median
+/// spacings, of at least `o.min_cluster` points and at most `o.max_cluster_size` × the scene's
+/// size; every Gaussian above the slab within one link of a cluster's points belongs to it, and
+/// so do the slab's Gaussians inside its footprint (its bottom).
+#[allow(clippy::too_many_arguments)]
+fn object_candidates(
     scene: &Scene,
+    support: &Support,
+    op: &[usize],
+    pts: &[[f64; 3]],
+    scene_size: f64,
     o: &DiscoverOptions,
-    mut render_check: Option<&mut dyn RenderCheck>,
-    mut progress: impl FnMut(&str),
-) -> Result<Discovery> {
-    let io = &o.instance;
-    let op: Vec<usize> = (0..scene.len()).filter(|&i| opaque(scene, i, io.min_opacity)).collect();
-    let pts: Vec<[f64; 3]> = op.iter().map(|&i| f64s(scene.means[i])).collect();
-    let scene_size = object_size(&pts);
-    if pts.len() < 3 || scene_size <= 0.0 {
-        anyhow::bail!("the scene has too few opaque Gaussians ({}) to search", pts.len());
-    }
-    let support = find_support(scene, o, &mut progress)?;
-    let io = &InstanceOptions { up: io.up.or(Some(support.normal)), ..io.clone() };
+    io: &InstanceOptions,
+    progress: &mut impl FnMut(&str),
+) -> Vec<Vec<usize>> {
     let thickness = support.thickness;
     let standing: Vec<usize> =
         (0..pts.len()).filter(|&k| support.height(scene.means[op[k]]) > 1.5 * thickness).collect();
@@ -191,8 +191,6 @@ pub fn auto(
         })
         .collect();
     progress(&format!("{} object candidates stand on it (links of {:.4})", found.len(), link));
-    // Every Gaussian above the slab near a candidate's points (within one link) belongs to it,
-    // and so do the slab's Gaussians inside its footprint (its bottom).
     let mut owner = vec![usize::MAX; standing_pts.len()];
     for (c, members) in found.iter().enumerate() {
         for &k in members {
@@ -218,6 +216,26 @@ pub fn auto(
     for g in gaussians.iter_mut() {
         g.sort_unstable();
     }
+    gaussians
+}
+
+/// Finds groups of repeated objects with no example ([`auto`] in the module docs).
+pub fn auto(
+    scene: &Scene,
+    o: &DiscoverOptions,
+    mut render_check: Option<&mut dyn RenderCheck>,
+    mut progress: impl FnMut(&str),
+) -> Result<Discovery> {
+    let io = &o.instance;
+    let op: Vec<usize> = (0..scene.len()).filter(|&i| opaque(scene, i, io.min_opacity)).collect();
+    let pts: Vec<[f64; 3]> = op.iter().map(|&i| f64s(scene.means[i])).collect();
+    let scene_size = object_size(&pts);
+    if pts.len() < 3 || scene_size <= 0.0 {
+        anyhow::bail!("the scene has too few opaque Gaussians ({}) to search", pts.len());
+    }
+    let support = find_support(scene, o, &mut progress)?;
+    let io = &InstanceOptions { up: io.up.or(Some(support.normal)), ..io.clone() };
+    let gaussians = object_candidates(scene, &support, &op, &pts, scene_size, o, io, &mut progress);
     // Grouping: each candidate (largest first) onto the references of the groups so far.
     let mut out = Discovery::default();
     let mut next_id = 1u32;

@@ -82,7 +82,7 @@ pub struct Surface {
 pub struct Gpu {
     _entry: ash::Entry,
     instance: ash::Instance,
-    debug: Option<(ash::ext::debug_utils::Instance, vk::DebugUtilsMessengerEXT)>,
+    debug: Option<Messenger>,
     messages: Box<Messages>,
     pub device: ash::Device,
     pub(crate) queue: vk::Queue,
@@ -129,104 +129,117 @@ fn kind_rank(t: vk::PhysicalDeviceType) -> (u32, &'static str) {
     }
 }
 
-impl Gpu {
-    pub fn new(opts: &GpuOptions) -> Result<Arc<Gpu>> {
-        let entry = unsafe { ash::Entry::load() }.context(
-            "cannot load the Vulkan loader (libvulkan.so.1); install libvulkan1 and a driver, e.g. mesa-vulkan-drivers",
-        )?;
-        let app = vk::ApplicationInfo::default().application_name(c"instgs-vk").api_version(vk::API_VERSION_1_1);
-        let validation_layer = c"VK_LAYER_KHRONOS_validation";
-        let mut layers = Vec::new();
-        let mut extensions = Vec::new();
-        if opts.validation {
-            let available = unsafe { entry.enumerate_instance_layer_properties()? };
-            if !available.iter().any(|l| l.layer_name_as_c_str() == Ok(validation_layer)) {
-                bail!("validation was requested but VK_LAYER_KHRONOS_validation is not installed (Debian: apt-get install vulkan-validationlayers)");
-            }
-            layers.push(validation_layer.as_ptr());
-            extensions.push(ash::ext::debug_utils::NAME.as_ptr());
-        }
-        if let Some((display, _)) = opts.window {
-            extensions.extend_from_slice(
-                ash_window::enumerate_required_extensions(display)
-                    .context("this display has no Vulkan surface support")?,
-            );
-        }
-        let enables = [vk::ValidationFeatureEnableEXT::SYNCHRONIZATION_VALIDATION];
-        let mut features = vk::ValidationFeaturesEXT::default().enabled_validation_features(&enables);
-        let mut ci = vk::InstanceCreateInfo::default()
-            .application_info(&app)
-            .enabled_layer_names(&layers)
-            .enabled_extension_names(&extensions);
-        if opts.validation {
-            ci = ci.push_next(&mut features);
-        }
-        let instance = unsafe { entry.create_instance(&ci, None) }.context("vkCreateInstance failed")?;
-        let messages = Box::new(Messages(Mutex::new(Vec::new()), opts.echo_messages));
-        let debug = if opts.validation {
-            let du = ash::ext::debug_utils::Instance::new(&entry, &instance);
-            let ci = vk::DebugUtilsMessengerCreateInfoEXT::default()
-                .message_severity(
-                    vk::DebugUtilsMessageSeverityFlagsEXT::WARNING | vk::DebugUtilsMessageSeverityFlagsEXT::ERROR,
-                )
-                .message_type(
-                    vk::DebugUtilsMessageTypeFlagsEXT::GENERAL
-                        | vk::DebugUtilsMessageTypeFlagsEXT::VALIDATION
-                        | vk::DebugUtilsMessageTypeFlagsEXT::PERFORMANCE,
-                )
-                .pfn_user_callback(Some(debug_callback))
-                .user_data(&*messages as *const Messages as *mut c_void);
-            let m = unsafe { du.create_debug_utils_messenger(&ci, None)? };
-            Some((du, m))
-        } else {
-            None
-        };
+type Messenger = (ash::ext::debug_utils::Instance, vk::DebugUtilsMessengerEXT);
+type Described = (vk::PhysicalDevice, String, vk::PhysicalDeviceType);
 
-        let surface = match opts.window {
-            Some((display, window)) => {
-                let raw = unsafe { ash_window::create_surface(&entry, &instance, display, window, None) }
-                    .context("cannot create a Vulkan surface for the window")?;
-                Some((ash::khr::surface::Instance::new(&entry, &instance), raw))
-            }
-            None => None,
-        };
-        let physicals = unsafe { instance.enumerate_physical_devices()? };
-        if physicals.is_empty() {
-            bail!("no Vulkan device found; install a driver (lavapipe: apt-get install mesa-vulkan-drivers)");
+/// The instance, with the validation layer (synchronization validation on) and a messenger
+/// collecting its messages when `opts.validation`, and the window's surface extensions.
+fn create_instance(opts: &GpuOptions) -> Result<(ash::Entry, ash::Instance, Box<Messages>, Option<Messenger>)> {
+    let entry = unsafe { ash::Entry::load() }.context(
+        "cannot load the Vulkan loader (libvulkan.so.1); install libvulkan1 and a driver, e.g. mesa-vulkan-drivers",
+    )?;
+    let app = vk::ApplicationInfo::default().application_name(c"instgs-vk").api_version(vk::API_VERSION_1_1);
+    let validation_layer = c"VK_LAYER_KHRONOS_validation";
+    let mut layers = Vec::new();
+    let mut extensions = Vec::new();
+    if opts.validation {
+        let available = unsafe { entry.enumerate_instance_layer_properties()? };
+        if !available.iter().any(|l| l.layer_name_as_c_str() == Ok(validation_layer)) {
+            bail!("validation was requested but VK_LAYER_KHRONOS_validation is not installed (Debian: apt-get install vulkan-validationlayers)");
         }
-        let described: Vec<(vk::PhysicalDevice, String, vk::PhysicalDeviceType)> = physicals
-            .iter()
-            .map(|&p| {
-                let props = unsafe { instance.get_physical_device_properties(p) };
-                let name = props.device_name_as_c_str().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
-                (p, name, props.device_type)
-            })
-            .collect();
-        let list = || described.iter().enumerate().map(|(i, d)| format!("{i}: {}", d.1)).collect::<Vec<_>>().join(", ");
-        let chosen = match &opts.device {
-            Some(sel) => {
-                if let Ok(i) = sel.parse::<usize>() {
-                    described.get(i).ok_or_else(|| anyhow!("device index {i} out of range; devices: {}", list()))?
-                } else {
-                    let low = sel.to_lowercase();
-                    described
-                        .iter()
-                        .find(|d| d.1.to_lowercase().contains(&low))
-                        .ok_or_else(|| anyhow!("no Vulkan device matches '{sel}'; devices: {}", list()))?
-                }
-            }
-            None => described.iter().min_by_key(|d| kind_rank(d.2).0).unwrap(),
-        };
-        let physical = chosen.0;
+        layers.push(validation_layer.as_ptr());
+        extensions.push(ash::ext::debug_utils::NAME.as_ptr());
+    }
+    if let Some((display, _)) = opts.window {
+        extensions.extend_from_slice(
+            ash_window::enumerate_required_extensions(display).context("this display has no Vulkan surface support")?,
+        );
+    }
+    let enables = [vk::ValidationFeatureEnableEXT::SYNCHRONIZATION_VALIDATION];
+    let mut features = vk::ValidationFeaturesEXT::default().enabled_validation_features(&enables);
+    let mut ci = vk::InstanceCreateInfo::default()
+        .application_info(&app)
+        .enabled_layer_names(&layers)
+        .enabled_extension_names(&extensions);
+    if opts.validation {
+        ci = ci.push_next(&mut features);
+    }
+    let instance = unsafe { entry.create_instance(&ci, None) }.context("vkCreateInstance failed")?;
+    let messages = Box::new(Messages(Mutex::new(Vec::new()), opts.echo_messages));
+    let debug = if opts.validation {
+        let du = ash::ext::debug_utils::Instance::new(&entry, &instance);
+        let ci = vk::DebugUtilsMessengerCreateInfoEXT::default()
+            .message_severity(
+                vk::DebugUtilsMessageSeverityFlagsEXT::WARNING | vk::DebugUtilsMessageSeverityFlagsEXT::ERROR,
+            )
+            .message_type(
+                vk::DebugUtilsMessageTypeFlagsEXT::GENERAL
+                    | vk::DebugUtilsMessageTypeFlagsEXT::VALIDATION
+                    | vk::DebugUtilsMessageTypeFlagsEXT::PERFORMANCE,
+            )
+            .pfn_user_callback(Some(debug_callback))
+            .user_data(&*messages as *const Messages as *mut c_void);
+        let m = unsafe { du.create_debug_utils_messenger(&ci, None)? };
+        Some((du, m))
+    } else {
+        None
+    };
+    Ok((entry, instance, messages, debug))
+}
 
+/// The device `selector` names (an index or a case-insensitive name substring), else the best
+/// kind: a discrete GPU over an integrated one over a CPU device.
+fn choose_device(instance: &ash::Instance, selector: Option<&str>) -> Result<Described> {
+    let physicals = unsafe { instance.enumerate_physical_devices()? };
+    if physicals.is_empty() {
+        bail!("no Vulkan device found; install a driver (lavapipe: apt-get install mesa-vulkan-drivers)");
+    }
+    let described: Vec<Described> = physicals
+        .iter()
+        .map(|&p| {
+            let props = unsafe { instance.get_physical_device_properties(p) };
+            let name = props.device_name_as_c_str().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
+            (p, name, props.device_type)
+        })
+        .collect();
+    let list = || described.iter().enumerate().map(|(i, d)| format!("{i}: {}", d.1)).collect::<Vec<_>>().join(", ");
+    let chosen = match selector {
+        Some(sel) => {
+            if let Ok(i) = sel.parse::<usize>() {
+                described.get(i).ok_or_else(|| anyhow!("device index {i} out of range; devices: {}", list()))?
+            } else {
+                let low = sel.to_lowercase();
+                described
+                    .iter()
+                    .find(|d| d.1.to_lowercase().contains(&low))
+                    .ok_or_else(|| anyhow!("no Vulkan device matches '{sel}'; devices: {}", list()))?
+            }
+        }
+        None => described.iter().min_by_key(|d| kind_rank(d.2).0).unwrap(),
+    };
+    Ok(chosen.clone())
+}
+
+/// What the kernels need of a device, checked: Vulkan 1.1, subgroup arithmetic in compute
+/// shaders, push descriptors; with the driver's description and the subgroup sizes.
+struct Capabilities {
+    props: vk::PhysicalDeviceProperties,
+    extensions: Vec<vk::ExtensionProperties>,
+    driver: String,
+    subgroup_size: u32,
+    min_subgroup_size: u32,
+}
+
+impl Capabilities {
+    fn query(instance: &ash::Instance, physical: vk::PhysicalDevice, name: &str) -> Result<Capabilities> {
         let props = unsafe { instance.get_physical_device_properties(physical) };
         if vk::api_version_major(props.api_version) == 1 && vk::api_version_minor(props.api_version) < 1 {
-            bail!("device '{}' supports only Vulkan 1.0; Vulkan 1.1 is needed", chosen.1);
+            bail!("device '{name}' supports only Vulkan 1.0; Vulkan 1.1 is needed");
         }
+        let extensions = unsafe { instance.enumerate_device_extension_properties(physical)? };
+        let has_ext = |n: &CStr| extensions.iter().any(|e| e.extension_name_as_c_str() == Ok(n));
         let mut subgroup = vk::PhysicalDeviceSubgroupProperties::default();
         let mut size_control = vk::PhysicalDeviceSubgroupSizeControlProperties::default();
-        let dev_exts = unsafe { instance.enumerate_device_extension_properties(physical)? };
-        let has_ext = |n: &CStr| dev_exts.iter().any(|e| e.extension_name_as_c_str() == Ok(n));
         let has_size_control =
             has_ext(ash::ext::subgroup_size_control::NAME) || vk::api_version_minor(props.api_version) >= 3;
         let mut driver_props = vk::PhysicalDeviceDriverProperties::default();
@@ -248,8 +261,8 @@ impl Gpu {
         );
         let driver = if has_driver_props {
             let text = |c: Result<&CStr, _>| c.map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
-            let (name, info) = (text(driver_props.driver_name_as_c_str()), text(driver_props.driver_info_as_c_str()));
-            format!("{name} {info} ({api})").trim().to_string()
+            let (dname, info) = (text(driver_props.driver_name_as_c_str()), text(driver_props.driver_info_as_c_str()));
+            format!("{dname} {info} ({api})").trim().to_string()
         } else {
             api
         };
@@ -257,46 +270,74 @@ impl Gpu {
         if !subgroup.supported_operations.contains(need)
             || !subgroup.supported_stages.contains(vk::ShaderStageFlags::COMPUTE)
         {
-            bail!("device '{}' lacks subgroup basic/arithmetic operations in compute shaders", chosen.1);
+            bail!("device '{name}' lacks subgroup basic/arithmetic operations in compute shaders");
         }
         if !has_ext(ash::khr::push_descriptor::NAME) {
-            bail!("device '{}' lacks VK_KHR_push_descriptor", chosen.1);
+            bail!("device '{name}' lacks VK_KHR_push_descriptor");
         }
         let min_subgroup_size = if has_size_control && size_control.min_subgroup_size > 0 {
             size_control.min_subgroup_size
         } else {
             subgroup.subgroup_size
         };
+        Ok(Capabilities { props, driver, subgroup_size: subgroup.subgroup_size, min_subgroup_size, extensions })
+    }
 
-        let families = unsafe { instance.get_physical_device_queue_family_properties(physical) };
-        let presents = |qf: usize| match &surface {
-            Some((loader, raw)) => unsafe {
-                loader.get_physical_device_surface_support(physical, qf as u32, *raw).unwrap_or(false)
-            },
-            None => true,
+    fn has_ext(&self, n: &CStr) -> bool {
+        self.extensions.iter().any(|e| e.extension_name_as_c_str() == Ok(n))
+    }
+}
+
+/// The queue family to use: one that computes and draws (every desktop driver's first), else one
+/// that computes; with a window, one that can also present to it.
+fn queue_family(
+    instance: &ash::Instance,
+    physical: vk::PhysicalDevice,
+    surface: Option<&(ash::khr::surface::Instance, vk::SurfaceKHR)>,
+    name: &str,
+) -> Result<(u32, vk::QueueFamilyProperties)> {
+    let families = unsafe { instance.get_physical_device_queue_family_properties(physical) };
+    let presents = |qf: usize| match surface {
+        Some((loader, raw)) => unsafe {
+            loader.get_physical_device_surface_support(physical, qf as u32, *raw).unwrap_or(false)
+        },
+        None => true,
+    };
+    let graphics = vk::QueueFlags::COMPUTE | vk::QueueFlags::GRAPHICS;
+    let (qf, qprops) = families
+        .iter()
+        .enumerate()
+        .find(|&(i, f)| f.queue_flags.contains(graphics) && presents(i))
+        .or_else(|| {
+            families.iter().enumerate().find(|&(i, f)| f.queue_flags.contains(vk::QueueFlags::COMPUTE) && presents(i))
+        })
+        .ok_or_else(|| match surface {
+            Some(_) => anyhow!("device '{name}' has no compute queue that can present to the window"),
+            None => anyhow!("device '{name}' has no compute queue"),
+        })?;
+    Ok((qf as u32, *qprops))
+}
+
+impl Gpu {
+    pub fn new(opts: &GpuOptions) -> Result<Arc<Gpu>> {
+        let (entry, instance, messages, debug) = create_instance(opts)?;
+        let surface = match opts.window {
+            Some((display, window)) => {
+                let raw = unsafe { ash_window::create_surface(&entry, &instance, display, window, None) }
+                    .context("cannot create a Vulkan surface for the window")?;
+                Some((ash::khr::surface::Instance::new(&entry, &instance), raw))
+            }
+            None => None,
         };
-        // A family that computes and draws (every desktop driver's first), else one that computes.
-        let graphics = vk::QueueFlags::COMPUTE | vk::QueueFlags::GRAPHICS;
-        let (qf, qprops) = families
-            .iter()
-            .enumerate()
-            .find(|&(i, f)| f.queue_flags.contains(graphics) && presents(i))
-            .or_else(|| {
-                families
-                    .iter()
-                    .enumerate()
-                    .find(|&(i, f)| f.queue_flags.contains(vk::QueueFlags::COMPUTE) && presents(i))
-            })
-            .ok_or_else(|| match surface {
-                Some(_) => anyhow!("device '{}' has no compute queue that can present to the window", chosen.1),
-                None => anyhow!("device '{}' has no compute queue", chosen.1),
-            })?;
-        let qf = qf as u32;
+        let (physical, name, device_type) = choose_device(&instance, opts.device.as_deref())?;
+        let caps = Capabilities::query(&instance, physical, &name)?;
+        let props = &caps.props;
+        let (qf, qprops) = queue_family(&instance, physical, surface.as_ref(), &name)?;
         let timestamp_period_ns = (qprops.timestamp_valid_bits > 0 && props.limits.timestamp_period > 0.0)
             .then_some(props.limits.timestamp_period as f64);
 
         let mut atomic_float = vk::PhysicalDeviceShaderAtomicFloatFeaturesEXT::default();
-        let has_atomic_float = has_ext(ash::ext::shader_atomic_float::NAME);
+        let has_atomic_float = caps.has_ext(ash::ext::shader_atomic_float::NAME);
         if has_atomic_float {
             let mut f2 = vk::PhysicalDeviceFeatures2::default().push_next(&mut atomic_float);
             unsafe { instance.get_physical_device_features2(physical, &mut f2) };
@@ -313,8 +354,8 @@ impl Gpu {
             dexts.push(ash::ext::shader_atomic_float::NAME.as_ptr());
         }
         if surface.is_some() {
-            if !has_ext(ash::khr::swapchain::NAME) {
-                bail!("device '{}' lacks VK_KHR_swapchain", chosen.1);
+            if !caps.has_ext(ash::khr::swapchain::NAME) {
+                bail!("device '{name}' lacks VK_KHR_swapchain");
             }
             dexts.push(ash::khr::swapchain::NAME.as_ptr());
         }
@@ -339,11 +380,10 @@ impl Gpu {
             allocation_sizes: Default::default(),
         })?;
         let info = DeviceInfo {
-            name: chosen.1.clone(),
-            kind: kind_rank(chosen.2).1,
-            driver,
-            subgroup_size: subgroup.subgroup_size,
-            min_subgroup_size,
+            kind: kind_rank(device_type).1,
+            driver: caps.driver.clone(),
+            subgroup_size: caps.subgroup_size,
+            min_subgroup_size: caps.min_subgroup_size,
             max_storage_buffer_range: props.limits.max_storage_buffer_range as u64,
             max_texel_buffer_elements: props.limits.max_texel_buffer_elements as u64,
             timestamp_period_ns,
@@ -353,6 +393,7 @@ impl Gpu {
                 f.optimal_tiling_features
                     .contains(vk::FormatFeatureFlags::COLOR_ATTACHMENT_BLEND | vk::FormatFeatureFlags::TRANSFER_SRC)
             },
+            name,
         };
         Ok(Arc::new(Gpu {
             _entry: entry,

@@ -213,80 +213,7 @@ impl Presenter {
                 &args,
                 [pixels.div_ceil(WG_SIZE).min(MAX_GROUPS), 1, 1],
             )?;
-            let d = &gpu.device;
-            let cmd = rec.raw();
-            let range = vk::ImageSubresourceRange::default()
-                .aspect_mask(vk::ImageAspectFlags::COLOR)
-                .level_count(1)
-                .layer_count(1);
-            let to_dst = vk::ImageMemoryBarrier::default()
-                .image(target)
-                .subresource_range(range)
-                .old_layout(vk::ImageLayout::UNDEFINED)
-                .new_layout(vk::ImageLayout::TRANSFER_DST_OPTIMAL)
-                .dst_access_mask(vk::AccessFlags::TRANSFER_WRITE);
-            let region = vk::BufferImageCopy::default()
-                .image_subresource(
-                    vk::ImageSubresourceLayers::default().aspect_mask(vk::ImageAspectFlags::COLOR).layer_count(1),
-                )
-                .image_extent(vk::Extent3D { width: ext.width, height: ext.height, depth: 1 });
-            let last_layout =
-                if read_image { vk::ImageLayout::TRANSFER_SRC_OPTIMAL } else { vk::ImageLayout::TRANSFER_DST_OPTIMAL };
-            let to_present = vk::ImageMemoryBarrier::default()
-                .image(target)
-                .subresource_range(range)
-                .old_layout(last_layout)
-                .new_layout(vk::ImageLayout::PRESENT_SRC_KHR)
-                .src_access_mask(if read_image {
-                    vk::AccessFlags::TRANSFER_READ
-                } else {
-                    vk::AccessFlags::TRANSFER_WRITE
-                });
-            // An image layout transition between transfers.
-            let transition = |b: vk::ImageMemoryBarrier| unsafe {
-                d.cmd_pipeline_barrier(
-                    cmd,
-                    vk::PipelineStageFlags::TRANSFER,
-                    vk::PipelineStageFlags::TRANSFER,
-                    vk::DependencyFlags::empty(),
-                    &[],
-                    &[],
-                    &[b],
-                )
-            };
-            transition(to_dst);
-            unsafe {
-                d.cmd_copy_buffer_to_image(cmd, texels.raw, target, vk::ImageLayout::TRANSFER_DST_OPTIMAL, &[region]);
-                if read_image {
-                    let to_src = vk::ImageMemoryBarrier::default()
-                        .image(target)
-                        .subresource_range(range)
-                        .old_layout(vk::ImageLayout::TRANSFER_DST_OPTIMAL)
-                        .new_layout(vk::ImageLayout::TRANSFER_SRC_OPTIMAL)
-                        .src_access_mask(vk::AccessFlags::TRANSFER_WRITE)
-                        .dst_access_mask(vk::AccessFlags::TRANSFER_READ);
-                    transition(to_src);
-                    d.cmd_copy_image_to_buffer(
-                        cmd,
-                        target,
-                        vk::ImageLayout::TRANSFER_SRC_OPTIMAL,
-                        shot_buf.raw,
-                        &[region],
-                    );
-                }
-                let host = vk::MemoryBarrier::default()
-                    .src_access_mask(vk::AccessFlags::TRANSFER_WRITE)
-                    .dst_access_mask(vk::AccessFlags::HOST_READ);
-                d.cmd_pipeline_barrier(
-                    cmd,
-                    vk::PipelineStageFlags::TRANSFER,
-                    vk::PipelineStageFlags::BOTTOM_OF_PIPE | vk::PipelineStageFlags::HOST,
-                    vk::DependencyFlags::empty(),
-                    &[host],
-                    &[],
-                    &[to_present],
-                );
-            }
+            copy_to_image(&gpu.device, rec.raw(), texels, target, ext, read_image.then_some(shot_buf));
             if screenshot && !sc.readable {
                 // The surface cannot be read: save the texels that were copied into it.
                 rec.copy(texels, shot_buf, pixels as u64 * 4);
@@ -324,6 +251,78 @@ impl Presenter {
             })
             .collect();
         Ok(Some((ext.width, ext.height, rgba)))
+    }
+}
+
+/// Records the copy of the packed `texels` into swapchain image `target` and its transition to
+/// the present layout; with `shot`, also the image's copy into that buffer (the screenshot).
+fn copy_to_image(
+    d: &ash::Device,
+    cmd: vk::CommandBuffer,
+    texels: &Buffer,
+    target: vk::Image,
+    ext: vk::Extent2D,
+    shot: Option<&Buffer>,
+) {
+    let range =
+        vk::ImageSubresourceRange::default().aspect_mask(vk::ImageAspectFlags::COLOR).level_count(1).layer_count(1);
+    let to_dst = vk::ImageMemoryBarrier::default()
+        .image(target)
+        .subresource_range(range)
+        .old_layout(vk::ImageLayout::UNDEFINED)
+        .new_layout(vk::ImageLayout::TRANSFER_DST_OPTIMAL)
+        .dst_access_mask(vk::AccessFlags::TRANSFER_WRITE);
+    let region = vk::BufferImageCopy::default()
+        .image_subresource(
+            vk::ImageSubresourceLayers::default().aspect_mask(vk::ImageAspectFlags::COLOR).layer_count(1),
+        )
+        .image_extent(vk::Extent3D { width: ext.width, height: ext.height, depth: 1 });
+    let last_layout =
+        if shot.is_some() { vk::ImageLayout::TRANSFER_SRC_OPTIMAL } else { vk::ImageLayout::TRANSFER_DST_OPTIMAL };
+    let to_present = vk::ImageMemoryBarrier::default()
+        .image(target)
+        .subresource_range(range)
+        .old_layout(last_layout)
+        .new_layout(vk::ImageLayout::PRESENT_SRC_KHR)
+        .src_access_mask(if shot.is_some() { vk::AccessFlags::TRANSFER_READ } else { vk::AccessFlags::TRANSFER_WRITE });
+    // An image layout transition between transfers.
+    let transition = |b: vk::ImageMemoryBarrier| unsafe {
+        d.cmd_pipeline_barrier(
+            cmd,
+            vk::PipelineStageFlags::TRANSFER,
+            vk::PipelineStageFlags::TRANSFER,
+            vk::DependencyFlags::empty(),
+            &[],
+            &[],
+            &[b],
+        )
+    };
+    transition(to_dst);
+    unsafe {
+        d.cmd_copy_buffer_to_image(cmd, texels.raw, target, vk::ImageLayout::TRANSFER_DST_OPTIMAL, &[region]);
+        if let Some(shot) = shot {
+            let to_src = vk::ImageMemoryBarrier::default()
+                .image(target)
+                .subresource_range(range)
+                .old_layout(vk::ImageLayout::TRANSFER_DST_OPTIMAL)
+                .new_layout(vk::ImageLayout::TRANSFER_SRC_OPTIMAL)
+                .src_access_mask(vk::AccessFlags::TRANSFER_WRITE)
+                .dst_access_mask(vk::AccessFlags::TRANSFER_READ);
+            transition(to_src);
+            d.cmd_copy_image_to_buffer(cmd, target, vk::ImageLayout::TRANSFER_SRC_OPTIMAL, shot.raw, &[region]);
+        }
+        let host = vk::MemoryBarrier::default()
+            .src_access_mask(vk::AccessFlags::TRANSFER_WRITE)
+            .dst_access_mask(vk::AccessFlags::HOST_READ);
+        d.cmd_pipeline_barrier(
+            cmd,
+            vk::PipelineStageFlags::TRANSFER,
+            vk::PipelineStageFlags::BOTTOM_OF_PIPE | vk::PipelineStageFlags::HOST,
+            vk::DependencyFlags::empty(),
+            &[host],
+            &[],
+            &[to_present],
+        );
     }
 }
 

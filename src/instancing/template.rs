@@ -75,22 +75,7 @@ pub fn instantiate(
     if labels.len() != scene.len() {
         bail!("{} labels for {} Gaussians", labels.len(), scene.len());
     }
-    let mut members: BTreeMap<u32, Vec<usize>> = BTreeMap::new();
-    for (i, &l) in labels.iter().enumerate() {
-        members.entry(l).or_default().push(i);
-    }
-    let known: std::collections::BTreeSet<u32> = groups.iter().flat_map(|g| g.ids.iter().copied()).collect();
-    let unknown: Vec<u32> = members.keys().copied().filter(|&l| l != 0 && !known.contains(&l)).collect();
-    if !unknown.is_empty() {
-        bail!("labels {unknown:?} are not instances of the groups file");
-    }
-    for g in groups {
-        for &id in &g.ids {
-            if members.get(&id).is_none_or(|m| m.is_empty()) {
-                bail!("group {:?}: instance {id} claims no Gaussian (its labels are empty)", g.name);
-            }
-        }
-    }
+    let members = members_of(labels, groups)?;
     let mut background_idx = members.get(&0).cloned().unwrap_or_default();
     let with_up;
     let o = match o.up {
@@ -110,7 +95,6 @@ pub fn instantiate(
     };
     let mut reports = Vec::new();
     let mut out_groups = Vec::new();
-    let c = scene.sh_coeffs() * 3;
     for g in groups {
         let parts: Vec<Scene> = g.ids.iter().map(|id| scene.select(&members[id])).collect();
         type Clouds = Vec<Vec<[f64; 3]>>;
@@ -149,30 +133,7 @@ pub fn instantiate(
                 if report.status.instanced() {
                     relative[k] = Some(x);
                 }
-                let line = match &report.status {
-                    Status::Refused(why) => format!("refused, stays plain: {why}"),
-                    _ => "accepted".into(),
-                };
-                progress(&format!(
-                    "{} {}: onto {} {line} (fitness {:.2} / {:.2}, scale {:.4}{}; {} poses tried{}{})",
-                    g.name,
-                    g.ids[k],
-                    g.ids[r],
-                    report.check.fitness,
-                    report.check.fitness_reverse,
-                    x.scale,
-                    report
-                        .render
-                        .map(|s| format!(", render IoU {:.2} PSNR {:.1} dB", s.iou, s.psnr))
-                        .unwrap_or_default(),
-                    report.tried,
-                    if report.refined > 1 {
-                        format!(", {} distinct ones refined", report.refined)
-                    } else {
-                        String::new()
-                    },
-                    if report.shape_ambiguous { "; shape ambiguous" } else { "" }
-                ));
+                progress(&pose_line(&report, x.scale));
             }
             group_reports.push(report);
         }
@@ -215,40 +176,101 @@ pub fn instantiate(
             background_idx.extend_from_slice(&members[&g.ids[k]]);
         }
         reports.extend(group_reports);
-        let parts: Vec<Scene> = kept.iter().map(|&k| parts[k].clone()).collect();
-        let ids: Vec<u32> = kept.iter().map(|&k| g.ids[k]).collect();
-        let relative: Vec<Sim3> = kept.iter().map(|&k| relative[k].expect("kept")).collect();
-        // Template space: the reference's world shifted so that its centroid is the origin.
-        let shift = Sim3 { translation: centroid(&opaque[r]), ..Sim3::identity() };
-        // template → world of instance k, and its inverse.
-        let to_world: Vec<Sim3> = relative.iter().map(|a| a.inverse().compose(&shift)).collect();
-        let to_template: Vec<Similarity> = to_world.iter().map(|x| sim3_to_similarity(&x.inverse())).collect();
-        let template = if parts.len() == 1 {
-            transform_gaussians(&parts[0], &to_template[0])
-        } else {
-            match o.init {
-                TemplateInit::First => transform_gaussians(&parts[0], &to_template[0]),
-                TemplateInit::Max => {
-                    let k = (0..parts.len()).max_by_key(|&k| (parts[k].len(), usize::MAX - k)).expect("instances");
-                    transform_gaussians(&parts[k], &to_template[k])
-                }
-                TemplateInit::Merge => merge_and_sample(&parts, &to_template, o.min_opacity, c / 3),
-            }
-        };
-        progress(&format!("{}: template of {} Gaussians ({:?})", g.name, template.len(), o.init));
-        let instances: Vec<Instance> = ids
-            .iter()
-            .zip(&to_world)
-            .map(|(id, x)| Instance { id: id.to_string(), transform: sim3_to_similarity(x) })
-            .collect();
-        let offsets = nearest_offsets(&template, &instances, &parts, reg.voxel as f32);
-        out_groups.push(Group { name: g.name.clone(), template, instances, offsets });
+        let group = build_group(&g.name, &parts, &kept, &g.ids, &relative, centroid(&opaque[r]), reg.voxel as f32, o);
+        progress(&format!("{}: template of {} Gaussians ({:?})", g.name, group.template.len(), o.init));
+        out_groups.push(group);
     }
     background_idx.sort_unstable();
     let background = scene.select(&background_idx);
     let out = InstancedScene { sh_degree: scene.sh_degree, background, groups: out_groups };
     out.validate("instanced scene")?;
     Ok((out, reports))
+}
+
+/// Each label's Gaussians (0: background), checked against the groups file: every label names
+/// one of its instances and every instance claims a Gaussian.
+fn members_of(labels: &[u32], groups: &[InstanceGroup]) -> Result<BTreeMap<u32, Vec<usize>>> {
+    let mut members: BTreeMap<u32, Vec<usize>> = BTreeMap::new();
+    for (i, &l) in labels.iter().enumerate() {
+        members.entry(l).or_default().push(i);
+    }
+    let known: std::collections::BTreeSet<u32> = groups.iter().flat_map(|g| g.ids.iter().copied()).collect();
+    let unknown: Vec<u32> = members.keys().copied().filter(|&l| l != 0 && !known.contains(&l)).collect();
+    if !unknown.is_empty() {
+        bail!("labels {unknown:?} are not instances of the groups file");
+    }
+    for g in groups {
+        for &id in &g.ids {
+            if members.get(&id).is_none_or(|m| m.is_empty()) {
+                bail!("group {:?}: instance {id} claims no Gaussian (its labels are empty)", g.name);
+            }
+        }
+    }
+    Ok(members)
+}
+
+/// The progress line of one instance's registration onto its reference.
+fn pose_line(report: &InstanceReport, scale: f64) -> String {
+    let line = match &report.status {
+        Status::Refused(why) => format!("refused, stays plain: {why}"),
+        _ => "accepted".into(),
+    };
+    format!(
+        "{} {}: onto {} {line} (fitness {:.2} / {:.2}, scale {:.4}{}; {} poses tried{}{})",
+        report.group,
+        report.id,
+        report.reference,
+        report.check.fitness,
+        report.check.fitness_reverse,
+        scale,
+        report.render.map(|s| format!(", render IoU {:.2} PSNR {:.1} dB", s.iou, s.psnr)).unwrap_or_default(),
+        report.tried,
+        if report.refined > 1 { format!(", {} distinct ones refined", report.refined) } else { String::new() },
+        if report.shape_ambiguous { "; shape ambiguous" } else { "" }
+    )
+}
+
+/// One group's template and offsets from its instances (`kept`: those with a pose; `relative`:
+/// each one's world → the reference's world). Template space is the reference's world shifted so
+/// that `centre` (its opaque centroid) is the origin; the template is `o.init`'s choice.
+#[allow(clippy::too_many_arguments)]
+fn build_group(
+    name: &str,
+    parts: &[Scene],
+    kept: &[usize],
+    ids: &[u32],
+    relative: &[Option<Sim3>],
+    centre: nalgebra::Vector3<f64>,
+    voxel: f32,
+    o: &InstanceOptions,
+) -> Group {
+    let parts: Vec<Scene> = kept.iter().map(|&k| parts[k].clone()).collect();
+    let ids: Vec<u32> = kept.iter().map(|&k| ids[k]).collect();
+    let relative: Vec<Sim3> = kept.iter().map(|&k| relative[k].expect("kept")).collect();
+    // Template space: the reference's world shifted so that its centroid is the origin.
+    let shift = Sim3 { translation: centre, ..Sim3::identity() };
+    // template → world of instance k, and its inverse.
+    let to_world: Vec<Sim3> = relative.iter().map(|a| a.inverse().compose(&shift)).collect();
+    let to_template: Vec<Similarity> = to_world.iter().map(|x| sim3_to_similarity(&x.inverse())).collect();
+    let template = if parts.len() == 1 {
+        transform_gaussians(&parts[0], &to_template[0])
+    } else {
+        match o.init {
+            TemplateInit::First => transform_gaussians(&parts[0], &to_template[0]),
+            TemplateInit::Max => {
+                let k = (0..parts.len()).max_by_key(|&k| (parts[k].len(), usize::MAX - k)).expect("instances");
+                transform_gaussians(&parts[k], &to_template[k])
+            }
+            TemplateInit::Merge => merge_and_sample(&parts, &to_template, o.min_opacity, parts[0].sh_coeffs()),
+        }
+    };
+    let instances: Vec<Instance> = ids
+        .iter()
+        .zip(&to_world)
+        .map(|(id, x)| Instance { id: id.to_string(), transform: sim3_to_similarity(x) })
+        .collect();
+    let offsets = nearest_offsets(&template, &instances, &parts, voxel);
+    Group { name: name.to_string(), template, instances, offsets }
 }
 
 /// The paper's merge-and-sample template: every instance's opaque Gaussians in template space,

@@ -302,32 +302,16 @@ pub fn candidates(
     Ok(out)
 }
 
-fn register_scaled(
-    source: &[[f64; 3]],
-    source_rgb: Option<&[[f64; 3]]>,
-    target: &[[f64; 3]],
-    target_rgb: Option<&[[f64; 3]]>,
+/// RANSAC over the feature correspondences `corr` (source index, target index): triples whose
+/// edge lengths agree, fitted by Umeyama within the scale `range`; the 8 hypotheses with the
+/// most correspondences within 1.5 voxels, at most one per 5° of rotation, most first.
+fn ransac(
+    s: &[[f64; 3]],
+    d: &[[f64; 3]],
+    corr: &[(usize, usize)],
     o: &RegisterOptions,
     range: Option<(f64, f64)>,
-) -> Result<Vec<Registration>> {
-    let (s, sc) = voxel_downsample_with(source, source_rgb, o.voxel);
-    let (d, dc) = voxel_downsample_with(target, target_rgb, o.voxel);
-    if s.len() < 8 || d.len() < 8 {
-        bail!(
-            "too few points to register ({} and {} voxels of {:.4}; {} and {} points)",
-            s.len(),
-            d.len(),
-            o.voxel,
-            source.len(),
-            target.len()
-        );
-    }
-    let (ns, nd) = (normals(&s, 2.0 * o.voxel, 30), normals(&d, 2.0 * o.voxel, 30));
-    let (fs, fd) = (fpfh(&s, &ns, 5.0 * o.voxel, 100), fpfh(&d, &nd, 5.0 * o.voxel, 100));
-    let corr = mutual_matches(&fs, &fd);
-    if corr.len() < 3 {
-        bail!("only {} mutual feature correspondences", corr.len());
-    }
+) -> Vec<(usize, Sim3)> {
     let dist = 1.5 * o.voxel;
     let mut rng = rand_pcg::Pcg64::seed_from_u64(o.seed);
     let mut best: Vec<(usize, Sim3)> = Vec::new();
@@ -360,6 +344,38 @@ fn register_scaled(
             best.truncate(KEEP);
         }
     }
+    best
+}
+
+fn register_scaled(
+    source: &[[f64; 3]],
+    source_rgb: Option<&[[f64; 3]]>,
+    target: &[[f64; 3]],
+    target_rgb: Option<&[[f64; 3]]>,
+    o: &RegisterOptions,
+    range: Option<(f64, f64)>,
+) -> Result<Vec<Registration>> {
+    let (s, sc) = voxel_downsample_with(source, source_rgb, o.voxel);
+    let (d, dc) = voxel_downsample_with(target, target_rgb, o.voxel);
+    if s.len() < 8 || d.len() < 8 {
+        bail!(
+            "too few points to register ({} and {} voxels of {:.4}; {} and {} points)",
+            s.len(),
+            d.len(),
+            o.voxel,
+            source.len(),
+            target.len()
+        );
+    }
+    let (ns, nd) = (normals(&s, 2.0 * o.voxel, 30), normals(&d, 2.0 * o.voxel, 30));
+    let (fs, fd) = (fpfh(&s, &ns, 5.0 * o.voxel, 100), fpfh(&d, &nd, 5.0 * o.voxel, 100));
+    let corr = mutual_matches(&fs, &fd);
+    if corr.len() < 3 {
+        bail!("only {} mutual feature correspondences", corr.len());
+    }
+    let dist = 1.5 * o.voxel;
+    let best = ransac(&s, &d, &corr, o, range);
+    const KEEP: usize = 8;
     if best.is_empty() && o.grid_rotations == 0 {
         bail!(
             "RANSAC found no hypothesis passing the edge-length and distance checks ({} correspondences)",

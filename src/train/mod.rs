@@ -213,22 +213,20 @@ fn fault_nan_at() -> Option<u64> {
     std::env::var("INSTGS_FAULT_NAN_AT").ok()?.parse().ok()
 }
 
-/// Trains `cfg.iterations` iterations on `ds`, writing into `opts.out`: `checkpoint.bin`,
-/// `metrics.csv`, `point_cloud.ply` and `curves.png`. With `opts.resume` it continues from the
-/// checkpoint (the configuration must match the one it was written with, iterations aside).
-pub fn run(gpu: &Arc<Gpu>, k: &Arc<Kernels>, ds: &Dataset, cfg: &Config, opts: &RunOptions) -> Result<RunSummary> {
-    let mut fresh = crate::util::NewFolder::create(&opts.out)?;
-    if ds.train.is_empty() {
-        bail!("the dataset has no training views");
-    }
-    let extent = ds.camera_extent();
-    let ckpt = checkpoint_path(&opts.out);
-    let scan = crate::dataset::content::content_identity(ds, &ds.dir, &opts.out)?;
-    let dataset = DatasetIdentity { images: Some(scan.id.images.clone()), ..ds.identity() };
-    let metrics_path = opts.out.join("metrics.csv");
-    let (mut state, mut rows) = if opts.resume {
-        if let Some(was) = checkpoint_dataset(&ckpt)? {
-            if let Some(why) = was.mismatch(&dataset) {
+/// The state a run starts from: its checkpoint and metrics when resuming (the same data and
+/// configuration, iterations aside), else the initial scene (`opts.init`, `opts.init_scene` or
+/// the dataset's points), with the colour transforms the configuration asks for.
+fn start_state(
+    ds: &Dataset,
+    cfg: &Config,
+    opts: &RunOptions,
+    ckpt: &std::path::Path,
+    dataset: &DatasetIdentity,
+    metrics_path: &std::path::Path,
+) -> Result<(TrainState, Vec<MetricsRow>)> {
+    let (mut state, rows) = if opts.resume {
+        if let Some(was) = checkpoint_dataset(ckpt)? {
+            if let Some(why) = was.mismatch(dataset) {
                 bail!(
                     "{}: the checkpoint was trained on other data: {why}; resume it on its own data, or choose another --out",
                     ckpt.display()
@@ -236,7 +234,7 @@ pub fn run(gpu: &Arc<Gpu>, k: &Arc<Kernels>, ds: &Dataset, cfg: &Config, opts: &
             }
         }
         let (st, saved) =
-            read_checkpoint(&ckpt).with_context(|| "cannot resume (run without --resume to start afresh)")?;
+            read_checkpoint(ckpt).with_context(|| "cannot resume (run without --resume to start afresh)")?;
         let same = Config { iterations: cfg.iterations, ..saved.clone() };
         if &same != cfg {
             bail!(
@@ -244,7 +242,7 @@ pub fn run(gpu: &Arc<Gpu>, k: &Arc<Kernels>, ds: &Dataset, cfg: &Config, opts: &
                 ckpt.display()
             );
         }
-        let text = std::fs::read_to_string(&metrics_path).unwrap_or_default();
+        let text = std::fs::read_to_string(metrics_path).unwrap_or_default();
         let rows: Vec<MetricsRow> =
             text.lines().skip(1).filter_map(MetricsRow::parse).filter(|r| r.iteration <= st.iteration).collect();
         (st, rows)
@@ -285,6 +283,61 @@ pub fn run(gpu: &Arc<Gpu>, k: &Arc<Kernels>, ds: &Dataset, cfg: &Config, opts: &
             ds.train.len()
         );
     }
+    Ok((state, rows))
+}
+
+/// Densification and the opacity reset due at iteration `it` (plain scenes, never on the last
+/// iteration: nothing would train after it, it would only alter the output): the adapted state,
+/// loaded into the trainer, or None when neither is due.
+fn adapt(
+    trainer: &mut Trainer,
+    state: &TrainState,
+    cfg: &Config,
+    it: u64,
+    extent: f32,
+    final_it: bool,
+) -> Result<Option<TrainState>> {
+    let d = &cfg.densify;
+    let plain = state.layout.is_none();
+    let densify_now = plain && !final_it && densifies(d, it);
+    let reset_now = plain && !final_it && resets_opacities(d, it);
+    if !(densify_now || reset_now) {
+        return Ok(None);
+    }
+    let mut state = trainer.download(it)?;
+    if densify_now {
+        let mut rng = rand_pcg::Pcg64::seed_from_u64(cfg.seed.wrapping_add(it.wrapping_mul(0x2545_f491)));
+        state = densify(&state, cfg, extent, &mut rng).0;
+    }
+    if reset_now {
+        reset_opacity(&mut state);
+    }
+    state.check_finite().context("training diverged; the last good checkpoint is kept")?;
+    if state.scene.is_empty() {
+        bail!(
+            "densification pruned every splat at iteration {it}: every opacity fell below densify.min_opacity ({}) or every size grew past densify.max_world_scale ({} × the scene extent); lower densify.min_opacity or raise densify.max_world_scale in the --config",
+            d.min_opacity,
+            d.max_world_scale
+        );
+    }
+    trainer.load(&state)?;
+    Ok(Some(state))
+}
+
+/// Trains `cfg.iterations` iterations on `ds`, writing into `opts.out`: `checkpoint.bin`,
+/// `metrics.csv`, `point_cloud.ply` and `curves.png`. With `opts.resume` it continues from the
+/// checkpoint (the configuration must match the one it was written with, iterations aside).
+pub fn run(gpu: &Arc<Gpu>, k: &Arc<Kernels>, ds: &Dataset, cfg: &Config, opts: &RunOptions) -> Result<RunSummary> {
+    let mut fresh = crate::util::NewFolder::create(&opts.out)?;
+    if ds.train.is_empty() {
+        bail!("the dataset has no training views");
+    }
+    let extent = ds.camera_extent();
+    let ckpt = checkpoint_path(&opts.out);
+    let scan = crate::dataset::content::content_identity(ds, &ds.dir, &opts.out)?;
+    let dataset = DatasetIdentity { images: Some(scan.id.images.clone()), ..ds.identity() };
+    let metrics_path = opts.out.join("metrics.csv");
+    let (mut state, mut rows) = start_state(ds, cfg, opts, &ckpt, &dataset, &metrics_path)?;
     for v in &ds.train {
         crate::train::optim::LossBufs::check_size(gpu, v.camera.width, v.camera.height)
             .with_context(|| v.path.display().to_string())?;
@@ -348,29 +401,8 @@ pub fn run(gpu: &Arc<Gpu>, k: &Arc<Kernels>, ds: &Dataset, cfg: &Config, opts: &
             let e = evaluate(&mut trainer.raster, &trainer.scene, &ds.test, cfg.background, |_, _| Ok(()))?;
             tested = Some((e.psnr, e.ssim));
         }
-        let d = &cfg.densify;
-        let plain = state.layout.is_none();
-        // Neither on the last iteration: nothing would train after it, it would only alter the output.
-        let densify_now = plain && !final_it && densifies(d, it);
-        let reset_now = plain && !final_it && resets_opacities(d, it);
-        if densify_now || reset_now {
-            state = trainer.download(it)?;
-            if densify_now {
-                let mut rng = rand_pcg::Pcg64::seed_from_u64(cfg.seed.wrapping_add(it.wrapping_mul(0x2545_f491)));
-                state = densify(&state, cfg, extent, &mut rng).0;
-            }
-            if reset_now {
-                reset_opacity(&mut state);
-            }
-            state.check_finite().context("training diverged; the last good checkpoint is kept")?;
-            if state.scene.is_empty() {
-                bail!(
-                    "densification pruned every splat at iteration {it}: every opacity fell below densify.min_opacity ({}) or every size grew past densify.max_world_scale ({} × the scene extent); lower densify.min_opacity or raise densify.max_world_scale in the --config",
-                    d.min_opacity,
-                    d.max_world_scale
-                );
-            }
-            trainer.load(&state)?;
+        if let Some(adapted) = adapt(&mut trainer, &state, cfg, it, extent, final_it)? {
+            state = adapted;
         }
         let mut row = MetricsRow {
             iteration: it,
