@@ -618,3 +618,49 @@ fn refining_transforms_recovers_perturbed_poses() {
     assert!(results[1].0 > results[0].0 + 1.0, "refinement: {:?}", results);
     assert_clean(&gpu);
 }
+
+#[test]
+fn rebalance_spends_the_bytes_where_they_show_and_refuses_what_renders_worse() {
+    use instgs_vk::instancing::compact::rebalance;
+    let (gpu, k) = gpu();
+    let mut rng = Rng::new(91);
+    let mut truth = random_instanced(&mut rng, 1, 60, &[(80, 4)]);
+    // Half of the template barely shows: tiny and nearly transparent.
+    let t = &mut truth.groups[0].template;
+    for j in 0..40 {
+        t.opacities[j] = -6.0;
+        t.scales[j] = [-6.0; 3];
+    }
+    let views = rendered_views(&truth, 8, 0.0);
+    // As the background budget left it: 20 of the 60 background Gaussians kept, 40 dropped.
+    let mut inst = truth.clone();
+    inst.background = truth.background.select(&(0..20).collect::<Vec<_>>());
+    let dropped = truth.background.select(&(20..60).collect::<Vec<_>>());
+    let (out, r) = rebalance(&gpu, &k, &inst, &dropped, &views, [0.0; 3], 0.0, |_| {}).unwrap();
+    assert!(r.accepted, "{r:?}");
+    assert!(r.bytes_after <= r.bytes_before, "{r:?}");
+    assert!(r.psnr_after > r.psnr_before + 1.0, "{r:?}");
+    // Every dropped background Gaussian comes back; the faint template Gaussians pay for it,
+    // and only the bytes left after everything that shows go to some of them.
+    assert!(r.template_gaussians_after < 80 && r.background_after == 60, "{r:?}");
+    out.validate("rebalanced").unwrap();
+    let g = &out.groups[0];
+    assert_eq!((g.template.len(), g.offsets.len()), (r.template_gaussians_after, 4 * r.template_gaussians_after));
+    let faint = g.template.opacities.iter().filter(|&&o| o == -6.0).count();
+    assert!(faint < 40, "{faint} of the 40 faint template Gaussians kept ({r:?})");
+    // Every visible template Gaussian stays, with its own offset rows.
+    assert_eq!(g.template.len() - faint, 40, "{r:?}");
+    let j = g.template.opacities.iter().position(|&o| o != -6.0).unwrap();
+    let src = truth.groups[0].template.means.iter().position(|m| *m == g.template.means[j]).unwrap();
+    let t_old = truth.groups[0].template.len();
+    for k in 0..4 {
+        assert_eq!(g.offsets.d_sh0[k * g.template.len() + j], truth.groups[0].offsets.d_sh0[k * t_old + src]);
+    }
+    // Views that show the scene as instanced: bringing the dropped background back renders them
+    // worse, so the check refuses and the scene stays as it was.
+    let views = rendered_views(&inst, 8, 0.0);
+    let (same, r) = rebalance(&gpu, &k, &inst, &dropped, &views, [0.0; 3], 0.0, |_| {}).unwrap();
+    assert!(!r.accepted && r.psnr_after < r.psnr_before, "{r:?}");
+    assert!(same == inst);
+    assert_clean(&gpu);
+}

@@ -324,8 +324,9 @@ fn per_frame_masks_from_a_2d_segmenter_are_associated_then_instanced() {
     });
     let base = data.parent().unwrap().to_path_buf();
     let cfg = base.join("tiny.toml");
-    // Also background pruning: half of the background stays.
-    std::fs::write(&cfg, format!("{TINY}[instance]\nbackground_keep = 0.5\n")).unwrap();
+    // Also background pruning: half of the background stays (the rebalance off, which would
+    // share the bytes again between templates and background).
+    std::fs::write(&cfg, format!("{TINY}[instance]\nbackground_keep = 0.5\nrebalance = false\n")).unwrap();
     let out = base.join("run");
     let o = run_bin(
         &[args(data.to_str().unwrap(), out.to_str().unwrap(), cfg.to_str().unwrap()), vec!["--until", "instance"]]
@@ -407,6 +408,18 @@ fn the_demo_accepts_no_wrong_pose() {
         assert!(rot <= 5.0 && trans <= 0.05 && scale.abs() <= 0.05, "accepted a wrong pose: {r}\n{}", o.stderr);
     }
     assert!(accepted >= 3, "only {accepted} of 5 ducks accepted:\n{}", o.stderr);
+    // Templates and background ranked under one budget: decided against the training views,
+    // never above the instanced scene's bytes when kept, and the file holds what was decided.
+    let rb = &v["rebalance"];
+    let kept = rb["accepted"].as_bool().unwrap();
+    assert!(rb["psnr_after"].as_f64().unwrap() >= rb["psnr_before"].as_f64().unwrap() || !kept, "{rb}");
+    if kept {
+        assert!(rb["bytes_after"].as_u64().unwrap() <= rb["bytes_before"].as_u64().unwrap(), "{rb}");
+        assert_eq!(v["template_gaussians"], rb["template_gaussians_after"], "{rb}");
+        assert_eq!(v["background_gaussians"], rb["background_after"], "{rb}");
+    }
+    let scene = instgs_vk::formats::instgs::read(&run.join("init.instgs")).unwrap();
+    assert_eq!(serde_json::json!(scene.background.len()), v["background_gaussians"]);
 }
 
 #[test]

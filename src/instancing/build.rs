@@ -18,9 +18,18 @@ use crate::util::write_json;
 pub type KeepRule<'a> =
     dyn FnMut(&crate::model::scene::Scene, &[u32], &[f32]) -> Result<(f64, Vec<f32>, serde_json::Value)> + 'a;
 
+/// Spends the instanced scene's memory again between its templates and its background
+/// ([`crate::instancing::compact::rebalance`]): (instanced scene, the background Gaussians the
+/// keep rule dropped) → (the scene to write, what was decided as JSON).
+pub type RebalanceRule<'a> = dyn FnMut(
+        &crate::model::instanced::InstancedScene,
+        &crate::model::scene::Scene,
+    ) -> Result<(crate::model::instanced::InstancedScene, serde_json::Value)>
+    + 'a;
+
 #[allow(clippy::too_many_arguments)]
 /// Builds `out` from a segmented plain scene: optional background pruning (`prune`: the
-/// significance file and the keep rule), templates and verified transforms
+/// significance file, the keep rule and optionally the rebalance of templates and background), templates and verified transforms
 /// ([`template::instantiate`](crate::instancing::template::instantiate)), pose errors against ground truth; prints a line per instance
 /// and returns (and writes to `report`) the JSON report.
 pub fn instance(
@@ -30,7 +39,7 @@ pub fn instance(
     truth_path: Option<(&Path, TruthIds)>,
     opts: &crate::instancing::options::InstanceOptions,
     dtype: instgs::Dtype,
-    prune: Option<(&Path, &mut KeepRule)>,
+    prune: Option<(&Path, &mut KeepRule, Option<&mut RebalanceRule>)>,
     check: Option<&mut dyn crate::instancing::pose::RenderCheck>,
     report: Option<&Path>,
     out: &Path,
@@ -50,8 +59,9 @@ pub fn instance(
     // Background pruning (the pipeline's `instance.background_keep`): the background Gaussians
     // ranked by `rule` from significance.bin (f32 per Gaussian, written by `segment`) stay.
     let mut pruned = serde_json::Value::Null;
-    let (scene, labels) = match prune {
-        Some((sig_path, rule)) => {
+    let mut dropped = None;
+    let (scene, labels, rebalance) = match prune {
+        Some((sig_path, rule, rebalance)) => {
             let bytes = std::fs::read(sig_path).with_context(|| format!("{}: cannot read", sig_path.display()))?;
             if bytes.len() != 4 * scene.len() {
                 bail!("{}: {} bytes, expected 4 per Gaussian ({})", sig_path.display(), bytes.len(), scene.len());
@@ -59,15 +69,27 @@ pub fn instance(
             let sig: Vec<f32> = bytes.chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect();
             let before = labels.iter().filter(|&&l| l == 0).count();
             let (keep, ranking, how) = rule(&scene, &labels, &sig)?;
-            let (s, l, dropped) = template::prune_background(&scene, &labels, &ranking, keep)?;
-            eprintln!("background: kept {} of {before} Gaussians ({:.1} %)", before - dropped, 100.0 * keep);
-            pruned = serde_json::json!({"keep": keep, "before": before, "dropped": dropped, "rule": how});
-            (s, l)
+            let (s, l, n_dropped) = template::prune_background(&scene, &labels, &ranking, keep)?;
+            eprintln!("background: kept {} of {before} Gaussians ({:.1} %)", before - n_dropped, 100.0 * keep);
+            pruned = serde_json::json!({"keep": keep, "before": before, "dropped": n_dropped, "rule": how});
+            if rebalance.is_some() {
+                let (order, n_keep) = template::ranked_background(&labels, &ranking, keep);
+                let mut gone = order[n_keep..].to_vec();
+                gone.sort_unstable();
+                dropped = Some(scene.select(&gone));
+            }
+            (s, l, rebalance)
         }
-        None => (scene, labels),
+        None => (scene, labels, None),
     };
     let check_ran = check.is_some();
-    let (inst, reports) = template::instantiate(&scene, &labels, &groups, opts, check, |line| eprintln!("{line}"))?;
+    let (mut inst, reports) = template::instantiate(&scene, &labels, &groups, opts, check, |line| eprintln!("{line}"))?;
+    let mut rebalanced = serde_json::Value::Null;
+    if let (Some(rule), Some(dropped)) = (rebalance, &dropped) {
+        if !inst.groups.is_empty() {
+            (inst, rebalanced) = rule(&inst, dropped)?;
+        }
+    }
     if crate::train::INTERRUPTED.load(std::sync::atomic::Ordering::SeqCst) {
         bail!("interrupted before {} was written", out.display());
     }
@@ -151,6 +173,7 @@ pub fn instance(
         "background_gaussians": inst.background.len(),
         "splats": inst.splats(),
         "background_pruning": pruned,
+        "rebalance": rebalanced,
         "instances": rows,
     });
     if let Some(path) = report {

@@ -1,5 +1,6 @@
 //! How much of the background an instanced scene keeps, chosen by a quality budget instead of a
-//! per-scene number. The background Gaussians are ranked by significance (their blending
+//! per-scene number, and how its bytes are then shared between templates and background
+//! ([`rebalance`]). The background Gaussians are ranked by significance (their blending
 //! weight T·α summed over every pixel of the training views — LightGaussian's global
 //! significance without the volume term, from the segmentation pass); those near an instance
 //! rank first (the instance's outline: the template cannot stand in for them). The kept fraction
@@ -17,6 +18,7 @@ use crate::gpu::kernels::Kernels;
 use crate::gpu::Gpu;
 use crate::instancing::template::prune_background;
 use crate::math::tree;
+use crate::model::instanced::{Group, InstancedScene, Offsets};
 use crate::model::scene::Scene;
 use crate::register::object_size;
 use crate::render::raster::Rasterizer;
@@ -153,4 +155,200 @@ pub fn prune_to_bytes(gpu: &Arc<Gpu>, scene: &Scene, significance: &[f32], bytes
         }
         n -= (n / 1000).max(1);
     }
+}
+
+/// What [`rebalance`] decided (instance.json's `rebalance`).
+#[derive(Clone, Debug, serde::Serialize)]
+pub struct Rebalance {
+    /// GPU bytes of the instanced scene (every pair rendered): the budget, and after.
+    pub bytes_before: u64,
+    pub bytes_after: u64,
+    pub template_gaussians_before: usize,
+    pub template_gaussians_after: usize,
+    pub background_before: usize,
+    pub background_after: usize,
+    /// Mean PSNR (dB) over up to [`BUDGET_VIEWS`] training views before and after: the check.
+    pub psnr_before: f64,
+    pub psnr_after: f64,
+    pub views: usize,
+    /// The rebalanced scene was kept: within the budget and no worse on the views.
+    pub accepted: bool,
+}
+
+/// One memory budget for the templates and the background. The background budget above prunes
+/// the background only and keeps every template whole, while a pruned plain scene of the same
+/// bytes ranks every Gaussian, objects' included, by one measure — and so spends its bytes
+/// better (BENCHMARKS.md, "Photos as users take them"). Here every background Gaussian, kept
+/// (`inst.background`) or dropped (`dropped`), and every template Gaussian compete for the
+/// instanced scene's own GPU bytes by significance per byte: a background Gaussian's
+/// significance (blending weight T·α over every pixel of `views`, [`crate::segment::significance`]
+/// on the expanded scene; those within `outline_fraction` of an instance first, as above) for
+/// one Gaussian's bytes, a template Gaussian's summed over its instances for one Gaussian's bytes
+/// plus one offset row per instance. Each template keeps at least its most significant Gaussian.
+/// Checked before it is trusted: the result is kept only when it renders up to [`BUDGET_VIEWS`]
+/// of the views at least as well as `inst` (mean PSNR) within `inst`'s bytes; otherwise `inst`
+/// is returned unchanged, and the report says so.
+#[allow(clippy::too_many_arguments)]
+pub fn rebalance(
+    gpu: &Arc<Gpu>,
+    k: &Arc<Kernels>,
+    inst: &InstancedScene,
+    dropped: &Scene,
+    views: &[View],
+    background: [f32; 3],
+    outline_fraction: f64,
+    mut progress: impl FnMut(&str),
+) -> Result<(InstancedScene, Rebalance)> {
+    let n = views.len().min(BUDGET_VIEWS);
+    if n == 0 {
+        bail!("no training views to rebalance the scene's memory on");
+    }
+    let mut cand = inst.clone();
+    cand.background = inst.background.concat(dropped);
+    let nb = cand.background.len();
+    let expanded = cand.expand();
+    let sig = crate::segment::significance(gpu, k, &expanded, views, |d, all| {
+        if d % 10 == 0 || d == all {
+            progress(&format!("rebalance: significance {d}/{all} views"));
+        }
+    })?;
+    // Labels of the expanded splats (0: background; one id per instance) for the outlines.
+    let mut labels = vec![0u32; nb];
+    let mut id = 0;
+    for g in &cand.groups {
+        for _ in &g.instances {
+            id += 1;
+            labels.extend(std::iter::repeat_n(id, g.template.len()));
+        }
+    }
+    let (ranking, _) = protect_outlines(&expanded, &labels, &sig, outline_fraction);
+    let top = sig.iter().copied().filter(|s| s.is_finite()).fold(0.0f32, f32::max);
+    // Bytes of one Gaussian row and of one offset row, from the device's own layout.
+    let bytes_of = |s: &InstancedScene| -> Result<u64> { Ok(GpuScene::instanced(gpu, s)?.gpu_bytes()) };
+    let budget = bytes_of(inst)?;
+    let row = GpuScene::new(gpu, &cand.background)?.gpu_bytes() as f64 / nb.max(1) as f64;
+    let pairs: usize = inst.groups.iter().map(|g| g.template.len() * g.instances.len()).sum();
+    let pair = ((budget as f64 - row * inst.rows() as f64) / pairs.max(1) as f64).max(0.0);
+    // Items: (forced, value per byte, which). which: Err(i) background i, Ok((g, j)) template.
+    let mut items: Vec<(bool, f64, Item)> = Vec::new();
+    for (i, &r) in ranking.iter().enumerate().take(nb) {
+        items.push((r > top, sig[i] as f64 / row, Err(i)));
+    }
+    let mut first = nb;
+    for (gi, g) in cand.groups.iter().enumerate() {
+        let t = g.template.len();
+        let value: Vec<f64> =
+            (0..t).map(|j| (0..g.instances.len()).map(|k| sig[first + k * t + j] as f64).sum()).collect();
+        let best = (0..t).max_by(|&a, &b| value[a].total_cmp(&value[b]));
+        let cost = row + pair * g.instances.len() as f64;
+        for (j, v) in value.iter().enumerate() {
+            items.push((Some(j) == best, v / cost, Ok((gi, j))));
+        }
+        first += t * g.instances.len();
+    }
+    items.sort_by(|a, b| b.0.cmp(&a.0).then(b.1.total_cmp(&a.1)));
+    let cost = |item: &Item| match item {
+        Err(_) => row,
+        Ok((g, _)) => row + pair * cand.groups[*g].instances.len() as f64,
+    };
+    let mut take = 0;
+    let mut spent = 0.0;
+    while take < items.len() && spent + cost(&items[take].2) <= budget as f64 {
+        spent += cost(&items[take].2);
+        take += 1;
+    }
+    let forced = items.iter().filter(|i| i.0).count();
+    // The estimate's take, then the most items whose scene the device's own count fits in the
+    // budget (bytes grow with every item kept).
+    let fits =
+        |take: usize| -> Result<bool> { Ok(bytes_of(&keep_items(&cand, &items[..take.max(forced)]))? <= budget) };
+    let (mut lo, mut hi) = if fits(take)? { (take, items.len() + 1) } else { (forced, take) };
+    if lo == forced && !fits(forced)? {
+        hi = forced;
+    }
+    while hi - lo > 1 {
+        let mid = (lo + hi) / 2;
+        if fits(mid)? {
+            lo = mid;
+        } else {
+            hi = mid;
+        }
+    }
+    let out = keep_items(&cand, &items[..lo.max(forced)]);
+    out.validate("rebalanced scene")?;
+    let pick: Vec<&View> = (0..n).map(|i| &views[i * views.len() / n]).collect();
+    let mut r = Rasterizer::new(gpu, k)?;
+    let mut psnr = |s: &InstancedScene| -> Result<f64> {
+        let gs = GpuScene::instanced(gpu, s)?;
+        let mut sum = 0.0;
+        for v in &pick {
+            sum += crate::util::psnr(&r.render(&gs, &v.camera, background)?.image, &v.image);
+        }
+        Ok(sum / n as f64)
+    };
+    let (psnr_before, psnr_after) = (psnr(inst)?, psnr(&out)?);
+    let bytes_after = bytes_of(&out)?;
+    let accepted = bytes_after <= budget && psnr_after >= psnr_before;
+    let t = |s: &InstancedScene| s.groups.iter().map(|g| g.template.len()).sum::<usize>();
+    let report = Rebalance {
+        bytes_before: budget,
+        bytes_after,
+        template_gaussians_before: t(inst),
+        template_gaussians_after: t(&out),
+        background_before: inst.background.len(),
+        background_after: out.background.len(),
+        psnr_before,
+        psnr_after,
+        views: n,
+        accepted,
+    };
+    progress(&format!(
+        "rebalance: templates {} → {} Gaussians, background {} → {}, {:.2} → {:.2} MB, {:.2} → {:.2} dB on {n} training views: {}",
+        report.template_gaussians_before,
+        report.template_gaussians_after,
+        report.background_before,
+        report.background_after,
+        budget as f64 / 1e6,
+        bytes_after as f64 / 1e6,
+        psnr_before,
+        psnr_after,
+        if accepted { "kept" } else { "refused (the scene as instanced stays)" }
+    ));
+    Ok((if accepted { out } else { inst.clone() }, report))
+}
+
+/// A Gaussian [`rebalance`] may keep: `Err(i)` background Gaussian i, `Ok((g, j))` Gaussian j of
+/// group g's template.
+type Item = std::result::Result<(usize, usize), usize>;
+
+/// `cand` with only the background and template Gaussians of `items` (each template's offset rows
+/// with it), in their original order.
+fn keep_items(cand: &InstancedScene, items: &[(bool, f64, Item)]) -> InstancedScene {
+    let mut bg = Vec::new();
+    let mut keep: Vec<Vec<usize>> = vec![Vec::new(); cand.groups.len()];
+    for item in items {
+        match item.2 {
+            Err(i) => bg.push(i),
+            Ok((g, j)) => keep[g].push(j),
+        }
+    }
+    bg.sort_unstable();
+    let groups = cand
+        .groups
+        .iter()
+        .zip(&mut keep)
+        .map(|(g, js)| {
+            js.sort_unstable();
+            let t = g.template.len();
+            let rows: Vec<usize> = (0..g.instances.len()).flat_map(|k| js.iter().map(move |j| k * t + j)).collect();
+            let pick3 = |v: &[[f32; 3]]| rows.iter().map(|&r| v[r]).collect();
+            let offsets = Offsets {
+                d_means: pick3(&g.offsets.d_means),
+                d_sh0: pick3(&g.offsets.d_sh0),
+                d_opacities: rows.iter().map(|&r| g.offsets.d_opacities[r]).collect(),
+            };
+            Group { name: g.name.clone(), template: g.template.select(js), instances: g.instances.clone(), offsets }
+        })
+        .collect();
+    InstancedScene { sh_degree: cand.sh_degree, background: cand.background.select(&bg), groups }
 }

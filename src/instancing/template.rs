@@ -32,6 +32,15 @@ use crate::model::scene::Scene;
 use crate::register::{centroid, farthest_point_sample, object_size, Sim3};
 use crate::train::knn_log_scales;
 
+/// The background Gaussians (label 0), most significant first (ties: scene order), and how many
+/// of them a kept fraction `keep` keeps (⌈keep × background⌉): [`prune_background`]'s choice.
+pub fn ranked_background(labels: &[u32], significance: &[f32], keep: f64) -> (Vec<usize>, usize) {
+    let mut bg: Vec<usize> = (0..labels.len()).filter(|&i| labels[i] == 0).collect();
+    let n_keep = ((keep * bg.len() as f64).ceil() as usize).min(bg.len());
+    bg.sort_by(|&a, &b| significance[b].total_cmp(&significance[a]).then(a.cmp(&b)));
+    (bg, n_keep)
+}
+
 /// Drops background Gaussians (label 0) of little significance: keeps every instance Gaussian
 /// and the ⌈keep × background⌉ background Gaussians of the largest `significance` (e.g.
 /// [`crate::segment::Segmentation::weight`]), in their order. Returns the scene, its labels and
@@ -48,9 +57,7 @@ pub fn prune_background(
     if !(keep > 0.0 && keep <= 1.0) {
         bail!("the kept background fraction must be in (0, 1], not {keep}");
     }
-    let mut bg: Vec<usize> = (0..scene.len()).filter(|&i| labels[i] == 0).collect();
-    let n_keep = ((keep * bg.len() as f64).ceil() as usize).min(bg.len());
-    bg.sort_by(|&a, &b| significance[b].total_cmp(&significance[a]).then(a.cmp(&b)));
+    let (bg, n_keep) = ranked_background(labels, significance, keep);
     let mut kept = vec![false; scene.len()];
     for &i in &bg[..n_keep] {
         kept[i] = true;

@@ -53,7 +53,17 @@ impl Scene {
         self.means.is_empty()
     }
 
-    /// SH coefficients per channel: (degree + 1)².
+    /// `self`'s Gaussians followed by `other`'s (the same SH degree).
+    pub fn concat(&self, other: &Scene) -> Scene {
+        let mut out = self.clone();
+        out.means.extend_from_slice(&other.means);
+        out.scales.extend_from_slice(&other.scales);
+        out.quats.extend_from_slice(&other.quats);
+        out.opacities.extend_from_slice(&other.opacities);
+        out.sh.extend_from_slice(&other.sh);
+        out
+    }
+
     /// The Gaussians at `idx`, in that order.
     pub fn select(&self, idx: &[usize]) -> Scene {
         let c = self.sh_coeffs() * 3;
@@ -67,6 +77,7 @@ impl Scene {
         }
     }
 
+    /// SH coefficients per channel: (degree + 1)².
     pub fn sh_coeffs(&self) -> usize {
         ((self.sh_degree + 1) * (self.sh_degree + 1)) as usize
     }

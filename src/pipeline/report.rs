@@ -166,47 +166,68 @@ fn comparison_section(
             );
         }
         md.push('\n');
-        if let Some(seg) = read(run, "segment.json") {
-            let bg = num(&seg, "background").unwrap_or(0.0);
-            let objects: f64 =
-                seg["instances"].as_array().into_iter().flatten().filter_map(|r| num(r, "gaussians")).sum();
-            let pruning = read(run, "instance.json").map(|v| v["background_pruning"].clone()).unwrap_or_default();
-            if let (Some(keep), Some(dropped)) = (num(&pruning, "keep"), num(&pruning, "dropped")) {
-                let rule = &pruning["rule"];
-                let how = match (num(rule, "budget_db"), num(rule, "psnr_whole"), num(rule, "psnr_pruned")) {
-                    (Some(b), Some(w), Some(p)) => format!(
-                        "the smallest share whose pruned plain scene stays within the budget of {b} dB on {} training \
-                         views ({w:.2} → {p:.2} dB) before the joint optimisation",
-                        rule["views"]
-                    ),
-                    _ => format!("`instance.background_keep` = {keep}"),
-                };
+        compaction_paragraph(md, run);
+    }
+}
+
+/// How the instanced scene was made compact: the background's pruning and the rebalance.
+fn compaction_paragraph(md: &mut String, run: &Path) {
+    if let Some(seg) = read(run, "segment.json") {
+        let bg = num(&seg, "background").unwrap_or(0.0);
+        let objects: f64 = seg["instances"].as_array().into_iter().flatten().filter_map(|r| num(r, "gaussians")).sum();
+        let pruning = read(run, "instance.json").map(|v| v["background_pruning"].clone()).unwrap_or_default();
+        if let (Some(keep), Some(dropped)) = (num(&pruning, "keep"), num(&pruning, "dropped")) {
+            let rule = &pruning["rule"];
+            let how = match (num(rule, "budget_db"), num(rule, "psnr_whole"), num(rule, "psnr_pruned")) {
+                (Some(b), Some(w), Some(p)) => format!(
+                    "the smallest share whose pruned plain scene stays within the budget of {b} dB on {} training \
+                     views ({w:.2} → {p:.2} dB) before the joint optimisation",
+                    rule["views"]
+                ),
+                _ => format!("`instance.background_keep` = {keep}"),
+            };
+            let _ = writeln!(
+                md,
+                "Of the plain scene's {:.0} Gaussians, {:.0} ({:.1} %) belong to instances; of its {:.0} background \
+                 Gaussians InstGS keeps the {:.0} most significant ({:.1} %: {how}; the {} near an instance rank \
+                 first).\n",
+                bg + objects,
+                objects,
+                100.0 * objects / (bg + objects),
+                bg,
+                bg - dropped,
+                100.0 * keep,
+                rule["protected"]
+            );
+            let rb = read(run, "instance.json").map(|v| v["rebalance"].clone()).unwrap_or_default();
+            if let Some(accepted) = rb["accepted"].as_bool() {
                 let _ = writeln!(
                     md,
-                    "Of the plain scene's {:.0} Gaussians, {:.0} ({:.1} %) belong to instances; of its {:.0} background \
-                     Gaussians InstGS keeps the {:.0} most significant ({:.1} %: {how}; the {} near an instance rank \
-                     first).\n",
-                    bg + objects,
-                    objects,
-                    100.0 * objects / (bg + objects),
-                    bg,
-                    bg - dropped,
-                    100.0 * keep,
-                    rule["protected"]
-                );
-            } else if bg + objects > 0.0 {
-                let _ = writeln!(
-                    md,
-                    "Of the plain scene's {:.0} Gaussians, {:.0} ({:.1} %) belong to instances; the {:.0} background \
-                     Gaussians stay plain in InstGS, so its memory cannot fall below {:.3}× of the plain scene's \
-                     without touching the background.\n",
-                    bg + objects,
-                    objects,
-                    100.0 * objects / (bg + objects),
-                    bg,
-                    bg / (bg + objects)
+                    "Then templates and background were ranked under one memory budget (significance per byte, \
+                     `instance.rebalance`): templates {} → {} Gaussians, background {} → {}, {:.2} → {:.2} dB on {} \
+                     training views before the joint optimisation — {}.\n",
+                    rb["template_gaussians_before"],
+                    rb["template_gaussians_after"],
+                    rb["background_before"],
+                    rb["background_after"],
+                    num(&rb, "psnr_before").unwrap_or(f64::NAN),
+                    num(&rb, "psnr_after").unwrap_or(f64::NAN),
+                    rb["views"],
+                    if accepted { "kept" } else { "refused, the scene as instanced stays" }
                 );
             }
+        } else if bg + objects > 0.0 {
+            let _ = writeln!(
+                md,
+                "Of the plain scene's {:.0} Gaussians, {:.0} ({:.1} %) belong to instances; the {:.0} background \
+                 Gaussians stay plain in InstGS, so its memory cannot fall below {:.3}× of the plain scene's \
+                 without touching the background.\n",
+                bg + objects,
+                objects,
+                100.0 * objects / (bg + objects),
+                bg,
+                bg / (bg + objects)
+            );
         }
     }
 }

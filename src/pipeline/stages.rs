@@ -210,6 +210,14 @@ impl Ctx<'_> {
                 }
             }
         };
+        let mut rebalance = |inst: &crate::model::instanced::InstancedScene, dropped: &crate::model::scene::Scene| {
+            let (out, how) =
+                crate::instancing::compact::rebalance(gpu, k, inst, dropped, views, bg, c.outline_fraction, |l| {
+                    eprintln!("{l}")
+                })?;
+            Ok((out, serde_json::to_value(&how)?))
+        };
+        let rebalance = c.rebalance.then_some(&mut rebalance as &mut crate::instancing::build::RebalanceRule);
         let r = crate::instancing::build::instance(
             &run.join("point_cloud.ply"),
             &run.join("labels.json"),
@@ -217,7 +225,7 @@ impl Ctx<'_> {
             truth.as_ref().map(|(p, ids)| (p.as_path(), *ids)),
             &opts,
             dtype,
-            Some((&run.join("significance.bin"), &mut rule)),
+            Some((&run.join("significance.bin"), &mut rule, rebalance)),
             check.as_mut().map(|c| c as &mut dyn crate::instancing::pose::RenderCheck),
             None,
             &run.join("init.instgs"),

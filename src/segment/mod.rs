@@ -119,6 +119,24 @@ pub fn segment_with_progress(
     Ok(Segmentation { ids: ids.to_vec(), labels, g, weight: all.to_vec(), unknown_ids: unknown.into_iter().collect() })
 }
 
+/// Each Gaussian's significance over `views`: its blending weight T·α summed over every pixel
+/// (GSeg(1), [`Segmentation::weight`] without masks); `progress(views done, views)`.
+pub fn significance(
+    gpu: &Arc<Gpu>,
+    k: &Arc<Kernels>,
+    scene: &Scene,
+    views: &[View],
+    mut progress: impl FnMut(usize, usize),
+) -> Result<Vec<f32>> {
+    let mut scorer = Scorer::new(gpu, k, scene, 1)?;
+    for (i, view) in views.iter().enumerate() {
+        let none = vec![0u16; (view.camera.width * view.camera.height) as usize];
+        scorer.add_view(view, &none, &[])?;
+        progress(i + 1, views.len());
+    }
+    scorer.read()
+}
+
 /// Per-Gaussian GSeg sums on the GPU: slot j < ids.len() for mask id ids[j], the last slot for
 /// every pixel (GSeg(1)); `scores[slot·n + i]`.
 struct Scorer<'a> {

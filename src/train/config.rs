@@ -253,6 +253,8 @@ pub struct InstanceStage {
     pub background_budget_db: f64,
     /// Background Gaussians within this fraction of an instance's size rank first.
     pub outline_fraction: f64,
+    /// Templates and background under one memory budget (crate::instancing::compact::rebalance).
+    pub rebalance: bool,
     /// Acceptance of registered poses (crate::instancing::options::Acceptance).
     pub min_fitness: f64,
     pub scale_tolerance: f64,
