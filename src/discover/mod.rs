@@ -69,6 +69,10 @@ pub struct DiscoverOptions {
     pub max_cluster_size: f64,
     /// Copies per group at most.
     pub max_copies: usize,
+    /// Groups (auto) whose objects are smaller than this fraction of the largest group's
+    /// objects are specks, not objects: dropped and reported (BENCHMARKS.md says how it was
+    /// chosen).
+    pub min_object_fraction: f64,
 }
 
 impl Default for DiscoverOptions {
@@ -83,6 +87,7 @@ impl Default for DiscoverOptions {
             min_cluster: 30,
             max_cluster_size: 0.4,
             max_copies: 64,
+            min_object_fraction: 0.25,
         }
     }
 }
@@ -348,8 +353,46 @@ pub fn auto(
             progress(&format!("{}: one member ({}), stays background", g.name, g.members[0].id));
         }
     }
+    drop_specks(scene, &support, &mut groups, o, &mut out.refused, &mut progress);
     out.groups = groups;
     Ok(out)
+}
+
+/// A repetition worth instancing is an object, not a speck: groups of two or more members whose
+/// reference is smaller ([`object_size`] of its opaque cloud) than `o.min_object_fraction` × the
+/// largest such group's are dropped (their members stay background), with a line in `refused`.
+fn drop_specks(
+    scene: &Scene,
+    support: &Support,
+    groups: &mut Vec<FoundGroup>,
+    o: &DiscoverOptions,
+    refused: &mut Vec<String>,
+    progress: &mut impl FnMut(&str),
+) {
+    let size = |g: &FoundGroup| {
+        object_size(&object_cloud(&scene.select(&g.members[0].gaussians), Some(support), o.instance.min_opacity).0)
+    };
+    let sizes: Vec<f64> = groups.iter().map(size).collect();
+    let largest = groups.iter().zip(&sizes).filter(|(g, _)| g.members.len() > 1).map(|(_, &s)| s).fold(0.0, f64::max);
+    let floor = o.min_object_fraction * largest;
+    let mut k = 0;
+    groups.retain(|g| {
+        let s = sizes[k];
+        k += 1;
+        if g.members.len() < 2 || s >= floor {
+            return true;
+        }
+        let why = format!(
+            "{}: {} members of size {s:.4} ({} Gaussians in its first), below {} × the largest group's objects ({largest:.4}): a speck, not an object; stays background",
+            g.name,
+            g.members.len(),
+            g.members[0].gaussians.len(),
+            o.min_object_fraction
+        );
+        progress(&why);
+        refused.push(why);
+        false
+    });
 }
 
 #[cfg(test)]

@@ -91,3 +91,38 @@ fn edges_fit_needs_one_scale_in_range() {
     c[2][1] *= 1.5;
     assert!(!edges_fit(&a, &c, 0.9, Some((0.8, 1.25))), "no common scale");
 }
+
+#[test]
+fn groups_of_specks_are_dropped_and_reported() {
+    // Two groups standing on z = 0: boxes of side 0.3 (two members) and specks of side 0.05
+    // (two members), and a lone box; the specks fall below a quarter of the boxes' size.
+    let mut scene = Scene::default();
+    let mut cube = |scene: &mut Scene, centre: [f64; 3], side: f64| -> Vec<usize> {
+        let first = scene.len();
+        for i in 0..216 {
+            let (x, y, z) = ((i % 6) as f64 / 5.0, ((i / 6) % 6) as f64 / 5.0, (i / 36) as f64 / 5.0);
+            let p = [centre[0] + (x - 0.5) * side, centre[1] + (y - 0.5) * side, 0.05 + z * side];
+            scene.means.push(p.map(|c| c as f32));
+            scene.scales.push([(0.1 * side as f32).ln(); 3]);
+            scene.quats.push([1.0, 0.0, 0.0, 0.0]);
+            scene.opacities.push(3.0);
+            scene.sh.extend([0.5; 3]);
+        }
+        (first..scene.len()).collect()
+    };
+    let member = |id: u32, gaussians: Vec<usize>| Member { id, gaussians, relative: Sim3::identity(), report: None };
+    let mut groups = vec![
+        FoundGroup { name: "boxes".into(), members: vec![member(1, cube(&mut scene, [0.0, 0.0, 0.0], 0.3))] },
+        FoundGroup { name: "specks".into(), members: vec![member(3, cube(&mut scene, [1.0, 0.0, 0.0], 0.05))] },
+        FoundGroup { name: "lone".into(), members: vec![member(5, cube(&mut scene, [2.0, 0.0, 0.0], 0.02))] },
+    ];
+    groups[0].members.push(member(2, cube(&mut scene, [0.0, 1.0, 0.0], 0.3)));
+    groups[1].members.push(member(4, cube(&mut scene, [1.0, 1.0, 0.0], 0.05)));
+    let support = Support::new(Vector3::z(), 0.0, 0.01, 0.5);
+    let mut refused = Vec::new();
+    drop_specks(&scene, &support, &mut groups, &DiscoverOptions::default(), &mut refused, &mut |_| {});
+    let names: Vec<&str> = groups.iter().map(|g| g.name.as_str()).collect();
+    assert_eq!(names, ["boxes", "lone"], "single members are left to the caller: {refused:?}");
+    assert_eq!(refused.len(), 1);
+    assert!(refused[0].starts_with("specks: 2 members") && refused[0].contains("a speck, not an object"), "{refused:?}");
+}
