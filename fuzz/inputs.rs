@@ -7,13 +7,14 @@ use anyhow::{anyhow, Result};
 
 /// Every target: (name, what it reads).
 #[allow(dead_code)] // read by tests/fuzz_inputs.rs, not by the targets
-pub const TARGETS: [(&str, &str); 11] = [
+pub const TARGETS: [(&str, &str); 12] = [
     ("instgs_parse", ".instgs scene"),
     ("ply_parse", "3DGS PLY, plain and SuperSplat compressed"),
     ("points_ply", "a dataset's points3d.ply"),
     ("spz_parse", "Niantic .spz"),
     ("splat_parse", "antimatter15 .splat"),
     ("sog_parse", "SOG meta.json with its WebP images"),
+    ("sog_bundle", "a .sog bundle (zip of meta.json and WebP images)"),
     ("colmap_parse", "COLMAP cameras/images/points3D, .bin and .txt"),
     ("json_inputs", "transforms JSON, instances.json, scene graph, labels"),
     ("config_toml", "training, instanced, pipeline and render configurations"),
@@ -67,6 +68,7 @@ pub fn run(target: &str, data: &[u8]) -> Result<()> {
             };
             formats::sog::sog_from_meta(meta, what, &mut load)?.validate(what)?;
         }
+        "sog_bundle" => formats::sog::sog_from_bundle(data, what)?.validate(what)?,
         "colmap_parse" => {
             // First byte: the file (& 3: cameras, images, points3D, cameras), binary (& 4).
             let (&pick, content) = data.split_first().ok_or_else(|| anyhow!("empty"))?;

@@ -129,12 +129,12 @@ pub(crate) enum Cmd {
         out: PathBuf,
     },
     /// Convert a scene between formats, chosen by OUT's name: .ply (Inria), .compressed.ply
-    /// (SuperSplat, with SH), .spz (version 4), DIR/meta.json (SOG version 2), .splat (no SH),
-    /// or .json (an .instgs scene's scene graph). An .instgs scene is expanded first (SH bands rotated per instance).
+    /// (SuperSplat, with SH), .spz (version 4), DIR/meta.json (SOG version 2), OUT.sog (the same
+    /// in one zip), .splat (no SH), or .json (an .instgs scene's scene graph). An .instgs scene is expanded first (SH bands rotated per instance).
     Convert {
         /// Any scene we read (PLY, compressed PLY, .spz, SOG, .splat, .instgs).
         scene: PathBuf,
-        /// OUT.ply, OUT.compressed.ply, OUT.spz, DIR/meta.json, OUT.splat or OUT.json.
+        /// OUT.ply, OUT.compressed.ply, OUT.spz, DIR/meta.json, OUT.sog, OUT.splat or OUT.json.
         out: PathBuf,
     },
     /// Export a dataset's cameras (NeRF-synthetic or COLMAP folder) as a NeRF-synthetic

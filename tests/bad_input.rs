@@ -214,8 +214,23 @@ fn bad_input_table() {
     );
     let meta2 = meta2
         .replace(r#""sh0": {"files""#, &format!(r#""sh0": {{"codebook": [{}], "files""#, vec!["0"; 256].join(",")));
-    t.put("sog_missing_image", "meta.json", meta2);
+    t.put("sog_missing_image", "meta.json", &meta2);
     t.case("sog_missing_image", &["info", "{d}/meta.json"], &["a.webp", "cannot read (named by meta.json)"]);
+    let bundle = |files: &[(&str, &[u8])]| {
+        let mut w = zip::ZipWriter::new(std::io::Cursor::new(Vec::new()));
+        for (name, bytes) in files {
+            w.start_file(*name, zip::write::SimpleFileOptions::default()).unwrap();
+            std::io::Write::write_all(&mut w, bytes).unwrap();
+        }
+        w.finish().unwrap().into_inner()
+    };
+    t.put("sog_bundle_no_meta", "s.sog", bundle(&[("a.webp", b"RIFF")]));
+    t.case("sog_bundle_no_meta", &["info", "{d}/s.sog"], &["s.sog", "a zip archive without a SOG meta.json"]);
+    t.put("sog_bundle_missing_image", "s.sog", bundle(&[("meta.json", meta2.as_bytes())]));
+    t.case("sog_bundle_missing_image", &["info", "{d}/s.sog"], &["s.sog", "no a.webp in the bundle"]);
+    let whole = bundle(&[("meta.json", meta2.as_bytes())]);
+    t.put("sog_bundle_truncated", "s.sog", &whole[..whole.len() - 30]);
+    t.case("sog_bundle_truncated", &["info", "{d}/s.sog"], &["s.sog", "zip archive"]);
 
     // ---- .instgs.
     t.put("instgs_bad_header", "s.instgs", b"INSTGS\0\0\x05\0\0\0{\"a\":");

@@ -278,6 +278,43 @@ fn sog_writer_round_trips_within_its_quantisation() {
     assert!(db >= 38.0, "{db:.1} dB");
 }
 
+#[test]
+fn a_sog_bundle_reads_like_its_folder() {
+    // One zip file (splat-transform 3.x's default SOG output) holds the folder's files.
+    let source = read_ply(&shared_data("splats/fruit_drops_minimal.ply")).unwrap();
+    let folder = tmp("sog-bundle/folder/meta.json");
+    formats::sog::write_sog(&source, &folder).unwrap();
+    let bundle = tmp("sog-bundle/scene.sog");
+    formats::write_scene(&source, &bundle).unwrap();
+    assert_eq!(formats::detect(&bundle).unwrap(), Format::Sog);
+    let from_folder = formats::read_scene(&folder).unwrap();
+    let from_bundle = formats::read_scene(&bundle).unwrap();
+    assert!(from_bundle == from_folder, "the bundle decodes as its folder does");
+    assert_eq!(formats::file_bytes(&bundle).unwrap(), std::fs::metadata(&bundle).unwrap().len());
+    // Its entries: meta.json first, then the images the folder has, stored.
+    let mut zip = zip::ZipArchive::new(std::fs::File::open(&bundle).unwrap()).unwrap();
+    let names: Vec<String> = (0..zip.len()).map(|i| zip.by_index(i).unwrap().name().unwrap().to_string()).collect();
+    assert_eq!(names[0], "meta.json");
+    let mut on_disk: Vec<String> = std::fs::read_dir(folder.parent().unwrap())
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    on_disk.sort();
+    let mut sorted = names.clone();
+    sorted.sort();
+    assert_eq!(sorted, on_disk);
+    // A deflated bundle (zip's other common method) reads the same.
+    let deflated = tmp("sog-bundle/deflated.sog");
+    let mut w = zip::ZipWriter::new(std::fs::File::create(&deflated).unwrap());
+    let opts = zip::write::SimpleFileOptions::default().compression_method(zip::CompressionMethod::Deflated);
+    for n in &names {
+        w.start_file(n.as_str(), opts).unwrap();
+        std::io::Write::write_all(&mut w, &std::fs::read(folder.parent().unwrap().join(n)).unwrap()).unwrap();
+    }
+    w.finish().unwrap();
+    assert!(formats::read_scene(&deflated).unwrap() == from_folder);
+}
+
 /// A SOG version 1 folder for `s` (splat-transform's legacy layout, written here because no
 /// shared file has it): per-channel 8-bit lerps for scales and sh0 (opacity logit included),
 /// one SH palette entry per Gaussian lerped between scalar bounds.

@@ -62,7 +62,7 @@ impl Format {
 /// What we read, for errors.
 pub const READABLE: &str =
     "PLY (Inria 3DGS or SuperSplat compressed), .spz (versions 2-4), SOG versions 1-2 (a meta.json \
-                            with its WebP images, or their folder), .splat (32-byte rows) and .instgs";
+                            with its WebP images, their folder, or a .sog bundle of them), .splat (32-byte rows) and .instgs";
 
 /// The format of `path` by its content (a folder holding `meta.json` is SOG; `.splat` has no
 /// magic bytes and is taken by its extension when its size is a multiple of 32).
@@ -107,6 +107,9 @@ pub fn detect(path: &Path) -> Result<Format> {
     if head.starts_with(b"INSTGS") {
         return Ok(Format::Instgs);
     }
+    if head.starts_with(b"PK\x03\x04") && sog::is_sog_bundle(path) {
+        return Ok(Format::Sog);
+    }
     let first = head.iter().find(|b| !b.is_ascii_whitespace());
     let named_meta = path.file_name().is_some_and(|n| n.eq_ignore_ascii_case("meta.json"));
     if first == Some(&b'{') && (named_meta || is_sog_meta(path)) {
@@ -117,7 +120,7 @@ pub fn detect(path: &Path) -> Result<Format> {
     } else if head.starts_with(&[0xff, 0xd8, 0xff]) {
         "a JPEG image"
     } else if head.starts_with(b"PK\x03\x04") {
-        "a zip archive (a bundled .sog? unzip it and pass its meta.json)"
+        "a zip archive without a SOG meta.json"
     } else if head.starts_with(b"RIFF") {
         "a RIFF/WebP image (SOG images are read through their meta.json)"
     } else if first == Some(&b'{')
@@ -134,10 +137,11 @@ pub fn detect(path: &Path) -> Result<Format> {
     bail!("{what}: not a scene file we read ({detected}); we read {READABLE}")
 }
 
-/// Bytes the scene occupies on disk (a SOG scene: its meta.json and the images it names).
+/// Bytes the scene occupies on disk (a SOG folder: its meta.json and the images it names; a
+/// `.sog` bundle: the file).
 pub fn file_bytes(path: &Path) -> Result<u64> {
     let len = |p: &Path| std::fs::metadata(p).map(|m| m.len()).with_context(|| format!("{}: cannot read", p.display()));
-    if detect(path)? != Format::Sog {
+    if detect(path)? != Format::Sog || (path.is_file() && sog::is_sog_bundle(path)) {
         return len(path);
     }
     let meta = if path.is_dir() { path.join("meta.json") } else { path.to_path_buf() };
@@ -186,7 +190,7 @@ pub fn read_scene(path: &Path) -> Result<Scene> {
 }
 
 /// Writes `scene` in the format `out`'s name chooses: `.compressed.ply`, `.ply`, `.spz`,
-/// `…meta.json` (SOG) or `.splat` (its SH bands dropped, said on stderr). Every writer refuses a
+/// `…meta.json` (SOG, a folder), `.sog` (SOG, one zip file) or `.splat` (its SH bands dropped, said on stderr). Every writer refuses a
 /// scene the readers would refuse (`Scene::validate`).
 pub fn write_scene(scene: &Scene, out: &Path) -> Result<()> {
     let name = out.file_name().map(|n| n.to_string_lossy().to_ascii_lowercase()).unwrap_or_default();
@@ -198,6 +202,8 @@ pub fn write_scene(scene: &Scene, out: &Path) -> Result<()> {
         write_spz(scene, out)
     } else if name.ends_with("meta.json") {
         write_sog(scene, out)
+    } else if name.ends_with(".sog") {
+        sog::write_sog_bundle(scene, out)
     } else if name.ends_with(".splat") {
         if scene.sh_degree > 0 {
             eprintln!("note: .splat holds no SH bands: degree {} dropped", scene.sh_degree);
@@ -205,7 +211,7 @@ pub fn write_scene(scene: &Scene, out: &Path) -> Result<()> {
         write_splat(scene, out)
     } else {
         bail!(
-            "{}: cannot write this format; the output's name chooses: .ply (Inria), .compressed.ply (SuperSplat), .spz (version 4), meta.json (SOG version 2, its images beside it), .splat, or .json (an instanced scene's scene graph)",
+            "{}: cannot write this format; the output's name chooses: .ply (Inria), .compressed.ply (SuperSplat), .spz (version 4), meta.json (SOG version 2, its images beside it), .sog (the same in one zip), .splat, or .json (an instanced scene's scene graph)",
             out.display()
         )
     }

@@ -106,6 +106,10 @@ type Loader<'a> = dyn FnMut(&str) -> Result<(String, Vec<u8>)> + 'a;
 /// names (splat-transform's layouts; version 1 lerps bytes between per-channel bounds where
 /// version 2 has codebooks, and stores the opacity logit itself).
 pub fn read_sog(path: &Path) -> Result<Scene> {
+    if path.is_file() && std::fs::read(path).is_ok_and(|b| b.starts_with(b"PK\x03\x04")) {
+        let bytes = std::fs::read(path).with_context(|| format!("{}: cannot read", path.display()))?;
+        return sog_from_bundle(&bytes, &path.display().to_string());
+    }
     let meta_path: PathBuf = if path.is_dir() { path.join("meta.json") } else { path.to_path_buf() };
     let what = meta_path.display().to_string();
     let dir = meta_path.parent().unwrap_or(Path::new(".")).to_path_buf();
@@ -117,6 +121,42 @@ pub fn read_sog(path: &Path) -> Result<Scene> {
         Ok((path.display().to_string(), bytes))
     })
 }
+
+/// Whether `path` is a zip archive holding a `meta.json` (a `.sog` bundle).
+pub fn is_sog_bundle(path: &Path) -> bool {
+    std::fs::File::open(path)
+        .ok()
+        .and_then(|f| zip::ZipArchive::new(std::io::BufReader::new(f)).ok())
+        .is_some_and(|z| z.index_for_name("meta.json").is_some())
+}
+
+/// A SOG scene from the bytes of a `.sog` bundle (`what` names it in errors): a zip archive of
+/// `meta.json` and the images it names, stored or deflated (splat-transform 3.x's single-file
+/// output).
+pub fn sog_from_bundle(bytes: &[u8], what: &str) -> Result<Scene> {
+    let mut zip = zip::ZipArchive::new(std::io::Cursor::new(bytes))
+        .map_err(|e| anyhow!("{what}: not a readable zip archive: {e}"))?;
+    let mut entry = |name: &str| -> Result<Vec<u8>> {
+        let mut f = zip.by_name(name).map_err(|e| anyhow!("{what}: no {name} in the bundle ({e})"))?;
+        // The size the archive declares bounds the read (a bomb is refused, not expanded).
+        if f.size() > MAX_BUNDLE_ENTRY {
+            bail!("{what}: {name} would expand to {} bytes, more than {MAX_BUNDLE_ENTRY}", f.size());
+        }
+        let mut out = Vec::with_capacity(f.size().min(1 << 24) as usize);
+        std::io::Read::read_to_end(&mut std::io::Read::take(&mut f, MAX_BUNDLE_ENTRY + 1), &mut out)
+            .map_err(|e| anyhow!("{what}: {name}: cannot read from the bundle: {e}"))?;
+        if out.len() as u64 > MAX_BUNDLE_ENTRY {
+            bail!("{what}: {name} expands past {MAX_BUNDLE_ENTRY} bytes");
+        }
+        Ok(out)
+    };
+    let meta = entry("meta.json")?;
+    let text = String::from_utf8(meta).map_err(|_| anyhow!("{what}: meta.json is not UTF-8 text"))?;
+    sog_from_meta(&text, &format!("{what}: meta.json"), &mut |name| Ok((format!("{what}: {name}"), entry(name)?)))
+}
+
+/// The largest file a `.sog` bundle may expand to (an image of 16 384² RGBA texels).
+const MAX_BUNDLE_ENTRY: u64 = 1 << 30;
 
 /// [`read_sog`] from the text of `meta.json` (`what` names it in errors) and `load`, which
 /// returns the file a name in it names.
@@ -338,6 +378,34 @@ pub fn write_sog(scene: &Scene, meta: &Path) -> Result<()> {
     let dir = meta.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
     let name = meta.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_else(|| "meta.json".into());
     crate::util::write_dir_atomic(dir, Some(&name), |tmp| write_sog_files(scene, &tmp.join(&name)))
+}
+
+/// `scene` as one `.sog` file: [`write_sog`]'s `meta.json` and images in a zip archive (stored:
+/// the WebP images are compressed already), written atomically.
+pub fn write_sog_bundle(scene: &Scene, out: &Path) -> Result<()> {
+    scene.validate(&format!("{}: not written", out.display()))?;
+    let name = out.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+    let parent = out.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
+    let tmp = parent.join(format!(".{name}.{}.files.tmp", std::process::id()));
+    let result = (|| -> Result<Vec<u8>> {
+        std::fs::create_dir_all(&tmp)?;
+        write_sog_files(scene, &tmp.join("meta.json"))?;
+        let mut names: Vec<String> = std::fs::read_dir(&tmp)?
+            .map(|e| e.map(|e| e.file_name().to_string_lossy().into_owned()))
+            .collect::<std::io::Result<_>>()?;
+        // meta.json first, as splat-transform writes it; the images in name order.
+        names.sort_by_key(|n| (n != "meta.json", n.clone()));
+        let mut zip = zip::ZipWriter::new(std::io::Cursor::new(Vec::new()));
+        let options = zip::write::SimpleFileOptions::default().compression_method(zip::CompressionMethod::Stored);
+        for name in &names {
+            zip.start_file(name.as_str(), options)?;
+            std::io::Write::write_all(&mut zip, &std::fs::read(tmp.join(name))?)?;
+        }
+        Ok(zip.finish()?.into_inner())
+    })();
+    let _ = std::fs::remove_dir_all(&tmp);
+    let bytes = result.with_context(|| format!("{}: cannot write the bundle", out.display()))?;
+    crate::util::write_atomic(out, |f| std::io::Write::write_all(f, &bytes))
 }
 
 /// [`write_sog`]'s files, written into `meta`'s folder.
