@@ -97,7 +97,7 @@ fn groups_of_specks_are_dropped_and_reported() {
     // Two groups standing on z = 0: boxes of side 0.3 (two members) and specks of side 0.05
     // (two members), and a lone box; the specks fall below a quarter of the boxes' size.
     let mut scene = Scene::default();
-    let mut cube = |scene: &mut Scene, centre: [f64; 3], side: f64| -> Vec<usize> {
+    let cube = |scene: &mut Scene, centre: [f64; 3], side: f64| -> Vec<usize> {
         let first = scene.len();
         for i in 0..216 {
             let (x, y, z) = ((i % 6) as f64 / 5.0, ((i / 6) % 6) as f64 / 5.0, (i / 36) as f64 / 5.0);
@@ -124,5 +124,8 @@ fn groups_of_specks_are_dropped_and_reported() {
     let names: Vec<&str> = groups.iter().map(|g| g.name.as_str()).collect();
     assert_eq!(names, ["boxes", "lone"], "single members are left to the caller: {refused:?}");
     assert_eq!(refused.len(), 1);
-    assert!(refused[0].starts_with("specks: 2 members") && refused[0].contains("a speck, not an object"), "{refused:?}");
+    assert!(
+        refused[0].starts_with("specks: 2 members") && refused[0].contains("a speck, not an object"),
+        "{refused:?}"
+    );
 }

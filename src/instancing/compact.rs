@@ -98,20 +98,9 @@ pub fn background_budget(
     if !(budget_db.is_finite() && budget_db >= 0.0) {
         bail!("the background budget must be a non-negative number of dB, not {budget_db}");
     }
-    let n = views.len().min(BUDGET_VIEWS);
-    if n == 0 {
-        bail!("no training views to measure the background budget on");
-    }
-    let pick: Vec<&View> = (0..n).map(|i| &views[i * views.len() / n]).collect();
-    let mut r = Rasterizer::new(gpu, k)?;
-    let mut psnr = |s: &Scene| -> Result<f64> {
-        let gs = GpuScene::new(gpu, s)?;
-        let mut sum = 0.0;
-        for v in &pick {
-            sum += crate::util::psnr(&r.render(&gs, &v.camera, background)?.image, &v.image);
-        }
-        Ok(sum / n as f64)
-    };
+    let mut check = ViewCheck::new(gpu, k, views, background, "measure the background budget on")?;
+    let n = check.pick.len();
+    let mut psnr = |s: &Scene| check.psnr(&GpuScene::new(gpu, s)?);
     let whole = psnr(scene)?;
     let mut trials = Vec::new();
     let (mut lo, mut hi) = (0.0f64, 1.0f64);
@@ -200,9 +189,6 @@ pub fn rebalance(
     mut progress: impl FnMut(&str),
 ) -> Result<(InstancedScene, Rebalance)> {
     let n = views.len().min(BUDGET_VIEWS);
-    if n == 0 {
-        bail!("no training views to rebalance the scene's memory on");
-    }
     let mut cand = inst.clone();
     cand.background = inst.background.concat(dropped);
     let nb = cand.background.len();
@@ -276,17 +262,9 @@ pub fn rebalance(
     }
     let out = keep_items(&cand, &items[..lo.max(forced)]);
     out.validate("rebalanced scene")?;
-    let pick: Vec<&View> = (0..n).map(|i| &views[i * views.len() / n]).collect();
-    let mut r = Rasterizer::new(gpu, k)?;
-    let mut psnr = |s: &InstancedScene| -> Result<f64> {
-        let gs = GpuScene::instanced(gpu, s)?;
-        let mut sum = 0.0;
-        for v in &pick {
-            sum += crate::util::psnr(&r.render(&gs, &v.camera, background)?.image, &v.image);
-        }
-        Ok(sum / n as f64)
-    };
-    let (psnr_before, psnr_after) = (psnr(inst)?, psnr(&out)?);
+    let mut check = ViewCheck::new(gpu, k, views, background, "rebalance the scene's memory on")?;
+    let (psnr_before, psnr_after) =
+        (check.psnr(&GpuScene::instanced(gpu, inst)?)?, check.psnr(&GpuScene::instanced(gpu, &out)?)?);
     let bytes_after = bytes_of(&out)?;
     let accepted = bytes_after <= budget && psnr_after >= psnr_before;
     let t = |s: &InstancedScene| s.groups.iter().map(|g| g.template.len()).sum::<usize>();
@@ -351,4 +329,39 @@ fn keep_items(cand: &InstancedScene, items: &[(bool, f64, Item)]) -> InstancedSc
         })
         .collect();
     InstancedScene { sh_degree: cand.sh_degree, background: cand.background.select(&bg), groups }
+}
+
+/// The decisions' check: up to [`BUDGET_VIEWS`] of the training views, evenly spread, rendered
+/// and scored.
+struct ViewCheck<'a> {
+    pick: Vec<&'a View>,
+    r: Rasterizer,
+    background: [f32; 3],
+}
+
+impl<'a> ViewCheck<'a> {
+    /// `purpose` completes "no training views to …" when there are none.
+    fn new(
+        gpu: &Arc<Gpu>,
+        k: &Arc<Kernels>,
+        views: &'a [View],
+        background: [f32; 3],
+        purpose: &str,
+    ) -> Result<ViewCheck<'a>> {
+        let n = views.len().min(BUDGET_VIEWS);
+        if n == 0 {
+            bail!("no training views to {purpose}");
+        }
+        let pick = (0..n).map(|i| &views[i * views.len() / n]).collect();
+        Ok(ViewCheck { pick, r: Rasterizer::new(gpu, k)?, background })
+    }
+
+    /// Mean PSNR (dB) of `gs` over the picked views.
+    fn psnr(&mut self, gs: &GpuScene) -> Result<f64> {
+        let mut sum = 0.0;
+        for v in &self.pick {
+            sum += crate::util::psnr(&self.r.render(gs, &v.camera, self.background)?.image, &v.image);
+        }
+        Ok(sum / self.pick.len() as f64)
+    }
 }
