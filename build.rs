@@ -180,7 +180,7 @@ fn gen_structs(src: &str, out: &mut String) {
                 "mat4" => ("[[f32; 4]; 4]", 64, 16),
                 other => fail(&format!("glsl/common.glsl: struct {name}: type {other} is not supported")),
             };
-            if offset % align != 0 {
+            if !offset.is_multiple_of(align) {
                 fail(&format!(
                     "glsl/common.glsl: struct {name}.{field} at offset {offset} needs {align}-byte alignment; reorder or pad"
                 ));
@@ -191,7 +191,7 @@ fn gen_structs(src: &str, out: &mut String) {
             writeln!(out, "    pub {field}: {rty},").unwrap();
             offset += size;
         }
-        if offset % 16 != 0 {
+        if !offset.is_multiple_of(16) {
             fail(&format!("glsl/common.glsl: struct {name} is {offset} bytes, not a multiple of 16; pad it"));
         }
         writeln!(out, "}}\n").unwrap();

@@ -287,7 +287,7 @@ impl Progress {
             b.set_message(msg.to_string());
             return;
         }
-        let tenth = done % (self.total / 10).max(1) == 0;
+        let tenth = done.is_multiple_of((self.total / 10).max(1));
         let timed = self.timed && self.last_line.elapsed().as_secs_f64() >= LINE_SECONDS;
         if tenth || timed || done == self.total {
             self.last_line = std::time::Instant::now();

@@ -174,7 +174,7 @@ fn source_files_fit_their_room() {
 
 /// The functions of `text` with their first line (1-based) and length in lines: a line that
 /// declares a `fn` with a body, to the line that closes it at the same indentation (rustfmt's
-/// layout, which the test command checks too).
+/// layout, which the sources keep).
 fn function_lengths(text: &str) -> Vec<(usize, usize, String)> {
     let lines: Vec<&str> = text.lines().collect();
     let mut out = Vec::new();

@@ -75,7 +75,7 @@ fn join(header: &serde_json::Value, data: &[u8]) -> Vec<u8> {
     let mut out = b"INSTGS\0\0".to_vec();
     out.extend_from_slice(&(json.len() as u32).to_le_bytes());
     out.extend_from_slice(&json);
-    while out.len() % 16 != 0 {
+    while !out.len().is_multiple_of(16) {
         out.push(0);
     }
     out.extend_from_slice(data);

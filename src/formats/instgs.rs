@@ -122,7 +122,7 @@ pub fn to_bytes(scene: &InstancedScene, offset_dtype: Dtype) -> Vec<u8> {
     let mut push = |name: String, dtype: Dtype, shape: Vec<usize>, bytes: Vec<u8>, data: &mut Vec<u8>| {
         sections.push(Section { name, dtype, shape, offset: data.len() as u64, bytes: bytes.len() as u64 });
         data.extend_from_slice(&bytes);
-        while data.len() % 16 != 0 {
+        while !data.len().is_multiple_of(16) {
             data.push(0);
         }
     };

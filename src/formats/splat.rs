@@ -11,7 +11,7 @@ use crate::model::scene::Scene;
 /// Reads antimatter15's `.splat`: per Gaussian 32 bytes — position f32×3, linear scale f32×3,
 /// colour and opacity u8×4 (colour = 0.5 + SH_C0·sh0), rotation u8×4 (w, x, y, z; v/255·2 − 1).
 pub fn read_splat(what: &str, bytes: &[u8]) -> Result<Scene> {
-    if bytes.is_empty() || bytes.len() % 32 != 0 {
+    if bytes.is_empty() || !bytes.len().is_multiple_of(32) {
         bail!("{what}: a .splat file holds 32-byte rows, but it is {} bytes long", bytes.len());
     }
     let mut s = Scene::default();

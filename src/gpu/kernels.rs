@@ -125,7 +125,7 @@ impl Kernels {
         // Thread runs need no shared memory or barrier, so a workgroup is one subgroup.
         let sort_wg = if policy.thread_runs { gpu.info.min_subgroup_size } else { SORT_WG };
         let scan_wg = if policy.thread_runs { gpu.info.min_subgroup_size } else { WG_SIZE };
-        if SCAN_BLOCK % scan_wg != 0 {
+        if !SCAN_BLOCK.is_multiple_of(scan_wg) {
             anyhow::bail!("subgroup size {scan_wg} does not divide the scan block {SCAN_BLOCK}");
         }
         let scan_spec = [scan_wg, policy.thread_runs as u32];

@@ -24,7 +24,7 @@ pub fn labels_from_bytes(bytes: &[u8], ext: &str, what: &str, n: usize) -> Resul
             l.labels
         }
         "bin" => {
-            if bytes.len() % 4 != 0 {
+            if !bytes.len().is_multiple_of(4) {
                 bail!("{what}: {} bytes is not a whole number of u32 labels", bytes.len());
             }
             bytes.chunks_exact(4).map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect()

@@ -106,12 +106,12 @@ impl RunOptions {
 
 /// Whether iteration `it` densifies the scene (plain runs; never the last iteration).
 fn densifies(d: &crate::train::config::DensifyConfig, it: u64) -> bool {
-    it < d.until_iter && it > d.from_iter && it % d.interval == 0
+    it < d.until_iter && it > d.from_iter && it.is_multiple_of(d.interval)
 }
 
 /// Whether iteration `it` resets the opacities (plain runs; never the last iteration).
 fn resets_opacities(d: &crate::train::config::DensifyConfig, it: u64) -> bool {
-    d.opacity_reset_interval > 0 && it % d.opacity_reset_interval == 0 && it < d.until_iter
+    d.opacity_reset_interval > 0 && it.is_multiple_of(d.opacity_reset_interval) && it < d.until_iter
 }
 
 /// The figure of a run's metrics with its schedule's events (`curves.png`).

@@ -247,7 +247,7 @@ pub fn adam_parts(total: u32, stride: u32, head: u32) -> Vec<AdamPart> {
             .into_iter()
             .filter(|p| p.count > 0)
             .collect()
-    } else if stride % 4 == 0 {
+    } else if stride.is_multiple_of(4) {
         vec![part(true, 0, total / 4, stride / 4, head)]
     } else {
         vec![part(false, 0, total, stride, head)]
