@@ -86,7 +86,8 @@ pub fn instance(
     let (mut inst, reports) = template::instantiate(&scene, &labels, &groups, opts, check, |line| eprintln!("{line}"))?;
     let mut rebalanced = serde_json::Value::Null;
     if let (Some(rule), Some(dropped)) = (rebalance, &dropped) {
-        if !inst.groups.is_empty() {
+        // Nothing dropped, nothing to bring back: the scene stays as instanced.
+        if !inst.groups.is_empty() && !dropped.is_empty() {
             (inst, rebalanced) = rule(&inst, dropped)?;
         }
     }
