@@ -106,14 +106,14 @@ type Loader<'a> = dyn FnMut(&str) -> Result<(String, Vec<u8>)> + 'a;
 /// names (splat-transform's layouts; version 1 lerps bytes between per-channel bounds where
 /// version 2 has codebooks, and stores the opacity logit itself).
 pub fn read_sog(path: &Path) -> Result<Scene> {
-    if path.is_file() && std::fs::read(path).is_ok_and(|b| b.starts_with(b"PK\x03\x04")) {
-        let bytes = std::fs::read(path).with_context(|| format!("{}: cannot read", path.display()))?;
-        return sog_from_bundle(&bytes, &path.display().to_string());
-    }
     let meta_path: PathBuf = if path.is_dir() { path.join("meta.json") } else { path.to_path_buf() };
     let what = meta_path.display().to_string();
     let dir = meta_path.parent().unwrap_or(Path::new(".")).to_path_buf();
-    let text = std::fs::read_to_string(&meta_path).with_context(|| format!("{what}: cannot read"))?;
+    let bytes = std::fs::read(&meta_path).with_context(|| format!("{what}: cannot read"))?;
+    if bytes.starts_with(b"PK\x03\x04") {
+        return sog_from_bundle(&bytes, &what);
+    }
+    let text = String::from_utf8(bytes).map_err(|_| anyhow!("{what}: cannot read: not UTF-8 text"))?;
     sog_from_meta(&text, &what, &mut |name| {
         let path = dir.join(name);
         let bytes =

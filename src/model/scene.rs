@@ -56,12 +56,17 @@ impl Scene {
     /// `self`'s Gaussians followed by `other`'s (the same SH degree).
     pub fn concat(&self, other: &Scene) -> Scene {
         let mut out = self.clone();
-        out.means.extend_from_slice(&other.means);
-        out.scales.extend_from_slice(&other.scales);
-        out.quats.extend_from_slice(&other.quats);
-        out.opacities.extend_from_slice(&other.opacities);
-        out.sh.extend_from_slice(&other.sh);
+        out.append(other);
         out
+    }
+
+    /// Adds `other`'s Gaussians after `self`'s (the same SH degree).
+    pub fn append(&mut self, other: &Scene) {
+        self.means.extend_from_slice(&other.means);
+        self.scales.extend_from_slice(&other.scales);
+        self.quats.extend_from_slice(&other.quats);
+        self.opacities.extend_from_slice(&other.opacities);
+        self.sh.extend_from_slice(&other.sh);
     }
 
     /// The Gaussians at `idx`, in that order.

@@ -99,12 +99,7 @@ pub fn scene_rows(scene: &InstancedScene) -> Scene {
     let mut rows = scene.background.clone();
     rows.sh_degree = scene.sh_degree;
     for g in &scene.groups {
-        let t = &g.template;
-        rows.means.extend_from_slice(&t.means);
-        rows.scales.extend_from_slice(&t.scales);
-        rows.quats.extend_from_slice(&t.quats);
-        rows.opacities.extend_from_slice(&t.opacities);
-        rows.sh.extend_from_slice(&t.sh);
+        rows.append(&g.template);
     }
     rows
 }
@@ -210,11 +205,7 @@ impl GpuScene {
                 info.level_row_first[l + 1] = rows.len() as u32;
                 info.level_rows[l + 1] = t.len() as u32;
                 info.level_pair_first[l + 1] = offsets.len() as u32;
-                rows.means.extend_from_slice(&t.means);
-                rows.scales.extend_from_slice(&t.scales);
-                rows.quats.extend_from_slice(&t.quats);
-                rows.opacities.extend_from_slice(&t.opacities);
-                rows.sh.extend_from_slice(&t.sh);
+                rows.append(&t);
                 offsets.d_means.extend_from_slice(&o.d_means);
                 offsets.d_sh0.extend_from_slice(&o.d_sh0);
                 offsets.d_opacities.extend_from_slice(&o.d_opacities);
