@@ -18,6 +18,11 @@ pub(crate) struct Cli {
     /// device). Also INSTGS_DEVICE. INSTGS_VALIDATION=1 turns on the validation layers.
     #[arg(long, global = true)]
     pub(crate) device: Option<String>,
+    /// How .spz files are framed: `spec` (Niantic's specification: x right, y up, z back, turned
+    /// into the PLY frame on reading and back on writing) or `as-stored` (no axis change, as
+    /// splat-transform reads and writes .spz).
+    #[arg(long, global = true, value_enum, default_value = "spec")]
+    pub(crate) spz_frame: instgs_vk::formats::spz::SpzFrame,
     #[command(subcommand)]
     pub(crate) cmd: Cmd,
 }
@@ -130,12 +135,19 @@ pub(crate) enum Cmd {
     },
     /// Convert a scene between formats, chosen by OUT's name: .ply (Inria), .compressed.ply
     /// (SuperSplat, with SH), .spz (version 4), DIR/meta.json (SOG version 2), OUT.sog (the same
-    /// in one zip), .splat (no SH), or .json (an .instgs scene's scene graph). An .instgs scene is expanded first (SH bands rotated per instance).
+    /// in one zip), .glb/.gltf (KHR_gaussian_splatting), .splat (no SH), or .json (an instanced
+    /// scene's scene graph). An instanced scene (.instgs, or a .glb we wrote from one) is
+    /// expanded first (SH bands rotated per instance), except to .glb/.gltf, which share its
+    /// templates (a node per instance) unless --expand.
     Convert {
-        /// Any scene we read (PLY, compressed PLY, .spz, SOG, .splat, .instgs).
+        /// Any scene we read (PLY, compressed PLY, .spz, SOG, .splat, .glb/.gltf, .instgs).
         scene: PathBuf,
-        /// OUT.ply, OUT.compressed.ply, OUT.spz, DIR/meta.json, OUT.sog, OUT.splat or OUT.json.
+        /// OUT.ply, OUT.compressed.ply, OUT.spz, DIR/meta.json, OUT.sog, OUT.glb, OUT.gltf,
+        /// OUT.splat or OUT.json.
         out: PathBuf,
+        /// Write an instanced scene to .glb/.gltf expanded (one plain splat primitive).
+        #[arg(long)]
+        expand: bool,
     },
     /// Export a dataset's cameras (NeRF-synthetic or COLMAP folder) as a NeRF-synthetic
     /// transforms JSON: OpenGL camera-to-world matrices, per-frame intrinsics, image paths.

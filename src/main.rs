@@ -43,6 +43,7 @@ fn main() -> ExitCode {
 
 fn run(cli: Cli) -> Result<()> {
     let device = cli.device;
+    formats::spz::set_frame(cli.spz_frame);
     match cli.cmd {
         Cmd::Info { scene, json } => formats::info::info(&scene, json),
         Cmd::Render { view, out } => render::frames::render(device, &view.spec(), &out),
@@ -67,7 +68,7 @@ fn run(cli: Cli) -> Result<()> {
                 &out,
             )
         }
-        Cmd::Convert { scene, out } => formats::convert(&scene, &out),
+        Cmd::Convert { scene, out, expand } => formats::convert(&scene, &out, expand),
         Cmd::Cameras { data, split, out } => dataset::export_cameras(&data, &split, &out),
         Cmd::Segment { scene, data, split, alpha, out, export_dir, per_frame_ids } => {
             segment::run::segment(device, &scene, &data, &split, alpha, &out, export_dir.as_deref(), per_frame_ids)

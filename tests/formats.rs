@@ -518,3 +518,148 @@ fn a_failed_folder_write_changes_nothing() {
     assert!(instgs_vk::util::write_dir_atomic(&fresh, None, |_| anyhow::bail!("no")).is_err());
     assert!(!fresh.exists());
 }
+
+fn fixture(name: &str) -> std::path::PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/splat-transform").join(name)
+}
+
+#[test]
+fn gltf_round_trips_a_scene_exactly_in_renders() {
+    // Our .glb and .gltf of a real splat read back: floats, so only the exp/ln of scales and
+    // the sigmoid/logit of opacities round.
+    let source = read_ply(&shared_data("splats/fruit_drops_minimal.ply")).unwrap();
+    for name in ["fruit.glb", "fruit.gltf"] {
+        let out = tmp(name);
+        formats::write_scene(&source, &out).unwrap();
+        assert_eq!(formats::detect(&out).unwrap(), Format::Gltf, "{name}");
+        let back = formats::read_scene(&out).unwrap();
+        let e = max_errors(&source, &back);
+        assert!(
+            e[0] < 1e-6 && e[1] < 1e-5 && e[2] < 1e-6 && e[3] < 1e-6 && e[4] == 0.0 && e[5] == 0.0,
+            "{name}: {e:?}"
+        );
+        let db = render_agreement(&source, &back);
+        assert!(db >= 90.0, "{name}: {db:.1} dB");
+    }
+}
+
+#[test]
+fn gltf_frame_is_a_half_turn_about_z_with_sh_signs() {
+    // One splat with one SH coefficient at a time: the glTF file holds (−x, −y, z), the
+    // quaternion turned and the coefficient times (−1)^m; reading turns it back.
+    let mut s = Scene {
+        means: vec![[0.1, 0.2, 0.3]],
+        scales: vec![[-1.0, -2.0, -3.0]],
+        quats: vec![[0.9, 0.1, 0.2, 0.3]],
+        opacities: vec![0.5],
+        sh: vec![0.0; 48],
+        sh_degree: 3,
+    };
+    for k in 0..16 {
+        s.sh.iter_mut().for_each(|v| *v = 0.0);
+        s.sh[k * 3] = 1.0;
+        let mut turned = s.clone();
+        formats::gltf::half_turn_z(&mut turned);
+        assert_eq!(turned.means[0], [-0.1, -0.2, 0.3]);
+        let l = (k as f64).sqrt().floor() as i64;
+        let m = k as i64 - l * l - l;
+        assert_eq!(turned.sh[k * 3], if m % 2 == 0 { 1.0 } else { -1.0 }, "k {k}");
+        let out = tmp("frame.glb");
+        formats::write_scene(&s, &out).unwrap();
+        let back = formats::read_scene(&out).unwrap();
+        assert!(max_errors(&s, &back).iter().all(|e| *e < 1e-6), "k {k}");
+    }
+    // The rotation: R(q') = Rz(π)·R(q).
+    let q = glam::Quat::from_xyzw(0.1, 0.2, 0.3, 0.9).normalize();
+    let mut t = s.clone();
+    t.quats[0] = [q.w, q.x, q.y, q.z];
+    formats::gltf::half_turn_z(&mut t);
+    let [w, x, y, z] = t.quats[0];
+    let turned = glam::Quat::from_xyzw(x, y, z, w);
+    let expect = glam::Quat::from_rotation_z(std::f32::consts::PI) * q;
+    assert!(turned.dot(expect).abs() > 1.0 - 1e-6);
+}
+
+#[test]
+fn splat_transform_files_read_like_their_ply() {
+    // Fixtures splat-transform 3.7.0 wrote from 300 splats of fruit_drops (SH 3 and SH 0):
+    // every format it writes, decoded by our readers, against the PLY it read.
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    for sh in ["sh0", "sh3"] {
+        let ply = read_ply(&fixture(&format!("{sh}.ply"))).unwrap();
+        for (ext, floor) in [("glb", 90.0), ("compressed.ply", 50.0), ("sog", 50.0)] {
+            let file = fixture(&format!("{sh}.st.{ext}"));
+            let s = formats::read_scene(&file).unwrap();
+            assert_eq!(s.len(), ply.len(), "{sh} {ext}");
+            assert_eq!(s.sh_degree, ply.sh_degree, "{sh} {ext}");
+            let db = render_agreement(&ply, &s);
+            assert!(db >= floor, "{sh}.st.{ext}: {db:.1} dB");
+            eprintln!("{sh}.st.{ext}: {db:.1} dB");
+        }
+        // Its .spz has no axis change: our reading (the specification's) sees it turned,
+        // --spz-frame as-stored reads it as splat-transform meant.
+        let spz = fixture(&format!("{sh}.st.spz"));
+        let spec = formats::read_scene(&spz).unwrap();
+        let out = tmp(&format!("{sh}-as-stored.ply"));
+        let bin = env!("CARGO_BIN_EXE_instgs-vk");
+        let st = std::process::Command::new(bin)
+            .args(["convert", "--spz-frame", "as-stored"])
+            .arg(&spz)
+            .arg(&out)
+            .current_dir(root)
+            .output()
+            .unwrap();
+        assert!(st.status.success(), "{}", String::from_utf8_lossy(&st.stderr));
+        let as_stored = read_ply(&out).unwrap();
+        let (db_spec, db_stored) = (render_agreement(&ply, &spec), render_agreement(&ply, &as_stored));
+        eprintln!("{sh}.st.spz: as stored {db_stored:.1} dB, by the spec {db_spec:.1} dB");
+        assert!(
+            db_stored >= 40.0 && db_spec < 20.0,
+            "{sh}.st.spz: as stored {db_stored:.1} dB, by the spec {db_spec:.1} dB"
+        );
+    }
+}
+
+#[test]
+fn instanced_gltf_shares_templates_and_reads_back_the_instanced_scene() {
+    let mut rng = common::Rng::new(46);
+    let scene = common::random_instanced(&mut rng, 3, 200, &[(150, 4), (80, 3)]);
+    let glb = tmp("instanced.glb");
+    formats::gltf::write_instanced_gltf(&scene, &glb).unwrap();
+    let formats::AnyScene::Instanced(back) = formats::AnyScene::read(&glb).unwrap() else { panic!("read as plain") };
+    assert_eq!(back.groups.len(), 2);
+    for (a, b) in scene.groups.iter().zip(&back.groups) {
+        assert_eq!(a.name, b.name);
+        assert_eq!(
+            a.instances.iter().map(|i| &i.id).collect::<Vec<_>>(),
+            b.instances.iter().map(|i| &i.id).collect::<Vec<_>>()
+        );
+        let e = max_errors(&a.template, &b.template);
+        assert!(e.iter().all(|v| *v < 1e-5), "template {e:?}");
+        for (x, y) in a.instances.iter().zip(&b.instances) {
+            let (x, y) = (x.transform, y.transform);
+            assert!((x.scale - y.scale).abs() < 1e-5 && x.translation.distance(y.translation) < 1e-5);
+            assert!(x.rotation.dot(y.rotation).abs() > 1.0 - 1e-6);
+        }
+        let d = |u: &[[f32; 3]], v: &[[f32; 3]]| {
+            u.iter().flatten().zip(v.iter().flatten()).map(|(p, q)| (p - q).abs()).fold(0.0f32, f32::max)
+        };
+        assert!(d(&a.offsets.d_means, &b.offsets.d_means) < 1e-5);
+        assert!(d(&a.offsets.d_sh0, &b.offsets.d_sh0) < 1e-5);
+        let o =
+            a.offsets.d_opacities.iter().zip(&b.offsets.d_opacities).map(|(p, q)| (p - q).abs()).fold(0.0f32, f32::max);
+        assert!(o < 1e-3, "Δo {o}");
+    }
+    assert!(max_errors(&scene.background, &back.background).iter().all(|v| *v < 1e-5));
+    let db = render_agreement(&scene.expand(), &back.expand());
+    assert!(db >= 60.0, "{db:.1} dB");
+    // A plain reading (any other viewer's) is the expanded scene; the file is smaller than
+    // the expanded .glb.
+    let plain = formats::read_scene(&glb).unwrap();
+    assert!(render_agreement(&scene.expand(), &plain) >= 60.0);
+    let expanded = tmp("expanded.glb");
+    formats::write_scene(&scene.expand(), &expanded).unwrap();
+    let (shared, full) = (std::fs::metadata(&glb).unwrap().len(), std::fs::metadata(&expanded).unwrap().len());
+    // 430 rows for 1040 splats: the background's 200 rows are whole in both.
+    assert!(shared * 4 < full * 3, "{shared} vs {full} bytes");
+}

@@ -7,16 +7,19 @@
 //! | Niantic `.spz` (versions 2 and 3: gzip; 4: zstd streams) | yes | `.spz` (version 4) | yes: 24-bit fixed-point positions (12 fractional bits when written), 8-bit log-scales (1/16), rotations (smallest three, 10 bits), 8-bit colour (±1/0.15·½), opacity and SH (±1, 1/128) |
 //! | PlayCanvas SOG versions 1 and 2 (`meta.json` + WebP images) | yes | version 2 | yes: 16-bit log-positions, 256-entry codebooks, 8-bit rotations, palettised SH |
 //! | antimatter15 `.splat` (32-byte rows, no SH) | yes | `.splat` | yes: 8-bit colour, opacity and rotation; SH dropped |
+//! | glTF 2.0 with `KHR_gaussian_splatting` (`.glb`, `.gltf`; quantised accessors read) | yes | `.glb`, `.gltf` (an `.instgs` scene with its templates shared, [`gltf`]) | no: float accessors |
 //! | `.instgs` (ours, `docs/format.md`) | yes | `.instgs` | f16 offsets on request |
 //!
 //! Conventions on reading: every scene comes out in the Inria/COLMAP frame the PLY formats use
-//! (x right, y down, z forward). `.spz` stores x right, y up, z back (its README), so y and z
+//! (x right, y down, z forward). glTF is +Y up, +Z forward: a half turn about z ([`gltf`]).
+//! `.spz` stores x right, y up, z back (its README), so y and z
 //! are negated: means (x, −y, −z), quaternions (w, x, −y, −z) and each SH coefficient by the
 //! parity of its basis function under that turn (as Niantic's own converter does). Opacities
 //! of exactly 0 or 1 — an infinite logit, which splat-transform and spz-js write into PLYs for
 //! fully opaque splats — are clamped to ±ln 1019 (the centre of the outer halves of the outer
 //! 8-bit bins, the rule of our compressed-PLY reader); NaN anywhere stays an error.
 
+pub mod gltf;
 pub mod info;
 pub mod instgs;
 pub mod ply;
@@ -44,6 +47,7 @@ pub enum Format {
     Spz,
     Sog,
     Splat,
+    Gltf,
     Instgs,
 }
 
@@ -54,6 +58,7 @@ impl Format {
             Format::Spz => ".spz",
             Format::Sog => "SOG",
             Format::Splat => ".splat",
+            Format::Gltf => "glTF",
             Format::Instgs => ".instgs",
         }
     }
@@ -62,7 +67,7 @@ impl Format {
 /// What we read, for errors.
 pub const READABLE: &str =
     "PLY (Inria 3DGS or SuperSplat compressed), .spz (versions 2-4), SOG versions 1-2 (a meta.json \
-                            with its WebP images, their folder, or a .sog bundle of them), .splat (32-byte rows) and .instgs";
+                            with its WebP images, their folder, or a .sog bundle of them), .splat (32-byte rows), glTF (.glb, .gltf with KHR_gaussian_splatting) and .instgs";
 
 /// The format of `path` by its content (a folder holding `meta.json` is SOG; `.splat` has no
 /// magic bytes and is taken by its extension when its size is a multiple of 32).
@@ -107,6 +112,9 @@ pub fn detect(path: &Path) -> Result<Format> {
     if head.starts_with(b"INSTGS") {
         return Ok(Format::Instgs);
     }
+    if head.starts_with(b"glTF") {
+        return Ok(Format::Gltf);
+    }
     if head.starts_with(b"PK\x03\x04") && sog::is_sog_bundle(path) {
         return Ok(Format::Sog);
     }
@@ -114,6 +122,9 @@ pub fn detect(path: &Path) -> Result<Format> {
     let named_meta = path.file_name().is_some_and(|n| n.eq_ignore_ascii_case("meta.json"));
     if first == Some(&b'{') && (named_meta || is_sog_meta(path)) {
         return Ok(Format::Sog);
+    }
+    if first == Some(&b'{') && gltf::looks_like_gltf(head, path) {
+        return Ok(Format::Gltf);
     }
     let detected = if head.starts_with(b"\x89PNG") {
         "a PNG image"
@@ -177,6 +188,11 @@ pub fn read_scene(path: &Path) -> Result<Scene> {
             read_spz(&what, &bytes)?
         }
         Format::Sog => read_sog(path)?,
+        // An instanced glTF is a plain scene to every other tool: expanded here.
+        Format::Gltf => match gltf::read(path)? {
+            AnyScene::Plain(s) => s,
+            AnyScene::Instanced(s) => s.expand(),
+        },
         Format::Splat => {
             let bytes = std::fs::read(path).with_context(|| format!("{what}: cannot read"))?;
             read_splat(&what, &bytes)?
@@ -190,7 +206,7 @@ pub fn read_scene(path: &Path) -> Result<Scene> {
 }
 
 /// Writes `scene` in the format `out`'s name chooses: `.compressed.ply`, `.ply`, `.spz`,
-/// `…meta.json` (SOG, a folder), `.sog` (SOG, one zip file) or `.splat` (its SH bands dropped, said on stderr). Every writer refuses a
+/// `…meta.json` (SOG, a folder), `.sog` (SOG, one zip file), `.glb`/`.gltf` or `.splat` (its SH bands dropped, said on stderr). Every writer refuses a
 /// scene the readers would refuse (`Scene::validate`).
 pub fn write_scene(scene: &Scene, out: &Path) -> Result<()> {
     let name = out.file_name().map(|n| n.to_string_lossy().to_ascii_lowercase()).unwrap_or_default();
@@ -204,6 +220,8 @@ pub fn write_scene(scene: &Scene, out: &Path) -> Result<()> {
         write_sog(scene, out)
     } else if name.ends_with(".sog") {
         sog::write_sog_bundle(scene, out)
+    } else if name.ends_with(".glb") || name.ends_with(".gltf") {
+        gltf::write_gltf(scene, out)
     } else if name.ends_with(".splat") {
         if scene.sh_degree > 0 {
             eprintln!("note: .splat holds no SH bands: degree {} dropped", scene.sh_degree);
@@ -211,7 +229,7 @@ pub fn write_scene(scene: &Scene, out: &Path) -> Result<()> {
         write_splat(scene, out)
     } else {
         bail!(
-            "{}: cannot write this format; the output's name chooses: .ply (Inria), .compressed.ply (SuperSplat), .spz (version 4), meta.json (SOG version 2, its images beside it), .sog (the same in one zip), .splat, or .json (an instanced scene's scene graph)",
+            "{}: cannot write this format; the output's name chooses: .ply (Inria), .compressed.ply (SuperSplat), .spz (version 4), meta.json (SOG version 2, its images beside it), .sog (the same in one zip), .glb or .gltf (glTF with KHR_gaussian_splatting), .splat, or .json (an instanced scene's scene graph)",
             out.display()
         )
     }
@@ -226,10 +244,10 @@ pub enum AnyScene {
 
 impl AnyScene {
     pub fn read(path: &Path) -> Result<AnyScene> {
-        if detect(path)? == Format::Instgs {
-            Ok(AnyScene::Instanced(instgs::read(path)?))
-        } else {
-            Ok(AnyScene::Plain(read_scene(path)?))
+        match detect(path)? {
+            Format::Instgs => Ok(AnyScene::Instanced(instgs::read(path)?)),
+            Format::Gltf => gltf::read(path),
+            _ => Ok(AnyScene::Plain(read_scene(path)?)),
         }
     }
 
@@ -258,11 +276,14 @@ impl AnyScene {
 }
 
 /// `instgs-vk convert`: `path` (any readable scene) to `out`, the format chosen by `out`'s name
-/// ([`write_scene`]); an instanced scene to `.json` writes its scene graph.
-pub fn convert(path: &Path, out: &Path) -> Result<()> {
+/// ([`write_scene`]); an instanced scene to `.json` writes its scene graph, to `.glb`/`.gltf`
+/// an instanced glTF (templates shared) unless `expand`.
+pub fn convert(path: &Path, out: &Path, expand: bool) -> Result<()> {
     let scene = AnyScene::read(path)?;
     let name = out.file_name().map(|n| n.to_string_lossy().to_ascii_lowercase()).unwrap_or_default();
+    let gltf_out = name.ends_with(".glb") || name.ends_with(".gltf");
     match (&scene, name.ends_with(".json") && !name.ends_with("meta.json")) {
+        (AnyScene::Instanced(s), false) if gltf_out && !expand => gltf::write_instanced_gltf(s, out)?,
         (AnyScene::Instanced(s), true) => {
             let text = serde_json::to_string_pretty(&crate::model::instanced::scene_graph(s))?;
             crate::util::write_atomic(out, |f| {

@@ -13,8 +13,28 @@ use crate::model::scene::Scene;
 /// are negated: the parity of its basis function in y and z.
 const SH_FLIP_YZ: [f32; 16] = [1.0, -1.0, -1.0, 1.0, -1.0, 1.0, 1.0, -1.0, 1.0, -1.0, 1.0, -1.0, -1.0, 1.0, -1.0, 1.0];
 
-/// Negates y and z of the whole scene (the `.spz` frame ↔ the PLY frame; its own inverse).
+/// How `.spz` files are framed (the command line's `--spz-frame`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum SpzFrame {
+    /// Niantic's specification: x right, y up, z back (turned into the PLY frame and back).
+    Spec,
+    /// No axis change: the PLY frame as stored (splat-transform's reading and writing).
+    AsStored,
+}
+
+static AS_STORED: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
+
+/// Sets how every later `.spz` read or write is framed (process-wide; default [`SpzFrame::Spec`]).
+pub fn set_frame(frame: SpzFrame) {
+    AS_STORED.store(frame == SpzFrame::AsStored, std::sync::atomic::Ordering::Relaxed);
+}
+
+/// Negates y and z of the whole scene (the `.spz` frame ↔ the PLY frame; its own inverse),
+/// unless the frame is [`SpzFrame::AsStored`].
 fn flip_yz(s: &mut Scene) {
+    if AS_STORED.load(std::sync::atomic::Ordering::Relaxed) {
+        return;
+    }
     let coeffs = s.sh_coeffs();
     for m in &mut s.means {
         m[1] = -m[1];

@@ -1,0 +1,885 @@
+//! glTF 2.0 with `KHR_gaussian_splatting` (`.glb`, `.gltf`): plain scenes read and written;
+//! instanced scenes written with their templates shared and read back as the same instanced
+//! scene. The container (GLB chunks, the document's types and validation, buffers in the BIN
+//! chunk, `data:` URIs or files beside a `.gltf`) is the `gltf` crate's; this module maps the
+//! splat attributes.
+//!
+//! # Conventions
+//! Source: the extension's text (KhronosGroup/glTF, `extensions/2.0/Khronos/KHR_gaussian_splatting`)
+//! with glTF/issues #2563 (SCALE made linear), and splat-transform 3.7.0's `.glb` writer, the
+//! reference implementation we check against (`tools/interop.sh`).
+//! - A splat primitive has `mode` POINTS (0) and the `KHR_gaussian_splatting` object
+//!   (written: kernel `ellipse`, colorSpace `srgb_rec709_display`, projection `perspective`,
+//!   sortingMethod `cameraDistance`). Other primitives are not splats and are skipped.
+//! - Frame: glTF is right-handed, +Y up, +Z forward (so +X is left). Our scenes are in the
+//!   Inria/COLMAP PLY frame (x right, y down, z forward), which a half turn about z maps to glTF:
+//!   (x, y, z) → (−x, −y, z), quaternions q ↦ q_z(180°)·q, and SH coefficient (l, m) times
+//!   (−1)^m (its basis function's parity in x and y). splat-transform applies the same turn
+//!   (its PLY space is Euler (0, 0, 180°)). The turn is its own inverse.
+//! - `POSITION` VEC3; `KHR_gaussian_splatting:ROTATION` VEC4 (x, y, z, w), ours (w, x, y, z);
+//!   `:SCALE` VEC3 **linear** and ≥ 0 (ours: natural-log scales; a negative value, which only a
+//!   log-space writer of the 2025 review draft produces, is refused naming that);
+//!   `:OPACITY` SCALAR after the sigmoid, in [0, 1] (ours: logits; 0 and 1 read as
+//!   ±ln 1019, as every reader of ours does); `:SH_DEGREE_0_COEF_0` VEC3 (r, g, b), the Inria
+//!   `f_dc`; `:SH_DEGREE_l_COEF_n` (l = 1..3, n = 0..2l) the Inria rest coefficient
+//!   k = l² + n (m = n − l), real SH with the Condon–Shortley phase as Inria's renderer
+//!   evaluates them, so no sign changes beyond the frame's. `COLOR_0` (8-bit sRGB of the DC
+//!   term and the opacity) is written for viewers without the extension and ignored on reading.
+//! - Quantised accessors are read where the extension allows them: ROTATION as normalized
+//!   signed bytes or shorts; SCALE as signed bytes or shorts, normalized or not; OPACITY as
+//!   normalized unsigned bytes or shorts; POSITION as any integer type `KHR_mesh_quantization`
+//!   allows (the node's matrix dequantises). SH is float. Sparse accessors are refused.
+//!   We write floats (the extension's advice for precision).
+//! - Node transforms place splat primitives: the node's world matrix must be a similarity
+//!   (rotation, uniform scale > 0, translation); positions take the matrix, rotations its
+//!   rotation, log-scales its ln s, and SH bands are rotated by its rotation (the same maths as
+//!   an instance's, [`InstancedScene::expand`]). A shear, a non-uniform scale or a mirror is
+//!   refused: a Gaussian under them is no longer one of ours per splat row.
+//!
+//! # Instanced scenes
+//! Each group's template rows that every instance shares — ROTATION, SCALE and the SH bands
+//! above the DC term — are accessors written once. Each instance is a node (TRS: translation,
+//! rotation, uniform scale: the template→world similarity conjugated by the frame's half turn,
+//! exact up to f32) whose mesh has one splat primitive pointing at the shared accessors and at
+//! its own POSITION (template means + the instance's Δp brought into template space:
+//! μ + R⁻¹Δp/s), OPACITY (sigmoid of logit + Δo), SH_DEGREE_0_COEF_0 (DC + Δc) and COLOR_0. The
+//! background is one more node. A viewer renders it right when it honours node transforms on
+//! splat primitives as above — including the SH rotation, without which view-dependent colour
+//! of a turned instance is evaluated in the wrong direction (its DC colour stays right).
+//! Root `extras.instgs` names the groups, their instances' nodes and each template's own
+//! means, opacity logits and DC (three accessors, once per group) so a reader gets templates,
+//! transforms and offsets back; a file whose extras do not match its nodes is read as a
+//! plain scene (said on stderr).
+use std::cell::RefCell;
+use std::collections::HashMap;
+use std::path::Path;
+use std::rc::Rc;
+
+use anyhow::{anyhow, bail, Context, Result};
+use glam::{Mat4, Vec3};
+use gltf::accessor::DataType;
+use gltf::mesh::Semantic;
+use serde::{Deserialize, Serialize};
+use serde_json::{json, Map, Value};
+
+use crate::formats::quant::OPACITY_LOGIT_LIMIT;
+use crate::formats::AnyScene;
+use crate::math::sigmoid;
+use crate::model::instanced::{Group, Instance, InstancedScene, Offsets, Similarity};
+use crate::model::scene::Scene;
+
+/// The extension's name (on the primitive and in `extensionsUsed`).
+pub const EXTENSION: &str = "KHR_gaussian_splatting";
+/// Attribute names' prefix.
+const PREFIX: &str = "KHR_gaussian_splatting:";
+/// `extensionsRequired` entries we read; any other is refused.
+const KNOWN_REQUIRED: [&str; 2] = [EXTENSION, "KHR_mesh_quantization"];
+/// The primitive's extension object we write.
+fn extension_object() -> Value {
+    json!({"kernel": "ellipse", "colorSpace": "srgb_rec709_display", "projection": "perspective", "sortingMethod": "cameraDistance"})
+}
+
+/// Sign of SH coefficient k (0..16, DC first, m = −l..l) under the half turn about z: (−1)^m.
+const SH_HALF_TURN_Z: [f32; 16] =
+    [1.0, -1.0, 1.0, -1.0, 1.0, -1.0, 1.0, -1.0, 1.0, -1.0, 1.0, -1.0, 1.0, -1.0, 1.0, -1.0];
+
+/// The half turn about z between our PLY frame and glTF's (its own inverse).
+pub fn half_turn_z(s: &mut Scene) {
+    let c = s.sh_coeffs();
+    for m in &mut s.means {
+        m[0] = -m[0];
+        m[1] = -m[1];
+    }
+    for q in &mut s.quats {
+        let [w, x, y, z] = *q;
+        *q = [-z, -y, x, w];
+    }
+    for (i, v) in s.sh.iter_mut().enumerate() {
+        *v *= SH_HALF_TURN_Z[(i / 3) % c];
+    }
+}
+
+/// A similarity conjugated by the half turn (either way).
+fn turn_similarity(x: &Similarity) -> Result<Similarity> {
+    let f = Mat4::from_scale(Vec3::new(-1.0, -1.0, 1.0));
+    Similarity::from_mat4(f * x.render_mat4() * f, "a transform")
+}
+
+/// The SH rest coefficient k ≥ 1's attribute name.
+fn sh_name(k: usize) -> String {
+    let l = (k as f64).sqrt().floor() as usize;
+    format!("{PREFIX}SH_DEGREE_{l}_COEF_{}", k - l * l)
+}
+
+// ---------------------------------------------------------------------------------------------
+// Writing
+
+/// The BIN chunk, its buffer views and accessors as they are built.
+#[derive(Default)]
+struct Builder {
+    bin: Vec<u8>,
+    views: Vec<Value>,
+    accessors: Vec<Value>,
+}
+
+impl Builder {
+    /// One tightly packed accessor of `values` (`ty`: SCALAR, VEC3, VEC4); min/max on request
+    /// (glTF requires them on POSITION).
+    fn floats(&mut self, values: &[f32], ty: &str, dims: usize, bounds: bool) -> usize {
+        let mut acc = json!({"componentType": 5126, "count": values.len() / dims, "type": ty});
+        if bounds {
+            let (mut lo, mut hi) = (vec![f32::INFINITY; dims], vec![f32::NEG_INFINITY; dims]);
+            for row in values.chunks_exact(dims) {
+                for d in 0..dims {
+                    lo[d] = lo[d].min(row[d]);
+                    hi[d] = hi[d].max(row[d]);
+                }
+            }
+            acc["min"] = json!(lo);
+            acc["max"] = json!(hi);
+        }
+        self.push(bytemuck::cast_slice(values), acc)
+    }
+
+    fn push(&mut self, bytes: &[u8], mut acc: Value) -> usize {
+        let offset = self.bin.len();
+        self.bin.extend_from_slice(bytes);
+        while !self.bin.len().is_multiple_of(4) {
+            self.bin.push(0);
+        }
+        self.views.push(json!({"buffer": 0, "byteOffset": offset, "byteLength": bytes.len(), "target": 34962}));
+        acc["bufferView"] = json!(self.views.len() - 1);
+        self.accessors.push(acc);
+        self.accessors.len() - 1
+    }
+}
+
+/// Accessors of the rows every instance of a template shares: ROTATION, SCALE, SH rest.
+struct Shared {
+    rotation: usize,
+    scale: usize,
+    sh_rest: Vec<usize>,
+}
+
+/// Writes `s`'s (glTF frame) rotations, linear scales and SH rest coefficients.
+fn shared_accessors(b: &mut Builder, s: &Scene) -> Shared {
+    let rot: Vec<f32> = s.quats.iter().flat_map(|q| [q[1], q[2], q[3], q[0]]).collect();
+    let scale: Vec<f32> = s.scales.iter().flatten().map(|v| v.exp()).collect();
+    let c = s.sh_coeffs();
+    let sh_rest = (1..c)
+        .map(|k| {
+            let v: Vec<f32> = (0..s.len()).flat_map(|i| s.sh[(i * c + k) * 3..(i * c + k) * 3 + 3].to_vec()).collect();
+            b.floats(&v, "VEC3", 3, false)
+        })
+        .collect();
+    Shared { rotation: b.floats(&rot, "VEC4", 4, false), scale: b.floats(&scale, "VEC3", 3, false), sh_rest }
+}
+
+/// Writes `s`'s own attributes (POSITION, OPACITY, DC, COLOR_0) and returns the primitive with
+/// `shared` for the rest.
+fn primitive(b: &mut Builder, s: &Scene, shared: &Shared) -> Value {
+    let c = s.sh_coeffs();
+    let pos: Vec<f32> = s.means.iter().flatten().copied().collect();
+    let alpha: Vec<f32> = s.opacities.iter().map(|&o| sigmoid(o)).collect();
+    let dc: Vec<f32> = (0..s.len()).flat_map(|i| s.sh[i * c * 3..i * c * 3 + 3].to_vec()).collect();
+    let colour: Vec<u8> = (0..s.len())
+        .flat_map(|i| {
+            let rgb =
+                dc[i * 3..i * 3 + 3].iter().map(|&v| crate::formats::quant::unorm8(v * crate::math::SH_C0_F32 + 0.5));
+            rgb.chain([crate::formats::quant::unorm8(alpha[i])]).collect::<Vec<u8>>()
+        })
+        .collect();
+    let mut attributes = Map::new();
+    attributes.insert("POSITION".into(), json!(b.floats(&pos, "VEC3", 3, true)));
+    let colour = b.push(&colour, json!({"componentType": 5121, "normalized": true, "count": s.len(), "type": "VEC4"}));
+    attributes.insert("COLOR_0".into(), json!(colour));
+    attributes.insert(format!("{PREFIX}ROTATION"), json!(shared.rotation));
+    attributes.insert(format!("{PREFIX}SCALE"), json!(shared.scale));
+    attributes.insert(format!("{PREFIX}OPACITY"), json!(b.floats(&alpha, "SCALAR", 1, false)));
+    attributes.insert(format!("{PREFIX}SH_DEGREE_0_COEF_0"), json!(b.floats(&dc, "VEC3", 3, false)));
+    for (k, &a) in shared.sh_rest.iter().enumerate() {
+        attributes.insert(sh_name(k + 1), json!(a));
+    }
+    json!({"attributes": attributes, "mode": 0, "extensions": {EXTENSION: extension_object()}})
+}
+
+/// A whole plain scene's primitive (in our frame; turned here).
+fn plain_primitive(b: &mut Builder, scene: &Scene) -> Value {
+    let mut s = scene.clone();
+    half_turn_z(&mut s);
+    let shared = shared_accessors(b, &s);
+    primitive(b, &s, &shared)
+}
+
+/// The document around `nodes` (all roots of scene 0) and `meshes`.
+fn document(b: &Builder, nodes: Vec<Value>, meshes: Vec<Value>, extras: Option<Value>) -> Value {
+    let roots: Vec<usize> = (0..nodes.len()).collect();
+    let mut doc = json!({
+        "asset": {"version": "2.0", "generator": concat!("instgs-vk ", env!("CARGO_PKG_VERSION"))},
+        "extensionsUsed": [EXTENSION],
+        "scene": 0,
+        "scenes": [{"nodes": roots}],
+        "nodes": nodes,
+        "meshes": meshes,
+        "buffers": [{"byteLength": b.bin.len()}],
+        "bufferViews": b.views,
+        "accessors": b.accessors,
+    });
+    if let Some(e) = extras {
+        doc["extras"] = e;
+    }
+    doc
+}
+
+/// Writes the document: `.gltf` as JSON with the buffer as a base64 `data:` URI, anything else
+/// as GLB (JSON and BIN chunks).
+fn write_document(mut doc: Value, bin: Vec<u8>, out: &Path) -> Result<()> {
+    let name = out.file_name().map(|n| n.to_string_lossy().to_ascii_lowercase()).unwrap_or_default();
+    let bytes = if name.ends_with(".gltf") {
+        doc["buffers"][0]["uri"] = json!(format!("data:application/octet-stream;base64,{}", base64::encode(&bin)));
+        serde_json::to_vec(&doc)?
+    } else {
+        let json = serde_json::to_vec(&doc)?;
+        if json.len() as u64 + bin.len() as u64 + 64 > u32::MAX as u64 {
+            bail!("{}: a GLB holds at most 4 GiB; this scene needs {} bytes", out.display(), json.len() + bin.len());
+        }
+        let header = gltf::binary::Header { magic: *b"glTF", version: 2, length: 0 };
+        let glb = gltf::binary::Glb { header, json: json.into(), bin: Some(bin.into()) };
+        glb.to_vec().map_err(|e| anyhow!("{}: {e}", out.display()))?
+    };
+    crate::util::write_atomic(out, |f| std::io::Write::write_all(f, &bytes))
+}
+
+/// Writes a plain scene as `.glb` (or `.gltf`, the buffer embedded): one node, one splat
+/// primitive, float accessors.
+pub fn write_gltf(scene: &Scene, out: &Path) -> Result<()> {
+    scene.validate(&out.display().to_string())?;
+    let mut b = Builder::default();
+    let prim = plain_primitive(&mut b, scene);
+    let doc = document(&b, vec![json!({"mesh": 0})], vec![json!({"primitives": [prim]})], None);
+    write_document(doc, b.bin, out)
+}
+
+/// Root `extras.instgs`: what a reader needs to get the instanced scene back.
+#[derive(Serialize, Deserialize)]
+struct InstgsExtras {
+    version: u32,
+    /// Nodes of the background's primitives.
+    background: Vec<usize>,
+    groups: Vec<GroupExtras>,
+}
+
+#[derive(Serialize, Deserialize)]
+struct GroupExtras {
+    name: String,
+    /// The template's own means (glTF frame, template space), opacity logits and DC.
+    template: TemplateExtras,
+    instances: Vec<InstanceExtras>,
+}
+
+#[derive(Serialize, Deserialize)]
+#[serde(rename_all = "SCREAMING_SNAKE_CASE")]
+struct TemplateExtras {
+    position: usize,
+    opacity_logit: usize,
+    sh_degree_0_coef_0: usize,
+}
+
+#[derive(Serialize, Deserialize)]
+struct InstanceExtras {
+    id: String,
+    node: usize,
+}
+
+/// Writes an instanced scene with its templates shared (module docs).
+pub fn write_instanced_gltf(scene: &InstancedScene, out: &Path) -> Result<()> {
+    scene.validate(&out.display().to_string())?;
+    let mut b = Builder::default();
+    let (mut nodes, mut meshes) = (Vec::new(), Vec::new());
+    let mut extras = InstgsExtras { version: 1, background: Vec::new(), groups: Vec::new() };
+    if !scene.background.is_empty() {
+        meshes.push(json!({"name": "background", "primitives": [plain_primitive(&mut b, &scene.background)]}));
+        nodes.push(json!({"name": "background", "mesh": 0}));
+        extras.background.push(0);
+    }
+    for g in &scene.groups {
+        let mut t = g.template.clone();
+        half_turn_z(&mut t);
+        let shared = shared_accessors(&mut b, &t);
+        let c = t.sh_coeffs();
+        let dc: Vec<f32> = (0..t.len()).flat_map(|j| t.sh[j * c * 3..j * c * 3 + 3].to_vec()).collect();
+        let template = TemplateExtras {
+            position: b.floats(&t.means.concat(), "VEC3", 3, false),
+            opacity_logit: b.floats(&t.opacities, "SCALAR", 1, false),
+            sh_degree_0_coef_0: b.floats(&dc, "VEC3", 3, false),
+        };
+        let mut group = GroupExtras { name: g.name.clone(), template, instances: Vec::new() };
+        for (k, inst) in g.instances.iter().enumerate() {
+            let x = inst.transform;
+            let mut own = t.clone();
+            for j in 0..t.len() {
+                let p = k * t.len() + j;
+                let d = x.rotation.inverse() * Vec3::from(g.offsets.d_means[p]) / x.scale;
+                // Δp is in our frame; the template rows here are turned: turn it too.
+                own.means[j] = [t.means[j][0] - d.x, t.means[j][1] - d.y, t.means[j][2] + d.z];
+                own.opacities[j] = t.opacities[j] + g.offsets.d_opacities[p];
+                for ch in 0..3 {
+                    own.sh[j * c * 3 + ch] += g.offsets.d_sh0[p][ch];
+                }
+            }
+            let node_x = turn_similarity(&x)?;
+            let r = node_x.rotation;
+            meshes.push(json!({"name": g.name, "primitives": [primitive(&mut b, &own, &shared)]}));
+            nodes.push(json!({
+                "name": inst.id,
+                "mesh": meshes.len() - 1,
+                "translation": node_x.translation.to_array(),
+                "rotation": [r.x, r.y, r.z, r.w],
+                "scale": [node_x.scale, node_x.scale, node_x.scale],
+            }));
+            group.instances.push(InstanceExtras { id: inst.id.clone(), node: nodes.len() - 1 });
+        }
+        extras.groups.push(group);
+    }
+    let doc = document(&b, nodes, meshes, Some(json!({"instgs": extras})));
+    write_document(doc, b.bin, out)
+}
+
+// ---------------------------------------------------------------------------------------------
+// Reading
+
+/// Whether `bytes` (a file's start or whole) look like glTF: the GLB magic, or JSON with an
+/// `asset` object (a `.gltf`).
+pub fn looks_like_gltf(head: &[u8], path: &Path) -> bool {
+    if head.starts_with(b"glTF") {
+        return true;
+    }
+    let ext = path.extension().map(|e| e.to_string_lossy().to_ascii_lowercase()).unwrap_or_default();
+    ext == "gltf"
+        || std::fs::read(path)
+            .ok()
+            .and_then(|b| serde_json::from_slice::<Value>(&b).ok())
+            .is_some_and(|v| v.get("asset").is_some_and(|a| a.get("version").is_some()))
+}
+
+/// Reads a `.glb`/`.gltf` file: an instanced scene when it carries our extras, else plain.
+pub fn read(path: &Path) -> Result<AnyScene> {
+    let what = path.display().to_string();
+    let bytes = std::fs::read(path).with_context(|| format!("{what}: cannot read"))?;
+    from_bytes(&bytes, &what, Some(path.parent().unwrap_or(Path::new("."))))
+}
+
+/// Reads glTF from memory; `base` resolves a `.gltf`'s relative buffer URIs (None: only the
+/// BIN chunk and `data:` URIs are read).
+pub fn from_bytes(bytes: &[u8], what: &str, base: Option<&Path>) -> Result<AnyScene> {
+    let (json, blob) = if bytes.starts_with(b"glTF") {
+        let glb = gltf::binary::Glb::from_slice(bytes).map_err(|e| anyhow!("{what}: not a valid GLB: {e}"))?;
+        (glb.json.into_owned(), glb.bin.map(|b| b.into_owned()))
+    } else {
+        (bytes.to_vec(), None)
+    };
+    let mut doc: Value =
+        serde_json::from_slice(&json).map_err(|e| anyhow!("{what}: the glTF JSON does not parse: {e}"))?;
+    // gltf-json keeps attribute names it does not know only when they start with '_'.
+    for mesh in doc.get_mut("meshes").and_then(|m| m.as_array_mut()).into_iter().flatten() {
+        for prim in mesh.get_mut("primitives").and_then(|p| p.as_array_mut()).into_iter().flatten() {
+            if let Some(Value::Object(attrs)) = prim.get_mut("attributes") {
+                *attrs = std::mem::take(attrs)
+                    .into_iter()
+                    .map(|(k, v)| if k.starts_with(PREFIX) { (format!("_{k}"), v) } else { (k, v) })
+                    .collect();
+            }
+        }
+    }
+    let root: gltf::json::Root =
+        serde_json::from_value(doc).map_err(|e| anyhow!("{what}: not a glTF 2.0 document: {e}"))?;
+    if let Some(ext) = root.extensions_required.iter().find(|e| !KNOWN_REQUIRED.contains(&e.as_str())) {
+        bail!(
+            "{what}: the file requires the glTF extension {ext}, which we do not read (we read {})",
+            KNOWN_REQUIRED.join(", ")
+        );
+    }
+    let document = gltf::Document::from_json(root).map_err(|e| anyhow!("{what}: an invalid glTF document: {e}"))?;
+    let buffers = gltf::import_buffers(&document, base, blob).map_err(|e| anyhow!("{what}: its buffers: {e}"))?;
+    let ctx = Ctx { what, buffers, cache: RefCell::new(HashMap::new()) };
+    let splats = splat_primitives(&document, what)?;
+    if splats.is_empty() {
+        bail!("{what}: a glTF file without {EXTENSION} primitives (no splats in its scene)");
+    }
+    let extras = document.as_json().extras.as_ref().and_then(|e| serde_json::from_str::<Value>(e.get()).ok());
+    if let Some(x) = extras.as_ref().and_then(|e| e.get("instgs")) {
+        match read_instanced(&ctx, &document, &splats, x) {
+            Ok(scene) => return Ok(AnyScene::Instanced(scene)),
+            Err(e) => {
+                eprintln!("note: {what}: its instgs extras do not describe its nodes ({e:#}); read as a plain scene")
+            }
+        }
+    }
+    let mut scene = Scene::default();
+    for p in &splats {
+        let s = ctx.placed(p, &document)?;
+        scene = append_any_degree(scene, s);
+    }
+    half_turn_z(&mut scene);
+    scene.validate(what)?;
+    Ok(AnyScene::Plain(scene))
+}
+
+/// One splat primitive of the scene: node, primitive index, world matrix.
+struct SplatPrimitive {
+    node: usize,
+    primitive: usize,
+    world: Mat4,
+}
+
+/// Every splat primitive of the default scene (scene 0 when none is named) with its node's
+/// world matrix; the node graph walked depth-first (at most 64 deep, 2²⁰ visits).
+fn splat_primitives(doc: &gltf::Document, what: &str) -> Result<Vec<SplatPrimitive>> {
+    let scene = doc
+        .default_scene()
+        .or_else(|| doc.scenes().next())
+        .ok_or_else(|| anyhow!("{what}: a glTF file with no scene"))?;
+    let mut out = Vec::new();
+    let mut stack: Vec<(gltf::Node, Mat4, usize)> = scene.nodes().map(|n| (n, Mat4::IDENTITY, 0)).collect();
+    let mut visits = 0usize;
+    while let Some((node, parent, depth)) = stack.pop() {
+        visits += 1;
+        if depth > 64 || visits > 1 << 20 {
+            bail!("{what}: the node graph is deeper than 64 or has more than 2^20 node visits (a cycle?)");
+        }
+        let world = parent * Mat4::from_cols_array_2d(&node.transform().matrix());
+        if let Some(mesh) = node.mesh() {
+            for prim in mesh.primitives() {
+                if prim.extensions().is_some_and(|e| e.contains_key(EXTENSION)) {
+                    out.push(SplatPrimitive { node: node.index(), primitive: prim.index(), world });
+                }
+            }
+        }
+        stack.extend(node.children().map(|c| (c, world, depth + 1)));
+    }
+    out.sort_by_key(|p| (p.node, p.primitive));
+    Ok(out)
+}
+
+/// `a` with `b` appended, the lower SH degree padded with zero coefficients.
+fn append_any_degree(a: Scene, b: Scene) -> Scene {
+    if a.is_empty() {
+        return b;
+    }
+    let degree = a.sh_degree.max(b.sh_degree);
+    let (mut a, b) = (with_degree(a, degree), with_degree(b, degree));
+    a.append(&b);
+    a
+}
+
+fn with_degree(mut s: Scene, degree: u32) -> Scene {
+    if s.sh_degree == degree {
+        return s;
+    }
+    let (from, to) = (s.sh_coeffs(), ((degree + 1) * (degree + 1)) as usize);
+    let mut sh = vec![0.0; s.len() * to * 3];
+    for i in 0..s.len() {
+        sh[i * to * 3..i * to * 3 + from * 3].copy_from_slice(&s.sh[i * from * 3..(i + 1) * from * 3]);
+    }
+    s.sh = sh;
+    s.sh_degree = degree;
+    s
+}
+
+/// The document's buffers and the accessors decoded so far (shared accessors once).
+struct Ctx<'a> {
+    what: &'a str,
+    buffers: Vec<gltf::buffer::Data>,
+    cache: RefCell<HashMap<usize, Rc<Vec<f32>>>>,
+}
+
+/// Which component types an attribute may have: (type, normalized).
+fn allowed(name: &str) -> &'static [(DataType, bool)] {
+    use DataType::*;
+    match name {
+        "POSITION" => &[
+            (F32, false),
+            (I8, false),
+            (I8, true),
+            (U8, false),
+            (U8, true),
+            (I16, false),
+            (I16, true),
+            (U16, false),
+            (U16, true),
+        ],
+        "ROTATION" => &[(F32, false), (I8, true), (I16, true)],
+        "SCALE" => &[(F32, false), (I8, false), (I8, true), (I16, false), (I16, true)],
+        "OPACITY" => &[(F32, false), (U8, true), (U16, true)],
+        _ => &[(F32, false)],
+    }
+}
+
+impl Ctx<'_> {
+    /// The accessor's values as f32 (normalized integers per glTF: signed c/max, at least −1;
+    /// unsigned c/max), checked against `name`'s allowed types and `dims` components.
+    fn values(&self, acc: &gltf::Accessor, name: &str, dims: usize) -> Result<Rc<Vec<f32>>> {
+        let what = self.what;
+        let (dt, norm) = (acc.data_type(), acc.normalized());
+        if !allowed(name).contains(&(dt, norm)) {
+            bail!(
+                "{what}: accessor {} ({name}) has component type {dt:?}{}, which {EXTENSION} does not allow there",
+                acc.index(),
+                if norm { " normalized" } else { "" }
+            );
+        }
+        if acc.dimensions().multiplicity() != dims {
+            bail!("{what}: accessor {} ({name}) is {:?}, not {dims} components", acc.index(), acc.dimensions());
+        }
+        if let Some(v) = self.cache.borrow().get(&acc.index()) {
+            return Ok(v.clone());
+        }
+        if acc.sparse().is_some() {
+            bail!("{what}: accessor {} ({name}) is sparse; sparse accessors are not read", acc.index());
+        }
+        let view = acc.view().ok_or_else(|| anyhow!("{what}: accessor {} ({name}) has no buffer view", acc.index()))?;
+        let data = &self.buffers[view.buffer().index()];
+        let elem = dims * dt.size();
+        let stride = view.stride().unwrap_or(elem);
+        let count = acc.count();
+        let view_end = view.offset().checked_add(view.length()).filter(|&e| e <= data.len());
+        let start = view.offset().checked_add(acc.offset());
+        let end = count
+            .checked_sub(1)
+            .and_then(|c| c.checked_mul(stride))
+            .and_then(|v| v.checked_add(elem))
+            .and_then(|v| v.checked_add(start?));
+        if stride < elem || view_end.is_none() || (count > 0 && end.is_none_or(|e| e > view_end.unwrap_or(0))) {
+            bail!("{what}: accessor {} ({name}) reaches past its buffer view or buffer", acc.index());
+        }
+        let start = start.unwrap_or(0);
+        let mut out = Vec::with_capacity(count * dims);
+        for i in 0..count {
+            let row = &data[start + i * stride..start + i * stride + elem];
+            for d in 0..dims {
+                out.push(component(row, d, dt, norm));
+            }
+        }
+        let out = Rc::new(out);
+        self.cache.borrow_mut().insert(acc.index(), out.clone());
+        Ok(out)
+    }
+
+    /// The primitive's splats in glTF space before its node's transform.
+    fn primitive(&self, doc: &gltf::Document, p: &SplatPrimitive) -> Result<Scene> {
+        let what = format!("{}: node {} primitive {}", self.what, p.node, p.primitive);
+        let node = doc.nodes().nth(p.node).ok_or_else(|| anyhow!("{what}: no such node"))?;
+        let prim = node
+            .mesh()
+            .and_then(|m| m.primitives().nth(p.primitive))
+            .ok_or_else(|| anyhow!("{what}: no such primitive"))?;
+        if prim.mode() != gltf::mesh::Mode::Points {
+            bail!("{what}: a {EXTENSION} primitive must have mode POINTS (0), not {:?}", prim.mode());
+        }
+        let mut attrs: HashMap<String, gltf::Accessor> = HashMap::new();
+        for (sem, acc) in prim.attributes() {
+            match sem {
+                Semantic::Positions => {
+                    attrs.insert("POSITION".into(), acc);
+                }
+                Semantic::Extras(n) if n.starts_with(PREFIX) => {
+                    attrs.insert(n[PREFIX.len()..].to_string(), acc);
+                }
+                _ => {}
+            }
+        }
+        let get = |name: &str, dims: usize| -> Result<Rc<Vec<f32>>> {
+            let acc = attrs.get(name).ok_or_else(|| {
+                anyhow!(
+                    "{what}: no {} attribute (required)",
+                    if name == "POSITION" { name.to_string() } else { format!("{PREFIX}{name}") }
+                )
+            })?;
+            self.values(acc, name, dims)
+        };
+        let degree = sh_degree(&attrs, &what)?;
+        let pos = get("POSITION", 3)?;
+        let n = pos.len() / 3;
+        let (rot, scale, alpha, dc) =
+            (get("ROTATION", 4)?, get("SCALE", 3)?, get("OPACITY", 1)?, get("SH_DEGREE_0_COEF_0", 3)?);
+        let rest: Vec<Rc<Vec<f32>>> = (1..((degree + 1) * (degree + 1)) as usize)
+            .map(|k| get(&sh_name(k)[PREFIX.len()..], 3))
+            .collect::<Result<_>>()?;
+        if rot.len() != n * 4
+            || scale.len() != n * 3
+            || alpha.len() != n
+            || dc.len() != n * 3
+            || rest.iter().any(|r| r.len() != n * 3)
+        {
+            bail!("{what}: its attributes' counts differ");
+        }
+        scene_from_attributes(&what, degree, &pos, &rot, &scale, &alpha, &dc, &rest)
+    }
+
+    /// The primitive's splats placed by its node's world matrix (glTF space).
+    fn placed(&self, p: &SplatPrimitive, doc: &gltf::Document) -> Result<Scene> {
+        let s = self.primitive(doc, p)?;
+        if p.world == Mat4::IDENTITY {
+            return Ok(s);
+        }
+        let x = Similarity::from_mat4(p.world, &format!("{}: node {}'s world matrix", self.what, p.node))?;
+        Ok(place(s, x))
+    }
+}
+
+/// Splats `s` placed by `x` (positions, rotations, scales, SH bands): the instance maths.
+fn place(s: Scene, x: Similarity) -> Scene {
+    let n = s.len();
+    let one = InstancedScene {
+        sh_degree: s.sh_degree,
+        background: Scene { sh_degree: s.sh_degree, ..Scene::default() },
+        groups: vec![Group {
+            name: String::new(),
+            template: s,
+            instances: vec![Instance { id: String::new(), transform: x }],
+            offsets: Offsets::zeros(n),
+        }],
+    };
+    one.expand()
+}
+
+/// The highest SH degree whose coefficients are all present (lower degrees complete too).
+fn sh_degree(attrs: &HashMap<String, gltf::Accessor>, what: &str) -> Result<u32> {
+    let mut degree = 0;
+    for l in 1..=3usize {
+        let present = (0..=2 * l).filter(|n| attrs.contains_key(&format!("SH_DEGREE_{l}_COEF_{n}"))).count();
+        if present == 0 {
+            break;
+        }
+        if present != 2 * l + 1 {
+            bail!("{what}: SH degree {l} is partly defined ({present} of {} coefficients); the extension requires whole degrees", 2 * l + 1);
+        }
+        degree = l as u32;
+    }
+    let limit = ((degree + 1) * (degree + 1)) as usize;
+    let known = |k: &str| k == "SH_DEGREE_0_COEF_0" || (1..limit).any(|i| sh_name(i)[PREFIX.len()..] == *k);
+    if let Some(k) = attrs.keys().find(|k| k.starts_with("SH_DEGREE_") && !known(k)) {
+        bail!("{what}: attribute {PREFIX}{k} is beyond SH degree {degree} (degrees 0-3, each whole and every lower one present)");
+    }
+    Ok(degree)
+}
+
+/// One component of an accessor row.
+fn component(row: &[u8], d: usize, dt: DataType, norm: bool) -> f32 {
+    let at = d * dt.size();
+    let b = &row[at..at + dt.size()];
+    match dt {
+        DataType::I8 => {
+            let v = b[0] as i8 as f32;
+            if norm {
+                (v / 127.0).max(-1.0)
+            } else {
+                v
+            }
+        }
+        DataType::U8 => {
+            let v = b[0] as f32;
+            if norm {
+                v / 255.0
+            } else {
+                v
+            }
+        }
+        DataType::I16 => {
+            let v = i16::from_le_bytes([b[0], b[1]]) as f32;
+            if norm {
+                (v / 32767.0).max(-1.0)
+            } else {
+                v
+            }
+        }
+        DataType::U16 => {
+            let v = u16::from_le_bytes([b[0], b[1]]) as f32;
+            if norm {
+                v / 65535.0
+            } else {
+                v
+            }
+        }
+        DataType::U32 => u32::from_le_bytes([b[0], b[1], b[2], b[3]]) as f32,
+        DataType::F32 => f32::from_le_bytes([b[0], b[1], b[2], b[3]]),
+    }
+}
+
+/// An opacity after the sigmoid as a logit (0 and 1: ±ln 1019).
+fn logit(a: f32) -> f32 {
+    if a <= 0.0 {
+        -OPACITY_LOGIT_LIMIT
+    } else if a >= 1.0 {
+        OPACITY_LOGIT_LIMIT
+    } else {
+        let a = a as f64;
+        (a / (1.0 - a)).ln() as f32
+    }
+}
+
+/// A Scene (glTF space) from decoded attributes; refuses negative scales and opacities
+/// outside [0, 1].
+#[allow(clippy::too_many_arguments)]
+fn scene_from_attributes(
+    what: &str,
+    degree: u32,
+    pos: &[f32],
+    rot: &[f32],
+    scale: &[f32],
+    alpha: &[f32],
+    dc: &[f32],
+    rest: &[Rc<Vec<f32>>],
+) -> Result<Scene> {
+    let n = pos.len() / 3;
+    let c = ((degree + 1) * (degree + 1)) as usize;
+    if let Some(i) = scale.iter().position(|v| *v < 0.0 || v.is_nan()) {
+        bail!(
+            "{what}: {PREFIX}SCALE of splat {} is {}; the extension stores linear scales ≥ 0 (a negative value is a log-space scale, the 2025 review draft's)",
+            i / 3,
+            scale[i]
+        );
+    }
+    if let Some(i) = alpha.iter().position(|v| !(0.0..=1.0).contains(v)) {
+        bail!("{what}: {PREFIX}OPACITY of splat {i} is {}; opacities after the sigmoid lie in [0, 1]", alpha[i]);
+    }
+    let mut sh = Vec::with_capacity(n * c * 3);
+    for i in 0..n {
+        sh.extend_from_slice(&dc[i * 3..i * 3 + 3]);
+        for r in rest {
+            sh.extend_from_slice(&r[i * 3..i * 3 + 3]);
+        }
+    }
+    Ok(Scene {
+        means: pos.chunks_exact(3).map(|p| [p[0], p[1], p[2]]).collect(),
+        scales: scale
+            .chunks_exact(3)
+            .map(|s| s.iter().map(|v| v.max(f32::MIN_POSITIVE).ln()).collect::<Vec<_>>().try_into().unwrap_or([0.0; 3]))
+            .collect(),
+        quats: rot.chunks_exact(4).map(|q| [q[3], q[0], q[1], q[2]]).collect(),
+        opacities: alpha.iter().map(|&a| logit(a)).collect(),
+        sh,
+        sh_degree: degree,
+    })
+}
+
+/// The instanced scene our extras describe, or why they do not match the file.
+fn read_instanced(
+    ctx: &Ctx,
+    doc: &gltf::Document,
+    splats: &[SplatPrimitive],
+    extras: &Value,
+) -> Result<InstancedScene> {
+    let x: InstgsExtras = serde_json::from_value(extras.clone()).context("unreadable")?;
+    if x.version != 1 {
+        bail!("version {} (we write 1)", x.version);
+    }
+    let by_node: HashMap<usize, &SplatPrimitive> = splats.iter().map(|p| (p.node, p)).collect();
+    let named: usize = x.background.len() + x.groups.iter().map(|g| g.instances.len()).sum::<usize>();
+    if by_node.len() != splats.len() || named != splats.len() {
+        bail!("{} splat primitives, {} named", splats.len(), named);
+    }
+    let node_prim =
+        |n: usize| by_node.get(&n).copied().ok_or_else(|| anyhow!("node {n} is not a splat node of the scene"));
+    let mut background = Scene::default();
+    for &n in &x.background {
+        background = append_any_degree(background, ctx.placed(node_prim(n)?, doc)?);
+    }
+    half_turn_z(&mut background);
+    let mut groups = Vec::new();
+    for g in &x.groups {
+        groups.push(read_group(ctx, doc, g, &node_prim)?);
+    }
+    let degree = groups.iter().map(|g: &Group| g.template.sh_degree).chain([background.sh_degree]).max().unwrap_or(0);
+    if groups.iter().any(|g| g.template.sh_degree != degree)
+        || (!background.is_empty() && background.sh_degree != degree)
+    {
+        bail!("its parts have different SH degrees");
+    }
+    background = with_degree(background, degree);
+    let scene = InstancedScene { sh_degree: degree, background, groups };
+    scene.validate(ctx.what)?;
+    Ok(scene)
+}
+
+/// One group: its template (shared rows + its own means, logits and DC), transforms and
+/// offsets, in our frame.
+fn read_group<'a>(
+    ctx: &Ctx,
+    doc: &gltf::Document,
+    g: &GroupExtras,
+    node_prim: &dyn Fn(usize) -> Result<&'a SplatPrimitive>,
+) -> Result<Group> {
+    let first = g.instances.first().ok_or_else(|| anyhow!("group {:?} has no instances", g.name))?;
+    let acc = |i: usize| doc.accessors().nth(i).ok_or_else(|| anyhow!("no accessor {i}"));
+    let mut t = ctx.primitive(doc, node_prim(first.node)?)?;
+    let (pos, logits, dc) = (
+        ctx.values(&acc(g.template.position)?, "POSITION", 3)?,
+        ctx.values(&acc(g.template.opacity_logit)?, "OPACITY_LOGIT", 1)?,
+        ctx.values(&acc(g.template.sh_degree_0_coef_0)?, "SH_DEGREE_0_COEF_0", 3)?,
+    );
+    let n = t.len();
+    if pos.len() != n * 3 || logits.len() != n || dc.len() != n * 3 {
+        bail!("group {:?}: the template's accessors hold other counts than its instances", g.name);
+    }
+    let c = t.sh_coeffs();
+    let shared = shared_of(doc, node_prim(first.node)?)?;
+    for j in 0..n {
+        t.means[j] = [pos[j * 3], pos[j * 3 + 1], pos[j * 3 + 2]];
+        t.opacities[j] = logits[j];
+        t.sh[j * c * 3..j * c * 3 + 3].copy_from_slice(&dc[j * 3..j * 3 + 3]);
+    }
+    half_turn_z(&mut t);
+    let mut instances = Vec::new();
+    let mut offsets = Offsets::zeros(n * g.instances.len());
+    for (k, inst) in g.instances.iter().enumerate() {
+        let p = node_prim(inst.node)?;
+        if shared_of(doc, p)? != shared {
+            bail!("instance {:?} does not share its group's rotation, scale and SH accessors", inst.id);
+        }
+        let own = ctx.primitive(doc, p)?;
+        if own.len() != n {
+            bail!("instance {:?} has {} splats, its template {n}", inst.id, own.len());
+        }
+        let x = turn_similarity(&Similarity::from_mat4(p.world, "a node's matrix")?)?;
+        for j in 0..n {
+            let q = k * n + j;
+            // The instance's template-space mean, turned into our frame.
+            let m = own.means[j];
+            let local = Vec3::new(-m[0], -m[1], m[2]) - Vec3::from(t.means[j]);
+            offsets.d_means[q] = (x.rotation * (local * x.scale)).to_array();
+            offsets.d_opacities[q] = own.opacities[j] - t.opacities[j];
+            for ch in 0..3 {
+                offsets.d_sh0[q][ch] = own.sh[j * c * 3 + ch] - t.sh[j * c * 3 + ch];
+            }
+        }
+        instances.push(Instance { id: inst.id.clone(), transform: x });
+    }
+    Ok(Group { name: g.name.clone(), template: t, instances, offsets })
+}
+
+/// The accessor indices of a primitive's ROTATION, SCALE and SH rest (what instances share).
+fn shared_of(doc: &gltf::Document, p: &SplatPrimitive) -> Result<Vec<(String, usize)>> {
+    let prim = doc
+        .nodes()
+        .nth(p.node)
+        .and_then(|n| n.mesh())
+        .and_then(|m| m.primitives().nth(p.primitive))
+        .ok_or_else(|| anyhow!("no primitive"))?;
+    let mut v: Vec<(String, usize)> = prim
+        .attributes()
+        .filter_map(|(s, a)| match s {
+            Semantic::Extras(n)
+                if n.starts_with(PREFIX)
+                    && (n.ends_with("ROTATION")
+                        || n.ends_with("SCALE")
+                        || (n.contains("SH_DEGREE_") && !n.contains("SH_DEGREE_0_"))) =>
+            {
+                Some((n, a.index()))
+            }
+            _ => None,
+        })
+        .collect();
+    v.sort();
+    Ok(v)
+}
