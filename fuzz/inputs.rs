@@ -7,7 +7,7 @@ use anyhow::{anyhow, Result};
 
 /// Every target: (name, what it reads).
 #[allow(dead_code)] // read by tests/fuzz_inputs.rs, not by the targets
-pub const TARGETS: [(&str, &str); 12] = [
+pub const TARGETS: [(&str, &str); 13] = [
     ("instgs_parse", ".instgs scene"),
     ("ply_parse", "3DGS PLY, plain and SuperSplat compressed"),
     ("points_ply", "a dataset's points3d.ply"),
@@ -15,6 +15,7 @@ pub const TARGETS: [(&str, &str); 12] = [
     ("splat_parse", "antimatter15 .splat"),
     ("sog_parse", "SOG meta.json with its WebP images"),
     ("sog_bundle", "a .sog bundle (zip of meta.json and WebP images)"),
+    ("gltf_parse", "glTF (.glb or .gltf JSON) with KHR_gaussian_splatting, plain or instanced"),
     ("colmap_parse", "COLMAP cameras/images/points3D, .bin and .txt"),
     ("json_inputs", "transforms JSON, instances.json, scene graph, labels"),
     ("config_toml", "training, instanced, pipeline and render configurations"),
@@ -69,6 +70,10 @@ pub fn run(target: &str, data: &[u8]) -> Result<()> {
             formats::sog::sog_from_meta(meta, what, &mut load)?.validate(what)?;
         }
         "sog_bundle" => formats::sog::sog_from_bundle(data, what)?.validate(what)?,
+        "gltf_parse" => match formats::gltf::from_bytes(data, what, None)? {
+            formats::AnyScene::Plain(s) => s.validate(what).expect("the reader validates"),
+            formats::AnyScene::Instanced(s) => s.validate(what).expect("the reader validates"),
+        },
         "colmap_parse" => {
             // First byte: the file (& 3: cameras, images, points3D, cameras), binary (& 4).
             let (&pick, content) = data.split_first().ok_or_else(|| anyhow!("empty"))?;

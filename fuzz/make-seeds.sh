@@ -8,7 +8,7 @@ bin=target/release/instgs-vk
 seeds=fuzz/seeds
 tmp=$(mktemp -d)
 trap 'rm -rf "$tmp"' EXIT
-mkdir -p "$seeds"/{ply_parse,points_ply,spz_parse,splat_parse,sog_parse,colmap_parse,json_inputs,config_toml,checkpoint_parse,mask_png}
+mkdir -p "$seeds"/{ply_parse,points_ply,spz_parse,splat_parse,sog_parse,gltf_parse,colmap_parse,json_inputs,config_toml,checkpoint_parse,mask_png}
 # Plain scenes of every format from one three-Gaussian PLY (SH degree 1).
 python3 tools/fuzz_seeds.py scene "$tmp/tiny.ply"
 cp "$tmp/tiny.ply" "$seeds/ply_parse/tiny.ply"
@@ -16,6 +16,9 @@ python3 tools/fuzz_seeds.py ascii-scene "$seeds/ply_parse/tiny_ascii.ply"
 "$bin" convert "$tmp/tiny.ply" "$seeds/ply_parse/tiny.compressed.ply" 2>/dev/null
 "$bin" convert "$tmp/tiny.ply" "$seeds/spz_parse/tiny.spz" 2>/dev/null
 "$bin" convert "$tmp/tiny.ply" "$seeds/splat_parse/tiny.splat" 2>/dev/null
+"$bin" convert "$tmp/tiny.ply" "$seeds/gltf_parse/tiny.glb" 2>/dev/null
+"$bin" convert "$tmp/tiny.ply" "$seeds/gltf_parse/tiny.gltf" 2>/dev/null
+"$bin" convert "$seeds/instgs_parse/f32.instgs" "$seeds/gltf_parse/instanced.glb" 2>/dev/null
 "$bin" convert "$tmp/tiny.ply" "$tmp/sog/meta.json" 2>/dev/null
 python3 tools/fuzz_seeds.py sog "$tmp/sog/meta.json" "$seeds/sog_parse/tiny.sog-fuzz"
 python3 tools/fuzz_seeds.py points "$seeds/points_ply"

@@ -12,7 +12,7 @@ runs=${1:-1000000}
 shift || true
 targets=("$@")
 if [ ${#targets[@]} -eq 0 ]; then
-    targets=(instgs_parse ply_parse points_ply spz_parse splat_parse sog_parse sog_bundle colmap_parse json_inputs
+    targets=(instgs_parse ply_parse points_ply spz_parse splat_parse sog_parse sog_bundle gltf_parse colmap_parse json_inputs
              config_toml checkpoint_parse mask_png)
 fi
 cargo +nightly fuzz build -O

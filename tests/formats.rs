@@ -663,3 +663,101 @@ fn instanced_gltf_shares_templates_and_reads_back_the_instanced_scene() {
     // 430 rows for 1040 splats: the background's 200 rows are whole in both.
     assert!(shared * 4 < full * 3, "{shared} vs {full} bytes");
 }
+
+/// Rewrites one accessor of a GLB's JSON to new bytes appended to its BIN chunk.
+fn replace_accessor(doc: &mut serde_json::Value, bin: &mut Vec<u8>, acc: usize, bytes: &[u8], component: u32, normalized: bool) {
+    while bin.len() % 4 != 0 {
+        bin.push(0);
+    }
+    let views = doc["bufferViews"].as_array_mut().unwrap();
+    views.push(serde_json::json!({"buffer": 0, "byteOffset": bin.len(), "byteLength": bytes.len()}));
+    let view = views.len() - 1;
+    bin.extend_from_slice(bytes);
+    let a = &mut doc["accessors"][acc];
+    a["bufferView"] = view.into();
+    a["componentType"] = component.into();
+    a["normalized"] = normalized.into();
+    a.as_object_mut().unwrap().remove("min");
+    a.as_object_mut().unwrap().remove("max");
+}
+
+/// A GLB's JSON and BIN chunk.
+fn glb_parts(path: &Path) -> (serde_json::Value, Vec<u8>) {
+    let bytes = std::fs::read(path).unwrap();
+    let glb = gltf::binary::Glb::from_slice(&bytes).unwrap();
+    (serde_json::from_slice(&glb.json).unwrap(), glb.bin.unwrap().into_owned())
+}
+
+fn write_glb_parts(path: &Path, doc: &mut serde_json::Value, bin: Vec<u8>) {
+    doc["buffers"][0]["byteLength"] = bin.len().into();
+    let json = serde_json::to_vec(&doc).unwrap();
+    let header = gltf::binary::Header { magic: *b"glTF", version: 2, length: 0 };
+    std::fs::write(path, gltf::binary::Glb { header, json: json.into(), bin: Some(bin.into()) }.to_vec().unwrap()).unwrap();
+}
+
+/// The float accessor `name` of the first primitive, and its index.
+fn float_attribute(doc: &serde_json::Value, bin: &[u8], name: &str) -> (usize, Vec<f32>) {
+    let acc = doc["meshes"][0]["primitives"][0]["attributes"][name].as_u64().unwrap() as usize;
+    let v = &doc["bufferViews"][doc["accessors"][acc]["bufferView"].as_u64().unwrap() as usize];
+    let (o, l) = (v["byteOffset"].as_u64().unwrap() as usize, v["byteLength"].as_u64().unwrap() as usize);
+    (acc, bin[o..o + l].chunks_exact(4).map(|c| f32::from_le_bytes(c.try_into().unwrap())).collect())
+}
+
+#[test]
+fn quantised_gltf_accessors_read() {
+    // The extension's quantised forms. A: POSITION as unsigned shorts dequantised by the
+    // node's translation and scale (KHR_mesh_quantization; SCALE then in the node's units),
+    // ROTATION as normalized shorts, OPACITY as normalized unsigned bytes.
+    let source = read_ply(&fixture("sh3.ply")).unwrap();
+    let plain = tmp("float.glb");
+    formats::write_scene(&source, &plain).unwrap();
+    let (mut doc, mut bin) = glb_parts(&plain);
+    let (p, pos) = float_attribute(&doc, &bin, "POSITION");
+    let lo: Vec<f32> = (0..3).map(|d| pos.iter().skip(d).step_by(3).copied().fold(f32::INFINITY, f32::min)).collect();
+    let hi: Vec<f32> = (0..3).map(|d| pos.iter().skip(d).step_by(3).copied().fold(f32::NEG_INFINITY, f32::max)).collect();
+    let step = (0..3).map(|d| hi[d] - lo[d]).fold(0.0f32, f32::max) / 65535.0;
+    let q16: Vec<u8> = pos.iter().enumerate().flat_map(|(i, v)| (((v - lo[i % 3]) / step).round() as u16).to_le_bytes()).collect();
+    replace_accessor(&mut doc, &mut bin, p, &q16, 5123, false);
+    doc["accessors"][p]["min"] = serde_json::json!([0, 0, 0]);
+    doc["accessors"][p]["max"] = serde_json::json!((0..3).map(|d| ((hi[d] - lo[d]) / step).round()).collect::<Vec<_>>());
+    let (r, rot) = float_attribute(&doc, &bin, "KHR_gaussian_splatting:ROTATION");
+    let r16: Vec<u8> = rot.iter().flat_map(|v| ((v * 32767.0).round() as i16).to_le_bytes()).collect();
+    replace_accessor(&mut doc, &mut bin, r, &r16, 5122, true);
+    let (s, scales) = float_attribute(&doc, &bin, "KHR_gaussian_splatting:SCALE");
+    let units: Vec<u8> = scales.iter().flat_map(|v| (v / step).to_le_bytes()).collect();
+    replace_accessor(&mut doc, &mut bin, s, &units, 5126, false);
+    let (a, alpha) = float_attribute(&doc, &bin, "KHR_gaussian_splatting:OPACITY");
+    let a8: Vec<u8> = alpha.iter().map(|v| (v * 255.0).round() as u8).collect();
+    replace_accessor(&mut doc, &mut bin, a, &a8, 5121, true);
+    doc["nodes"][0]["translation"] = serde_json::json!(lo);
+    doc["nodes"][0]["scale"] = serde_json::json!([step, step, step]);
+    doc["extensionsRequired"] = serde_json::json!(["KHR_mesh_quantization"]);
+    doc["extensionsUsed"] = serde_json::json!(["KHR_gaussian_splatting", "KHR_mesh_quantization"]);
+    let out = tmp("quantised.glb");
+    write_glb_parts(&out, &mut doc, bin);
+    let back = formats::read_scene(&out).unwrap();
+    let e = max_errors(&source, &back);
+    // Positions within half a step (and f32 rounding), opacity within half of 1/255, SH exact.
+    assert!(e[0] <= step * 0.51 + 1e-6 && e[1] < 1e-4 && e[2] < 1e-4 && e[3] <= 0.5 / 255.0 + 1e-6 && e[5] < 1e-6, "{e:?} step {step}");
+    assert!(render_agreement(&source, &back) >= 50.0);
+    // B: SCALE as normalized signed shorts (linear scales below 1, in world units).
+    let (mut doc, mut bin) = glb_parts(&plain);
+    let (s, scales) = float_attribute(&doc, &bin, "KHR_gaussian_splatting:SCALE");
+    assert!(scales.iter().all(|v| *v < 1.0));
+    let s16: Vec<u8> = scales.iter().flat_map(|v| ((v * 32767.0).round().max(1.0) as i16).to_le_bytes()).collect();
+    replace_accessor(&mut doc, &mut bin, s, &s16, 5122, true);
+    let out = tmp("quantised-scale.glb");
+    write_glb_parts(&out, &mut doc, bin);
+    let back = formats::read_scene(&out).unwrap();
+    let db = render_agreement(&source, &back);
+    assert!(db >= 40.0, "{db:.1} dB");
+    // An integer type the extension does not allow there is refused by name.
+    let (mut doc, mut bin) = glb_parts(&plain);
+    let (a, alpha) = float_attribute(&doc, &bin, "KHR_gaussian_splatting:OPACITY");
+    let a8: Vec<u8> = alpha.iter().map(|v| (v * 127.0).round() as u8).collect();
+    replace_accessor(&mut doc, &mut bin, a, &a8, 5120, true);
+    let out = tmp("bad-opacity.glb");
+    write_glb_parts(&out, &mut doc, bin);
+    let e = format!("{:#}", formats::read_scene(&out).unwrap_err());
+    assert!(e.contains("bad-opacity.glb") && e.contains("OPACITY") && e.contains("I8"), "{e}");
+}

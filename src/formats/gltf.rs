@@ -163,7 +163,15 @@ struct Shared {
 
 /// Writes `s`'s (glTF frame) rotations, linear scales and SH rest coefficients.
 fn shared_accessors(b: &mut Builder, s: &Scene) -> Shared {
-    let rot: Vec<f32> = s.quats.iter().flat_map(|q| [q[1], q[2], q[3], q[0]]).collect();
+    // Unit quaternions (the extension's requirement; ours need not be normalised).
+    let rot: Vec<f32> = s
+        .quats
+        .iter()
+        .flat_map(|q| {
+            let n = q.iter().map(|v| v * v).sum::<f32>().sqrt();
+            [q[1] / n, q[2] / n, q[3] / n, q[0] / n]
+        })
+        .collect();
     let scale: Vec<f32> = s.scales.iter().flatten().map(|v| v.exp()).collect();
     let c = s.sh_coeffs();
     let sh_rest = (1..c)
@@ -391,7 +399,7 @@ pub fn from_bytes(bytes: &[u8], what: &str, base: Option<&Path>) -> Result<AnySc
             }
         }
     }
-    let root: gltf::json::Root =
+    let mut root: gltf::json::Root =
         serde_json::from_value(doc).map_err(|e| anyhow!("{what}: not a glTF 2.0 document: {e}"))?;
     if let Some(ext) = root.extensions_required.iter().find(|e| !KNOWN_REQUIRED.contains(&e.as_str())) {
         bail!(
@@ -399,6 +407,8 @@ pub fn from_bytes(bytes: &[u8], what: &str, base: Option<&Path>) -> Result<AnySc
             KNOWN_REQUIRED.join(", ")
         );
     }
+    // Checked here; gltf-json knows neither and would refuse them.
+    root.extensions_required.clear();
     let document = gltf::Document::from_json(root).map_err(|e| anyhow!("{what}: an invalid glTF document: {e}"))?;
     let buffers = gltf::import_buffers(&document, base, blob).map_err(|e| anyhow!("{what}: its buffers: {e}"))?;
     let ctx = Ctx { what, buffers, cache: RefCell::new(HashMap::new()) };

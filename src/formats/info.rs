@@ -11,14 +11,25 @@ pub fn info(path: &Path, json: bool) -> Result<()> {
     if format == crate::formats::Format::Instgs {
         return info_instgs(path, json);
     }
-    let scene = crate::formats::read_scene(path)?;
+    // An instanced glTF: its groups said, its splats described expanded.
+    let (scene, instanced) = match format {
+        crate::formats::Format::Gltf => match crate::formats::gltf::read(path)? {
+            crate::formats::AnyScene::Plain(s) => (s, None),
+            crate::formats::AnyScene::Instanced(s) => {
+                let counts = (s.groups.len(), s.groups.iter().map(|g| g.instances.len()).sum::<usize>(), s.rows());
+                (s.expand(), Some(counts))
+            }
+        },
+        _ => (crate::formats::read_scene(path)?, None),
+    };
     let file_bytes = crate::formats::file_bytes(path)?;
     let (lo, hi) = scene.bounds();
     let (rlo, rhi) = scene.robust_bounds(0.02);
     if json {
         let v = serde_json::json!({
             "file": path.display().to_string(),
-            "kind": "plain",
+            "kind": if instanced.is_some() { "instanced" } else { "plain" },
+            "instanced": instanced.map(|(g, k, r)| serde_json::json!({"groups": g, "instances": k, "rows": r})),
             "format": format.name(),
             "gaussians": scene.len(),
             "sh_degree": scene.sh_degree,
@@ -33,6 +44,9 @@ pub fn info(path: &Path, json: bool) -> Result<()> {
         println!("file        {}", path.display());
         println!("format      {}", format.name());
         println!("gaussians   {}", scene.len());
+        if let Some((g, k, r)) = instanced {
+            println!("instanced   {g} groups, {k} instances, {r} parameter rows (templates shared)");
+        }
         println!("sh degree   {}", scene.sh_degree);
         println!("bounds      [{:.4}, {:.4}, {:.4}] .. [{:.4}, {:.4}, {:.4}]", lo.x, lo.y, lo.z, hi.x, hi.y, hi.z);
         println!(
