@@ -409,6 +409,15 @@ pub fn from_bytes(bytes: &[u8], what: &str, base: Option<&Path>) -> Result<AnySc
     }
     // Checked here; gltf-json knows neither and would refuse them.
     root.extensions_required.clear();
+    // gltf-json's validation indexes the accessors by POSITION unchecked: check first.
+    let accessors = root.accessors.len();
+    for (m, mesh) in root.meshes.iter().enumerate() {
+        for prim in &mesh.primitives {
+            if let Some(i) = prim.attributes.values().map(|i| i.value()).find(|&i| i >= accessors) {
+                bail!("{what}: mesh {m} names accessor {i}; the file has {accessors}");
+            }
+        }
+    }
     let document = gltf::Document::from_json(root).map_err(|e| anyhow!("{what}: an invalid glTF document: {e}"))?;
     let buffers = gltf::import_buffers(&document, base, blob).map_err(|e| anyhow!("{what}: its buffers: {e}"))?;
     let ctx = Ctx { what, buffers, cache: RefCell::new(HashMap::new()) };
