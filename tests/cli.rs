@@ -201,6 +201,28 @@ fn compose_info_convert_and_render_an_instanced_scene() {
     for key in ["frame_ms_median", "frame_ms_p90", "fps_median", "scene_gpu_bytes", "frame_gpu_bytes", "passes"] {
         assert!(!b[key].is_null() && !b["compare"][key].is_null(), "{key}");
     }
+    // The instanced scene as glTF (templates shared): bench and the player open it like the
+    // .instgs, as the same instanced scene.
+    let glb = d.join("scene.glb");
+    assert_eq!(run(&["convert", s(&scene), s(&glb)]).code, Some(0));
+    let info = run(&["info", s(&glb)]);
+    assert!(info.stdout.contains("instanced") && info.stdout.contains("950"), "{}", info.stdout);
+    let (o, b2) = {
+        let mut args = vec!["bench", "--scene", s(&glb), "--compare", s(&scene)];
+        args.extend(["--orbit", "1", "--width", "64", "--height", "48", "--frames", "1", "--json", s(&json)]);
+        let o = run(&args);
+        assert_eq!(o.code, Some(0), "{}", o.stderr);
+        (o, serde_json::from_slice::<serde_json::Value>(&std::fs::read(&json).unwrap()).unwrap())
+    };
+    assert_eq!(b2["splats"], 950);
+    assert_eq!(b2["intersections"], b2["compare"]["intersections"], "{b2}");
+    assert!((b2["ratios"]["scene_gpu_bytes"].as_f64().unwrap() - 1.0).abs() < 0.01, "instanced on the GPU too: {b2}");
+    let worst: f64 = o.stdout.split("dB mean, ").nth(1).and_then(|t| t.split(' ').next()).unwrap().parse().unwrap();
+    assert!(worst >= 60.0, "{}", o.stdout);
+    let frames = d.join("glb-frames");
+    let o = run(&["view", s(&glb), "--headless", "--frames", "1", "--width", "64", "--height", "48", "--out", s(&frames)]);
+    assert_eq!(o.code, Some(0), "{}", o.stderr);
+    assert!(frames.join("frame_000.png").is_file());
     // Bad input.
     let o = run(&[
         "compose",
