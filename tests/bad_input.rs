@@ -242,7 +242,9 @@ fn bad_input_table() {
         doc["buffers"][0]["uri"] = format!("data:application/octet-stream;base64,{}", base64::encode(&bin)).into();
         serde_json::to_vec(&doc).unwrap()
     };
-    let attr = |doc: &serde_json::Value, name: &str| doc["meshes"][0]["primitives"][0]["attributes"][name].as_u64().unwrap() as usize;
+    let attr = |doc: &serde_json::Value, name: &str| {
+        doc["meshes"][0]["primitives"][0]["attributes"][name].as_u64().unwrap() as usize
+    };
     let glb = {
         let d = t.dir("gltf_seed");
         let bin = env!("CARGO_BIN_EXE_instgs-vk");
@@ -252,32 +254,82 @@ fn bad_input_table() {
     };
     t.put("glb_truncated", "s.glb", &glb[..glb.len() - 10]);
     t.case("glb_truncated", &["info", "{d}/s.glb"], &["s.glb", "not a valid GLB"]);
-    t.put("gltf_requires_draco", "s.gltf", gltf(&|d, _| d["extensionsRequired"] = serde_json::json!(["KHR_draco_mesh_compression"])));
-    t.case("gltf_requires_draco", &["info", "{d}/s.gltf"], &["s.gltf", "requires the glTF extension KHR_draco_mesh_compression"]);
+    t.put(
+        "gltf_requires_draco",
+        "s.gltf",
+        gltf(&|d, _| d["extensionsRequired"] = serde_json::json!(["KHR_draco_mesh_compression"])),
+    );
+    t.case(
+        "gltf_requires_draco",
+        &["info", "{d}/s.gltf"],
+        &["s.gltf", "requires the glTF extension KHR_draco_mesh_compression"],
+    );
     t.put("gltf_triangles", "s.gltf", gltf(&|d, _| d["meshes"][0]["primitives"][0]["mode"] = 4.into()));
     t.case("gltf_triangles", &["info", "{d}/s.gltf"], &["s.gltf", "must have mode POINTS (0)"]);
-    t.put("gltf_no_splats", "s.gltf", gltf(&|d, _| d["meshes"][0]["primitives"][0].as_object_mut().unwrap().remove("extensions").map(drop).unwrap()));
+    t.put(
+        "gltf_no_splats",
+        "s.gltf",
+        gltf(&|d, _| d["meshes"][0]["primitives"][0].as_object_mut().unwrap().remove("extensions").map(drop).unwrap()),
+    );
     t.case("gltf_no_splats", &["info", "{d}/s.gltf"], &["s.gltf", "without KHR_gaussian_splatting primitives"]);
-    t.put("gltf_no_opacity", "s.gltf", gltf(&|d, _| d["meshes"][0]["primitives"][0]["attributes"].as_object_mut().unwrap().remove("KHR_gaussian_splatting:OPACITY").map(drop).unwrap()));
+    t.put(
+        "gltf_no_opacity",
+        "s.gltf",
+        gltf(&|d, _| {
+            d["meshes"][0]["primitives"][0]["attributes"]
+                .as_object_mut()
+                .unwrap()
+                .remove("KHR_gaussian_splatting:OPACITY")
+                .map(drop)
+                .unwrap()
+        }),
+    );
     t.case("gltf_no_opacity", &["info", "{d}/s.gltf"], &["s.gltf", "no KHR_gaussian_splatting:OPACITY attribute"]);
-    t.put("gltf_partial_sh", "s.gltf", gltf(&|d, _| d["meshes"][0]["primitives"][0]["attributes"].as_object_mut().unwrap().remove("KHR_gaussian_splatting:SH_DEGREE_1_COEF_2").map(drop).unwrap()));
+    t.put(
+        "gltf_partial_sh",
+        "s.gltf",
+        gltf(&|d, _| {
+            d["meshes"][0]["primitives"][0]["attributes"]
+                .as_object_mut()
+                .unwrap()
+                .remove("KHR_gaussian_splatting:SH_DEGREE_1_COEF_2")
+                .map(drop)
+                .unwrap()
+        }),
+    );
     t.case("gltf_partial_sh", &["info", "{d}/s.gltf"], &["s.gltf", "SH degree 1 is partly defined"]);
-    t.put("gltf_log_scale", "s.gltf", gltf(&|d, bin| {
-        // The review draft's log-space scales: negative numbers.
-        let view = d["accessors"][attr(d, "KHR_gaussian_splatting:SCALE")]["bufferView"].as_u64().unwrap() as usize;
-        let at = d["bufferViews"][view]["byteOffset"].as_u64().unwrap() as usize;
-        bin[at..at + 4].copy_from_slice(&(-4.6f32).to_le_bytes());
-    }));
+    t.put(
+        "gltf_log_scale",
+        "s.gltf",
+        gltf(&|d, bin| {
+            // The review draft's log-space scales: negative numbers.
+            let view = d["accessors"][attr(d, "KHR_gaussian_splatting:SCALE")]["bufferView"].as_u64().unwrap() as usize;
+            let at = d["bufferViews"][view]["byteOffset"].as_u64().unwrap() as usize;
+            bin[at..at + 4].copy_from_slice(&(-4.6f32).to_le_bytes());
+        }),
+    );
     t.case("gltf_log_scale", &["info", "{d}/s.gltf"], &["s.gltf", "SCALE of splat 0 is -4.6", "log-space"]);
-    t.put("gltf_accessor_past_view", "s.gltf", gltf(&|d, _| {
-        let p = attr(d, "POSITION");
-        d["accessors"][p]["byteOffset"] = 24.into()
-    }));
+    t.put(
+        "gltf_accessor_past_view",
+        "s.gltf",
+        gltf(&|d, _| {
+            let p = attr(d, "POSITION");
+            d["accessors"][p]["byteOffset"] = 24.into()
+        }),
+    );
     t.case("gltf_accessor_past_view", &["info", "{d}/s.gltf"], &["s.gltf", "reaches past its buffer view"]);
-    t.put("gltf_sheared_node", "s.gltf", gltf(&|d, _| {
-        d["nodes"][0]["matrix"] = serde_json::json!([1, 0, 0, 0, 0.5, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1]);
-    }));
-    t.case("gltf_sheared_node", &["info", "{d}/s.gltf"], &["s.gltf", "node 0's world matrix", "not a rotation times a uniform scale"]);
+    t.put(
+        "gltf_sheared_node",
+        "s.gltf",
+        gltf(&|d, _| {
+            d["nodes"][0]["matrix"] = serde_json::json!([1, 0, 0, 0, 0.5, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1]);
+        }),
+    );
+    t.case(
+        "gltf_sheared_node",
+        &["info", "{d}/s.gltf"],
+        &["s.gltf", "node 0's world matrix", "not a rotation times a uniform scale"],
+    );
 
     // ---- .instgs.
     t.put("instgs_bad_header", "s.instgs", b"INSTGS\0\0\x05\0\0\0{\"a\":");

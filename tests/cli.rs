@@ -220,7 +220,8 @@ fn compose_info_convert_and_render_an_instanced_scene() {
     let worst: f64 = o.stdout.split("dB mean, ").nth(1).and_then(|t| t.split(' ').next()).unwrap().parse().unwrap();
     assert!(worst >= 60.0, "{}", o.stdout);
     let frames = d.join("glb-frames");
-    let o = run(&["view", s(&glb), "--headless", "--frames", "1", "--width", "64", "--height", "48", "--out", s(&frames)]);
+    let o =
+        run(&["view", s(&glb), "--headless", "--frames", "1", "--width", "64", "--height", "48", "--out", s(&frames)]);
     assert_eq!(o.code, Some(0), "{}", o.stderr);
     assert!(frames.join("frame_000.png").is_file());
     // Bad input.

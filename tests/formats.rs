@@ -665,8 +665,15 @@ fn instanced_gltf_shares_templates_and_reads_back_the_instanced_scene() {
 }
 
 /// Rewrites one accessor of a GLB's JSON to new bytes appended to its BIN chunk.
-fn replace_accessor(doc: &mut serde_json::Value, bin: &mut Vec<u8>, acc: usize, bytes: &[u8], component: u32, normalized: bool) {
-    while bin.len() % 4 != 0 {
+fn replace_accessor(
+    doc: &mut serde_json::Value,
+    bin: &mut Vec<u8>,
+    acc: usize,
+    bytes: &[u8],
+    component: u32,
+    normalized: bool,
+) {
+    while !bin.len().is_multiple_of(4) {
         bin.push(0);
     }
     let views = doc["bufferViews"].as_array_mut().unwrap();
@@ -692,7 +699,8 @@ fn write_glb_parts(path: &Path, doc: &mut serde_json::Value, bin: Vec<u8>) {
     doc["buffers"][0]["byteLength"] = bin.len().into();
     let json = serde_json::to_vec(&doc).unwrap();
     let header = gltf::binary::Header { magic: *b"glTF", version: 2, length: 0 };
-    std::fs::write(path, gltf::binary::Glb { header, json: json.into(), bin: Some(bin.into()) }.to_vec().unwrap()).unwrap();
+    std::fs::write(path, gltf::binary::Glb { header, json: json.into(), bin: Some(bin.into()) }.to_vec().unwrap())
+        .unwrap();
 }
 
 /// The float accessor `name` of the first primitive, and its index.
@@ -714,12 +722,15 @@ fn quantised_gltf_accessors_read() {
     let (mut doc, mut bin) = glb_parts(&plain);
     let (p, pos) = float_attribute(&doc, &bin, "POSITION");
     let lo: Vec<f32> = (0..3).map(|d| pos.iter().skip(d).step_by(3).copied().fold(f32::INFINITY, f32::min)).collect();
-    let hi: Vec<f32> = (0..3).map(|d| pos.iter().skip(d).step_by(3).copied().fold(f32::NEG_INFINITY, f32::max)).collect();
+    let hi: Vec<f32> =
+        (0..3).map(|d| pos.iter().skip(d).step_by(3).copied().fold(f32::NEG_INFINITY, f32::max)).collect();
     let step = (0..3).map(|d| hi[d] - lo[d]).fold(0.0f32, f32::max) / 65535.0;
-    let q16: Vec<u8> = pos.iter().enumerate().flat_map(|(i, v)| (((v - lo[i % 3]) / step).round() as u16).to_le_bytes()).collect();
+    let q16: Vec<u8> =
+        pos.iter().enumerate().flat_map(|(i, v)| (((v - lo[i % 3]) / step).round() as u16).to_le_bytes()).collect();
     replace_accessor(&mut doc, &mut bin, p, &q16, 5123, false);
     doc["accessors"][p]["min"] = serde_json::json!([0, 0, 0]);
-    doc["accessors"][p]["max"] = serde_json::json!((0..3).map(|d| ((hi[d] - lo[d]) / step).round()).collect::<Vec<_>>());
+    doc["accessors"][p]["max"] =
+        serde_json::json!((0..3).map(|d| ((hi[d] - lo[d]) / step).round()).collect::<Vec<_>>());
     let (r, rot) = float_attribute(&doc, &bin, "KHR_gaussian_splatting:ROTATION");
     let r16: Vec<u8> = rot.iter().flat_map(|v| ((v * 32767.0).round() as i16).to_le_bytes()).collect();
     replace_accessor(&mut doc, &mut bin, r, &r16, 5122, true);
@@ -738,7 +749,10 @@ fn quantised_gltf_accessors_read() {
     let back = formats::read_scene(&out).unwrap();
     let e = max_errors(&source, &back);
     // Positions within half a step (and f32 rounding), opacity within half of 1/255, SH exact.
-    assert!(e[0] <= step * 0.51 + 1e-6 && e[1] < 1e-4 && e[2] < 1e-4 && e[3] <= 0.5 / 255.0 + 1e-6 && e[5] < 1e-6, "{e:?} step {step}");
+    assert!(
+        e[0] <= step * 0.51 + 1e-6 && e[1] < 1e-4 && e[2] < 1e-4 && e[3] <= 0.5 / 255.0 + 1e-6 && e[5] < 1e-6,
+        "{e:?} step {step}"
+    );
     assert!(render_agreement(&source, &back) >= 50.0);
     // B: SCALE as normalized signed shorts (linear scales below 1, in world units).
     let (mut doc, mut bin) = glb_parts(&plain);

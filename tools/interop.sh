@@ -11,6 +11,10 @@
 # axis change, the Niantic specification (which we follow) stores y up, z back; the table has
 # both our readings (`--spz-frame spec`, `--spz-frame as-stored`). SOG's k-means runs on the CPU
 # (`-g cpu`: no WebGPU adapter on lavapipe machines).
+# Then our .glb files (a plain one and an instanced one) go through the Khronos glTF validator
+# (npm gltf-validator, pinned, same scratch folder): it does not know KHR_gaussian_splatting, so
+# each of the extension's attribute names is an error (MESH_PRIMITIVE_INVALID_ATTRIBUTE, as for
+# splat-transform's own .glb); any other error or warning fails.
 # Usage: bash tools/interop.sh [--quick] [SPLAT...]   (default: the shared fruit_drops_minimal,
 # playbot_lod6 and guitar; --quick: fruit_drops only, what CI runs). Prints a Markdown table;
 # exits 1 when a row the specification and splat-transform agree on is below 30 dB (every format
@@ -18,6 +22,7 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 version=3.7.0
+validator=2.0.0-dev.3.10
 if ! command -v node > /dev/null || ! command -v npm > /dev/null; then
     echo "interop: node/npm not found on this machine: splat-transform not run, nothing checked"
     exit 0
@@ -34,6 +39,10 @@ if [ ! -x "$scratch/node_modules/.bin/splat-transform" ]; then
     mkdir -p "$scratch"
     npm install --prefix "$scratch" --no-save --no-audit --no-fund "@playcanvas/splat-transform@$version" > "$scratch/npm.log" 2>&1 \
         || { echo "interop: npm install of splat-transform $version failed (see $scratch/npm.log)"; exit 1; }
+fi
+if [ ! -d "$scratch/node_modules/gltf-validator" ]; then
+    npm install --prefix "$scratch" --no-save --no-audit --no-fund "@playcanvas/splat-transform@$version" "gltf-validator@$validator" \
+        > "$scratch/npm.log" 2>&1 || { echo "interop: npm install of gltf-validator $validator failed (see $scratch/npm.log)"; exit 1; }
 fi
 st() { "$scratch/node_modules/.bin/splat-transform" -q -w -g cpu "$@" > /dev/null 2>&1; }
 cargo build --release --quiet
@@ -67,7 +76,7 @@ for src in "${splats[@]}"; do
         "$bin" convert "$src" "$ours" 2> /dev/null
         st "$src" "$theirs"
         if [ $fmt = glb ]; then
-            a=$(agreement "$src" "$ours")
+            a="$(agreement "$src" "$ours") (ours → ours: it reads no glTF)"
         else
             st "$ours" "$work/back.ply" && a=$(agreement "$src" "$work/back.ply") || a="-"
         fi
@@ -83,5 +92,20 @@ for src in "${splats[@]}"; do
             row "$name" "$label" "$a" "$b" checked
         fi
     done
+done
+
+echo
+echo "Khronos glTF validator $validator on our .glb (errors and warnings other than the extension's attribute names):"
+"$bin" convert "${splats[0]}" "$work/plain.glb" 2> /dev/null
+"$bin" convert fuzz/seeds/instgs_parse/f32.instgs "$work/instanced.glb" 2> /dev/null
+for f in "$work/plain.glb" "$work/instanced.glb"; do
+    NODE_PATH="$scratch/node_modules" node -e '
+const v = require("gltf-validator"), fs = require("fs"), f = process.argv[1];
+v.validateBytes(new Uint8Array(fs.readFileSync(f)), { maxIssues: 0 }).then((r) => {
+  const other = r.issues.messages.filter((m) => m.severity <= 1 && m.code !== "MESH_PRIMITIVE_INVALID_ATTRIBUTE");
+  const names = r.issues.messages.filter((m) => m.code === "MESH_PRIMITIVE_INVALID_ATTRIBUTE").length;
+  console.log(`  ${f.split("/").pop()}: ${names} attribute-name errors, ${other.length} others` + other.map((m) => ` [${m.code} ${m.pointer}]`).join(""));
+  process.exit(other.length ? 1 : 0);
+});' "$f" || failed=1
 done
 exit $failed

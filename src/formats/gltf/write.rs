@@ -1,0 +1,222 @@
+//! Writing glTF: plain scenes (one splat primitive) and instanced scenes (templates shared).
+use std::path::Path;
+
+use anyhow::{anyhow, bail, Result};
+use glam::Vec3;
+use serde_json::{json, Map, Value};
+
+use super::{
+    extension_object, half_turn_z, sh_name, turn_similarity, GroupExtras, InstanceExtras, InstgsExtras, TemplateExtras,
+    EXTENSION, PREFIX,
+};
+use crate::math::sigmoid;
+use crate::model::instanced::InstancedScene;
+use crate::model::scene::Scene;
+
+/// The BIN chunk, its buffer views and accessors as they are built.
+#[derive(Default)]
+struct Builder {
+    bin: Vec<u8>,
+    views: Vec<Value>,
+    accessors: Vec<Value>,
+}
+
+impl Builder {
+    /// One tightly packed accessor of `values` (`ty`: SCALAR, VEC3, VEC4); min/max on request
+    /// (glTF requires them on POSITION).
+    fn floats(&mut self, values: &[f32], ty: &str, dims: usize, bounds: bool) -> usize {
+        let mut acc = json!({"componentType": 5126, "count": values.len() / dims, "type": ty});
+        if bounds {
+            let (mut lo, mut hi) = (vec![f32::INFINITY; dims], vec![f32::NEG_INFINITY; dims]);
+            for row in values.chunks_exact(dims) {
+                for d in 0..dims {
+                    lo[d] = lo[d].min(row[d]);
+                    hi[d] = hi[d].max(row[d]);
+                }
+            }
+            acc["min"] = json!(lo);
+            acc["max"] = json!(hi);
+        }
+        self.push(bytemuck::cast_slice(values), acc)
+    }
+
+    fn push(&mut self, bytes: &[u8], mut acc: Value) -> usize {
+        let offset = self.bin.len();
+        self.bin.extend_from_slice(bytes);
+        while !self.bin.len().is_multiple_of(4) {
+            self.bin.push(0);
+        }
+        self.views.push(json!({"buffer": 0, "byteOffset": offset, "byteLength": bytes.len(), "target": 34962}));
+        acc["bufferView"] = json!(self.views.len() - 1);
+        self.accessors.push(acc);
+        self.accessors.len() - 1
+    }
+}
+
+/// Accessors of the rows every instance of a template shares: ROTATION, SCALE, SH rest.
+struct Shared {
+    rotation: usize,
+    scale: usize,
+    sh_rest: Vec<usize>,
+}
+
+/// Writes `s`'s (glTF frame) rotations, linear scales and SH rest coefficients.
+fn shared_accessors(b: &mut Builder, s: &Scene) -> Shared {
+    // Unit quaternions (the extension's requirement; ours need not be normalised).
+    let rot: Vec<f32> = s
+        .quats
+        .iter()
+        .flat_map(|q| {
+            let n = q.iter().map(|v| v * v).sum::<f32>().sqrt();
+            [q[1] / n, q[2] / n, q[3] / n, q[0] / n]
+        })
+        .collect();
+    let scale: Vec<f32> = s.scales.iter().flatten().map(|v| v.exp()).collect();
+    let c = s.sh_coeffs();
+    let sh_rest = (1..c)
+        .map(|k| {
+            let v: Vec<f32> = (0..s.len()).flat_map(|i| s.sh[(i * c + k) * 3..(i * c + k) * 3 + 3].to_vec()).collect();
+            b.floats(&v, "VEC3", 3, false)
+        })
+        .collect();
+    Shared { rotation: b.floats(&rot, "VEC4", 4, false), scale: b.floats(&scale, "VEC3", 3, false), sh_rest }
+}
+
+/// Writes `s`'s own attributes (POSITION, OPACITY, DC, COLOR_0) and returns the primitive with
+/// `shared` for the rest.
+fn primitive(b: &mut Builder, s: &Scene, shared: &Shared) -> Value {
+    let c = s.sh_coeffs();
+    let pos: Vec<f32> = s.means.iter().flatten().copied().collect();
+    let alpha: Vec<f32> = s.opacities.iter().map(|&o| sigmoid(o)).collect();
+    let dc: Vec<f32> = (0..s.len()).flat_map(|i| s.sh[i * c * 3..i * c * 3 + 3].to_vec()).collect();
+    let colour: Vec<u8> = (0..s.len())
+        .flat_map(|i| {
+            let rgb =
+                dc[i * 3..i * 3 + 3].iter().map(|&v| crate::formats::quant::unorm8(v * crate::math::SH_C0_F32 + 0.5));
+            rgb.chain([crate::formats::quant::unorm8(alpha[i])]).collect::<Vec<u8>>()
+        })
+        .collect();
+    let mut attributes = Map::new();
+    attributes.insert("POSITION".into(), json!(b.floats(&pos, "VEC3", 3, true)));
+    let colour = b.push(&colour, json!({"componentType": 5121, "normalized": true, "count": s.len(), "type": "VEC4"}));
+    attributes.insert("COLOR_0".into(), json!(colour));
+    attributes.insert(format!("{PREFIX}ROTATION"), json!(shared.rotation));
+    attributes.insert(format!("{PREFIX}SCALE"), json!(shared.scale));
+    attributes.insert(format!("{PREFIX}OPACITY"), json!(b.floats(&alpha, "SCALAR", 1, false)));
+    attributes.insert(format!("{PREFIX}SH_DEGREE_0_COEF_0"), json!(b.floats(&dc, "VEC3", 3, false)));
+    for (k, &a) in shared.sh_rest.iter().enumerate() {
+        attributes.insert(sh_name(k + 1), json!(a));
+    }
+    json!({"attributes": attributes, "mode": 0, "extensions": {EXTENSION: extension_object()}})
+}
+
+/// A whole plain scene's primitive (in our frame; turned here).
+fn plain_primitive(b: &mut Builder, scene: &Scene) -> Value {
+    let mut s = scene.clone();
+    half_turn_z(&mut s);
+    let shared = shared_accessors(b, &s);
+    primitive(b, &s, &shared)
+}
+
+/// The document around `nodes` (all roots of scene 0) and `meshes`.
+fn document(b: &Builder, nodes: Vec<Value>, meshes: Vec<Value>, extras: Option<Value>) -> Value {
+    let roots: Vec<usize> = (0..nodes.len()).collect();
+    let mut doc = json!({
+        "asset": {"version": "2.0", "generator": concat!("instgs-vk ", env!("CARGO_PKG_VERSION"))},
+        "extensionsUsed": [EXTENSION],
+        "scene": 0,
+        "scenes": [{"nodes": roots}],
+        "nodes": nodes,
+        "meshes": meshes,
+        "buffers": [{"byteLength": b.bin.len()}],
+        "bufferViews": b.views,
+        "accessors": b.accessors,
+    });
+    if let Some(e) = extras {
+        doc["extras"] = e;
+    }
+    doc
+}
+
+/// Writes the document: `.gltf` as JSON with the buffer as a base64 `data:` URI, anything else
+/// as GLB (JSON and BIN chunks).
+fn write_document(mut doc: Value, bin: Vec<u8>, out: &Path) -> Result<()> {
+    let name = out.file_name().map(|n| n.to_string_lossy().to_ascii_lowercase()).unwrap_or_default();
+    let bytes = if name.ends_with(".gltf") {
+        doc["buffers"][0]["uri"] = json!(format!("data:application/octet-stream;base64,{}", base64::encode(&bin)));
+        serde_json::to_vec(&doc)?
+    } else {
+        let json = serde_json::to_vec(&doc)?;
+        if json.len() as u64 + bin.len() as u64 + 64 > u32::MAX as u64 {
+            bail!("{}: a GLB holds at most 4 GiB; this scene needs {} bytes", out.display(), json.len() + bin.len());
+        }
+        let header = gltf::binary::Header { magic: *b"glTF", version: 2, length: 0 };
+        let glb = gltf::binary::Glb { header, json: json.into(), bin: Some(bin.into()) };
+        glb.to_vec().map_err(|e| anyhow!("{}: {e}", out.display()))?
+    };
+    crate::util::write_atomic(out, |f| std::io::Write::write_all(f, &bytes))
+}
+
+/// Writes a plain scene as `.glb` (or `.gltf`, the buffer embedded): one node, one splat
+/// primitive, float accessors.
+pub fn write_gltf(scene: &Scene, out: &Path) -> Result<()> {
+    scene.validate(&out.display().to_string())?;
+    let mut b = Builder::default();
+    let prim = plain_primitive(&mut b, scene);
+    let doc = document(&b, vec![json!({"mesh": 0})], vec![json!({"primitives": [prim]})], None);
+    write_document(doc, b.bin, out)
+}
+
+/// Writes an instanced scene with its templates shared (module docs).
+pub fn write_instanced_gltf(scene: &InstancedScene, out: &Path) -> Result<()> {
+    scene.validate(&out.display().to_string())?;
+    let mut b = Builder::default();
+    let (mut nodes, mut meshes) = (Vec::new(), Vec::new());
+    let mut extras = InstgsExtras { version: 1, background: Vec::new(), groups: Vec::new() };
+    if !scene.background.is_empty() {
+        meshes.push(json!({"name": "background", "primitives": [plain_primitive(&mut b, &scene.background)]}));
+        nodes.push(json!({"name": "background", "mesh": 0}));
+        extras.background.push(0);
+    }
+    for g in &scene.groups {
+        let mut t = g.template.clone();
+        half_turn_z(&mut t);
+        let shared = shared_accessors(&mut b, &t);
+        let c = t.sh_coeffs();
+        let dc: Vec<f32> = (0..t.len()).flat_map(|j| t.sh[j * c * 3..j * c * 3 + 3].to_vec()).collect();
+        let template = TemplateExtras {
+            position: b.floats(&t.means.concat(), "VEC3", 3, false),
+            opacity_logit: b.floats(&t.opacities, "SCALAR", 1, false),
+            sh_degree_0_coef_0: b.floats(&dc, "VEC3", 3, false),
+        };
+        let mut group = GroupExtras { name: g.name.clone(), template, instances: Vec::new() };
+        for (k, inst) in g.instances.iter().enumerate() {
+            let x = inst.transform;
+            let mut own = t.clone();
+            for j in 0..t.len() {
+                let p = k * t.len() + j;
+                let d = x.rotation.inverse() * Vec3::from(g.offsets.d_means[p]) / x.scale;
+                // Δp is in our frame; the template rows here are turned: turn it too.
+                own.means[j] = [t.means[j][0] - d.x, t.means[j][1] - d.y, t.means[j][2] + d.z];
+                own.opacities[j] = t.opacities[j] + g.offsets.d_opacities[p];
+                for ch in 0..3 {
+                    own.sh[j * c * 3 + ch] += g.offsets.d_sh0[p][ch];
+                }
+            }
+            let node_x = turn_similarity(&x)?;
+            let r = node_x.rotation;
+            meshes.push(json!({"name": g.name, "primitives": [primitive(&mut b, &own, &shared)]}));
+            nodes.push(json!({
+                "name": inst.id,
+                "mesh": meshes.len() - 1,
+                "translation": node_x.translation.to_array(),
+                "rotation": [r.x, r.y, r.z, r.w],
+                "scale": [node_x.scale, node_x.scale, node_x.scale],
+            }));
+            group.instances.push(InstanceExtras { id: inst.id.clone(), node: nodes.len() - 1 });
+        }
+        extras.groups.push(group);
+    }
+    let doc = document(&b, nodes, meshes, Some(json!({"instgs": extras})));
+    write_document(doc, b.bin, out)
+}
