@@ -71,8 +71,8 @@ pub fn run(target: &str, data: &[u8]) -> Result<()> {
         }
         "sog_bundle" => formats::sog::sog_from_bundle(data, what)?.validate(what)?,
         "gltf_parse" => match formats::gltf::from_bytes(data, what, None)? {
-            formats::AnyScene::Plain(s) => s.validate(what).expect("the reader validates"),
-            formats::AnyScene::Instanced(s) => s.validate(what).expect("the reader validates"),
+            formats::gltf::GltfScene::Plain(s) => s.validate(what).expect("the reader validates"),
+            formats::gltf::GltfScene::Instanced(s) => s.validate(what).expect("the reader validates"),
         },
         "colmap_parse" => {
             // First byte: the file (& 3: cameras, images, points3D, cameras), binary (& 4).

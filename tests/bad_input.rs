@@ -272,31 +272,14 @@ fn bad_input_table() {
         gltf(&|d, _| d["meshes"][0]["primitives"][0].as_object_mut().unwrap().remove("extensions").map(drop).unwrap()),
     );
     t.case("gltf_no_splats", &["info", "{d}/s.gltf"], &["s.gltf", "without KHR_gaussian_splatting primitives"]);
-    t.put(
-        "gltf_no_opacity",
-        "s.gltf",
-        gltf(&|d, _| {
-            d["meshes"][0]["primitives"][0]["attributes"]
-                .as_object_mut()
-                .unwrap()
-                .remove("KHR_gaussian_splatting:OPACITY")
-                .map(drop)
-                .unwrap()
-        }),
-    );
+    let without = |name: &'static str| {
+        gltf(&move |d, _| {
+            d["meshes"][0]["primitives"][0]["attributes"].as_object_mut().unwrap().remove(name).unwrap();
+        })
+    };
+    t.put("gltf_no_opacity", "s.gltf", without("KHR_gaussian_splatting:OPACITY"));
     t.case("gltf_no_opacity", &["info", "{d}/s.gltf"], &["s.gltf", "no KHR_gaussian_splatting:OPACITY attribute"]);
-    t.put(
-        "gltf_partial_sh",
-        "s.gltf",
-        gltf(&|d, _| {
-            d["meshes"][0]["primitives"][0]["attributes"]
-                .as_object_mut()
-                .unwrap()
-                .remove("KHR_gaussian_splatting:SH_DEGREE_1_COEF_2")
-                .map(drop)
-                .unwrap()
-        }),
-    );
+    t.put("gltf_partial_sh", "s.gltf", without("KHR_gaussian_splatting:SH_DEGREE_1_COEF_2"));
     t.case("gltf_partial_sh", &["info", "{d}/s.gltf"], &["s.gltf", "SH degree 1 is partly defined"]);
     t.put(
         "gltf_log_scale",

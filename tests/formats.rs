@@ -541,6 +541,13 @@ fn gltf_round_trips_a_scene_exactly_in_renders() {
         let db = render_agreement(&source, &back);
         assert!(db >= 90.0, "{name}: {db:.1} dB");
     }
+    // A .gltf whose buffer is a file beside it (what most exporters write) reads the same.
+    let mut doc: serde_json::Value = serde_json::from_slice(&std::fs::read(tmp("fruit.gltf")).unwrap()).unwrap();
+    let uri = doc["buffers"][0]["uri"].as_str().unwrap().to_string();
+    std::fs::write(tmp("fruit.bin"), base64::decode(&uri[uri.find(',').unwrap() + 1..]).unwrap()).unwrap();
+    doc["buffers"][0]["uri"] = "fruit.bin".into();
+    std::fs::write(tmp("beside.gltf"), serde_json::to_vec(&doc).unwrap()).unwrap();
+    assert!(formats::read_scene(&tmp("beside.gltf")).unwrap() == formats::read_scene(&tmp("fruit.gltf")).unwrap());
 }
 
 #[test]

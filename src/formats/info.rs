@@ -13,7 +13,7 @@ pub fn info(path: &Path, json: bool) -> Result<()> {
     }
     // An instanced glTF: its groups said, its splats described expanded.
     let (scene, instanced) = match format {
-        crate::formats::Format::Gltf => match crate::formats::gltf::read(path)? {
+        crate::formats::Format::Gltf => match crate::formats::AnyScene::read(path)? {
             crate::formats::AnyScene::Plain(s) => (s, None),
             crate::formats::AnyScene::Instanced(s) => {
                 let counts = (s.groups.len(), s.groups.iter().map(|g| g.instances.len()).sum::<usize>(), s.rows());

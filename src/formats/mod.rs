@@ -190,8 +190,8 @@ pub fn read_scene(path: &Path) -> Result<Scene> {
         Format::Sog => read_sog(path)?,
         // An instanced glTF is a plain scene to every other tool: expanded here.
         Format::Gltf => match gltf::read(path)? {
-            AnyScene::Plain(s) => s,
-            AnyScene::Instanced(s) => s.expand(),
+            gltf::GltfScene::Plain(s) => s,
+            gltf::GltfScene::Instanced(s) => s.expand(),
         },
         Format::Splat => {
             let bytes = std::fs::read(path).with_context(|| format!("{what}: cannot read"))?;
@@ -246,7 +246,10 @@ impl AnyScene {
     pub fn read(path: &Path) -> Result<AnyScene> {
         match detect(path)? {
             Format::Instgs => Ok(AnyScene::Instanced(instgs::read(path)?)),
-            Format::Gltf => gltf::read(path),
+            Format::Gltf => Ok(match gltf::read(path)? {
+                gltf::GltfScene::Plain(s) => AnyScene::Plain(s),
+                gltf::GltfScene::Instanced(s) => AnyScene::Instanced(s),
+            }),
             _ => Ok(AnyScene::Plain(read_scene(path)?)),
         }
     }

@@ -58,10 +58,16 @@ use glam::{Mat4, Vec3};
 use serde::{Deserialize, Serialize};
 use serde_json::{json, Value};
 
-use crate::model::instanced::Similarity;
+use crate::model::instanced::{InstancedScene, Similarity};
 use crate::model::scene::Scene;
 
 pub use read::{from_bytes, looks_like_gltf, read};
+
+/// What a glTF file holds: a plain scene, or the instanced scene our extras describe.
+pub enum GltfScene {
+    Plain(Scene),
+    Instanced(InstancedScene),
+}
 pub use write::{write_gltf, write_instanced_gltf};
 
 /// The extension's name (on the primitive and in `extensionsUsed`).

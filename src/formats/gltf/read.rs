@@ -11,9 +11,10 @@ use gltf::accessor::DataType;
 use gltf::mesh::Semantic;
 use serde_json::Value;
 
-use super::{half_turn_z, sh_name, turn_similarity, GroupExtras, InstgsExtras, EXTENSION, KNOWN_REQUIRED, PREFIX};
+use super::{
+    half_turn_z, sh_name, turn_similarity, GltfScene, GroupExtras, InstgsExtras, EXTENSION, KNOWN_REQUIRED, PREFIX,
+};
 use crate::formats::quant::OPACITY_LOGIT_LIMIT;
-use crate::formats::AnyScene;
 use crate::model::instanced::{Group, Instance, InstancedScene, Offsets, Similarity};
 use crate::model::scene::Scene;
 
@@ -32,7 +33,7 @@ pub fn looks_like_gltf(head: &[u8], path: &Path) -> bool {
 }
 
 /// Reads a `.glb`/`.gltf` file: an instanced scene when it carries our extras, else plain.
-pub fn read(path: &Path) -> Result<AnyScene> {
+pub fn read(path: &Path) -> Result<GltfScene> {
     let what = path.display().to_string();
     let bytes = std::fs::read(path).with_context(|| format!("{what}: cannot read"))?;
     from_bytes(&bytes, &what, Some(path.parent().unwrap_or(Path::new("."))))
@@ -40,7 +41,7 @@ pub fn read(path: &Path) -> Result<AnyScene> {
 
 /// Reads glTF from memory; `base` resolves a `.gltf`'s relative buffer URIs (None: only the
 /// BIN chunk and `data:` URIs are read).
-pub fn from_bytes(bytes: &[u8], what: &str, base: Option<&Path>) -> Result<AnyScene> {
+pub fn from_bytes(bytes: &[u8], what: &str, base: Option<&Path>) -> Result<GltfScene> {
     let (json, blob) = if bytes.starts_with(b"glTF") {
         let glb = gltf::binary::Glb::from_slice(bytes).map_err(|e| anyhow!("{what}: not a valid GLB: {e}"))?;
         (glb.json.into_owned(), glb.bin.map(|b| b.into_owned()))
@@ -89,7 +90,7 @@ pub fn from_bytes(bytes: &[u8], what: &str, base: Option<&Path>) -> Result<AnySc
     let extras = document.as_json().extras.as_ref().and_then(|e| serde_json::from_str::<Value>(e.get()).ok());
     if let Some(x) = extras.as_ref().and_then(|e| e.get("instgs")) {
         match read_instanced(&ctx, &document, &splats, x) {
-            Ok(scene) => return Ok(AnyScene::Instanced(scene)),
+            Ok(scene) => return Ok(GltfScene::Instanced(scene)),
             Err(e) => {
                 eprintln!("note: {what}: its instgs extras do not describe its nodes ({e:#}); read as a plain scene")
             }
@@ -102,7 +103,7 @@ pub fn from_bytes(bytes: &[u8], what: &str, base: Option<&Path>) -> Result<AnySc
     }
     half_turn_z(&mut scene);
     scene.validate(what)?;
-    Ok(AnyScene::Plain(scene))
+    Ok(GltfScene::Plain(scene))
 }
 
 /// One splat primitive of the scene: node, primitive index, world matrix.
