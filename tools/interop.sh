@@ -58,8 +58,8 @@ agreement() {
 }
 failed=0
 low() { awk -v d="$1" 'BEGIN { exit !(d == "-" || d < 30.0) }'; }
-row() { # scene format ours-it-ours it-ours checked
-    printf '| %s | %s | %s | %s |\n' "$1" "$2" "$3" "$4"
+row() { # scene format ours-it-ours it-ours checked [note after ours-it-ours]
+    printf '| %s | %s | %s%s | %s |\n' "$1" "$2" "$3" "${6:+ $6}" "$4"
     if [ "$5" = checked ] && { low "$3" || low "$4"; }; then failed=1; fi
 }
 
@@ -76,7 +76,7 @@ for src in "${splats[@]}"; do
         "$bin" convert "$src" "$ours" 2> /dev/null
         st "$src" "$theirs"
         if [ $fmt = glb ]; then
-            a="$(agreement "$src" "$ours") (ours → ours: it reads no glTF)"
+            a=$(agreement "$src" "$ours")
         else
             st "$ours" "$work/back.ply" && a=$(agreement "$src" "$work/back.ply") || a="-"
         fi
@@ -89,7 +89,8 @@ for src in "${splats[@]}"; do
             b=$(agreement "$src" "$theirs" --spz-frame as-stored)
             row "$name" ".spz, --spz-frame as-stored" "$a" "$b" checked
         else
-            row "$name" "$label" "$a" "$b" checked
+            note=""; [ $fmt = glb ] && note="(ours → ours: it reads no glTF)"
+            row "$name" "$label" "$a" "$b" checked "$note"
         fi
     done
 done

@@ -385,8 +385,8 @@ impl Editor {
         None
     }
 
-    /// Writes the scene to `path` (atomically, offsets stored as `dtype`, groups without
-    /// instances left out); the first save of a session first keeps the file as it was as
+    /// Writes the scene to `path` (atomically; `.glb`/`.gltf` as an instanced glTF, else
+    /// `.instgs` with offsets stored as `dtype`; groups without instances left out); the first save of a session first keeps the file as it was as
     /// `PATH.bak`. Returns the backup's path when one was made.
     pub fn save(&mut self, scene: &InstancedScene, path: &Path, dtype: Dtype) -> Result<Option<PathBuf>> {
         let scene = renderable(scene);
@@ -398,7 +398,13 @@ impl Editor {
             crate::util::write_atomic(&bak, |f| f.write_all(&original))?;
             backup = Some(bak);
         }
-        crate::formats::instgs::write(&scene, path, dtype)?;
+        // A glTF scene stays glTF (its templates shared); anything else is written as .instgs.
+        let name = path.to_string_lossy().to_ascii_lowercase();
+        if name.ends_with(".glb") || name.ends_with(".gltf") {
+            crate::formats::gltf::write_instanced_gltf(&scene, path)?;
+        } else {
+            crate::formats::instgs::write(&scene, path, dtype)?;
+        }
         self.backed_up = true;
         self.saved = Some(self.undo.len());
         Ok(backup)
@@ -576,6 +582,18 @@ mod tests {
         assert_eq!(crate::formats::instgs::read(&path).unwrap(), s);
         ed.undo(&mut s).unwrap();
         assert!(ed.unsaved());
+        // An instanced glTF opened in the player is saved as glTF again.
+        let glb = dir.join("s.glb");
+        crate::formats::gltf::write_instanced_gltf(&s, &glb).unwrap();
+        let mut ed = Editor::new(&s);
+        ed.selected = Some((0, 0));
+        ed.turn(&mut s, 20.0, Vec3::Z).unwrap();
+        ed.save(&s, &glb, Dtype::F32).unwrap();
+        let crate::formats::AnyScene::Instanced(back) = crate::formats::AnyScene::read(&glb).unwrap() else {
+            panic!("the saved .glb reads as a plain scene")
+        };
+        let (a, b) = (back.groups[0].instances[0].transform, s.groups[0].instances[0].transform);
+        assert!(a.rotation.dot(b.rotation).abs() > 1.0 - 1e-6 && a.translation.distance(b.translation) < 1e-4);
         std::fs::remove_dir_all(&dir).unwrap();
     }
 
