@@ -60,6 +60,21 @@ impl Scene {
         out
     }
 
+    /// The scene at SH `degree` (at least its own): zero coefficients for the bands it lacks.
+    pub fn with_sh_degree(mut self, degree: u32) -> Scene {
+        if self.sh_degree >= degree {
+            return self;
+        }
+        let (from, to) = (self.sh_coeffs(), ((degree + 1) * (degree + 1)) as usize);
+        let mut sh = vec![0.0; self.len() * to * 3];
+        for i in 0..self.len() {
+            sh[i * to * 3..i * to * 3 + from * 3].copy_from_slice(&self.sh[i * from * 3..(i + 1) * from * 3]);
+        }
+        self.sh = sh;
+        self.sh_degree = degree;
+        self
+    }
+
     /// Adds `other`'s Gaussians after `self`'s (the same SH degree).
     pub fn append(&mut self, other: &Scene) {
         self.means.extend_from_slice(&other.means);

@@ -148,23 +148,9 @@ fn append_any_degree(a: Scene, b: Scene) -> Scene {
         return b;
     }
     let degree = a.sh_degree.max(b.sh_degree);
-    let (mut a, b) = (with_degree(a, degree), with_degree(b, degree));
+    let (mut a, b) = (a.with_sh_degree(degree), b.with_sh_degree(degree));
     a.append(&b);
     a
-}
-
-fn with_degree(mut s: Scene, degree: u32) -> Scene {
-    if s.sh_degree == degree {
-        return s;
-    }
-    let (from, to) = (s.sh_coeffs(), ((degree + 1) * (degree + 1)) as usize);
-    let mut sh = vec![0.0; s.len() * to * 3];
-    for i in 0..s.len() {
-        sh[i * to * 3..i * to * 3 + from * 3].copy_from_slice(&s.sh[i * from * 3..(i + 1) * from * 3]);
-    }
-    s.sh = sh;
-    s.sh_degree = degree;
-    s
 }
 
 /// The document's buffers and the accessors decoded so far (shared accessors once).
@@ -394,8 +380,7 @@ fn logit(a: f32) -> f32 {
     } else if a >= 1.0 {
         OPACITY_LOGIT_LIMIT
     } else {
-        let a = a as f64;
-        (a / (1.0 - a)).ln() as f32
+        crate::math::logit(a)
     }
 }
 
@@ -477,7 +462,7 @@ fn read_instanced(
     {
         bail!("its parts have different SH degrees");
     }
-    background = with_degree(background, degree);
+    background = background.with_sh_degree(degree);
     let scene = InstancedScene { sh_degree: degree, background, groups };
     scene.validate(ctx.what)?;
     Ok(scene)

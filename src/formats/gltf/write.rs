@@ -53,6 +53,12 @@ impl Builder {
     }
 }
 
+/// SH coefficient `k` (RGB) of every splat, in splat order (k = 0: the DC term).
+fn coefficient(s: &Scene, k: usize) -> Vec<f32> {
+    let c = s.sh_coeffs();
+    (0..s.len()).flat_map(|i| s.sh[(i * c + k) * 3..(i * c + k) * 3 + 3].iter().copied()).collect()
+}
+
 /// Accessors of the rows every instance of a template shares: ROTATION, SCALE, SH rest.
 struct Shared {
     rotation: usize,
@@ -73,22 +79,16 @@ fn shared_accessors(b: &mut Builder, s: &Scene) -> Shared {
         .collect();
     let scale: Vec<f32> = s.scales.iter().flatten().map(|v| v.exp()).collect();
     let c = s.sh_coeffs();
-    let sh_rest = (1..c)
-        .map(|k| {
-            let v: Vec<f32> = (0..s.len()).flat_map(|i| s.sh[(i * c + k) * 3..(i * c + k) * 3 + 3].to_vec()).collect();
-            b.floats(&v, "VEC3", 3, false)
-        })
-        .collect();
+    let sh_rest = (1..c).map(|k| b.floats(&coefficient(s, k), "VEC3", 3, false)).collect();
     Shared { rotation: b.floats(&rot, "VEC4", 4, false), scale: b.floats(&scale, "VEC3", 3, false), sh_rest }
 }
 
 /// Writes `s`'s own attributes (POSITION, OPACITY, DC, COLOR_0) and returns the primitive with
 /// `shared` for the rest.
 fn primitive(b: &mut Builder, s: &Scene, shared: &Shared) -> Value {
-    let c = s.sh_coeffs();
     let pos: Vec<f32> = s.means.iter().flatten().copied().collect();
     let alpha: Vec<f32> = s.opacities.iter().map(|&o| sigmoid(o)).collect();
-    let dc: Vec<f32> = (0..s.len()).flat_map(|i| s.sh[i * c * 3..i * c * 3 + 3].to_vec()).collect();
+    let dc = coefficient(s, 0);
     let colour: Vec<u8> = (0..s.len())
         .flat_map(|i| {
             let rgb =
@@ -183,7 +183,7 @@ pub fn write_instanced_gltf(scene: &InstancedScene, out: &Path) -> Result<()> {
         half_turn_z(&mut t);
         let shared = shared_accessors(&mut b, &t);
         let c = t.sh_coeffs();
-        let dc: Vec<f32> = (0..t.len()).flat_map(|j| t.sh[j * c * 3..j * c * 3 + 3].to_vec()).collect();
+        let dc = coefficient(&t, 0);
         let template = TemplateExtras {
             position: b.floats(&t.means.concat(), "VEC3", 3, false),
             opacity_logit: b.floats(&t.opacities, "SCALAR", 1, false),
