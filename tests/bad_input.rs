@@ -215,7 +215,15 @@ fn bad_input_table() {
     let meta2 = meta2
         .replace(r#""sh0": {"files""#, &format!(r#""sh0": {{"codebook": [{}], "files""#, vec!["0"; 256].join(",")));
     t.put("sog_missing_image", "meta.json", &meta2);
-    t.case("sog_missing_image", &["info", "{d}/meta.json"], &["a.webp", "cannot read (named by meta.json)"]);
+    t.case("sog_missing_image", &["info", "{d}/meta.json"], &["meta.json", "\"a.webp\"", "cannot read"]);
+    // A meta.json may name only files beside it.
+    for (name, file, needle) in [
+        ("sog_names_parent", "../x.webp", "outside the file's folder"),
+        ("sog_names_dev_zero", "/dev/zero", "outside the file's folder"),
+    ] {
+        t.put(name, "meta.json", meta2.replace("a.webp", file));
+        t.case(name, &["info", "{d}/meta.json"], &["meta.json", file, needle]);
+    }
     let bundle = |files: &[(&str, &[u8])]| {
         let mut w = zip::ZipWriter::new(std::io::Cursor::new(Vec::new()));
         for (name, bytes) in files {
@@ -313,6 +321,103 @@ fn bad_input_table() {
         &["info", "{d}/s.gltf"],
         &["s.gltf", "node 0's world matrix", "not a rotation times a uniform scale"],
     );
+    // Buffers named by their uri: only regular files in the glTF's folder, read with limits.
+    // The seed's document with its buffer's uri replaced (after `gltf` embeds the buffer).
+    let with_uri = |doc: Vec<u8>, uri: &str, length: Option<usize>| {
+        let mut v: serde_json::Value = serde_json::from_slice(&doc).unwrap();
+        v["buffers"][0]["uri"] = uri.into();
+        if let Some(n) = length {
+            v["buffers"][0]["byteLength"] = n.into();
+        }
+        serde_json::to_vec(&v).unwrap()
+    };
+    let external = |uri: &str| with_uri(gltf(&|_, _| {}), uri, None);
+    let bin_of = |doc: &[u8]| {
+        let v: serde_json::Value = serde_json::from_slice(doc).unwrap();
+        let uri = v["buffers"][0]["uri"].as_str().unwrap().to_string();
+        base64::decode(&uri[uri.find(',').unwrap() + 1..]).unwrap()
+    };
+    let bin = bin_of(&gltf(&|_, _| {}));
+    for (name, uri, needles) in [
+        ("gltf_uri_bad_escape", "%FF.bin", vec!["buffer 0's uri", "%FF.bin", "does not decode to a UTF-8 path"]),
+        ("gltf_uri_dev_zero", "/dev/zero", vec!["buffer 0's uri", "/dev/zero", "outside the file's folder"]),
+        ("gltf_uri_parent", "../x.bin", vec!["buffer 0's uri", "../x.bin", "outside the file's folder"]),
+        ("gltf_uri_scheme", "file:///etc/passwd", vec!["buffer 0's uri", "not a relative path"]),
+        ("gltf_uri_folder", "sub", vec!["buffer 0's uri", "not a regular file"]),
+        ("gltf_uri_link_out", "out.bin", vec!["buffer 0's uri", "leads outside the file's folder"]),
+    ] {
+        t.put(name, "s.gltf", external(uri));
+        t.put(name, "sub/keep", "");
+        t.put(name, "../gltf_outside/x.bin", &bin);
+        std::os::unix::fs::symlink(t.dir(name).join("../gltf_outside/x.bin"), t.dir(name).join("out.bin")).unwrap();
+        t.case(name, &["info", "{d}/s.gltf"], &[&["s.gltf"], needles.as_slice()].concat());
+    }
+    // The memory budget: a buffer larger than it, and a node graph that reuses its children
+    // (two parents per level, 2^18 visits of one 3-splat mesh at the leaves) — both refused
+    // before they are read or expanded.
+    t.put("gltf_buffer_over_budget", "s.gltf", with_uri(gltf(&|_, _| {}), "big.bin", Some(bin.len() + 3_000_000)));
+    t.put("gltf_buffer_over_budget", "big.bin", [&bin[..], &vec![0u8; 3_000_000][..]].concat());
+    t.case(
+        "gltf_buffer_over_budget",
+        &["--max-memory", "2MB", "info", "{d}/s.gltf"],
+        &["s.gltf", "its buffers would hold", "memory budget of 2.0 MB", "--max-memory"],
+    );
+    t.put(
+        "gltf_node_graph_dag",
+        "s.gltf",
+        gltf(&|d, _| {
+            let depth = 18;
+            let mut nodes = Vec::new();
+            for level in 0..depth {
+                for _ in 0..2 {
+                    let next = 2 * (level + 1);
+                    nodes.push(if level + 1 < depth {
+                        serde_json::json!({"children": [next, next + 1]})
+                    } else {
+                        serde_json::json!({"mesh": 0})
+                    });
+                }
+            }
+            d["nodes"] = nodes.into();
+            d["scenes"] = serde_json::json!([{"nodes": [0, 1]}]);
+            d["scene"] = 0.into();
+        }),
+    );
+    t.case(
+        "gltf_node_graph_dag",
+        &["--max-memory", "64MiB", "info", "{d}/s.gltf"],
+        &["s.gltf", "splat primitive visits", "memory budget"],
+    );
+    t.put(
+        "gltf_colour_space",
+        "s.gltf",
+        gltf(&|d, _| {
+            d["meshes"][0]["primitives"][0]["extensions"]["KHR_gaussian_splatting"]["colorSpace"] = "acescg".into()
+        }),
+    );
+    t.case("gltf_colour_space", &["info", "{d}/s.gltf"], &["s.gltf", "colorSpace \"acescg\" is not read"]);
+    t.put(
+        "gltf_indices_past_vertices",
+        "s.gltf",
+        gltf(&|d, bin| {
+            let at = bin.len();
+            bin.extend_from_slice(&[0, 7, 1, 0]);
+            d["bufferViews"]
+                .as_array_mut()
+                .unwrap()
+                .push(serde_json::json!({"buffer": 0, "byteOffset": at, "byteLength": 4}));
+            let view = d["bufferViews"].as_array().unwrap().len() - 1;
+            d["accessors"]
+                .as_array_mut()
+                .unwrap()
+                .push(serde_json::json!({"bufferView": view, "componentType": 5121, "count": 3, "type": "SCALAR"}));
+            let acc = d["accessors"].as_array().unwrap().len() - 1;
+            d["meshes"][0]["primitives"][0]["indices"] = acc.into();
+            d["buffers"][0]["byteLength"] = bin.len().into();
+        }),
+    );
+    t.case("gltf_indices_past_vertices", &["info", "{d}/s.gltf"], &["s.gltf", "names vertex 7", "the primitive has 3"]);
+    t.case("max_memory_not_a_size", &["--max-memory", "lots", "info", tiny], &["--max-memory", "not a size"]);
 
     // ---- .instgs.
     t.put("instgs_bad_header", "s.instgs", b"INSTGS\0\0\x05\0\0\0{\"a\":");
@@ -341,6 +446,24 @@ fn bad_input_table() {
             vec!["t.json", "two cameras are named \"a\""],
         ),
         ("cameras_not_json", "oops", vec![], vec!["t.json", "not a transforms JSON"]),
+        (
+            "cameras_huge_width",
+            r#""camera_angle_x": 0.8, "w": 1e10, "h": 48,"#,
+            vec!["a"],
+            vec!["t.json: frame 0", "w 10000000000 is not an image side"],
+        ),
+        (
+            "cameras_fractional_height",
+            r#""camera_angle_x": 0.8, "w": 64, "h": 47.5,"#,
+            vec!["a"],
+            vec!["t.json: frame 0", "h 47.5 is not an image side"],
+        ),
+        (
+            "cameras_image_outside",
+            r#""camera_angle_x": 0.8, "w": 64, "h": 48,"#,
+            vec!["../../etc/passwd"],
+            vec!["t.json", "frame 0's file_path", "outside the file's folder"],
+        ),
     ] {
         t.put(name, "t.json", transforms(head, &frames));
         let args = render("{d}/t.json");
@@ -789,6 +912,22 @@ fn bad_input_table() {
         }
     });
     t.case("dataset_lens_folds", &train(data.to_str().unwrap()), &["r_000.png", "OPENCV distortion folds over"]);
+    // Tangential terms that fold the image along one axis only (the radius along the diagonal
+    // still grows): the Jacobian's grid over the whole image finds it.
+    let data = demo_copy(&t.dir("dataset_lens_folds_tangentially"), |d| {
+        for split in ["train", "test"] {
+            let p = d.join(format!("transforms_{split}.json"));
+            let mut v: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&p).unwrap()).unwrap();
+            v["p1"] = (0.9).into();
+            v["p2"] = (-0.9).into();
+            std::fs::write(&p, v.to_string()).unwrap();
+        }
+    });
+    t.case(
+        "dataset_lens_folds_tangentially",
+        &train(data.to_str().unwrap()),
+        &["r_000.png", "OPENCV distortion folds over near pixel"],
+    );
 
     // ---- What we wrote, we can prove we wrote: a changed byte is refused.
     let v2 =

@@ -782,3 +782,93 @@ fn quantised_gltf_accessors_read() {
     let e = format!("{:#}", formats::read_scene(&out).unwrap_err());
     assert!(e.contains("bad-opacity.glb") && e.contains("OPACITY") && e.contains("I8"), "{e}");
 }
+
+#[test]
+fn what_a_gltf_says_is_checked_against_what_it_holds() {
+    // docs/robustness.md, "What a file may make us read": the answers hostile glTF files get
+    // when they are readable (the refusals are in tests/bad_input.rs).
+    let source = read_ply(&fixture("sh0.ply")).unwrap();
+    let plain = tmp("checked.glb");
+    formats::write_scene(&source, &plain).unwrap();
+    // 1. An application attribute `_KHR_gaussian_splatting:SCALE` does not stand in for ours.
+    let (mut doc, mut bin) = glb_parts(&plain);
+    let (s, scales) = float_attribute(&doc, &bin, "KHR_gaussian_splatting:SCALE");
+    let other = doc["accessors"][s].clone();
+    doc["accessors"].as_array_mut().unwrap().push(other);
+    let fake = doc["accessors"].as_array().unwrap().len() - 1;
+    let doubled: Vec<u8> = scales.iter().flat_map(|v| (2.0 * v).to_le_bytes()).collect();
+    replace_accessor(&mut doc, &mut bin, fake, &doubled, 5126, false);
+    doc["meshes"][0]["primitives"][0]["attributes"]["_KHR_gaussian_splatting:SCALE"] = fake.into();
+    let out = tmp("app-attribute.glb");
+    write_glb_parts(&out, &mut doc, bin);
+    let back = formats::read_scene(&out).unwrap();
+    assert!(max_errors(&source, &back)[2] < 1e-5, "{:?}", max_errors(&source, &back));
+    // 2. Linear colours are brought to sRGB: the DC colour encoded by the transfer function.
+    let (mut doc, bin) = glb_parts(&plain);
+    doc["meshes"][0]["primitives"][0]["extensions"]["KHR_gaussian_splatting"]["colorSpace"] =
+        "lin_rec709_display".into();
+    let out = tmp("linear.glb");
+    write_glb_parts(&out, &mut doc, bin);
+    let back = formats::read_scene(&out).unwrap();
+    let c0 = instgs_vk::math::SH_C0_F32;
+    for i in (0..source.len()).step_by(37) {
+        let lin = (0.5 + c0 * source.sh[i * 3]).clamp(0.0, 1.0);
+        let srgb = if lin <= 0.0031308 { 12.92 * lin } else { 1.055 * lin.powf(1.0 / 2.4) - 0.055 };
+        assert!((0.5 + c0 * back.sh[i * 3] - srgb).abs() < 1e-4, "splat {i}");
+    }
+    // 3. A POINTS primitive's indices choose its splats (and their order).
+    let (mut doc, mut bin) = glb_parts(&plain);
+    let at = bin.len();
+    bin.extend_from_slice(&[5, 0, 0, 0, 2, 0, 0, 0]);
+    doc["bufferViews"]
+        .as_array_mut()
+        .unwrap()
+        .push(serde_json::json!({"buffer": 0, "byteOffset": at, "byteLength": 8}));
+    let view = doc["bufferViews"].as_array().unwrap().len() - 1;
+    doc["accessors"]
+        .as_array_mut()
+        .unwrap()
+        .push(serde_json::json!({"bufferView": view, "componentType": 5125, "count": 2, "type": "SCALAR"}));
+    doc["meshes"][0]["primitives"][0]["indices"] = (doc["accessors"].as_array().unwrap().len() - 1).into();
+    let out = tmp("indexed.glb");
+    write_glb_parts(&out, &mut doc, bin);
+    let back = formats::read_scene(&out).unwrap();
+    assert_eq!(back.len(), 2);
+    assert!(max_errors(&source.select(&[5, 2]), &back).iter().all(|e| *e < 1e-5));
+    // 4. An instanced glTF whose extras no longer describe its nodes is read as the node tree.
+    let mut rng = common::Rng::new(54);
+    let scene = common::random_instanced(&mut rng, 3, 50, &[(40, 3)]);
+    let glb = tmp("edited.glb");
+    formats::gltf::write_instanced_gltf(&scene, &glb).unwrap();
+    let expanded = scene.expand();
+    let edits: [(&str, &dyn Fn(&mut serde_json::Value, &mut Vec<u8>)); 3] = [
+        ("two instances name one node", &|d, _| {
+            let n = d["extras"]["instgs"]["groups"][0]["instances"][0]["node"].clone();
+            d["extras"]["instgs"]["groups"][0]["instances"][1]["node"] = n;
+        }),
+        ("the background names an instance's node", &|d, _| {
+            let n = d["extras"]["instgs"]["groups"][0]["instances"][0]["node"].clone();
+            d["extras"]["instgs"]["background"][0] = n;
+        }),
+        ("a template moved by 1e7", &|d, bin| {
+            let acc = d["extras"]["instgs"]["groups"][0]["template"]["POSITION"].as_u64().unwrap() as usize;
+            let v = &d["bufferViews"][d["accessors"][acc]["bufferView"].as_u64().unwrap() as usize];
+            let (o, l) = (v["byteOffset"].as_u64().unwrap() as usize, v["byteLength"].as_u64().unwrap() as usize);
+            for c in bin[o..o + l].chunks_exact_mut(4) {
+                let x = f32::from_le_bytes((&*c).try_into().unwrap()) + 1e7;
+                c.copy_from_slice(&x.to_le_bytes());
+            }
+        }),
+    ];
+    for (what, edit) in edits {
+        let (mut doc, mut bin) = glb_parts(&glb);
+        edit(&mut doc, &mut bin);
+        let out = tmp("edited-extras.glb");
+        write_glb_parts(&out, &mut doc, bin);
+        let formats::AnyScene::Plain(back) = formats::AnyScene::read(&out).unwrap() else {
+            panic!("{what}: read from the extras")
+        };
+        let db = render_agreement(&expanded, &back);
+        assert!(db >= 60.0, "{what}: the node tree renders {db:.1} dB from the scene");
+    }
+}

@@ -171,11 +171,13 @@ fn colmap_image(what: &str, name: &str, qvec: [f64; 4], tvec: [f64; 3], camera_i
 fn colmap_cameras_bin(m: &mut ColmapModel, data: &[u8], what: &str) -> Result<()> {
     let mut b = Bin { data, pos: 0, what: what.to_string() };
     for _ in 0..b.count(24)? {
-        let id = b.i32()? as u32;
+        let id = b.i32()?;
+        let id = u32::try_from(id).map_err(|_| anyhow!("{what}: camera id {id} is negative"))?;
         let model_id = b.i32()?;
         let (w, h) = (b.u64()?, b.u64()?);
-        let &(model, np) = MODELS
-            .get(model_id as usize)
+        let &(model, np) = usize::try_from(model_id)
+            .ok()
+            .and_then(|i| MODELS.get(i))
             .ok_or_else(|| anyhow!("{what}: camera {id} has unknown model id {model_id}"))?;
         let params = (0..np).map(|_| b.f64()).collect::<Result<Vec<_>>>()?;
         insert_camera(m, what, id, colmap_camera(what, id, model, w, h, params)?)?;
@@ -189,7 +191,9 @@ fn colmap_images_bin(m: &mut ColmapModel, data: &[u8], what: &str) -> Result<()>
         let _id = b.i32()?;
         let qvec = [b.f64()?, b.f64()?, b.f64()?, b.f64()?];
         let tvec = [b.f64()?, b.f64()?, b.f64()?];
-        let camera_id = b.i32()? as u32;
+        let camera_id = b.i32()?;
+        let camera_id = u32::try_from(camera_id)
+            .map_err(|_| anyhow!("{what}: an image names camera {camera_id}, a negative id"))?;
         let mut name = Vec::new();
         loop {
             match b.u8()? {

@@ -27,25 +27,34 @@ impl Undistort {
     pub fn new(source: &Camera, what: &str) -> Result<Undistort> {
         let lens = source.lens;
         let (w, h) = (source.width as f64, source.height as f64);
-        // The distorted radius must grow with the radius out to the farthest image corner.
-        let corner = [(0.0, 0.0), (w, 0.0), (0.0, h), (w, h)]
-            .iter()
-            .map(|&(u, v)| ((u - source.cx as f64) / source.fx as f64).hypot((v - source.cy as f64) / source.fy as f64))
-            .fold(0.0, f64::max);
-        let mut last = 0.0;
-        for k in 1..=200 {
-            // Beyond the corner too: the remap may reach past it before it shrinks.
-            let r = 1.5 * corner * k as f64 / 200.0;
-            let (xd, yd) = lens.distort(r / 2f64.sqrt(), r / 2f64.sqrt());
-            let rd = xd.hypot(yd);
-            if rd.is_nan() || rd <= last {
-                bail!(
-                    "{what}: the {} distortion folds over at {:.0} % of the way to the image corner; it cannot be undistorted (are its parameters for this image size?)",
-                    lens.name(),
-                    100.0 * r / corner
-                );
+        let (fx, fy, cx, cy) = (source.fx as f64, source.fy as f64, source.cx as f64, source.cy as f64);
+        // The distortion must be one-to-one over the whole image and a margin past it (the remap
+        // may reach past the border before it shrinks): the determinant of its Jacobian, on a
+        // grid over 1.5 × the image's extent about the principal point, stays positive (tangential
+        // terms included; a fold has it change sign).
+        let (x0, x1) = (1.5 * (0.0 - cx) / fx, 1.5 * (w - cx) / fx);
+        let (y0, y1) = (1.5 * (0.0 - cy) / fy, 1.5 * (h - cy) / fy);
+        const GRID: usize = 96;
+        let e = 1e-4 * (x1 - x0).abs().max((y1 - y0).abs()).max(1e-9);
+        for i in 0..=GRID {
+            for j in 0..=GRID {
+                let x = x0 + (x1 - x0) * i as f64 / GRID as f64;
+                let y = y0 + (y1 - y0) * j as f64 / GRID as f64;
+                let (ax, ay) = lens.distort(x + e, y);
+                let (bx, by) = lens.distort(x - e, y);
+                let (cx_, cy_) = lens.distort(x, y + e);
+                let (dx, dy) = lens.distort(x, y - e);
+                let det = (ax - bx) * (cy_ - dy) - (ay - by) * (cx_ - dx);
+                if !(det > 0.0) {
+                    bail!(
+                        "{what}: the {} distortion folds over near pixel ({:.0}, {:.0}) (the Jacobian's determinant there is {:.2e}, not positive); it cannot be undistorted (are its parameters for this image size?)",
+                        lens.name(),
+                        cx + fx * x,
+                        cy + fy * y,
+                        det / (4.0 * e * e)
+                    );
+                }
             }
-            last = rd;
         }
         // The smallest focal scale whose border pixels all land inside the photo.
         let inside = |m: f64| {

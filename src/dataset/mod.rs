@@ -251,12 +251,16 @@ fn load_image(
     Ok((px, camera, undistort))
 }
 
-fn load_views(list: Vec<(Camera, PathBuf)>, opts: &LoadOptions) -> Result<Vec<View>> {
+/// The views' images, each a regular file inside `base` (the folder the file that names them
+/// lies in; `crate::limits::inside`), which `referrer` names in errors.
+fn load_views(list: Vec<(Camera, PathBuf)>, opts: &LoadOptions, referrer: &Path, base: &Path) -> Result<Vec<View>> {
     list.into_iter()
         .map(|(cam, path)| {
             if !path.exists() {
                 bail!("{}: image of view '{}' is missing", path.display(), cam.name);
             }
+            let what = referrer.display().to_string();
+            crate::limits::inside(&what, &format!("the image of view '{}'", cam.name), &path, base)?;
             let (image, camera, undistort) = load_image(&path, &cam, opts)?;
             Ok(View { camera, image, path, undistort })
         })
@@ -264,10 +268,14 @@ fn load_views(list: Vec<(Camera, PathBuf)>, opts: &LoadOptions) -> Result<Vec<Vi
 }
 
 fn load_nerf(dir: &Path, opts: &LoadOptions) -> Result<Dataset> {
-    let train = load_views(load_transforms_with_images(&dir.join("transforms_train.json"))?, opts)?;
+    let train_file = dir.join("transforms_train.json");
+    let train = load_views(load_transforms_with_images(&train_file)?, opts, &train_file, dir)?;
     let test_file = dir.join("transforms_test.json");
-    let test =
-        if test_file.exists() { load_views(load_transforms_with_images(&test_file)?, opts)? } else { Vec::new() };
+    let test = if test_file.exists() {
+        load_views(load_transforms_with_images(&test_file)?, opts, &test_file, dir)?
+    } else {
+        Vec::new()
+    };
     let ply = dir.join("points3d.ply");
     let points = if ply.exists() { Some(read_points_ply(&ply)?) } else { None };
     Ok(Dataset { kind: "nerf-synthetic", dir: dir.to_path_buf(), train, test, points })
@@ -360,6 +368,8 @@ fn colmap_cameras(dir: &Path, model: &ColmapModel) -> Result<Vec<(Camera, PathBu
                 lens,
             };
             camera.validate().with_context(|| format!("{}: image {}", sparse.display(), im.name))?;
+            let what = sparse.display().to_string();
+            crate::limits::relative(&what, "an image's name", &im.name, &dir.join("images"))?;
             Ok((camera, dir.join("images").join(&im.name)))
         })
         .collect()
@@ -380,8 +390,8 @@ fn load_colmap(dir: &Path, opts: &LoadOptions) -> Result<Dataset> {
     Ok(Dataset {
         kind: "colmap",
         dir: dir.to_path_buf(),
-        train: load_views(train, opts)?,
-        test: load_views(test, opts)?,
+        train: load_views(train, opts, &dir.join("sparse/0"), &dir.join("images"))?,
+        test: load_views(test, opts, &dir.join("sparse/0"), &dir.join("images"))?,
         points,
     })
 }

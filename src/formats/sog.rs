@@ -87,8 +87,14 @@ impl Lookup {
 }
 
 /// An RGBA image decoded from a SOG WebP file `name` (bytes from `load`): (width, height, bytes).
+/// Its size is read from the header first and its RGBA texels checked against the memory
+/// budget ([`crate::limits`]) before anything is decoded.
 fn sog_image(load: &mut Loader, name: &str, count: usize) -> Result<(usize, usize, Vec<u8>)> {
     let (what, bytes) = load(name)?;
+    let (w, h) = image::ImageReader::with_format(std::io::Cursor::new(&bytes), image::ImageFormat::WebP)
+        .into_dimensions()
+        .map_err(|e| anyhow!("{what}: not a WebP image: {e}"))?;
+    crate::limits::check_bytes(&what, &format!("its {w}×{h} texels"), 4 * w as u64 * h as u64)?;
     let img = image::load_from_memory_with_format(&bytes, image::ImageFormat::WebP)
         .map_err(|e| anyhow!("{what}: not a WebP image: {e}"))?
         .to_rgba8();
@@ -108,16 +114,16 @@ type Loader<'a> = dyn FnMut(&str) -> Result<(String, Vec<u8>)> + 'a;
 pub fn read_sog(path: &Path) -> Result<Scene> {
     let meta_path: PathBuf = if path.is_dir() { path.join("meta.json") } else { path.to_path_buf() };
     let what = meta_path.display().to_string();
-    let dir = meta_path.parent().unwrap_or(Path::new(".")).to_path_buf();
     let bytes = std::fs::read(&meta_path).with_context(|| format!("{what}: cannot read"))?;
     if bytes.starts_with(b"PK\x03\x04") {
         return sog_from_bundle(&bytes, &what);
     }
     let text = String::from_utf8(bytes).map_err(|_| anyhow!("{what}: cannot read: not UTF-8 text"))?;
     sog_from_meta(&text, &what, &mut |name| {
-        let path = dir.join(name);
-        let bytes =
-            std::fs::read(&path).with_context(|| format!("{}: cannot read (named by meta.json)", path.display()))?;
+        // Only a file beside meta.json (crate::limits::confined), an image at most as large as a
+        // bundle's entry may be.
+        let path = crate::limits::confined(&meta_path, "a file it names", name)?;
+        let bytes = crate::limits::read_limited(&path, &what, &format!("{name:?}"), MAX_BUNDLE_ENTRY, true)?;
         Ok((path.display().to_string(), bytes))
     })
 }

@@ -136,6 +136,13 @@ impl Camera {
         Camera { width, height, fx: self.fx * sx, fy: self.fy * sy, cx: self.cx * sx, cy: self.cy * sy, ..self.clone() }
     }
 
+    /// The part of this view `width` × `height` pixels large whose top-left pixel is the
+    /// view's (`x0`, `y0`): the same rays, the principal point moved (a crop renders exactly
+    /// the pixels of the whole image it covers).
+    pub fn cropped(&self, x0: u32, y0: u32, width: u32, height: u32) -> Camera {
+        Camera { width, height, cx: self.cx - x0 as f32, cy: self.cy - y0 as f32, ..self.clone() }
+    }
+
     /// Checks the values the rasterizer relies on.
     pub fn validate(&self) -> Result<()> {
         if self.width == 0 || self.height == 0 {
@@ -264,6 +271,9 @@ fn rigid_c2w(m: Mat4, what: &str, scaled: &mut bool) -> Result<Mat4> {
     Ok(m)
 }
 
+/// The largest image side a camera file may give (pixels).
+pub const MAX_IMAGE_SIDE: u32 = 65_536;
+
 /// Loads the cameras of a NeRF-synthetic `transforms_*.json`. The image size comes from `w`/`h`
 /// or, when absent, from the first frame's image file next to the JSON.
 pub fn load_transforms(path: &Path) -> Result<Vec<Camera>> {
@@ -303,6 +313,11 @@ pub fn transforms_from_str(text: &str, dir: &Path, what: &str) -> Result<Vec<(Ca
         if !(w >= 1.0 && h >= 1.0) {
             bail!("{what}: frame {k}: image size {w}x{h} is empty");
         }
+        for (key, v) in [("w", w), ("h", h)] {
+            if v.fract() != 0.0 || v > MAX_IMAGE_SIDE as f32 {
+                bail!("{what}: frame {k}: {key} {v} is not an image side (a whole number of pixels, at most {MAX_IMAGE_SIDE})");
+            }
+        }
         let fx = match (f.fl_x.or(tf.fl_x), tf.camera_angle_x) {
             (Some(f), _) => f,
             (None, Some(a)) if a > 0.0 && a < std::f32::consts::PI => 0.5 * w / (0.5 * a).tan(),
@@ -313,6 +328,7 @@ pub fn transforms_from_str(text: &str, dir: &Path, what: &str) -> Result<Vec<(Ca
         let intr = [fx, fy, f.cx.or(tf.cx).unwrap_or(0.5 * w), f.cy.or(tf.cy).unwrap_or(0.5 * h)];
         // transform_matrix is row-major.
         let frame = format!("{what}: frame {k} ({})", f.file_path);
+        crate::limits::relative(what, &format!("frame {k}'s file_path"), &f.file_path, dir)?;
         let c2w = rigid_c2w(Mat4::from_cols_array_2d(&f.transform_matrix).transpose(), &frame, &mut scaled)?;
         let lens = tf.lens.over(&f.lens).lens(&frame)?;
         let name = Path::new(&f.file_path)
@@ -324,7 +340,8 @@ pub fn transforms_from_str(text: &str, dir: &Path, what: &str) -> Result<Vec<(Ca
             .find_map(|e| name.strip_suffix(e))
             .unwrap_or(&name)
             .to_string();
-        let cam = Camera { lens, ..Camera::from_c2w_opengl(&name, c2w, w.round() as u32, h.round() as u32, intr) };
+        // w and h are whole and at most MAX_IMAGE_SIDE (checked above): exact as u32.
+        let cam = Camera { lens, ..Camera::from_c2w_opengl(&name, c2w, w as u32, h as u32, intr) };
         cam.validate().with_context(|| format!("{what}: frame {k}"))?;
         cams.push((cam, image_path(dir, &f.file_path)));
     }

@@ -50,6 +50,8 @@
 //! means, opacity logits and DC (three accessors, once per group) so a reader gets templates,
 //! transforms and offsets back; a file whose extras do not match its nodes is read as a
 //! plain scene (said on stderr).
+mod buffers;
+mod instanced;
 mod read;
 mod write;
 

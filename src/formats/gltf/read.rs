@@ -6,13 +6,13 @@ use std::path::Path;
 use std::rc::Rc;
 
 use anyhow::{anyhow, bail, Context, Result};
-use glam::{Mat4, Vec3};
+use glam::Mat4;
 use gltf::accessor::DataType;
 use gltf::mesh::Semantic;
 use serde_json::Value;
 
 use super::{
-    half_turn_z, sh_name, turn_similarity, GltfScene, GroupExtras, InstgsExtras, EXTENSION, KNOWN_REQUIRED, PREFIX,
+    half_turn_z, sh_name, GltfScene, EXTENSION, KNOWN_REQUIRED, PREFIX,
 };
 use crate::formats::quant::OPACITY_LOGIT_LIMIT;
 use crate::model::instanced::{Group, Instance, InstancedScene, Offsets, Similarity};
@@ -36,12 +36,13 @@ pub fn looks_like_gltf(head: &[u8], path: &Path) -> bool {
 pub fn read(path: &Path) -> Result<GltfScene> {
     let what = path.display().to_string();
     let bytes = std::fs::read(path).with_context(|| format!("{what}: cannot read"))?;
-    from_bytes(&bytes, &what, Some(path.parent().unwrap_or(Path::new("."))))
+    from_bytes(&bytes, &what, Some(path))
 }
 
-/// Reads glTF from memory; `base` resolves a `.gltf`'s relative buffer URIs (None: only the
-/// BIN chunk and `data:` URIs are read).
-pub fn from_bytes(bytes: &[u8], what: &str, base: Option<&Path>) -> Result<GltfScene> {
+/// Reads glTF from memory; `file`, the file it came from, resolves a `.gltf`'s relative buffer
+/// URIs inside its folder (`crate::limits::confined`; None: only the BIN chunk and `data:` URIs
+/// are read).
+pub fn from_bytes(bytes: &[u8], what: &str, file: Option<&Path>) -> Result<GltfScene> {
     let (json, blob) = if bytes.starts_with(b"glTF") {
         let glb = gltf::binary::Glb::from_slice(bytes).map_err(|e| anyhow!("{what}: not a valid GLB: {e}"))?;
         (glb.json.into_owned(), glb.bin.map(|b| b.into_owned()))
@@ -50,12 +51,16 @@ pub fn from_bytes(bytes: &[u8], what: &str, base: Option<&Path>) -> Result<GltfS
     };
     let mut doc: Value =
         serde_json::from_slice(&json).map_err(|e| anyhow!("{what}: the glTF JSON does not parse: {e}"))?;
-    // gltf-json keeps attribute names it does not know only when they start with '_'.
+    // gltf-json keeps attribute names it does not know only when they start with '_': ours get
+    // one. Application-specific attributes (already '_'-prefixed, which we never read) are
+    // dropped first, so that none — `_KHR_gaussian_splatting:SCALE`, say — can stand in for
+    // ours: attribute names are matched exactly.
     for mesh in doc.get_mut("meshes").and_then(|m| m.as_array_mut()).into_iter().flatten() {
         for prim in mesh.get_mut("primitives").and_then(|p| p.as_array_mut()).into_iter().flatten() {
             if let Some(Value::Object(attrs)) = prim.get_mut("attributes") {
                 *attrs = std::mem::take(attrs)
                     .into_iter()
+                    .filter(|(k, _)| !k.starts_with('_'))
                     .map(|(k, v)| if k.starts_with(PREFIX) { (format!("_{k}"), v) } else { (k, v) })
                     .collect();
             }
@@ -81,15 +86,30 @@ pub fn from_bytes(bytes: &[u8], what: &str, base: Option<&Path>) -> Result<GltfS
         }
     }
     let document = gltf::Document::from_json(root).map_err(|e| anyhow!("{what}: an invalid glTF document: {e}"))?;
-    let buffers = gltf::import_buffers(&document, base, blob).map_err(|e| anyhow!("{what}: its buffers: {e}"))?;
+    let buffers = super::buffers::load_buffers(&document, what, file, blob)?;
     let ctx = Ctx { what, buffers, cache: RefCell::new(HashMap::new()) };
     let splats = splat_primitives(&document, what)?;
     if splats.is_empty() {
         bail!("{what}: a glTF file without {EXTENSION} primitives (no splats in its scene)");
     }
+    // The node graph expanded: every visit of a splat primitive is its splats again (a graph
+    // that reuses its children multiplies them), checked before any is decoded.
+    let count = |p: &SplatPrimitive| -> u64 {
+        let prim = document.nodes().nth(p.node).and_then(|n| n.mesh()).and_then(|m| m.primitives().nth(p.primitive));
+        prim.map_or(0, |q| match q.indices() {
+            Some(i) => i.count() as u64,
+            None => q.get(&Semantic::Positions).map_or(0, |a| a.count() as u64),
+        })
+    };
+    let total: u64 = splats.iter().map(count).sum();
+    crate::limits::check_bytes(
+        what,
+        &format!("its {} splat primitive visits ({total} splats)", splats.len()),
+        total.saturating_mul(BYTES_PER_SPLAT),
+    )?;
     let extras = document.as_json().extras.as_ref().and_then(|e| serde_json::from_str::<Value>(e.get()).ok());
     if let Some(x) = extras.as_ref().and_then(|e| e.get("instgs")) {
-        match read_instanced(&ctx, &document, &splats, x) {
+        match super::instanced::read_instanced(&ctx, &document, &splats, x) {
             Ok(scene) => return Ok(GltfScene::Instanced(scene)),
             Err(e) => {
                 eprintln!("note: {what}: its instgs extras do not describe its nodes ({e:#}); read as a plain scene")
@@ -106,11 +126,15 @@ pub fn from_bytes(bytes: &[u8], what: &str, base: Option<&Path>) -> Result<GltfS
     Ok(GltfScene::Plain(scene))
 }
 
+/// Host bytes of one splat as we hold it (degree 3: mean, scales, quaternion, opacity, 48 SH
+/// values, f32 each), for the memory budget.
+const BYTES_PER_SPLAT: u64 = 4 * (3 + 3 + 4 + 1 + 48);
+
 /// One splat primitive of the scene: node, primitive index, world matrix.
-struct SplatPrimitive {
-    node: usize,
-    primitive: usize,
-    world: Mat4,
+pub(super) struct SplatPrimitive {
+    pub(super) node: usize,
+    pub(super) primitive: usize,
+    pub(super) world: Mat4,
 }
 
 /// Every splat primitive of the default scene (scene 0 when none is named) with its node's
@@ -143,7 +167,7 @@ fn splat_primitives(doc: &gltf::Document, what: &str) -> Result<Vec<SplatPrimiti
 }
 
 /// `a` with `b` appended, the lower SH degree padded with zero coefficients.
-fn append_any_degree(a: Scene, b: Scene) -> Scene {
+pub(super) fn append_any_degree(a: Scene, b: Scene) -> Scene {
     if a.is_empty() {
         return b;
     }
@@ -154,9 +178,9 @@ fn append_any_degree(a: Scene, b: Scene) -> Scene {
 }
 
 /// The document's buffers and the accessors decoded so far (shared accessors once).
-struct Ctx<'a> {
-    what: &'a str,
-    buffers: Vec<gltf::buffer::Data>,
+pub(super) struct Ctx<'a> {
+    pub(super) what: &'a str,
+    buffers: Vec<Rc<Vec<u8>>>,
     cache: RefCell<HashMap<usize, Rc<Vec<f32>>>>,
 }
 
@@ -185,7 +209,7 @@ fn allowed(name: &str) -> &'static [(DataType, bool)] {
 impl Ctx<'_> {
     /// The accessor's values as f32 (normalized integers per glTF: signed c/max, at least −1;
     /// unsigned c/max), checked against `name`'s allowed types and `dims` components.
-    fn values(&self, acc: &gltf::Accessor, name: &str, dims: usize) -> Result<Rc<Vec<f32>>> {
+    pub(super) fn values(&self, acc: &gltf::Accessor, name: &str, dims: usize) -> Result<Rc<Vec<f32>>> {
         let what = self.what;
         let (dt, norm) = (acc.data_type(), acc.normalized());
         if !allowed(name).contains(&(dt, norm)) {
@@ -233,7 +257,7 @@ impl Ctx<'_> {
     }
 
     /// The primitive's splats in glTF space before its node's transform.
-    fn primitive(&self, doc: &gltf::Document, p: &SplatPrimitive) -> Result<Scene> {
+    pub(super) fn primitive(&self, doc: &gltf::Document, p: &SplatPrimitive) -> Result<Scene> {
         let what = format!("{}: node {} primitive {}", self.what, p.node, p.primitive);
         let node = doc.nodes().nth(p.node).ok_or_else(|| anyhow!("{what}: no such node"))?;
         let prim = node
@@ -243,6 +267,15 @@ impl Ctx<'_> {
         if prim.mode() != gltf::mesh::Mode::Points {
             bail!("{what}: a {EXTENSION} primitive must have mode POINTS (0), not {:?}", prim.mode());
         }
+        let ext = prim.extensions().and_then(|e| e.get(EXTENSION)).cloned().unwrap_or(Value::Null);
+        let linear = match ext.get("colorSpace") {
+            None => false,
+            Some(Value::String(s)) if s == "srgb_rec709_display" => false,
+            Some(Value::String(s)) if s == "lin_rec709_display" => true,
+            Some(other) => bail!(
+                "{what}: {EXTENSION}.colorSpace {other} is not read (srgb_rec709_display and lin_rec709_display are)"
+            ),
+        };
         let mut attrs: HashMap<String, gltf::Accessor> = HashMap::new();
         for (sem, acc) in prim.attributes() {
             match sem {
@@ -280,11 +313,67 @@ impl Ctx<'_> {
         {
             bail!("{what}: its attributes' counts differ");
         }
-        scene_from_attributes(&what, degree, &pos, &rot, &scale, &alpha, &dc, &rest)
+        let mut scene = scene_from_attributes(&what, degree, &pos, &rot, &scale, &alpha, &dc, &rest)?;
+        if let Some(acc) = prim.indices() {
+            let idx = self.indices(&acc, n, &what)?;
+            scene = scene.select(&idx);
+        }
+        if linear {
+            eprintln!(
+                "note: {what}: colorSpace lin_rec709_display: colours converted to sRGB per splat (the extension blends the linear values and converts the image; where splats overlap translucently the two differ slightly)"
+            );
+            linear_to_srgb(&mut scene);
+        }
+        Ok(scene)
+    }
+
+    /// A POINTS primitive's `indices`: the vertices it draws, each below `n`.
+    fn indices(&self, acc: &gltf::Accessor, n: usize, what: &str) -> Result<Vec<usize>> {
+        let (dt, i) = (acc.data_type(), acc.index());
+        if acc.dimensions() != gltf::accessor::Dimensions::Scalar
+            || acc.normalized()
+            || !matches!(dt, DataType::U8 | DataType::U16 | DataType::U32)
+        {
+            bail!(
+                "{what}: indices accessor {i} must be unsigned SCALAR bytes, shorts or ints, not {:?} {dt:?}",
+                acc.dimensions()
+            );
+        }
+        if acc.sparse().is_some() {
+            bail!("{what}: indices accessor {i} is sparse; sparse accessors are not read");
+        }
+        let view = acc.view().ok_or_else(|| anyhow!("{what}: indices accessor {i} has no buffer view"))?;
+        let data = &self.buffers[view.buffer().index()];
+        let size = dt.size();
+        let stride = view.stride().unwrap_or(size);
+        let count = acc.count();
+        let start = view.offset().checked_add(acc.offset());
+        let view_end = view.offset().checked_add(view.length()).filter(|&e| e <= data.len());
+        let end = count.checked_sub(1).and_then(|c| c.checked_mul(stride)).and_then(|v| v.checked_add(size + start?));
+        let (Some(start), Some(view_end)) = (start, view_end) else {
+            bail!("{what}: indices accessor {i} reaches past its buffer view or buffer");
+        };
+        if stride < size || (count > 0 && end.is_none_or(|e| e > view_end)) {
+            bail!("{what}: indices accessor {i} reaches past its buffer view or buffer");
+        }
+        (0..count)
+            .map(|k| {
+                let b = &data[start + k * stride..start + k * stride + size];
+                let v = match dt {
+                    DataType::U8 => b[0] as usize,
+                    DataType::U16 => u16::from_le_bytes([b[0], b[1]]) as usize,
+                    _ => u32::from_le_bytes([b[0], b[1], b[2], b[3]]) as usize,
+                };
+                if v >= n {
+                    bail!("{what}: indices accessor {i} names vertex {v} at {k}; the primitive has {n}");
+                }
+                Ok(v)
+            })
+            .collect()
     }
 
     /// The primitive's splats placed by its node's world matrix (glTF space).
-    fn placed(&self, p: &SplatPrimitive, doc: &gltf::Document) -> Result<Scene> {
+    pub(super) fn placed(&self, p: &SplatPrimitive, doc: &gltf::Document) -> Result<Scene> {
         let s = self.primitive(doc, p)?;
         if p.world == Mat4::IDENTITY {
             return Ok(s);
@@ -329,6 +418,28 @@ fn sh_degree(attrs: &HashMap<String, gltf::Accessor>, what: &str) -> Result<u32>
         bail!("{what}: attribute {PREFIX}{k} is beyond SH degree {degree} (degrees 0-3, each whole and every lower one present)");
     }
     Ok(degree)
+}
+
+/// Colours stored linear (`colorSpace` `lin_rec709_display`) brought to the sRGB-encoded
+/// values we render and train in: each splat's base colour (0.5 + C0·DC, clamped to [0, 1])
+/// encoded with the sRGB transfer function (IEC 61966-2-1), and its higher SH bands scaled by
+/// that function's slope there (first order: a splat's view-dependent colour varies little
+/// about its base colour).
+fn linear_to_srgb(s: &mut Scene) {
+    use crate::math::SH_C0_F32;
+    let c = s.sh_coeffs() * 3;
+    let encode = |v: f32| if v <= 0.003_130_8 { 12.92 * v } else { 1.055 * v.powf(1.0 / 2.4) - 0.055 };
+    let slope = |v: f32| if v <= 0.003_130_8 { 12.92 } else { 1.055 / 2.4 * v.powf(1.0 / 2.4 - 1.0) };
+    for i in 0..s.len() {
+        for ch in 0..3 {
+            let lin = (0.5 + SH_C0_F32 * s.sh[i * c + ch]).clamp(0.0, 1.0);
+            s.sh[i * c + ch] = (encode(lin) - 0.5) / SH_C0_F32;
+            let d = slope(lin.max(1e-4));
+            for k in 1..c / 3 {
+                s.sh[i * c + k * 3 + ch] *= d;
+            }
+        }
+    }
 }
 
 /// One component of an accessor row.
@@ -427,125 +538,4 @@ fn scene_from_attributes(
         sh,
         sh_degree: degree,
     })
-}
-
-/// The instanced scene our extras describe, or why they do not match the file.
-fn read_instanced(
-    ctx: &Ctx,
-    doc: &gltf::Document,
-    splats: &[SplatPrimitive],
-    extras: &Value,
-) -> Result<InstancedScene> {
-    let x: InstgsExtras = serde_json::from_value(extras.clone()).context("unreadable")?;
-    if x.version != 1 {
-        bail!("version {} (we write 1)", x.version);
-    }
-    let by_node: HashMap<usize, &SplatPrimitive> = splats.iter().map(|p| (p.node, p)).collect();
-    let named: usize = x.background.len() + x.groups.iter().map(|g| g.instances.len()).sum::<usize>();
-    if by_node.len() != splats.len() || named != splats.len() {
-        bail!("{} splat primitives, {} named", splats.len(), named);
-    }
-    let node_prim =
-        |n: usize| by_node.get(&n).copied().ok_or_else(|| anyhow!("node {n} is not a splat node of the scene"));
-    let mut background = Scene::default();
-    for &n in &x.background {
-        background = append_any_degree(background, ctx.placed(node_prim(n)?, doc)?);
-    }
-    half_turn_z(&mut background);
-    let mut groups = Vec::new();
-    for g in &x.groups {
-        groups.push(read_group(ctx, doc, g, &node_prim)?);
-    }
-    let degree = groups.iter().map(|g: &Group| g.template.sh_degree).chain([background.sh_degree]).max().unwrap_or(0);
-    if groups.iter().any(|g| g.template.sh_degree != degree)
-        || (!background.is_empty() && background.sh_degree != degree)
-    {
-        bail!("its parts have different SH degrees");
-    }
-    background = background.with_sh_degree(degree);
-    let scene = InstancedScene { sh_degree: degree, background, groups };
-    scene.validate(ctx.what)?;
-    Ok(scene)
-}
-
-/// One group: its template (shared rows + its own means, logits and DC), transforms and
-/// offsets, in our frame.
-fn read_group<'a>(
-    ctx: &Ctx,
-    doc: &gltf::Document,
-    g: &GroupExtras,
-    node_prim: &dyn Fn(usize) -> Result<&'a SplatPrimitive>,
-) -> Result<Group> {
-    let first = g.instances.first().ok_or_else(|| anyhow!("group {:?} has no instances", g.name))?;
-    let acc = |i: usize| doc.accessors().nth(i).ok_or_else(|| anyhow!("no accessor {i}"));
-    let mut t = ctx.primitive(doc, node_prim(first.node)?)?;
-    let (pos, logits, dc) = (
-        ctx.values(&acc(g.template.position)?, "POSITION", 3)?,
-        ctx.values(&acc(g.template.opacity_logit)?, "OPACITY_LOGIT", 1)?,
-        ctx.values(&acc(g.template.sh_degree_0_coef_0)?, "SH_DEGREE_0_COEF_0", 3)?,
-    );
-    let n = t.len();
-    if pos.len() != n * 3 || logits.len() != n || dc.len() != n * 3 {
-        bail!("group {:?}: the template's accessors hold other counts than its instances", g.name);
-    }
-    let c = t.sh_coeffs();
-    let shared = shared_of(doc, node_prim(first.node)?)?;
-    for j in 0..n {
-        t.means[j] = [pos[j * 3], pos[j * 3 + 1], pos[j * 3 + 2]];
-        t.opacities[j] = logits[j];
-        t.sh[j * c * 3..j * c * 3 + 3].copy_from_slice(&dc[j * 3..j * 3 + 3]);
-    }
-    half_turn_z(&mut t);
-    let mut instances = Vec::new();
-    let mut offsets = Offsets::zeros(n * g.instances.len());
-    for (k, inst) in g.instances.iter().enumerate() {
-        let p = node_prim(inst.node)?;
-        if shared_of(doc, p)? != shared {
-            bail!("instance {:?} does not share its group's rotation, scale and SH accessors", inst.id);
-        }
-        let own = ctx.primitive(doc, p)?;
-        if own.len() != n {
-            bail!("instance {:?} has {} splats, its template {n}", inst.id, own.len());
-        }
-        let x = turn_similarity(&Similarity::from_mat4(p.world, "a node's matrix")?)?;
-        for j in 0..n {
-            let q = k * n + j;
-            // The instance's template-space mean, turned into our frame.
-            let m = own.means[j];
-            let local = Vec3::new(-m[0], -m[1], m[2]) - Vec3::from(t.means[j]);
-            offsets.d_means[q] = (x.rotation * (local * x.scale)).to_array();
-            offsets.d_opacities[q] = own.opacities[j] - t.opacities[j];
-            for ch in 0..3 {
-                offsets.d_sh0[q][ch] = own.sh[j * c * 3 + ch] - t.sh[j * c * 3 + ch];
-            }
-        }
-        instances.push(Instance { id: inst.id.clone(), transform: x });
-    }
-    Ok(Group { name: g.name.clone(), template: t, instances, offsets })
-}
-
-/// The accessor indices of a primitive's ROTATION, SCALE and SH rest (what instances share).
-fn shared_of(doc: &gltf::Document, p: &SplatPrimitive) -> Result<Vec<(String, usize)>> {
-    let prim = doc
-        .nodes()
-        .nth(p.node)
-        .and_then(|n| n.mesh())
-        .and_then(|m| m.primitives().nth(p.primitive))
-        .ok_or_else(|| anyhow!("no primitive"))?;
-    let mut v: Vec<(String, usize)> = prim
-        .attributes()
-        .filter_map(|(s, a)| match s {
-            Semantic::Extras(n)
-                if n.starts_with(PREFIX)
-                    && (n.ends_with("ROTATION")
-                        || n.ends_with("SCALE")
-                        || (n.contains("SH_DEGREE_") && !n.contains("SH_DEGREE_0_"))) =>
-            {
-                Some((n, a.index()))
-            }
-            _ => None,
-        })
-        .collect();
-    v.sort();
-    Ok(v)
 }
