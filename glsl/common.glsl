@@ -214,7 +214,7 @@ struct SegArgs {
     uint count; // splats
     uint slot; // scores[slot * count + i]
     float weight; // 1 for an instance mask, -alpha for the all-pixels pass
-    uint _pad0;
+    uint channel; // 0-2: the mask that colour channel carried; 3: one mask in every channel (their mean)
 };
 
 /// Push constants of present.comp (the player's copy of a frame into a swapchain image).

@@ -4,6 +4,8 @@
 // the pass over all pixels; GSeg(1 - M) = GSeg(1) - GSeg(M) since the score is linear in the
 // mask). The score is the colour gradient of L = sum over the mask's pixels of mean(rgb), read
 // from blend_backward's v_colours: the sum of the splat's blending weights T alpha over the mask.
+// The colour channels are independent in that gradient, so one backward pass carries up to three
+// masks, one per channel (channel 0-2), or one mask in all three (channel 3: their mean).
 #include "common.glsl"
 layout(local_size_x = WG_SIZE) in;
 layout(push_constant) uniform Push { SegArgs a; } push;
@@ -13,7 +15,9 @@ layout(std430, binding = 1) buffer ScoresBuf { float v[]; } scores;
 void main() {
     uint n = push.a.count;
     for (uint i = gl_GlobalInvocationID.x; i < n; i += gl_NumWorkGroups.x * WG_SIZE) {
-        float s = (v_colours.v[3 * i] + v_colours.v[3 * i + 1] + v_colours.v[3 * i + 2]) / 3.0;
+        float r = v_colours.v[3 * i], g = v_colours.v[3 * i + 1], b = v_colours.v[3 * i + 2];
+        uint c = push.a.channel;
+        float s = c == 3u ? (r + g + b) / 3.0 : (c == 0u ? r : (c == 1u ? g : b));
         scores.v[push.a.slot * n + i] += push.a.weight * s;
     }
 }

@@ -23,6 +23,16 @@ pub(crate) struct Cli {
     /// splat-transform reads and writes .spz).
     #[arg(long, global = true, value_enum, default_value = "spec")]
     pub(crate) spz_frame: instgs_vk::formats::spz::SpzFrame,
+    /// Let files name files outside their own folder (a glTF buffer or image, a SOG image, a
+    /// dataset's images by `..` or an absolute path, or a symbolic link out). By default only
+    /// files in the naming file's folder are read (docs/robustness.md).
+    #[arg(long, global = true)]
+    pub(crate) allow_outside_paths: bool,
+    /// Memory one file may make a reader hold (what it declares: buffers, expanded node
+    /// graphs, image texels), e.g. 8GB or 512MiB; refused past it with the figure. Default:
+    /// half of this machine's memory.
+    #[arg(long, global = true, value_parser = instgs_vk::limits::parse_bytes)]
+    pub(crate) max_memory: Option<u64>,
     #[command(subcommand)]
     pub(crate) cmd: Cmd,
 }
@@ -81,6 +91,10 @@ pub(crate) enum Cmd {
     /// --discover the pipeline with the instances found without masks. With --init
     /// SCENE.instgs: joint optimisation of that instanced scene only.
     Train(TrainArgs),
+    /// The memory–quality curve of a finished `train` run: InstGS at each memory budget
+    /// against the plain scene pruned to the same GPU memory, both fine-tuned as long as the
+    /// joint stage; RUN/rate_distortion.json and .png, and the report shows them. Resumes.
+    Curve(CurveArgs),
     /// PSNR and SSIM of a scene on a dataset's held-out (or training) views.
     Eval {
         /// Scene file (.ply or .instgs).
@@ -260,6 +274,26 @@ pub(crate) struct TrainArgs {
     pub(crate) quiet: bool,
 }
 
+// `curve`'s arguments (Cmd::Curve).
+#[derive(Args)]
+pub(crate) struct CurveArgs {
+    /// The run's dataset (as given to `train`).
+    #[command(flatten)]
+    pub(crate) data: DataArgs,
+    /// The run folder of a finished `train` (through its eval stage).
+    #[arg(long)]
+    pub(crate) out: PathBuf,
+    /// The run's configuration (as given to `train`): the points are fine-tuned with its [joint].
+    #[arg(long)]
+    pub(crate) config: Option<PathBuf>,
+    /// Memory budgets as fractions of the plain scene's GPU memory, comma-separated.
+    #[arg(long, value_delimiter = ',', default_values_t = [0.05, 0.1, 0.2, 0.4])]
+    pub(crate) budgets: Vec<f64>,
+    /// Print a line every 10 % instead of a progress bar.
+    #[arg(long)]
+    pub(crate) quiet: bool,
+}
+
 // `instance`'s arguments (Cmd::Instance).
 #[derive(Args)]
 pub(crate) struct InstanceArgs {
@@ -307,9 +341,17 @@ pub(crate) struct InstanceArgs {
     #[arg(long)]
     pub(crate) no_render_check: bool,
     /// Keep each pose registered onto the reference alone: no synchronisation over the
-    /// pairs of a group's accepted instances (it needs the render check).
+    /// group's pose graph (it needs the render check).
     #[arg(long)]
     pub(crate) no_synchronise: bool,
+    /// Register only these instance ids (comma-separated; the others stay background): the
+    /// stage at a smaller scale, e.g. for timing it (tools/instance-scaling.sh).
+    #[arg(long, value_delimiter = ',')]
+    pub(crate) instances: Option<Vec<u32>>,
+    /// The pose graph: each accepted instance is registered onto this many others of its
+    /// group (the nearest by size signature) besides the reference.
+    #[arg(long, allow_negative_numbers = true, value_parser = positive_usize, default_value_t = instgs_vk::instancing::options::InstanceOptions::default().neighbours)]
+    pub(crate) neighbours: usize,
     /// Acceptance: both fitnesses at least this.
     #[arg(long, allow_negative_numbers = true, value_parser = unit_f64, default_value_t = instgs_vk::instancing::options::Acceptance::default().min_fitness)]
     pub(crate) min_fitness: f64,

@@ -6,7 +6,7 @@
 //!
 //! | layer | modules |
 //! |---|---|
-//! | shared maths and files | [`shared`] (generated from `glsl/common.glsl`), [`math`], [`util`] |
+//! | shared maths and files | [`shared`] (generated from `glsl/common.glsl`), [`math`], [`util`], [`limits`] (confined reads, the memory budget) |
 //! | the device | [`gpu`] (context, buffers, recording, kernels) |
 //! | in-memory models | [`model`] (scene, camera, instanced scene) |
 //! | files and datasets | [`formats`] (PLY, `.instgs`, .spz, SOG, …), [`dataset`] (NeRF-synthetic, COLMAP) |
@@ -24,6 +24,7 @@ pub mod shared {
     include!(concat!(env!("OUT_DIR"), "/gpu_shared.rs"));
 }
 
+pub mod limits;
 pub mod math;
 pub mod util;
 

@@ -44,6 +44,10 @@ fn main() -> ExitCode {
 fn run(cli: Cli) -> Result<()> {
     let device = cli.device;
     formats::spz::set_frame(cli.spz_frame);
+    instgs_vk::limits::set(instgs_vk::limits::Limits {
+        allow_outside: cli.allow_outside_paths,
+        max_memory: cli.max_memory.unwrap_or_else(instgs_vk::limits::default_budget),
+    });
     match cli.cmd {
         Cmd::Info { scene, json } => formats::info::info(&scene, json),
         Cmd::Render { view, out } => render::frames::render(device, &view.spec(), &out),
@@ -79,6 +83,7 @@ fn run(cli: Cli) -> Result<()> {
         Cmd::View(args) => view(device, args),
         Cmd::BenchSort { keys, bits, repeats } => bench::bench_sort(device, keys, bits, repeats),
         Cmd::Train(args) => train(device, args),
+        Cmd::Curve(args) => curve(device, args),
         Cmd::Eval { scene, data, split, json, out, background, lod, render_config } => {
             let render = lod.then(|| RenderConfig::load(render_config.as_deref())).transpose()?;
             train::eval::eval(
@@ -112,6 +117,8 @@ fn instance(device: Option<String>, args: cli::InstanceArgs) -> Result<()> {
         downscale,
         no_render_check,
         no_synchronise,
+        instances,
+        neighbours,
         min_fitness,
         scale_tolerance,
         min_render_iou,
@@ -135,6 +142,8 @@ fn instance(device: Option<String>, args: cli::InstanceArgs) -> Result<()> {
         seed,
         accept,
         synchronise: !no_synchronise,
+        neighbours,
+        only: instances.map(|v| v.into_iter().collect()),
         ..Default::default()
     };
     let req = instancing::build::InstanceRequest {
@@ -219,6 +228,25 @@ fn view(device: Option<String>, args: cli::PlayerArgs) -> Result<()> {
         out,
     };
     player::view(opts, cameras.as_deref(), (camera, &split), up, headless)
+}
+
+fn curve(device: Option<String>, args: cli::CurveArgs) -> Result<()> {
+    let cli::CurveArgs { data, out, config, budgets, quiet } = args;
+    let run = pipeline::PipelineArgs {
+        data: data.data,
+        downscale: data.downscale,
+        out,
+        init: None,
+        config,
+        iterations: None,
+        from: None,
+        until: None,
+        discover: None,
+        pruned_baseline: true,
+        progress: !quiet,
+        device,
+    };
+    pipeline::curve::curve(pipeline::curve::CurveArgs { run, budgets })
 }
 
 fn train(device: Option<String>, args: cli::TrainArgs) -> Result<()> {

@@ -176,33 +176,17 @@ pub fn percentile(v: &[f64], q: f64) -> f64 {
     v[((v.len() - 1) as f64 * q).round() as usize]
 }
 
-/// A k-d tree of `points` for nearest-neighbour queries (items = indices). `kiddo`'s trees panic
-/// when more points than a bucket holds share a coordinate on one axis (a flat floor, quantised
-/// positions of a compressed PLY): then the tree is built on copies moved by at most 1e-9 of
-/// the cloud's extent per axis (a fixed pattern per index); callers that need exact distances
-/// recompute them from the points.
+/// A neighbour count for the k-d tree's queries (kiddo takes a non-zero one): `n`, at least 1.
+pub fn neighbours(n: usize) -> std::num::NonZero<usize> {
+    std::num::NonZero::new(n.max(1)).expect("at least one")
+}
+
+/// A k-d tree of `points` for nearest-neighbour queries (items = indices). kiddo 5's immutable
+/// tree takes any cloud: kiddo 4's panicked where more points than a bucket holds shared a
+/// coordinate on one axis (a flat floor, quantised positions) and, as the cafe40 run found, on
+/// other clouds too ("mid > len"; sdd-org/kiddo#78, #132, #172, fixed by its version 5 rewrite).
 pub fn tree<const K: usize>(points: &[[f64; K]]) -> ImmutableKdTree<f64, u32, K, 32> {
-    let crowded = (0..K).any(|a| {
-        let mut v: Vec<f64> = points.iter().map(|p| p[a]).collect();
-        v.sort_by(f64::total_cmp);
-        v.chunk_by(|x, y| x == y).any(|run| run.len() >= 16)
-    });
-    if !crowded {
-        return ImmutableKdTree::new_from_slice(points);
-    }
-    let extent = points.iter().flatten().fold(0.0f64, |m, c| m.max(c.abs())).max(1e-30);
-    let moved: Vec<[f64; K]> = points
-        .iter()
-        .enumerate()
-        .map(|(i, p)| {
-            let h = (i as u64 + 1).wrapping_mul(0x9E37_79B9_7F4A_7C15);
-            std::array::from_fn(|a| {
-                let u = (h.rotate_left(13 * a as u32) & 0xFFFF) as f64 / 65535.0 - 0.5;
-                p[a] + 2e-9 * extent * u
-            })
-        })
-        .collect();
-    ImmutableKdTree::new_from_slice(&moved)
+    ImmutableKdTree::new_from_slice(points)
 }
 
 #[cfg(test)]

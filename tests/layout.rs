@@ -7,7 +7,7 @@ use std::path::Path;
 
 /// Top-level modules by layer, lowest first.
 const LAYERS: [&[&str]; 12] = [
-    &["math", "util"],
+    &["math", "util", "limits"],
     &["gpu"],
     &["model"],
     &["formats", "dataset"],

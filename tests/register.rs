@@ -207,7 +207,8 @@ fn instantiate_recovers_instances_and_builds_templates() {
     let groups = vec![InstanceGroup { name: "blob".into(), ids: vec![1, 2, 3] }];
     for init in [TemplateInit::Merge, TemplateInit::Max, TemplateInit::First] {
         let o = InstanceOptions { init, ..Default::default() };
-        let (inst, reports) = instantiate(&scene, &labels, &groups, &o, None, |_| {}).unwrap();
+        let (inst, reports) =
+            instantiate(&scene, &labels, &groups, &o, None, |_| {}).map(|m| (m.scene, m.reports)).unwrap();
         assert_eq!(inst.background.len(), 3000);
         let g = &inst.groups[0];
         assert_eq!(g.instances.iter().map(|i| i.id.as_str()).collect::<Vec<_>>(), ["1", "2", "3"]);
@@ -268,14 +269,16 @@ fn instantiate_reports_bad_labels() {
     let groups =
         vec![InstanceGroup { name: "a".into(), ids: vec![1] }, InstanceGroup { name: "b".into(), ids: vec![2] }];
     let mut lines = Vec::new();
-    let (inst, _) = instantiate(&scene, &labels, &groups, &o, None, |l| lines.push(l.to_string())).unwrap();
+    let (inst, _) = instantiate(&scene, &labels, &groups, &o, None, |l| lines.push(l.to_string()))
+        .map(|m| (m.scene, m.reports))
+        .unwrap();
     assert_eq!(inst.groups[0].template.len(), 4000);
     assert!(lines.iter().any(|l| l.contains("has one instance")));
 }
 
 #[test]
 fn point_trees_take_clouds_with_many_equal_coordinates() {
-    // A flat floor (z = 0 exactly) on a quantised grid: kiddo alone refuses it.
+    // A flat floor (z = 0 exactly) on a quantised grid (kiddo 4 refused it).
     let pts: Vec<[f64; 3]> = (0..4000).map(|i| [(i % 50) as f64 * 0.01, (i / 50) as f64 * 0.01, 0.0]).collect();
     let t = instgs_vk::math::tree(&pts);
     let mut rng = Rng::new(8);

@@ -115,20 +115,20 @@ fn segmentation_recovers_known_instances() {
 #[test]
 fn segmentation_scores_match_the_cpu_twin() {
     // One view: g = (1 + α)·GSeg(M) − α·GSeg(1), GSeg(M)_i = mean over channels of the f64
-    // blend-backward twin's colour gradient for v_image = M.
+    // blend-backward twin's colour gradient for v_image = M (one mask at a time).
     let (gpu, k) = gpu();
     let mut rng = Rng::new(4);
     let scene = random_scene(&mut rng, 300, 1);
     let camera = look_at(Vec3::new(0.3, -0.4, -4.0), Vec3::ZERO, Vec3::new(0.0, -1.0, 0.0), 64, 48, 60.0);
+    // Five instances: one backward pass carries three masks (a channel each), the next two.
     let mask: Vec<u16> = (0..64 * 48)
-        .map(|p| {
-            if (p % 64) < 30 {
-                1
-            } else if (p / 64) < 20 {
-                2
-            } else {
-                0
-            }
+        .map(|p| match (p % 64, p / 64) {
+            (x, y) if x < 30 && y < 24 => 1,
+            (x, _) if x < 30 => 3,
+            (x, y) if x < 45 && y < 20 => 2,
+            (_, y) if y < 20 => 4,
+            (x, _) if x > 50 => 5,
+            _ => 0,
         })
         .collect();
     let view = instgs_vk::dataset::View {
@@ -138,7 +138,7 @@ fn segmentation_scores_match_the_cpu_twin() {
         undistort: None,
     };
     let alpha = 0.8;
-    let seg = segment(&gpu, &k, &scene, &[view], std::slice::from_ref(&mask), &[1, 2], alpha).unwrap();
+    let seg = segment(&gpu, &k, &scene, &[view], std::slice::from_ref(&mask), &[1, 2, 3, 4, 5], alpha).unwrap();
     let mut r = instgs_vk::render::raster::Rasterizer::new(&gpu, &k).unwrap();
     r.render(&instgs_vk::render::upload::GpuScene::new(&gpu, &scene).unwrap(), &camera, [0.0; 3]).unwrap();
     let st = r.read_state().unwrap();
@@ -154,7 +154,7 @@ fn segmentation_scores_match_the_cpu_twin() {
             .collect()
     };
     let all = gseg(&|_| true);
-    for (j, id) in [1u16, 2].into_iter().enumerate() {
+    for (j, id) in [1u16, 2, 3, 4, 5].into_iter().enumerate() {
         let m = gseg(&|x| x == id);
         let want: Vec<f64> = (0..scene.len()).map(|i| (1.0 + alpha as f64) * m[i] - alpha as f64 * all[i]).collect();
         let scale = want.iter().fold(0.0f64, |a, v| a.max(v.abs()));

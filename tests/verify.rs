@@ -108,8 +108,9 @@ fn copies_are_accepted_and_a_look_alike_stays_plain() {
     let mut check = ImageCheck::new(&gpu, &k, cameras(12), None).unwrap();
     let groups = vec![InstanceGroup { name: "thing".into(), ids: vec![1, 2, 3] }];
     let o = InstanceOptions::default();
-    let (inst, reports) =
-        instantiate(&plain, &labels, &groups, &o, Some(&mut check as &mut dyn RenderCheck), |_| {}).unwrap();
+    let (inst, reports) = instantiate(&plain, &labels, &groups, &o, Some(&mut check as &mut dyn RenderCheck), |_| {})
+        .map(|m| (m.scene, m.reports))
+        .unwrap();
     let status: Vec<&str> = reports.iter().map(|r| r.status.name()).collect();
     assert_eq!(status, ["accepted", "reference", "refused"], "{reports:#?}");
     assert!(reports.iter().all(|r| r.reference == 2));
@@ -153,6 +154,7 @@ fn a_group_left_with_one_instance_stays_plain() {
         Some(&mut check as &mut dyn RenderCheck),
         |l| lines.push(l.to_string()),
     )
+    .map(|m| (m.scene, m.reports))
     .unwrap();
     let status: Vec<&str> = reports.iter().map(|r| r.status.name()).collect();
     assert_eq!(status, ["plain", "refused", "reference"], "{reports:#?}");
@@ -201,5 +203,74 @@ fn a_flipped_or_shrunk_pose_fails_the_render_check() {
         let s = check.score(&two, &one, 1, &around(d)).unwrap().expect("visible");
         assert!(s.failure(&a).is_some(), "{name}: {s:?} passes");
     }
+    assert_clean(&gpu);
+}
+
+#[test]
+fn a_cropped_render_check_scores_as_the_whole_images_do() {
+    // The check renders only each view's window around the instance; the same comparison
+    // over the whole images (every view where the instance's silhouette has 64 pixels, the
+    // placed reference's silhouette whole) must give the same score, with masks and without.
+    use instgs_vk::instancing::verify::{compare, window, Compared};
+    let (gpu, k) = gpu();
+    let (plain, labels, poses) = scene();
+    let (one, two) = (instgs_vk::segment::subset(&plain, &labels, 1), instgs_vk::segment::subset(&plain, &labels, 2));
+    let cams = cameras(12);
+    let mut r = Rasterizer::new(&gpu, &k).unwrap();
+    let mut whole = |s: &Scene| -> Vec<Vec<[f32; 4]>> {
+        let gs = GpuScene::new(&gpu, s).unwrap();
+        cams.iter().map(|c| r.render(&gs, c, [0.0; 3]).unwrap().image).collect()
+    };
+    let own = whole(&one);
+    // A mask per view: the instance's own silhouette, and id 9 (another object) over a band.
+    let masks: Vec<Vec<u16>> = own
+        .iter()
+        .map(|img| {
+            img.iter()
+                .enumerate()
+                .map(|(i, p)| {
+                    if p[3] < 0.5 {
+                        1
+                    } else if i % 128 < 20 {
+                        9
+                    } else {
+                        0
+                    }
+                })
+                .collect()
+        })
+        .collect();
+    let truth = poses[1].compose(&poses[0].inverse());
+    let turned = Sim3 { rotation: *Rotation3::from_axis_angle(&Vector3::y_axis(), 0.3).matrix(), ..Sim3::identity() }
+        .about(&poses[1].translation)
+        .compose(&truth);
+    for x in [truth, turned] {
+        let placed = whole(&instgs_vk::model::instanced::transform_gaussians(
+            &two,
+            &instgs_vk::instancing::pose::sim3_to_similarity(&x.inverse()),
+        ));
+        for with_masks in [false, true] {
+            let views: Vec<Compared> = (0..cams.len())
+                .filter(|&v| own[v].iter().filter(|p| p[3] < 0.5).count() >= 64)
+                .map(|v| Compared {
+                    own: &own[v],
+                    placed: &placed[v],
+                    mask: with_masks.then(|| masks[v].as_slice()),
+                    truth_outside: 0,
+                })
+                .collect();
+            assert!(views.len() >= 8, "{} views", views.len());
+            let expected = compare(&views, 1);
+            let mut check = ImageCheck::new(&gpu, &k, cams.clone(), with_masks.then(|| masks.clone())).unwrap();
+            let got = check.score(&two, &one, 1, &x).unwrap().expect("visible");
+            assert_eq!(got.views, expected.views);
+            assert!((got.iou - expected.iou).abs() < 1e-3, "IoU {} cropped, {} whole", got.iou, expected.iou);
+            assert!((got.psnr - expected.psnr).abs() < 0.01, "PSNR {} cropped, {} whole", got.psnr, expected.psnr);
+            assert!((got.pose_psnr - expected.pose_psnr).abs() < 0.01, "{got:?} {expected:?}");
+        }
+    }
+    // The windows are crops: far smaller than the 128 × 96 views.
+    let areas: Vec<u32> = cams.iter().filter_map(|c| window(&one, c)).map(|w| (w[2] - w[0]) * (w[3] - w[1])).collect();
+    assert!(areas.iter().all(|&a| a < 128 * 96), "{areas:?}");
     assert_clean(&gpu);
 }

@@ -32,6 +32,12 @@
 //!
 //! `--only A,B`: the cases whose names contain A or B. `--no-synchronise`: each pose registered
 //! onto the reference alone (the stage's `synchronise = false`).
+//!
+//! `--judge`: no case is run; the run's own instance stage is judged instead — every instance of
+//! RUN/instance.json, its pose read from RUN/init.instgs, against the ground truth (up to a
+//! symmetry of the object with `--meshes`): shared (accepted, within 5° and 5 %), shared
+//! wrongly (another group's, or farther off), left plain with its reason. Exits with 1 when one
+//! is shared wrongly or left plain without a reason.
 use std::collections::BTreeMap;
 use std::path::PathBuf;
 
@@ -240,8 +246,8 @@ fn equivalent(
     };
     let opaque = pose::registration_cloud(&reference, InstanceOptions::default().min_opacity).0;
     let (centre, size) = (centroid(&opaque), instgs_vk::register::object_size(&opaque));
-    let (refined, at_refined) =
-        pose::refine_pose(check, &reference, &own, r.id, truth, at_truth, centre, size, false, 0..4)?;
+    let (refined, at_refined, _) =
+        pose::refine_pose(check, &reference, &own, r.id, truth, at_truth, centre, size, false, (0..4, 120))?;
     eprintln!(
         "  {} {}: the instance's own render against the reference placed by the accepted pose {:.2} dB, by the true pose {:.2} dB, refined ({:.2}° away) {:.2} dB",
         r.group,
@@ -260,6 +266,104 @@ fn axis_of(x: &Sim3) -> String {
     r.axis().map_or("none".into(), |a| format!("{:.2}, {:.2}, {:.2}", a.x, a.y, a.z))
 }
 
+/// `--judge`: the run's own instance stage against the ground truth (module docs).
+fn judge(
+    run: &std::path::Path,
+    groups: &[instgs_vk::dataset::masks::InstanceGroup],
+    truth: &BTreeMap<u32, GroundTruthPose>,
+    surfaces: &BTreeMap<u32, std::rc::Rc<symmetry::Surface>>,
+) -> Result<()> {
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(run.join("instance.json")).context("RUN/instance.json")?)?;
+    let scene = instgs_vk::formats::instgs::read(&run.join("init.instgs"))?;
+    // Instance id → (its group, template → world).
+    let mut placed: BTreeMap<u32, (String, Sim3)> = BTreeMap::new();
+    for g in &scene.groups {
+        for i in &g.instances {
+            let x = i.transform;
+            let r = nalgebra::UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(
+                x.rotation.w as f64,
+                x.rotation.x as f64,
+                x.rotation.y as f64,
+                x.rotation.z as f64,
+            ));
+            let t = nalgebra::Vector3::new(x.translation.x as f64, x.translation.y as f64, x.translation.z as f64);
+            let sim = Sim3 { rotation: *r.to_rotation_matrix().matrix(), scale: x.scale as f64, translation: t };
+            placed.insert(i.id.parse()?, (g.name.clone(), sim));
+        }
+    }
+    let group_of = |id: u32| groups.iter().find(|g| g.ids.contains(&id)).map(|g| g.name.clone());
+    let (mut shared, mut by_symmetry, mut wrong, mut plain, mut silent) = (0, 0, 0, 0, 0);
+    let mut worst = (0.0f64, 0.0f64);
+    for r in report["instances"].as_array().context("instance.json: no instances")? {
+        let id = r["id"].as_u64().context("an instance without an id")? as u32;
+        let status = r["status"].as_str().unwrap_or("?");
+        let Some((group, x)) = placed.get(&id) else {
+            match r["reason"].as_str() {
+                Some(why) => {
+                    plain += 1;
+                    println!("{id}: {status}, left plain: {why}");
+                }
+                None => {
+                    silent += 1;
+                    println!("{id}: {status}, left plain WITHOUT A REASON");
+                }
+            }
+            continue;
+        };
+        if group_of(id).as_deref() != Some(group.as_str()) {
+            wrong += 1;
+            println!("{id}: WRONG: shared in group {group}, its truth's group is {:?}", group_of(id));
+            continue;
+        }
+        let reference = r["reference"].as_u64().context("no reference")? as u32;
+        if reference == id {
+            shared += 1;
+            continue;
+        }
+        // The instance's world → the reference's world.
+        let relative = placed[&reference].1.compose(&x.inverse());
+        let pose_error = instgs_vk::instancing::pose_error::pose_error;
+        let (mut rot, mut trans, mut scale) = pose_error(&relative, &truth[&reference], &truth[&id]);
+        let mut turned = false;
+        if let (true, Some(surface)) = (rot > 5.0, surfaces.get(&id)) {
+            let (a, b) = (&truth[&reference].object_to_world, &truth[&id].object_to_world);
+            let d = a.inverse().compose(&relative).compose(b);
+            if let Some(sym) = surface.nearest_symmetry(&d).filter(|x| x.rotation_error_deg(&Sim3::identity()) > 10.0) {
+                let t = GroundTruthPose { object_to_world: b.compose(&sym.inverse()), ..truth[&id].clone() };
+                let e = pose_error(&relative, &truth[&reference], &t);
+                if e.0 < rot {
+                    ((rot, trans, scale), turned) = (e, true);
+                }
+            }
+        }
+        let err = trans.max(scale.abs());
+        if rot <= 5.0 && err <= 0.05 {
+            shared += 1;
+            by_symmetry += turned as usize;
+            worst = (worst.0.max(rot), worst.1.max(100.0 * err));
+            println!(
+                "{id}: shared onto {reference}, {rot:.2}°, {:.2} %{}",
+                100.0 * err,
+                if turned { " (up to a symmetry of the object)" } else { "" }
+            );
+        } else {
+            wrong += 1;
+            println!("{id}: WRONG: shared onto {reference} at {rot:.2}°, {:.2} %", 100.0 * err);
+        }
+    }
+    println!(
+        "{}: {shared} shared ({by_symmetry} of them up to a symmetry of the object; worst {:.2}°, {:.2} %), {wrong} shared wrongly, {plain} left plain with a reason, {silent} without",
+        run.display(),
+        worst.0,
+        worst.1
+    );
+    if wrong > 0 || silent > 0 {
+        bail!("{wrong} instance(s) shared wrongly, {silent} left plain without a reason");
+    }
+    Ok(())
+}
+
 fn main() -> Result<()> {
     let mut it = std::env::args().skip(1);
     let (Some(run), Some(data)) = (it.next().map(PathBuf::from), it.next().map(PathBuf::from)) else {
@@ -270,9 +374,14 @@ fn main() -> Result<()> {
     let (mut downscale, mut seeds, mut up, mut only, mut synchronise, mut refit_its) =
         (1u32, 2u64, 2usize, String::new(), true, 500u64);
     let mut meshes: Option<PathBuf> = None;
+    let mut judging = false;
     while let Some(k) = it.next() {
         if k == "--no-synchronise" {
             synchronise = false;
+            continue;
+        }
+        if k == "--judge" {
+            judging = true;
             continue;
         }
         let v = it.next().with_context(|| format!("{k} needs a value"))?;
@@ -303,6 +412,9 @@ fn main() -> Result<()> {
                 surfaces.insert(i["id"].as_u64().context("an instance without an id")? as u32, surface.clone());
             }
         }
+    }
+    if judging {
+        return judge(&run, &groups, &truth, &surfaces);
     }
     let ds = instgs_vk::dataset::load(&data, &instgs_vk::dataset::LoadOptions { downscale, background: [0.0; 3] })?;
     let masks = instgs_vk::dataset::masks::load_masks(&data, "train", &ds.train)?;
@@ -336,10 +448,10 @@ fn main() -> Result<()> {
             let mut check =
                 instgs_vk::instancing::verify::ImageCheck::new(&gpu, &k, cams.clone(), Some(masks.clone()))?;
             let o = InstanceOptions { synchronise, ..Default::default() };
-            let (_, reports) =
-                template::instantiate(&s, &l, &groups, &o, Some(&mut check as &mut dyn RenderCheck), |m| {
-                    eprintln!("  {m}")
-                })?;
+            let reports = template::instantiate(&s, &l, &groups, &o, Some(&mut check as &mut dyn RenderCheck), |m| {
+                eprintln!("  {m}")
+            })?
+            .reports;
             for r in reports.iter().filter(|r| r.id != r.reference) {
                 t.instances += 1;
                 let pose_error = instgs_vk::instancing::pose_error::pose_error;

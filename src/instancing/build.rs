@@ -31,7 +31,9 @@ pub type RebalanceRule<'a> = dyn FnMut(
 /// Builds `out` from a segmented plain scene: optional background pruning (`prune`: the
 /// significance file, the keep rule and optionally the rebalance of templates and background), templates and verified transforms
 /// ([`template::instantiate`](crate::instancing::template::instantiate)), pose errors against ground truth; prints a line per instance
-/// and returns (and writes to `report`) the JSON report.
+/// and returns (and writes to `report`) the JSON report. `whole` receives the instanced scene
+/// before any compaction (templates whole, every background Gaussian): what a memory budget
+/// other than the stage's spends from (`instgs-vk curve`).
 pub fn instance(
     scene_path: &Path,
     labels: &Path,
@@ -42,6 +44,7 @@ pub fn instance(
     prune: Option<(&Path, &mut KeepRule, Option<&mut RebalanceRule>)>,
     check: Option<&mut dyn crate::instancing::pose::RenderCheck>,
     report: Option<&Path>,
+    whole: Option<&Path>,
     out: &Path,
 ) -> Result<serde_json::Value> {
     use crate::instancing::template;
@@ -60,6 +63,7 @@ pub fn instance(
     // ranked by `rule` from significance.bin (f32 per Gaussian, written by `segment`) stay.
     let mut pruned = serde_json::Value::Null;
     let mut dropped = None;
+    let compaction = std::time::Instant::now();
     let (scene, labels, rebalance) = match prune {
         Some((sig_path, rule, rebalance)) => {
             let bytes = std::fs::read(sig_path).with_context(|| format!("{}: cannot read", sig_path.display()))?;
@@ -72,25 +76,35 @@ pub fn instance(
             let (s, l, n_dropped) = template::prune_background(&scene, &labels, &ranking, keep)?;
             eprintln!("background: kept {} of {before} Gaussians ({:.1} %)", before - n_dropped, 100.0 * keep);
             pruned = serde_json::json!({"keep": keep, "before": before, "dropped": n_dropped, "rule": how});
-            if rebalance.is_some() {
-                let (order, n_keep) = template::ranked_background(&labels, &ranking, keep);
-                let mut gone = order[n_keep..].to_vec();
-                gone.sort_unstable();
-                dropped = Some(scene.select(&gone));
-            }
+            let (order, n_keep) = template::ranked_background(&labels, &ranking, keep);
+            let mut gone = order[n_keep..].to_vec();
+            gone.sort_unstable();
+            dropped = Some(scene.select(&gone));
             (s, l, rebalance)
         }
         None => (scene, labels, None),
     };
+    let mut compaction_s = compaction.elapsed().as_secs_f64();
     let check_ran = check.is_some();
-    let (mut inst, reports) = template::instantiate(&scene, &labels, &groups, opts, check, |line| eprintln!("{line}"))?;
+    let made = template::instantiate(&scene, &labels, &groups, opts, check, |line| eprintln!("{line}"))?;
+    let (mut inst, reports, mut timing) = (made.scene, made.reports, made.timing);
+    if let Some(path) = whole {
+        let mut all = inst.clone();
+        if let Some(d) = &dropped {
+            all.background = all.background.concat(d);
+        }
+        instgs::write(&all, path, dtype)?;
+    }
     let mut rebalanced = serde_json::Value::Null;
     if let (Some(rule), Some(dropped)) = (rebalance, &dropped) {
         // Nothing dropped, nothing to bring back: the scene stays as instanced.
         if !inst.groups.is_empty() && !dropped.is_empty() {
+            let t = std::time::Instant::now();
             (inst, rebalanced) = rule(&inst, dropped)?;
+            compaction_s += t.elapsed().as_secs_f64();
         }
     }
+    timing.compaction_s = compaction_s;
     if crate::train::INTERRUPTED.load(std::sync::atomic::Ordering::SeqCst) {
         bail!("interrupted before {} was written", out.display());
     }
@@ -105,15 +119,55 @@ pub fn instance(
         }),
         None => None,
     };
+    let rows = report_rows(&reports, truth.as_ref(), truth_path);
+    println!(
+        "{}: {} groups, {} template Gaussians, {} background, {} splats ({:?} templates)",
+        out.display(),
+        inst.groups.len(),
+        inst.groups.iter().map(|g| g.template.len()).sum::<usize>(),
+        inst.background.len(),
+        inst.splats(),
+        opts.init
+    );
+    println!("{}", timing.line());
+    let v = serde_json::json!({
+        "init": format!("{:?}", opts.init).to_lowercase(),
+        "colour": opts.use_colour,
+        "acceptance": serde_json::to_value(&opts.accept)?,
+        "render_check": check_ran,
+        "synchronise": check_ran && opts.synchronise,
+        "template_gaussians": inst.groups.iter().map(|g| g.template.len()).sum::<usize>(),
+        "background_gaussians": inst.background.len(),
+        "splats": inst.splats(),
+        "background_pruning": pruned,
+        "rebalance": rebalanced,
+        "graphs": serde_json::to_value(&made.graphs)?,
+        "timing": serde_json::to_value(&timing)?,
+        "instances": rows,
+    });
+    if let Some(path) = report {
+        write_json(path, &v, true)?;
+    }
+    Ok(v)
+}
+
+/// One row per instance of the JSON report (and a line printed for each): its verdict, checks,
+/// render check, synchronisation and, against `truth` (read from `truth_path`), its pose errors.
+fn report_rows(
+    reports: &[crate::instancing::pose::InstanceReport],
+    truth: Option<&std::collections::BTreeMap<u32, crate::instancing::pose_error::GroundTruthPose>>,
+    truth_path: Option<(&Path, TruthIds)>,
+) -> Vec<serde_json::Value> {
     let truth_name = truth_path.map(|t| t.0.display().to_string()).unwrap_or_default();
     let mut rows = Vec::new();
-    for r in &reports {
+    for r in reports {
         let mut row = serde_json::json!({
             "group": r.group, "id": r.id, "reference": r.reference, "gaussians": r.gaussians,
             "status": r.status.name(), "reason": r.status.reason(),
             "fitness": r.check.fitness, "fitness_reverse": r.check.fitness_reverse,
             "scale": r.relative.scale, "scale_ratio": r.check.scale_ratio,
             "poses_tried": r.tried, "poses_refined": r.refined, "shape_ambiguous": r.shape_ambiguous,
+            "registrations": r.registrations,
         });
         let mut line = format!(
             "{} {} ({}): {} Gaussians, fitness {:.2} / {:.2}, scale {:.4}",
@@ -134,6 +188,7 @@ pub fn instance(
         if let Some(s) = &r.synchronised {
             row["synchronised_moved_deg"] = s.moved_deg.into();
             row["synchronised_spread_deg"] = s.spread_deg.into();
+            row["synchronised_estimates"] = s.estimates.into();
             line += &format!(", synchronised (moved {:.2}°, estimates within {:.2}°)", s.moved_deg, s.spread_deg);
         }
         if let Some(t) = &truth {
@@ -155,32 +210,7 @@ pub fn instance(
         println!("{line}");
         rows.push(row);
     }
-    println!(
-        "{}: {} groups, {} template Gaussians, {} background, {} splats ({:?} templates)",
-        out.display(),
-        inst.groups.len(),
-        inst.groups.iter().map(|g| g.template.len()).sum::<usize>(),
-        inst.background.len(),
-        inst.splats(),
-        opts.init
-    );
-    let v = serde_json::json!({
-        "init": format!("{:?}", opts.init).to_lowercase(),
-        "colour": opts.use_colour,
-        "acceptance": serde_json::to_value(&opts.accept)?,
-        "render_check": check_ran,
-        "synchronise": check_ran && opts.synchronise,
-        "template_gaussians": inst.groups.iter().map(|g| g.template.len()).sum::<usize>(),
-        "background_gaussians": inst.background.len(),
-        "splats": inst.splats(),
-        "background_pruning": pruned,
-        "rebalance": rebalanced,
-        "instances": rows,
-    });
-    if let Some(path) = report {
-        write_json(path, &v, true)?;
-    }
-    Ok(v)
+    rows
 }
 
 /// How a ground-truth file's instance ids relate to the run's.
@@ -348,6 +378,7 @@ pub fn instance_command(device: Option<String>, req: &InstanceRequest) -> Result
         None,
         check,
         req.report.as_deref(),
+        None,
         &req.out,
     )?;
     if req.render_check && !has_views {

@@ -164,19 +164,123 @@ pub struct Rebalance {
     pub accepted: bool,
 }
 
+/// Every Gaussian of an instanced scene ranked for one memory budget: each background
+/// Gaussian by its significance (blending weight T·α over every pixel of the views,
+/// [`crate::segment::significance`] on the expanded scene; those within `outline_fraction` of
+/// an instance first, as [`protect_outlines`]) per Gaussian's bytes, each template Gaussian by
+/// its significance summed over its instances per Gaussian's bytes plus one offset row per
+/// instance. Each template keeps at least its most significant Gaussian. [`Spending::at`] keeps
+/// the best that fit a budget.
+pub struct Spending {
+    cand: InstancedScene,
+    /// (forced, value per byte, which), best first.
+    items: Vec<(bool, f64, Item)>,
+    /// Bytes of one Gaussian row and of one offset row (estimates from the device's layout).
+    row: f64,
+    pair: f64,
+}
+
+impl Spending {
+    /// Ranks the Gaussians of `cand` (templates whole, every background Gaussian a budget
+    /// might keep) over `views`.
+    pub fn new(
+        gpu: &Arc<Gpu>,
+        k: &Arc<Kernels>,
+        cand: InstancedScene,
+        views: &[View],
+        outline_fraction: f64,
+        mut progress: impl FnMut(&str),
+    ) -> Result<Spending> {
+        let nb = cand.background.len();
+        let expanded = cand.expand();
+        let sig = crate::segment::significance(gpu, k, &expanded, views, |d, all| {
+            if d % 10 == 0 || d == all {
+                progress(&format!("significance {d}/{all} views"));
+            }
+        })?;
+        // Labels of the expanded splats (0: background; one id per instance) for the outlines.
+        let mut labels = vec![0u32; nb];
+        let mut id = 0;
+        for g in &cand.groups {
+            for _ in &g.instances {
+                id += 1;
+                labels.extend(std::iter::repeat_n(id, g.template.len()));
+            }
+        }
+        let (ranking, _) = protect_outlines(&expanded, &labels, &sig, outline_fraction);
+        let top = sig.iter().copied().filter(|s| s.is_finite()).fold(0.0f32, f32::max);
+        let whole = GpuScene::instanced(gpu, &cand)?.gpu_bytes() as f64;
+        let row = GpuScene::new(gpu, &cand.background)?.gpu_bytes() as f64 / nb.max(1) as f64;
+        let pairs: usize = cand.groups.iter().map(|g| g.template.len() * g.instances.len()).sum();
+        let pair = ((whole - row * cand.rows() as f64) / pairs.max(1) as f64).max(0.0);
+        // Items: (forced, value per byte, which). which: Err(i) background i, Ok((g, j)) template.
+        let mut items: Vec<(bool, f64, Item)> = Vec::new();
+        for (i, &r) in ranking.iter().enumerate().take(nb) {
+            items.push((r > top, sig[i] as f64 / row, Err(i)));
+        }
+        let mut first = nb;
+        for (gi, g) in cand.groups.iter().enumerate() {
+            let t = g.template.len();
+            let value: Vec<f64> =
+                (0..t).map(|j| (0..g.instances.len()).map(|k| sig[first + k * t + j] as f64).sum()).collect();
+            let best = (0..t).max_by(|&a, &b| value[a].total_cmp(&value[b]));
+            let cost = row + pair * g.instances.len() as f64;
+            for (j, v) in value.iter().enumerate() {
+                items.push((Some(j) == best, v / cost, Ok((gi, j))));
+            }
+            first += t * g.instances.len();
+        }
+        items.sort_by(|a, b| b.0.cmp(&a.0).then(b.1.total_cmp(&a.1)));
+        Ok(Spending { cand, items, row, pair })
+    }
+
+    /// The scene of the most valuable Gaussians whose GPU bytes (the device's own count) fit
+    /// `budget`; at least the forced ones (a Gaussian per template).
+    pub fn at(&self, gpu: &Arc<Gpu>, budget: u64) -> Result<InstancedScene> {
+        let (cand, items) = (&self.cand, &self.items);
+        let cost = |item: &Item| match item {
+            Err(_) => self.row,
+            Ok((g, _)) => self.row + self.pair * cand.groups[*g].instances.len() as f64,
+        };
+        let mut take = 0;
+        let mut spent = 0.0;
+        while take < items.len() && spent + cost(&items[take].2) <= budget as f64 {
+            spent += cost(&items[take].2);
+            take += 1;
+        }
+        let forced = items.iter().filter(|i| i.0).count();
+        let bytes_of = |s: &InstancedScene| -> Result<u64> { Ok(GpuScene::instanced(gpu, s)?.gpu_bytes()) };
+        // The estimate's take, then the most items whose scene the device's own count fits in
+        // the budget (bytes grow with every item kept).
+        let fits =
+            |take: usize| -> Result<bool> { Ok(bytes_of(&keep_items(cand, &items[..take.max(forced)]))? <= budget) };
+        let (mut lo, mut hi) = if fits(take)? { (take, items.len() + 1) } else { (forced, take) };
+        if lo == forced && !fits(forced)? {
+            hi = forced;
+        }
+        while hi - lo > 1 {
+            let mid = (lo + hi) / 2;
+            if fits(mid)? {
+                lo = mid;
+            } else {
+                hi = mid;
+            }
+        }
+        let out = keep_items(cand, &items[..lo.max(forced).min(items.len())]);
+        out.validate("scene within the memory budget")?;
+        Ok(out)
+    }
+}
+
 /// One memory budget for the templates and the background. The background budget above prunes
 /// the background only and keeps every template whole, while a pruned plain scene of the same
 /// bytes ranks every Gaussian, objects' included, by one measure — and so spends its bytes
 /// better (BENCHMARKS.md, "Photos as users take them"). Here every background Gaussian, kept
 /// (`inst.background`) or dropped (`dropped`), and every template Gaussian compete for the
-/// instanced scene's own GPU bytes by significance per byte: a background Gaussian's
-/// significance (blending weight T·α over every pixel of `views`, [`crate::segment::significance`]
-/// on the expanded scene; those within `outline_fraction` of an instance first, as above) for
-/// one Gaussian's bytes, a template Gaussian's summed over its instances for one Gaussian's bytes
-/// plus one offset row per instance. Each template keeps at least its most significant Gaussian.
-/// Checked before it is trusted: the result is kept only when it renders up to [`BUDGET_VIEWS`]
-/// of the views at least as well as `inst` (mean PSNR) within `inst`'s bytes; otherwise `inst`
-/// is returned unchanged, and the report says so.
+/// instanced scene's own GPU bytes ([`Spending`]). Checked before it is trusted: the result is
+/// kept only when it renders up to [`BUDGET_VIEWS`] of the views at least as well as `inst`
+/// (mean PSNR) within `inst`'s bytes; otherwise `inst` is returned unchanged, and the report
+/// says so.
 #[allow(clippy::too_many_arguments)]
 pub fn rebalance(
     gpu: &Arc<Gpu>,
@@ -191,77 +295,10 @@ pub fn rebalance(
     let n = views.len().min(BUDGET_VIEWS);
     let mut cand = inst.clone();
     cand.background = inst.background.concat(dropped);
-    let nb = cand.background.len();
-    let expanded = cand.expand();
-    let sig = crate::segment::significance(gpu, k, &expanded, views, |d, all| {
-        if d % 10 == 0 || d == all {
-            progress(&format!("rebalance: significance {d}/{all} views"));
-        }
-    })?;
-    // Labels of the expanded splats (0: background; one id per instance) for the outlines.
-    let mut labels = vec![0u32; nb];
-    let mut id = 0;
-    for g in &cand.groups {
-        for _ in &g.instances {
-            id += 1;
-            labels.extend(std::iter::repeat_n(id, g.template.len()));
-        }
-    }
-    let (ranking, _) = protect_outlines(&expanded, &labels, &sig, outline_fraction);
-    let top = sig.iter().copied().filter(|s| s.is_finite()).fold(0.0f32, f32::max);
-    // Bytes of one Gaussian row and of one offset row, from the device's own layout.
+    let spending = Spending::new(gpu, k, cand, views, outline_fraction, |l| progress(&format!("rebalance: {l}")))?;
     let bytes_of = |s: &InstancedScene| -> Result<u64> { Ok(GpuScene::instanced(gpu, s)?.gpu_bytes()) };
     let budget = bytes_of(inst)?;
-    let row = GpuScene::new(gpu, &cand.background)?.gpu_bytes() as f64 / nb.max(1) as f64;
-    let pairs: usize = inst.groups.iter().map(|g| g.template.len() * g.instances.len()).sum();
-    let pair = ((budget as f64 - row * inst.rows() as f64) / pairs.max(1) as f64).max(0.0);
-    // Items: (forced, value per byte, which). which: Err(i) background i, Ok((g, j)) template.
-    let mut items: Vec<(bool, f64, Item)> = Vec::new();
-    for (i, &r) in ranking.iter().enumerate().take(nb) {
-        items.push((r > top, sig[i] as f64 / row, Err(i)));
-    }
-    let mut first = nb;
-    for (gi, g) in cand.groups.iter().enumerate() {
-        let t = g.template.len();
-        let value: Vec<f64> =
-            (0..t).map(|j| (0..g.instances.len()).map(|k| sig[first + k * t + j] as f64).sum()).collect();
-        let best = (0..t).max_by(|&a, &b| value[a].total_cmp(&value[b]));
-        let cost = row + pair * g.instances.len() as f64;
-        for (j, v) in value.iter().enumerate() {
-            items.push((Some(j) == best, v / cost, Ok((gi, j))));
-        }
-        first += t * g.instances.len();
-    }
-    items.sort_by(|a, b| b.0.cmp(&a.0).then(b.1.total_cmp(&a.1)));
-    let cost = |item: &Item| match item {
-        Err(_) => row,
-        Ok((g, _)) => row + pair * cand.groups[*g].instances.len() as f64,
-    };
-    let mut take = 0;
-    let mut spent = 0.0;
-    while take < items.len() && spent + cost(&items[take].2) <= budget as f64 {
-        spent += cost(&items[take].2);
-        take += 1;
-    }
-    let forced = items.iter().filter(|i| i.0).count();
-    // The estimate's take, then the most items whose scene the device's own count fits in the
-    // budget (bytes grow with every item kept).
-    let fits =
-        |take: usize| -> Result<bool> { Ok(bytes_of(&keep_items(&cand, &items[..take.max(forced)]))? <= budget) };
-    let (mut lo, mut hi) = if fits(take)? { (take, items.len() + 1) } else { (forced, take) };
-    if lo == forced && !fits(forced)? {
-        hi = forced;
-    }
-    while hi - lo > 1 {
-        let mid = (lo + hi) / 2;
-        if fits(mid)? {
-            lo = mid;
-        } else {
-            hi = mid;
-        }
-    }
-    let out = keep_items(&cand, &items[..lo.max(forced)]);
-    out.validate("rebalanced scene")?;
+    let out = spending.at(gpu, budget)?;
     let mut check = ViewCheck::new(gpu, k, views, background, "rebalance the scene's memory on")?;
     let (psnr_before, psnr_after) =
         (check.psnr(&GpuScene::instanced(gpu, inst)?)?, check.psnr(&GpuScene::instanced(gpu, &out)?)?);

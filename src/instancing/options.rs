@@ -42,6 +42,13 @@ pub struct InstanceOptions {
     /// register them onto each other too and keep the synchronised poses
     /// ([`crate::instancing::synchronise`]).
     pub synchronise: bool,
+    /// The pose graph's edges per instance ([`candidate_edges`](crate::instancing::synchronise::candidate_edges)):
+    /// each accepted instance is registered onto this many others of its group, the nearest by
+    /// size signature, besides the reference.
+    pub neighbours: usize,
+    /// Only these instances are registered (the others stay background): a subset for timing
+    /// the stage at a smaller scale (`tools/instance-scaling.sh`) or for debugging. None: all.
+    pub only: Option<std::collections::BTreeSet<u32>>,
     /// The scene's up axis (a unit normal of the floor the objects stand on; its sign does not
     /// matter): shape-ambiguous instances also try their best hypothesis turned about it
     /// ([`UP_TURNS_DEG`](crate::instancing::pose::UP_TURNS_DEG)). `None`: [`instantiate`](crate::instancing::template::instantiate) finds it from the background ([`up_axis`](crate::instancing::pose::up_axis)).
@@ -75,6 +82,8 @@ impl Default for InstanceOptions {
             accept: Acceptance::default(),
             starts: BTreeMap::new(),
             synchronise: true,
+            neighbours: 2,
+            only: None,
             up: None,
         }
     }

@@ -23,9 +23,10 @@ use kiddo::SquaredEuclidean;
 use crate::dataset::masks::InstanceGroup;
 use crate::instancing::options::{InstanceOptions, Status, TemplateInit};
 use crate::instancing::pose::{
-    register_and_check, registration_cloud, sim3_to_similarity, synchronise_group, to_f64, up_axis, InstanceReport,
-    RenderCheck,
+    register_and_check, registration_cloud, sim3_to_similarity, synchronise_group, to_f64, up_axis, GraphReport,
+    InstanceReport, RenderCheck,
 };
+use crate::instancing::timing::{Clock, Step, StepTimes, Timed};
 use crate::math::{logit, sigmoid};
 use crate::model::instanced::{transform_gaussians, Group, Instance, InstancedScene, Offsets, Similarity};
 use crate::model::scene::Scene;
@@ -66,22 +67,43 @@ pub fn prune_background(
     Ok((scene.select(&idx), idx.iter().map(|&i| labels[i]).collect(), bg.len() - n_keep))
 }
 
+/// What [`instantiate`] made and decided.
+#[derive(Debug)]
+pub struct Instantiated {
+    pub scene: InstancedScene,
+    /// One per instance, group by group.
+    pub reports: Vec<InstanceReport>,
+    /// One per group whose poses were synchronised over a pose graph.
+    pub graphs: Vec<GraphReport>,
+    /// The time per step and the work done.
+    pub timing: StepTimes,
+}
+
 /// Registers every group's instances onto the group's reference (the instance with the most
-/// opaque Gaussians), checks each pose ([`PoseCheck`](crate::instancing::pose::PoseCheck), and [`RenderCheck`] when given), builds
-/// templates and offsets from the accepted instances. A refused instance's Gaussians stay
-/// background, as do a whole group's when fewer than two of its instances are left; Gaussians
-/// of no group's instance stay background. `progress` receives one line per step.
+/// opaque Gaussians), checks each pose ([`PoseCheck`](crate::instancing::pose::PoseCheck), and
+/// [`RenderCheck`] when given), synchronises each group's poses over its sparse pose graph
+/// ([`synchronise_group`]), builds templates and offsets from the accepted instances. A
+/// refused instance's Gaussians stay background, as do a whole group's when fewer than two of
+/// its instances are left; Gaussians of no group's instance stay background. `progress`
+/// receives one line per step.
 pub fn instantiate(
     scene: &Scene,
     labels: &[u32],
     groups: &[InstanceGroup],
     o: &InstanceOptions,
-    mut render_check: Option<&mut dyn RenderCheck>,
+    render_check: Option<&mut dyn RenderCheck>,
     mut progress: impl FnMut(&str),
-) -> Result<(InstancedScene, Vec<InstanceReport>)> {
+) -> Result<Instantiated> {
     if labels.len() != scene.len() {
         bail!("{} labels for {} Gaussians", labels.len(), scene.len());
     }
+    let (labels, groups) = subset(labels, groups, o.only.as_ref())?;
+    let (labels, groups) = (labels.as_slice(), groups.as_slice());
+    let clock = Clock::default();
+    let mut timed = render_check.map(|rc| Timed::new(rc, &clock));
+    let mut render_check: Option<&mut dyn RenderCheck> = timed.as_mut().map(|t| t as &mut dyn RenderCheck);
+    let mut timing = StepTimes::default();
+    let step = Step::start(&clock);
     let members = members_of(labels, groups)?;
     let mut background_idx = members.get(&0).cloned().unwrap_or_default();
     let with_up;
@@ -100,15 +122,19 @@ pub fn instantiate(
             &with_up
         }
     };
+    timing.candidates_s += step.own(&clock);
     let mut reports = Vec::new();
+    let mut graphs = Vec::new();
     let mut out_groups = Vec::new();
     for g in groups {
+        let step = Step::start(&clock);
         let parts: Vec<Scene> = g.ids.iter().map(|id| scene.select(&members[id])).collect();
         type Clouds = Vec<Vec<[f64; 3]>>;
         let (opaque, colours): (Clouds, Clouds) = parts.iter().map(|p| registration_cloud(p, o.min_opacity)).unzip();
         // The reference: the most complete cloud (most opaque Gaussians; ties: the first).
         let r = (0..parts.len()).max_by_key(|&k| (opaque[k].len(), usize::MAX - k)).expect("instances");
         let reg = o.register_options(object_size(&opaque[r]));
+        timing.candidates_s += step.own(&clock);
         // relative[k]: instance k's world → the reference's world; None: not instanced.
         let mut relative: Vec<Option<Sim3>> = vec![None; parts.len()];
         relative[r] = Some(Sim3::identity());
@@ -119,6 +145,7 @@ pub fn instantiate(
                 g.name, g.ids[0]
             ));
         }
+        let step = Step::start(&clock);
         for k in 0..parts.len() {
             let mut report = InstanceReport::new(&g.name, g.ids[k], g.ids[r], parts[k].len());
             if k != r {
@@ -140,13 +167,16 @@ pub fn instantiate(
                 if report.status.instanced() {
                     relative[k] = Some(x);
                 }
+                timing.registrations += report.registrations;
                 progress(&pose_line(&report, x.scale));
             }
             group_reports.push(report);
         }
+        timing.registration_s += step.own(&clock);
         if o.synchronise {
             if let Some(rc) = render_check.as_deref_mut() {
-                synchronise_group(
+                let step = Step::start(&clock);
+                let graph = synchronise_group(
                     rc,
                     &parts,
                     &opaque,
@@ -159,8 +189,14 @@ pub fn instantiate(
                     &mut progress,
                 )
                 .with_context(|| format!("group {:?}: pose synchronisation", g.name))?;
+                timing.edges += graph.edges;
+                if graph.edges > 0 {
+                    graphs.push(graph);
+                }
+                timing.synchronisation_s += step.own(&clock);
             }
         }
+        let step = Step::start(&clock);
         let kept: Vec<usize> = (0..parts.len()).filter(|&k| relative[k].is_some()).collect();
         if kept.len() < 2 && g.ids.len() > 1 {
             let why = format!(
@@ -186,12 +222,37 @@ pub fn instantiate(
         let group = build_group(&g.name, &parts, &kept, &g.ids, &relative, centroid(&opaque[r]), reg.voxel as f32, o);
         progress(&format!("{}: template of {} Gaussians ({:?})", g.name, group.template.len(), o.init));
         out_groups.push(group);
+        timing.templates_s += step.own(&clock);
     }
     background_idx.sort_unstable();
     let background = scene.select(&background_idx);
     let out = InstancedScene { sh_degree: scene.sh_degree, background, groups: out_groups };
     out.validate("instanced scene")?;
-    Ok((out, reports))
+    timing.render_checks_s = clock.seconds();
+    timing.render_checks = clock.calls();
+    Ok(Instantiated { scene: out, reports, graphs, timing })
+}
+
+/// The labels and groups of only the instances `only` names (None: all): the others' labels
+/// become background and their groups lose them (a group left empty goes).
+fn subset(
+    labels: &[u32],
+    groups: &[InstanceGroup],
+    only: Option<&std::collections::BTreeSet<u32>>,
+) -> Result<(Vec<u32>, Vec<InstanceGroup>)> {
+    let Some(keep) = only else { return Ok((labels.to_vec(), groups.to_vec())) };
+    if let Some(id) = keep.iter().find(|id| !groups.iter().any(|g| g.ids.contains(id))) {
+        bail!("instance {id} (named to register) is not an instance of the groups file");
+    }
+    let labels = labels.iter().map(|&l| if keep.contains(&l) { l } else { 0 }).collect();
+    let groups = groups
+        .iter()
+        .filter_map(|g| {
+            let ids: Vec<u32> = g.ids.iter().copied().filter(|i| keep.contains(i)).collect();
+            (!ids.is_empty()).then(|| InstanceGroup { name: g.name.clone(), ids })
+        })
+        .collect();
+    Ok((labels, groups))
 }
 
 /// Each label's Gaussians (0: background), checked against the groups file: every label names

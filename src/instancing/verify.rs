@@ -11,10 +11,19 @@
 //! masks whose ids are the labels' (`instances.json` datasets), only those where the mask shows
 //! at least half of that silhouette (the instance is mostly unoccluded there); the
 //! [`MAX_VIEWS`] with the largest silhouettes.
+//!
+//! Crops: every render covers only the instance's window in the view ([`window`]: the
+//! projected extent of its Gaussians, three standard deviations wide, plus a [`CROP_MARGIN`]),
+//! the same pixels as the whole image there. Objects cover a few hundred of a view's 170 000
+//! pixels on a walk-through scene (cafe40): the renders, read-backs and comparisons shrink
+//! with the crop. The mask's pixels of the instance outside the crop still count in the IoU's
+//! union; a placed reference is assumed to show nothing outside it (a pose that moves it past
+//! the margin leaves most of the instance's pixels uncovered and fails the IoU anyway).
 use std::collections::HashMap;
 use std::sync::Arc;
 
 use anyhow::Result;
+use glam::Vec3;
 use nalgebra::{DMatrix, DVector};
 
 use crate::gpu::kernels::Kernels;
@@ -24,14 +33,12 @@ use crate::model::camera::Camera;
 use crate::model::instanced::transform_gaussians;
 use crate::model::scene::Scene;
 use crate::register::Sim3;
-use crate::render::raster::Rasterizer;
+use crate::render::raster::{Rasterizer, NEAR_PLANE};
 use crate::render::upload::GpuScene;
 
 /// An RGBA render (rgb over black, a = final transmittance), row-major.
 type Pixel = [f32; 4];
 type Image = Vec<Pixel>;
-/// Renders of one scene: (camera index, image).
-type Renders = Vec<(usize, Image)>;
 
 /// Views compared per instance at most. More views pin a pose down better where each sees
 /// the instance small: on the demo (ducks ~30 px wide) the refined poses came within 2.9° with
@@ -39,6 +46,19 @@ type Renders = Vec<(usize, Image)>;
 pub const MAX_VIEWS: usize = 24;
 /// A view counts when the instance's own silhouette covers at least this many pixels.
 pub const MIN_VIEW_PIXELS: usize = 64;
+/// A crop reaches this fraction of the instance's window's larger side (at least
+/// [`MIN_CROP_MARGIN`] pixels) past the window on every side.
+pub const CROP_MARGIN: f32 = 0.25;
+pub const MIN_CROP_MARGIN: f32 = 8.0;
+
+/// One view of an instance kept for its checks: the crop's camera, the instance's own render
+/// there, the mask's crop, and the mask's pixels of the instance outside the crop.
+struct OwnView {
+    camera: Camera,
+    image: Image,
+    mask: Option<Vec<u16>>,
+    truth_outside: usize,
+}
 
 /// [`RenderCheck`] on the GPU over a dataset's training cameras.
 pub struct ImageCheck {
@@ -46,8 +66,39 @@ pub struct ImageCheck {
     rasterizer: Rasterizer,
     cameras: Vec<Camera>,
     masks: Option<Vec<Vec<u16>>>,
-    /// Per instance id: the chosen views and the instance's own renders there.
-    own: HashMap<u32, Renders>,
+    /// Per instance id: the chosen views, cropped, and the instance's own renders there.
+    own: HashMap<u32, Vec<OwnView>>,
+}
+
+/// The pixels (x0, y0, x1, y1; half-open, inside the image) where `scene` can show in `cam`:
+/// every Gaussian's mean ± three standard deviations of its largest axis, projected, plus the
+/// crop margin. The whole image when a Gaussian reaches the near plane (its projection is
+/// unbounded); None when none is in front of the camera or the window misses the image.
+pub fn window(scene: &Scene, cam: &Camera) -> Option<[u32; 4]> {
+    let (w, h) = (cam.width as f32, cam.height as f32);
+    let mut b = [f32::INFINITY, f32::INFINITY, f32::NEG_INFINITY, f32::NEG_INFINITY];
+    for (m, s) in scene.means.iter().zip(&scene.scales) {
+        let r = 3.0 * s[0].max(s[1]).max(s[2]).exp();
+        let c = cam.viewmat.transform_point3(Vec3::from(*m));
+        if c.z + r <= NEAR_PLANE {
+            continue;
+        }
+        if c.z - r <= NEAR_PLANE {
+            return Some([0, 0, cam.width, cam.height]);
+        }
+        let (u, v) = (cam.fx * c.x / c.z + cam.cx, cam.fy * c.y / c.z + cam.cy);
+        let (ru, rv) = (cam.fx * r / (c.z - r), cam.fy * r / (c.z - r));
+        b = [b[0].min(u - ru), b[1].min(v - rv), b[2].max(u + ru), b[3].max(v + rv)];
+    }
+    if !b.iter().all(|v| v.is_finite()) {
+        return None;
+    }
+    let margin = (CROP_MARGIN * (b[2] - b[0]).max(b[3] - b[1])).max(MIN_CROP_MARGIN);
+    let x0 = (b[0] - margin).floor().clamp(0.0, w);
+    let y0 = (b[1] - margin).floor().clamp(0.0, h);
+    let x1 = (b[2] + margin).ceil().clamp(0.0, w);
+    let y1 = (b[3] + margin).ceil().clamp(0.0, h);
+    (x1 > x0 && y1 > y0).then_some([x0 as u32, y0 as u32, x1 as u32, y1 as u32])
 }
 
 impl ImageCheck {
@@ -57,30 +108,47 @@ impl ImageCheck {
         Ok(ImageCheck { gpu: gpu.clone(), rasterizer: Rasterizer::new(gpu, k)?, cameras, masks, own: HashMap::new() })
     }
 
-    fn render(&mut self, scene: &Scene, views: impl Iterator<Item = usize>) -> Result<Renders> {
+    fn render<'a>(&mut self, scene: &Scene, cameras: impl Iterator<Item = &'a Camera>) -> Result<Vec<Image>> {
         let gs = GpuScene::new(&self.gpu, scene)?;
-        views.map(|v| Ok((v, self.rasterizer.render(&gs, &self.cameras[v], [0.0; 3])?.image))).collect()
+        cameras.map(|c| Ok(self.rasterizer.render(&gs, c, [0.0; 3])?.image)).collect()
     }
 
-    fn own_views(&mut self, instance: &Scene, id: u32) -> Result<&[(usize, Image)]> {
+    fn own_views(&mut self, instance: &Scene, id: u32) -> Result<()> {
         if !self.own.contains_key(&id) {
-            let all = self.render(instance, 0..self.cameras.len())?;
-            let mut seen: Vec<(usize, usize, Image)> = Vec::new();
-            for (v, img) in all {
-                let area = img.iter().filter(|p| silhouette(p)).count();
-                let shown = match &self.masks {
-                    Some(m) => m[v].iter().filter(|&&x| x as u32 == id).count(),
-                    None => area,
+            let crops: Vec<(usize, [u32; 4], Camera)> = (0..self.cameras.len())
+                .filter_map(|v| {
+                    let [x0, y0, x1, y1] = window(instance, &self.cameras[v])?;
+                    Some((v, [x0, y0, x1, y1], self.cameras[v].cropped(x0, y0, x1 - x0, y1 - y0)))
+                })
+                .collect();
+            let images = self.render(instance, crops.iter().map(|c| &c.2))?;
+            let mut seen: Vec<(usize, usize, OwnView)> = Vec::new();
+            for ((v, [x0, y0, x1, y1], camera), image) in crops.into_iter().zip(images) {
+                let area = image.iter().filter(|p| silhouette(p)).count();
+                let full_width = self.cameras[v].width as usize;
+                let (mask, shown, truth_outside) = match &self.masks {
+                    Some(m) => {
+                        let crop: Vec<u16> = (y0..y1)
+                            .flat_map(|y| {
+                                let row = y as usize * full_width;
+                                m[v][row + x0 as usize..row + x1 as usize].iter().copied()
+                            })
+                            .collect();
+                        let shown = m[v].iter().filter(|&&x| x as u32 == id).count();
+                        let inside = crop.iter().filter(|&&x| x as u32 == id).count();
+                        (Some(crop), shown, shown - inside)
+                    }
+                    None => (None, area, 0),
                 };
                 if area >= MIN_VIEW_PIXELS && 2 * shown >= area {
-                    seen.push((area, v, img));
+                    seen.push((area, v, OwnView { camera, image, mask, truth_outside }));
                 }
             }
             seen.sort_by_key(|s| (std::cmp::Reverse(s.0), s.1));
             seen.truncate(MAX_VIEWS);
-            self.own.insert(id, seen.into_iter().map(|(_, v, img)| (v, img)).collect());
+            self.own.insert(id, seen.into_iter().map(|(_, _, o)| o).collect());
         }
-        Ok(&self.own[&id])
+        Ok(())
     }
 }
 
@@ -91,19 +159,48 @@ fn silhouette(p: &[f32; 4]) -> bool {
 
 impl RenderCheck for ImageCheck {
     fn score(&mut self, reference: &Scene, instance: &Scene, id: u32, x: &Sim3) -> Result<Option<RenderScore>> {
-        let own: Renders = self.own_views(instance, id)?.to_vec();
+        self.score_views(reference, instance, id, x, None)
+    }
+
+    /// Over the instance's first `views` views (they are kept largest silhouette first).
+    fn score_views(
+        &mut self,
+        reference: &Scene,
+        instance: &Scene,
+        id: u32,
+        x: &Sim3,
+        views: Option<usize>,
+    ) -> Result<Option<RenderScore>> {
+        self.own_views(instance, id)?;
+        // Out of the map while the rasterizer renders (no copy of the images).
+        let all = self.own.remove(&id).unwrap_or_default();
+        let own = &all[..all.len().min(views.unwrap_or(usize::MAX))];
         if own.is_empty() {
+            self.own.insert(id, all);
             return Ok(None);
         }
         let placed = transform_gaussians(reference, &sim3_to_similarity(&x.inverse()));
-        let renders = self.render(&placed, own.iter().map(|(v, _)| *v))?;
-        let masks = self.masks.as_ref();
-        let views: Vec<Compared> = own
+        let renders = self.render(&placed, own.iter().map(|o| &o.camera));
+        let renders = match renders {
+            Ok(r) => r,
+            Err(e) => {
+                self.own.insert(id, all);
+                return Err(e);
+            }
+        };
+        let compared: Vec<Compared> = own
             .iter()
             .zip(&renders)
-            .map(|((v, a), (_, b))| Compared { own: a, placed: b, mask: masks.map(|m| m[*v].as_slice()) })
+            .map(|(o, placed)| Compared {
+                own: &o.image,
+                placed,
+                mask: o.mask.as_deref(),
+                truth_outside: o.truth_outside,
+            })
             .collect();
-        Ok(Some(compare(&views, id)))
+        let score = compare(&compared, id);
+        self.own.insert(id, all);
+        Ok(Some(score))
     }
 }
 
@@ -113,6 +210,8 @@ pub struct Compared<'a> {
     pub own: &'a [Pixel],
     pub placed: &'a [Pixel],
     pub mask: Option<&'a [u16]>,
+    /// The mask's pixels of the instance outside these (a crop's): in the IoU's union.
+    pub truth_outside: usize,
 }
 
 /// Scores a pose over the compared views. IoU: the placed reference's silhouette against the
@@ -127,7 +226,7 @@ pub fn compare(views: &[Compared], id: u32) -> RenderScore {
     let mut ious = Vec::new();
     let mut fit = ColourMap::default();
     for v in views {
-        let (mut inter, mut union) = (0usize, 0usize);
+        let (mut inter, mut union) = (0usize, v.truth_outside);
         for (i, (p, q)) in v.own.iter().zip(v.placed).enumerate() {
             let (s, t) = (silhouette(p), silhouette(q));
             if s || t {
@@ -252,7 +351,7 @@ mod tests {
     }
 
     fn psnr(own: &[Pixel], placed: &[Pixel]) -> f64 {
-        compare(&[Compared { own, placed, mask: None }], 1).psnr
+        compare(&[Compared { own, placed, mask: None, truth_outside: 0 }], 1).psnr
     }
 
     #[test]
@@ -263,7 +362,7 @@ mod tests {
         let yellow = tinted([1.0, 0.8261, 0.1916], 500);
         for (tint, at_least) in [([0.1668, 1.0, 0.4042], 60.0), ([1.0, 0.2219, 0.7783], 40.0)] {
             let other = tinted(tint, 500);
-            let score = compare(&[Compared { own: &yellow, placed: &other, mask: None }], 1);
+            let score = compare(&[Compared { own: &yellow, placed: &other, mask: None, truth_outside: 0 }], 1);
             let (mix_psnr, gain_psnr) = (score.psnr, score.pose_psnr);
             assert!(mix_psnr > at_least && mix_psnr > gain_psnr + 10.0, "mix {mix_psnr} dB, gain {gain_psnr} dB");
         }

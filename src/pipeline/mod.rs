@@ -14,6 +14,7 @@
 //! `RUN/report.md` is rewritten after every stage. A re-run skips finished stages, continues
 //! the training stages from their checkpoints and redoes an unfinished other stage from its start
 //! (they write their results atomically, so a result file is always whole).
+pub mod curve;
 pub mod report;
 pub mod stage;
 mod stages;

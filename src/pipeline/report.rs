@@ -32,6 +32,7 @@ pub fn write(run: &Path, a: &PipelineArgs, stages: &[(Stage, bool, f64)]) -> Res
     let eval = read(run, "eval.json");
     let bench = read(run, "bench.json");
     comparison_section(&mut md, run, eval.as_ref(), bench.as_ref());
+    curve_section(&mut md, run);
     segmentation_section(&mut md, run);
     registration_section(&mut md, run);
     pictures_section(&mut md, eval.as_ref());
@@ -294,8 +295,9 @@ fn registration_section(md: &mut String, run: &Path) {
                 " (no render check ran)".into()
             },
             if s["synchronise"].as_bool() == Some(true) {
-                "Where a group has three or more accepted instances besides its reference, they are also registered onto each other and every \
-                 pose is synchronised (the least-squares mean of its estimates through the others), kept when it \
+                "Where a group has three or more accepted instances besides its reference, each is also registered onto a few others \
+                 (its pose graph's edges, chosen by size signature) and every pose is synchronised (the least-squares mean of its \
+                 estimates through them); a registration whose cycles do not close is refused. A synchronised pose is kept when it \
                  passes the same checks; *synchronised* gives how far that moved it. "
             } else {
                 ""
@@ -345,8 +347,118 @@ fn registration_section(md: &mut String, run: &Path) {
         if !reasons.is_empty() {
             let _ = writeln!(md, "\n{}", reasons.join("\n"));
         }
+        graph_lines(md, &s);
         md.push('\n');
     }
+}
+
+/// The pose graphs (edges, cycles, refused registrations) and the stage's time per step.
+fn graph_lines(md: &mut String, s: &serde_json::Value) {
+    let mut lines = Vec::new();
+    for g in s["graphs"].as_array().into_iter().flatten() {
+        let open = g["open_cycles"].as_array().map_or(0, |a| a.len());
+        let refused: Vec<String> = g["refused"]
+            .as_array()
+            .into_iter()
+            .flatten()
+            .map(|e| {
+                format!(
+                    "{} → {} ({:.1}°, {:.1} %)",
+                    e["from"],
+                    e["to"],
+                    num(e, "rotation_deg").unwrap_or(f64::NAN),
+                    100.0 * num(e, "translation_fraction").unwrap_or(f64::NAN)
+                )
+            })
+            .collect();
+        lines.push(format!(
+            "- pose graph of {}: {} edges, {} cycles, {open} open; registrations refused: {}",
+            g["group"].as_str().unwrap_or("?"),
+            g["edges"],
+            g["cycles"],
+            if refused.is_empty() { "none".to_string() } else { refused.join(", ") }
+        ));
+    }
+    let t = &s["timing"];
+    if t.is_object() {
+        let sec = |k: &str| num(t, k).unwrap_or(f64::NAN);
+        lines.push(format!(
+            "- time: candidates {:.0} s, registration {:.0} s, synchronisation {:.0} s, render checks {:.0} s ({} checks), templates {:.0} s, compaction {:.0} s; {} registrations, {} graph edges",
+            sec("candidates_s"),
+            sec("registration_s"),
+            sec("synchronisation_s"),
+            sec("render_checks_s"),
+            t["render_checks"],
+            sec("templates_s"),
+            sec("compaction_s"),
+            t["registrations"],
+            t["edges"]
+        ));
+    }
+    if !lines.is_empty() {
+        let _ = writeln!(md, "\n{}", lines.join("\n"));
+    }
+}
+
+/// The memory–quality curve (`instgs-vk curve`), where it was made.
+fn curve_section(md: &mut String, run: &Path) {
+    let Some(c) = read(run, crate::pipeline::curve::CURVE_FILE) else { return };
+    let _ = writeln!(
+        md,
+        "## Memory and quality\n\nHeld-out PSNR against GPU memory (`instgs-vk curve`): InstGS at each memory budget \
+         against the plain scene pruned to the same memory, both fine-tuned {} iterations; plain 3DGS {:.2} dB at {} MB. \
+         Numbers: `{}`.\n\n![memory and quality]({})\n\n| budget | InstGS MB | InstGS PSNR (dB) | pruned MB | pruned PSNR (dB) | InstGS − pruned (dB) | InstGS file MB | pruned file MB |\n|---|---|---|---|---|---|---|---|",
+        c["iterations"],
+        num(&c, "plain.psnr").unwrap_or(f64::NAN),
+        mb(num(&c, "plain.gpu_bytes").unwrap_or(f64::NAN)),
+        crate::pipeline::curve::CURVE_FILE,
+        crate::pipeline::curve::CURVE_PLOT
+    );
+    for p in c["points"].as_array().into_iter().flatten() {
+        let budget = match num(p, "fraction") {
+            Some(f) => format!("{:.0} % of plain", 100.0 * f),
+            None => "default".into(),
+        };
+        let v = |k: &str| num(p, k).unwrap_or(f64::NAN);
+        let _ = writeln!(
+            md,
+            "| {budget} | {} | {:.2} | {} | {:.2} | {:+.2} | {} | {} |",
+            mb(v("instgs.gpu_bytes")),
+            v("instgs.psnr"),
+            mb(v("pruned.gpu_bytes")),
+            v("pruned.psnr"),
+            v("instgs.psnr") - v("pruned.psnr"),
+            mb(v("instgs.file_bytes")),
+            mb(v("pruned.file_bytes"))
+        );
+    }
+    let e = &c["equal_quality"];
+    if e.is_object() {
+        let v = |k: &str| num(e, k).unwrap_or(f64::NAN);
+        let _ = writeln!(
+            md,
+            "\nAt InstGS's {:.2} dB ({} MB), pruning needs {} MB to match it ({:.2}× InstGS's memory, between the pruned points about it). \
+             InstGS renders at {:.2}× the frame rate of the smallest pruned scene at least as good ({:.2} dB; {:.1} against {:.1} FPS, `bench` interleaved, culling and level of detail on).",
+            v("instgs_psnr"),
+            mb(v("instgs_gpu_bytes")),
+            mb(v("pruned_gpu_bytes_needed")),
+            v("memory_ratio"),
+            v("fps_ratio"),
+            v("pruned_psnr"),
+            v("fps_instgs"),
+            v("fps_pruned")
+        );
+    }
+    let loses: Vec<&str> = c["instgs_loses_at"].as_array().into_iter().flatten().filter_map(|v| v.as_str()).collect();
+    let _ = writeln!(
+        md,
+        "\n{}\n",
+        if loses.is_empty() {
+            "InstGS is ahead of the pruned scene at every budget measured.".to_string()
+        } else {
+            format!("InstGS loses to the pruned scene at: {}.", loses.join("; "))
+        }
+    );
 }
 
 /// The held-out views' pictures.

@@ -37,15 +37,18 @@ fn instance_options(c: &crate::train::config::InstanceStage) -> Result<crate::in
             ..Default::default()
         },
         synchronise: c.synchronise && c.render_check,
+        neighbours: c.neighbours,
         ..Default::default()
     })
 }
 
 /// The "plain, pruned" baseline's scene in a run folder.
 pub const PRUNED_FILE: &str = "pruned.ply";
+/// The instanced scene before compaction (templates whole, the whole background), in a run folder.
+pub const WHOLE_FILE: &str = "instanced_whole.instgs";
 
 /// What a training stage starts from.
-enum Init {
+pub(super) enum Init {
     /// The dataset (plain 3DGS).
     Dataset,
     /// A plain scene, fine-tuned without densification (the pruned baseline).
@@ -228,6 +231,7 @@ impl Ctx<'_> {
             Some((&run.join("significance.bin"), &mut rule, rebalance)),
             check.as_mut().map(|c| c as &mut dyn crate::instancing::pose::RenderCheck),
             None,
+            Some(&run.join(WHOLE_FILE)),
             &run.join("init.instgs"),
         );
         match r {
@@ -285,7 +289,7 @@ impl Ctx<'_> {
     }
 
     /// The held-out views (the training views when the dataset holds none out).
-    fn views(&self) -> &[crate::dataset::View] {
+    pub(super) fn views(&self) -> &[crate::dataset::View] {
         if self.ds.test.is_empty() {
             &self.ds.train
         } else {
@@ -293,7 +297,7 @@ impl Ctx<'_> {
         }
     }
 
-    fn train(
+    pub(super) fn train(
         &self,
         out: &Path,
         init: Init,

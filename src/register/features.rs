@@ -48,7 +48,7 @@ pub fn normals(points: &[[f64; 3]], radius: f64, max_nn: usize) -> Vec<[f64; 3]>
     points
         .iter()
         .map(|p| {
-            let nn = t.nearest_n_within::<SquaredEuclidean>(p, radius * radius, max_nn, true);
+            let nn = t.nearest_n_within::<SquaredEuclidean>(p, radius * radius, crate::math::neighbours(max_nn), true);
             let n = if nn.len() < 3 {
                 Vector3::from(*p) - c
             } else {
@@ -115,7 +115,7 @@ pub fn fpfh(points: &[[f64; 3]], normals: &[[f64; 3]], radius: f64, max_nn: usiz
         .iter()
         .enumerate()
         .map(|(i, p)| {
-            t.nearest_n_within::<SquaredEuclidean>(p, radius * radius, max_nn + 1, true)
+            t.nearest_n_within::<SquaredEuclidean>(p, radius * radius, crate::math::neighbours(max_nn + 1), true)
                 .into_iter()
                 .filter(|n| n.item as usize != i)
                 .take(max_nn)
@@ -170,8 +170,7 @@ pub fn fpfh(points: &[[f64; 3]], normals: &[[f64; 3]], radius: f64, max_nn: usiz
 
 /// Index pairs (source, target) whose FPFH descriptors are each other's nearest neighbours
 /// (Euclidean; ties: lowest index). Exhaustive search: in 33 dimensions, with histograms full
-/// of equal zeros, a k-d tree prunes little (and `kiddo`'s immutable tree refuses more equal
-/// values on an axis than a bucket holds).
+/// of equal zeros, a k-d tree prunes little.
 pub fn mutual_matches(fs: &[[f64; FPFH_DIM]], fd: &[[f64; FPFH_DIM]]) -> Vec<(usize, usize)> {
     fn nearest(f: &[f64; FPFH_DIM], set: &[[f64; FPFH_DIM]]) -> usize {
         let mut best = (f64::INFINITY, 0);

@@ -17,6 +17,7 @@ use kiddo::immutable::float::kdtree::ImmutableKdTree;
 use kiddo::SquaredEuclidean;
 use nalgebra::{Matrix3, SymmetricEigen, Vector3};
 use rand::{Rng, SeedableRng};
+use rayon::prelude::*;
 
 pub mod features;
 pub mod sim3;
@@ -137,7 +138,9 @@ pub fn median_spacing(points: &[[f64; 3]]) -> f64 {
     let t = tree(points);
     let mut d: Vec<f64> = points
         .iter()
-        .map(|p| t.nearest_n::<SquaredEuclidean>(p, 2).last().map_or(0.0, |n| n.distance.sqrt()))
+        .map(|p| {
+            t.nearest_n::<SquaredEuclidean>(p, crate::math::neighbours(2)).last().map_or(0.0, |n| n.distance.sqrt())
+        })
         .collect();
     d.sort_by(f64::total_cmp);
     d[d.len() / 2]
@@ -166,7 +169,7 @@ pub fn inliers(points: &[[f64; 3]]) -> Vec<usize> {
     let mean_dist: Vec<f64> = points
         .iter()
         .map(|p| {
-            let nn = t.nearest_n::<SquaredEuclidean>(p, K + 1);
+            let nn = t.nearest_n::<SquaredEuclidean>(p, crate::math::neighbours(K + 1));
             nn.iter().skip(1).map(|n| n.distance.sqrt()).sum::<f64>() / K as f64
         })
         .collect();
@@ -404,7 +407,7 @@ fn register_scaled(
         starts.push(Sim3 { rotation: r, scale: 1.0, translation: centre - r * source_centre });
     }
     let mut screened: Vec<(f64, Sim3)> = starts
-        .into_iter()
+        .into_par_iter()
         .map(|x| {
             let x = icp(&s, &d, x, dist, 15, range, false);
             let (fitness, _, _) = evaluate(&x, &s, &sc, &d_tree, &dc, o.voxel);
@@ -450,7 +453,7 @@ fn register_scaled(
         *v = kept;
     };
     let mut shaped: Vec<Registration> = coarse
-        .into_iter()
+        .into_par_iter()
         .map(|x| {
             let x = icp(&s2, &d2, x, dist, o.icp_iterations, range, true);
             score(icp(&s2, &d2, x, fine, o.icp_iterations, range, true))
@@ -461,7 +464,7 @@ fn register_scaled(
     let ambiguous = shaped[1..].iter().any(|c| c.overlap() >= 0.95 * top);
     let mut out = if coloured && ambiguous {
         let mut tinted: Vec<Registration> = shaped
-            .iter()
+            .par_iter()
             .map(|c| {
                 let x = colour_icp(&s2, &s2c, &d2, &d2c, c.transform, o.voxel, lambda, o.icp_iterations, range);
                 score(icp(&s2, &d2, x, fine, o.icp_iterations, range, true))

@@ -261,6 +261,8 @@ pub struct InstanceStage {
     pub render_check: bool,
     /// Synchronise the poses of a group's accepted instances (crate::instancing::synchronise).
     pub synchronise: bool,
+    /// Edges of the pose graph per instance besides the reference (crate::instancing::synchronise::candidate_edges).
+    pub neighbours: usize,
     pub min_render_iou: f64,
     pub min_render_psnr: f64,
     pub min_render_views: usize,

@@ -112,7 +112,7 @@ pub fn knn_log_scales(points: &[[f32; 3]]) -> Vec<f32> {
         .iter()
         .enumerate()
         .map(|(i, p)| {
-            let nn = tree.nearest_n::<kiddo::SquaredEuclidean>(p, 4);
+            let nn = tree.nearest_n::<kiddo::SquaredEuclidean>(p, crate::math::neighbours(4));
             let d: Vec<f64> = nn
                 .iter()
                 .filter(|n| n.item as usize != i)

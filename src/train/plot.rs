@@ -244,3 +244,105 @@ fn short(v: f64) -> String {
         s
     }
 }
+
+/// `rate_distortion.png`: held-out PSNR against GPU memory for InstGS and the plain scene
+/// pruned to the same memory (one point per budget, each fine-tuned as long), and the plain
+/// scene whole.
+#[derive(Clone, Debug, Default)]
+pub struct RateDistortion {
+    pub title: String,
+    /// (MB, dB) per budget, by memory.
+    pub instgs: Vec<(f64, f64)>,
+    pub pruned: Vec<(f64, f64)>,
+    pub plain: (f64, f64),
+    /// InstGS's default budget (MB), marked.
+    pub default_mb: Option<f64>,
+}
+
+/// Writes the memory–quality figure to `path` as a PNG (atomically).
+pub fn write_rate_distortion(c: &RateDistortion, path: &Path) -> Result<()> {
+    let png = render_rate_distortion(c)?;
+    crate::util::write_atomic(path, |f| std::io::Write::write_all(f, &png))
+}
+
+/// The memory–quality figure as PNG bytes (900 × 560).
+pub fn render_rate_distortion(c: &RateDistortion) -> Result<Vec<u8>> {
+    register_font()?;
+    let (w, h) = (900u32, 560u32);
+    let e = |e: DrawingAreaErrorKind<_>| anyhow!("plot: {e}");
+    let mut buf = vec![0u8; (w * h * 3) as usize];
+    {
+        let root = BitMapBackend::with_buffer(&mut buf, (w, h)).into_drawing_area();
+        root.fill(&WHITE).map_err(e)?;
+        let all: Vec<(f64, f64)> = c
+            .instgs
+            .iter()
+            .chain(&c.pruned)
+            .chain([&c.plain])
+            .copied()
+            .filter(|p| p.0.is_finite() && p.1.is_finite())
+            .collect();
+        let (x_hi, y_lo, y_hi) =
+            all.iter().fold((0.0f64, f64::MAX, f64::MIN), |(x, a, b), p| (x.max(p.0), a.min(p.1), b.max(p.1)));
+        let (y_lo, y_hi) = if y_lo <= y_hi { ((y_lo - 0.5).floor(), (y_hi + 0.5).ceil()) } else { (0.0, 40.0) };
+        let mut chart = ChartBuilder::on(&root)
+            .caption(c.title.clone(), (FONT, 17).into_font().style(FontStyle::Bold))
+            .margin(MARGIN + 4)
+            .x_label_area_size(X_LABEL_HEIGHT)
+            .y_label_area_size(Y_LABEL_WIDTH)
+            .build_cartesian_2d(0.0..(x_hi * 1.08).max(1e-3), y_lo..y_hi)
+            .map_err(|e| anyhow!("plot: {e}"))?;
+        chart
+            .configure_mesh()
+            .x_desc("GPU memory of the scene (MB)")
+            .y_desc("held-out PSNR (dB)")
+            .x_labels(10)
+            .y_labels(10)
+            .max_light_lines(1)
+            .x_label_formatter(&|v| format!("{v:.1}"))
+            .y_label_formatter(&|v| format!("{v:.1}"))
+            .light_line_style(RGBColor(240, 240, 240))
+            .bold_line_style(RGBColor(215, 215, 215))
+            .label_style((FONT, 13))
+            .axis_desc_style((FONT, 14))
+            .draw()
+            .map_err(|e| anyhow!("plot: {e}"))?;
+        let blue = RGBColor(30, 90, 200);
+        let grey = RGBColor(120, 120, 120);
+        for (pts, colour, name) in [(&c.instgs, blue, "InstGS"), (&c.pruned, grey, "plain, pruned to the same memory")]
+        {
+            chart.draw_series(LineSeries::new(pts.clone(), colour.stroke_width(2))).map_err(e)?;
+            chart
+                .draw_series(pts.iter().map(|&p| Circle::new(p, 5, colour.filled())))
+                .map_err(e)?
+                .label(name)
+                .legend(move |(x, y)| Circle::new((x + 9, y), 5, colour.filled()));
+        }
+        chart
+            .draw_series(std::iter::once(TriangleMarker::new(c.plain, 8, BLACK.filled())))
+            .map_err(e)?
+            .label("plain 3DGS")
+            .legend(|(x, y)| TriangleMarker::new((x + 9, y), 7, BLACK.filled()));
+        if let Some(d) = c.default_mb {
+            let red = RGBColor(200, 40, 40);
+            chart
+                .draw_series(DashedLineSeries::new([(d, y_lo), (d, y_hi)], 6, 4, red.stroke_width(1)))
+                .map_err(e)?
+                .label("InstGS's default budget")
+                .legend(move |(x, y)| PathElement::new([(x, y), (x + 18, y)], red));
+        }
+        chart
+            .configure_series_labels()
+            .position(SeriesLabelPosition::LowerRight)
+            .background_style(WHITE.mix(0.85))
+            .border_style(RGBColor(180, 180, 180))
+            .label_font((FONT, 13))
+            .draw()
+            .map_err(|e| anyhow!("plot: {e}"))?;
+        root.present().map_err(e)?;
+    }
+    let img = image::RgbImage::from_raw(w, h, buf).ok_or_else(|| anyhow!("plot: bad buffer"))?;
+    let mut png = Vec::new();
+    img.write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png)?;
+    Ok(png)
+}

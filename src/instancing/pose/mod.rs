@@ -8,7 +8,7 @@ use anyhow::{Context, Result};
 use glam::{Mat3, Quat, Vec3};
 
 use crate::instancing::options::{Acceptance, InstanceOptions, Status};
-use crate::instancing::synchronise::{synchronise, Synchronised};
+use crate::instancing::synchronise::Synchronised;
 use crate::math::sigmoid;
 use crate::math::SH_C0_F32;
 use crate::model::instanced::Similarity;
@@ -37,6 +37,8 @@ pub struct InstanceReport {
     pub render: Option<RenderScore>,
     /// Pose hypotheses tried.
     pub tried: usize,
+    /// Registrations run (RANSAC searches, one per seed).
+    pub registrations: usize,
     /// Distinct poses refined against the images ([`rival_poses`]; 0 without a render check).
     pub refined: usize,
     /// Another pose fitted the shape nearly as well; colour decided (when used).
@@ -58,6 +60,7 @@ impl InstanceReport {
             check: PoseCheck::perfect(),
             render: None,
             tried: 0,
+            registrations: 0,
             refined: 0,
             shape_ambiguous: false,
             synchronised: None,
@@ -189,7 +192,34 @@ pub trait RenderCheck {
     /// `reference` and `instance`: the two instances' Gaussians in world space; `x`: instance
     /// world → reference world. None when the instance shows in no view.
     fn score(&mut self, reference: &Scene, instance: &Scene, id: u32, x: &Sim3) -> Result<Option<RenderScore>>;
+
+    /// The same check over only the `views` views that show the instance largest (None: all of
+    /// them): a cheaper score for the coarse steps of a search, comparable only with scores
+    /// over the same views. By default the whole check.
+    fn score_views(
+        &mut self,
+        reference: &Scene,
+        instance: &Scene,
+        id: u32,
+        x: &Sim3,
+        views: Option<usize>,
+    ) -> Result<Option<RenderScore>> {
+        let _ = views;
+        self.score(reference, instance, id, x)
+    }
 }
+
+/// Render checks one pose refinement may run ([`refine_pose`]; shared by a rival's levels).
+pub const MAX_EVALUATIONS: usize = 120;
+
+/// Views of a coarse step of [`refine_pose`] (levels below [`FINE_LEVEL`]): the 8 that show
+/// the instance largest. Each step there moves 2° to 0.5°, which these views tell apart; the
+/// last level, which pins the pose down, scores every view, and so does every score returned.
+/// On cafe40 (40 objects, 24 views each) this took the instance stage from 28 to N minutes
+/// (BENCHMARKS.md).
+pub const COARSE_VIEWS: usize = 8;
+/// The first refinement level (0.25° steps) scored over every view.
+pub const FINE_LEVEL: i32 = 3;
 pub(crate) fn to_f64(p: [f32; 3]) -> [f64; 3] {
     p.map(|c| c as f64)
 }
@@ -235,6 +265,7 @@ pub fn register_and_check(
     'seeds: for attempt in 0..2u64 {
         let ro = RegisterOptions { seed: o.seed + k as u64 + 1000 * attempt, ..reg.clone() };
         let rgb = |i: usize| o.use_colour.then(|| colours[i].as_slice());
+        report.registrations += 1;
         let mut found = match candidates(&opaque[k], rgb(k), &opaque[r], rgb(r), &ro) {
             Ok(c) => c,
             Err(e) => {
@@ -427,8 +458,10 @@ pub fn up_axis(scene: &Scene, background: &[usize], min_opacity: f32, seed: u64)
 }
 
 /// Refines each of the [`rival_poses`] among `rendered` (hypotheses with their render checks,
-/// at least one) against the images ([`refine_pose`], levels `0..4`) and returns the one that
-/// renders best after refinement, its score and how many were refined.
+/// at least one) against the images ([`refine_pose`], the coarse levels `0..FINE_LEVEL`, to
+/// 0.5°), refines the one that renders best then down to 0.25° and returns it, its score and
+/// how many were refined. Rivals are told apart at 0.5° (each rescored over every view); only
+/// the kept one needs the last level.
 #[allow(clippy::too_many_arguments)]
 pub fn refine_rivals(
     rc: &mut dyn RenderCheck,
@@ -442,91 +475,31 @@ pub fn refine_rivals(
 ) -> Result<(Sim3, RenderScore, usize)> {
     let rivals = rival_poses(rendered);
     let n = rivals.len();
-    let mut kept: Option<(Sim3, RenderScore)> = None;
+    let mut kept: Option<(Sim3, RenderScore, usize)> = None;
     for (x, score) in rivals {
-        let (x, score) = refine_pose(rc, reference, instance, id, x, score, centre, size, rigid, 0..4)?;
+        let search = (0..FINE_LEVEL, MAX_EVALUATIONS);
+        let (x, score, used) = refine_pose(rc, reference, instance, id, x, score, centre, size, rigid, search)?;
         if kept.as_ref().is_none_or(|b| score.pose_psnr > b.1.pose_psnr) {
-            kept = Some((x, score));
+            kept = Some((x, score, used));
         }
     }
-    let (x, score) = kept.context("no hypothesis to refine")?;
+    // The kept rival's last level within what is left of its budget.
+    let (x, score, used) = kept.context("no hypothesis to refine")?;
+    let search = (FINE_LEVEL..4, MAX_EVALUATIONS.saturating_sub(used));
+    let (x, score, _) = refine_pose(rc, reference, instance, id, x, score, centre, size, rigid, search)?;
     Ok((x, score, n))
-}
-
-/// Seconds between the progress lines of a long step (the group's synchronisation).
-const PROGRESS_SECONDS: f64 = 10.0;
-
-/// [`synchronise`]s the accepted poses of a group and keeps each synchronised pose that still
-/// passes every check (both fitnesses, scale, the render check against the reference); one
-/// that fails keeps its registration onto the reference alone. Reports say which.
-#[allow(clippy::too_many_arguments)]
-pub(crate) fn synchronise_group(
-    rc: &mut dyn RenderCheck,
-    parts: &[Scene],
-    opaque: &[Vec<[f64; 3]>],
-    ids: &[u32],
-    r: usize,
-    relative: &mut [Option<Sim3>],
-    reg: &RegisterOptions,
-    o: &InstanceOptions,
-    reports: &mut [InstanceReport],
-    progress: &mut impl FnMut(&str),
-) -> Result<()> {
-    let rigid = !o.with_scale;
-    // A pair a → b: refined against a's views from the pose the registrations imply, steps
-    // from 1° (the start is within a few degrees).
-    // Pairs take seconds each on a CPU device: a line every PROGRESS_SECONDS.
-    let accepted = relative.iter().enumerate().filter(|&(k, p)| k != r && p.is_some()).count();
-    let pairs = accepted * accepted.saturating_sub(1) / 2;
-    let (mut done, mut last) = (0, std::time::Instant::now());
-    let synced = synchronise(opaque, r, relative, |a, b, start| {
-        done += 1;
-        if last.elapsed().as_secs_f64() >= PROGRESS_SECONDS {
-            progress(&format!("synchronising the group's poses: pair {done} of {pairs}"));
-            last = std::time::Instant::now();
-        }
-        let Some(score) = rc.score(&parts[b], &parts[a], ids[a], &start)? else { return Ok(None) };
-        let (centre, size) = (centroid(&opaque[b]), object_size(&opaque[b]));
-        Ok(Some(refine_pose(rc, &parts[b], &parts[a], ids[a], start, score, centre, size, rigid, 1..4)?.0))
-    })?;
-    for (k, s) in synced.iter().enumerate() {
-        let Some(s) = s else { continue };
-        let check = PoseCheck::measure(&opaque[k], &opaque[r], &s.pose, reg.voxel);
-        let score = rc.score(&parts[r], &parts[k], ids[k], &s.pose)?;
-        let failure = check.failure(&s.pose, &o.accept, rigid).or_else(|| match score {
-            Some(score) => score.failure(&o.accept),
-            None => Some("the instance shows in no training view".into()),
-        });
-        let report = &mut reports[k];
-        match failure {
-            None => {
-                relative[k] = Some(s.pose);
-                report.relative = s.pose;
-                report.check = check;
-                report.render = score;
-                report.synchronised = Some(*s);
-                progress(&format!(
-                    "{}: synchronised with the group's other instances (moved {:.2}°, estimates within {:.2}°)",
-                    ids[k], s.moved_deg, s.spread_deg
-                ));
-            }
-            Some(why) => progress(&format!(
-                "{}: synchronised pose (moved {:.2}°) fails a check ({why}); the registration onto {} is kept",
-                ids[k], s.moved_deg, ids[r]
-            )),
-        }
-    }
-    Ok(())
 }
 
 /// Pose refinement against the images: a pattern search over a small similarity `D` applied
 /// after `x` about the reference's `centre` (rotation about three axes, translation along three,
 /// and log scale unless `rigid`), each step kept when the render check's `pose_psnr` rises
 /// and repeated while it keeps rising; at `levels` l the steps are 2° / 1 % of `size` / 1 % of
-/// scale times 2^−l, the next level when no move helps (`0..4`: 2° down to 0.25°; at most 120
-/// renders of the check). Registration on a few hundred Gaussian means leaves a few degrees of
-/// error that the pictures still show; the check's optimum is where the reference's pictures
-/// match the instance's.
+/// scale times 2^−l, the next level when no move helps (`0..4`: 2° down to 0.25°), at most
+/// `budget` render checks ([`MAX_EVALUATIONS`]); returns the pose, its score and the checks
+/// used. Levels below [`FINE_LEVEL`] score [`COARSE_VIEWS`] views, the rest
+/// all (`score`, given and returned, is over all views). Registration on a few hundred Gaussian
+/// means leaves a few degrees of error that the pictures still show; the check's optimum is
+/// where the reference's pictures match the instance's.
 #[allow(clippy::too_many_arguments)]
 pub fn refine_pose(
     rc: &mut dyn RenderCheck,
@@ -538,15 +511,24 @@ pub fn refine_pose(
     centre: nalgebra::Vector3<f64>,
     size: f64,
     rigid: bool,
-    levels: std::ops::Range<i32>,
-) -> Result<(Sim3, RenderScore)> {
+    (levels, budget): (std::ops::Range<i32>, usize),
+) -> Result<(Sim3, RenderScore, usize)> {
     let (mut x, mut score) = (x, score);
     let mut evaluations = 0;
     let params = if rigid { 6 } else { 7 };
+    // The views `score` is over (None: all).
+    let mut scored_on: Option<usize> = None;
     for level in levels {
+        let views = (level < FINE_LEVEL).then_some(COARSE_VIEWS);
+        if views != scored_on {
+            match rc.score_views(reference, instance, id, &x, views)? {
+                Some(s) => (score, scored_on) = (s, views),
+                None => break,
+            }
+        }
         let f = 0.5f64.powi(level);
         let mut improved = true;
-        while improved && evaluations < 120 {
+        while improved && evaluations < budget {
             improved = false;
             for p in 0..params {
                 for sign in [1.0, -1.0] {
@@ -566,9 +548,9 @@ pub fn refine_pose(
                     let mut moved = false;
                     // A step that helps is repeated while it helps (a long way costs one
                     // render check per step rather than a sweep).
-                    while evaluations < 120 {
+                    while evaluations < budget {
                         evaluations += 1;
-                        match rc.score(reference, instance, id, &y)? {
+                        match rc.score_views(reference, instance, id, &y, views)? {
                             Some(s) if s.pose_psnr > score.pose_psnr + 0.01 => {
                                 (x, score, improved, moved) = (y, s, true, true);
                                 y = d.compose(&x);
@@ -583,7 +565,14 @@ pub fn refine_pose(
             }
         }
     }
-    Ok((x, score))
+    if scored_on.is_some() {
+        score = rc.score(reference, instance, id, &x)?.context("the refined pose shows in no view")?;
+    }
+    Ok((x, score, evaluations))
 }
+mod graph;
+pub use graph::{GraphCycle, GraphReport};
+pub(crate) use graph::synchronise_group;
+
 #[cfg(test)]
 mod tests;
