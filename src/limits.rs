@@ -149,7 +149,7 @@ pub fn inside(what: &str, field: &str, path: &Path, base: &Path) -> Result<PathB
             std::fs::canonicalize(base).with_context(|| format!("{what}: cannot resolve {}", base.display()))?;
         if !real.starts_with(&real_base) {
             bail!(
-                "{what}: {field}: {} leads outside the file's folder (a symbolic link to {}); only files in {} are read (--allow-outside-paths opens others)",
+                "{what}: {field}: {} leads outside the file's folder (its real path, links followed, is {}); only files in {} are read (--allow-outside-paths opens others)",
                 path.display(),
                 real.display(),
                 base.display()

@@ -459,8 +459,9 @@ fn bad_input_table() {
             vec!["t.json: frame 0", "h 47.5 is not an image side"],
         ),
         (
+            // No w/h: the first frame's image would be opened for its size.
             "cameras_image_outside",
-            r#""camera_angle_x": 0.8, "w": 64, "h": 48,"#,
+            r#""camera_angle_x": 0.8,"#,
             vec!["../../etc/passwd"],
             vec!["t.json", "frame 0's file_path", "outside the file's folder"],
         ),
@@ -591,6 +592,18 @@ fn bad_input_table() {
             Box::new(|_: &Path| {}),
             vec!["--downscale", "1000"],
             vec!["--downscale 1000", "160x120"],
+        ),
+        (
+            // An image named outside the dataset (a copy of a real one, so only confinement refuses).
+            "dataset_image_outside",
+            Box::new(|d: &Path| {
+                std::fs::copy(d.join("train/r_002.png"), d.join("../outside.png")).unwrap();
+                let f = d.join("transforms_train.json");
+                let text = std::fs::read_to_string(&f).unwrap().replace("\"train/r_002\"", "\"../outside\"");
+                std::fs::write(f, text).unwrap()
+            }),
+            vec![],
+            vec!["transforms_train.json", "the image of view 'outside'", "leads outside the file's folder"],
         ),
         (
             "dataset_points_nan",

@@ -280,7 +280,8 @@ pub fn load_transforms(path: &Path) -> Result<Vec<Camera>> {
     Ok(load_transforms_with_images(path)?.into_iter().map(|(c, _)| c).collect())
 }
 
-/// As [`load_transforms`], with each frame's image path (which need not exist).
+/// As [`load_transforms`], with each frame's image path (which need not exist; whoever reads the
+/// images confines them to the dataset's folder, `crate::limits::inside`).
 pub fn load_transforms_with_images(path: &Path) -> Result<Vec<(Camera, std::path::PathBuf)>> {
     let what = path.display().to_string();
     let text = std::fs::read_to_string(path).with_context(|| format!("{what}: cannot read"))?;
@@ -297,6 +298,8 @@ pub fn transforms_from_str(text: &str, dir: &Path, what: &str) -> Result<Vec<(Ca
     let (w, h) = match (tf.w.or(tf.frames[0].w), tf.h.or(tf.frames[0].h)) {
         (Some(w), Some(h)) => (w, h),
         _ => {
+            // The one image this reader opens: confined to the file's folder.
+            crate::limits::relative(what, "frame 0's file_path", &tf.frames[0].file_path, dir)?;
             let img = image_path(dir, &tf.frames[0].file_path);
             let (w, h) = image::image_dimensions(&img)
                 .with_context(|| format!("{what}: no w/h given and cannot read image {}", img.display()))?;
@@ -328,7 +331,6 @@ pub fn transforms_from_str(text: &str, dir: &Path, what: &str) -> Result<Vec<(Ca
         let intr = [fx, fy, f.cx.or(tf.cx).unwrap_or(0.5 * w), f.cy.or(tf.cy).unwrap_or(0.5 * h)];
         // transform_matrix is row-major.
         let frame = format!("{what}: frame {k} ({})", f.file_path);
-        crate::limits::relative(what, &format!("frame {k}'s file_path"), &f.file_path, dir)?;
         let c2w = rigid_c2w(Mat4::from_cols_array_2d(&f.transform_matrix).transpose(), &frame, &mut scaled)?;
         let lens = tf.lens.over(&f.lens).lens(&frame)?;
         let name = Path::new(&f.file_path)
