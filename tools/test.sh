@@ -13,6 +13,8 @@ cargo test --release
 RUSTDOCFLAGS="-D warnings" cargo doc --no-deps --quiet   # the public docs build without a broken link
 echo "== interop with splat-transform (tools/interop.sh --quick; needs node, skipped without it)"
 bash tools/interop.sh --quick
+echo "== web viewers (tools/viewers.sh --quick: three.js, Babylon.js, PlayCanvas in headless Chromium; skipped without node or chromium)"
+bash tools/viewers.sh --quick out/viewers-quick
 echo "== GPU rows, smoke run (every row's code path, scaled down: tools/gpu-rows.sh)"
 bash tools/gpu-rows.sh --smoke > /dev/null
 kernel_tests=(--test gpu --test sort --test raster --test grad --test loss --test instgs --test segment --test lod)

@@ -57,10 +57,11 @@ for case in "${cases[@]}"; do
     scene_args+=("$name=$out/scenes/$name.glb" "$name-expanded=$out/scenes/$name-expanded.glb")
     # Cameras from the scene's bounds: in glTF's frame for the viewers, in ours (the half turn
     # about z) as a transforms JSON for our renderer.
-    "$bin" info --json "$out/scenes/$name.instgs" | python3 - "$ncams" "$out/scenes/$name" <<'PY'
+    "$bin" info --json "$out/scenes/$name-expanded.glb" > "$out/scenes/$name.info.json" 2> /dev/null
+    python3 - "$ncams" "$out/scenes/$name" <<'PY'
 import json, math, sys
-v = json.load(sys.stdin)
 n, stem = int(sys.argv[1]), sys.argv[2]
+v = json.load(open(stem + ".info.json"))
 lo, hi = v["bounds_min_p2"], v["bounds_max_p98"]
 c = [(a + b) / 2 for a, b in zip(lo, hi)]
 r = max(b - a for a, b in zip(lo, hi)) / 2
@@ -103,7 +104,11 @@ echo "$summary" > "$out/runs.json"
 python3 - "$out" "$cache/node_modules" "${cases[@]}" <<'PY'
 import json, os, subprocess, sys
 out, modules, cases = sys.argv[1], sys.argv[2], sys.argv[3:]
-THRESHOLD = {"instanced_vs_expanded": 40.0, "vs_ours": 15.0}
+# Measured 2026-11-26 (two cameras each on fruit_drops ×4 and guitar ×8): instanced vs
+# expanded 52.5–72.9 dB; vs ours: three.js 20.1–30.0 (its splats are softer than ours),
+# Babylon.js 26.8–39.9, PlayCanvas 25.2–36.4. Each threshold about 3 dB under the lowest.
+THRESHOLD = {"instanced_vs_expanded": {"three": 49.0, "babylon": 49.0, "playcanvas": 49.0},
+             "vs_ours": {"three": 17.0, "babylon": 23.0, "playcanvas": 22.0}}
 runs = json.load(open(f"{out}/runs.json"))
 pairs = []
 for r in runs:
@@ -121,10 +126,11 @@ for r in runs:
         failures.append(f"{r['viewer']} did not draw {r['scene']} ({r['camera']}): {r['error']}; console: {' | '.join(r.get('console') or []) or 'nothing'}")
 for p in psnr:
     viewer, scene, cam, what = p["key"]
-    ok = p["psnr"] is not None and p["psnr"] >= THRESHOLD[what]
-    rows.append({"viewer": viewer, "file": scene, "camera": cam, "compare": what, "psnr": p["psnr"], "threshold": THRESHOLD[what], "ok": ok})
+    limit = THRESHOLD[what][viewer]
+    ok = p["psnr"] is not None and p["psnr"] >= limit
+    rows.append({"viewer": viewer, "file": scene, "camera": cam, "compare": what, "psnr": p["psnr"], "threshold": limit, "ok": ok})
     if not ok:
-        failures.append(f"{viewer}, {scene}, {cam}: {what} {p['psnr']} dB below {THRESHOLD[what]}")
+        failures.append(f"{viewer}, {scene}.glb, {cam}: {what} {p['psnr']} dB, below its threshold {limit} dB")
 json.dump({"rows": rows, "runs": runs, "thresholds": THRESHOLD, "failures": failures}, open(f"{out}/viewers.json", "w"), indent=1)
 md = ["| viewer | file | camera | instanced vs its expanded (dB) | vs ours (dB) |", "|---|---|---|---|---|"]
 keyed = {(r["viewer"], r["file"], r["camera"], r["compare"]): r["psnr"] for r in rows}

@@ -215,8 +215,8 @@ pub const MAX_EVALUATIONS: usize = 120;
 /// Views of a coarse step of [`refine_pose`] (levels below [`FINE_LEVEL`]): the 8 that show
 /// the instance largest. Each step there moves 2° to 0.5°, which these views tell apart; the
 /// last level, which pins the pose down, scores every view, and so does every score returned.
-/// On cafe40 (40 objects, 24 views each) this took the instance stage from 28 to N minutes
-/// (BENCHMARKS.md).
+/// With it, cafe40's instance stage (40 objects, 24 views each) takes 14–15 minutes on
+/// lavapipe's two cores, its render checks most of that (BENCHMARKS.md).
 pub const COARSE_VIEWS: usize = 8;
 /// The first refinement level (0.25° steps) scored over every view.
 pub const FINE_LEVEL: i32 = 3;
