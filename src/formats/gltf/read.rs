@@ -11,9 +11,7 @@ use gltf::accessor::DataType;
 use gltf::mesh::Semantic;
 use serde_json::Value;
 
-use super::{
-    half_turn_z, sh_name, GltfScene, EXTENSION, KNOWN_REQUIRED, PREFIX,
-};
+use super::{half_turn_z, sh_name, GltfScene, EXTENSION, KNOWN_REQUIRED, PREFIX};
 use crate::formats::quant::OPACITY_LOGIT_LIMIT;
 use crate::model::instanced::{Group, Instance, InstancedScene, Offsets, Similarity};
 use crate::model::scene::Scene;

@@ -571,8 +571,8 @@ pub fn refine_pose(
     Ok((x, score, evaluations))
 }
 mod graph;
-pub use graph::{GraphCycle, GraphReport};
 pub(crate) use graph::synchronise_group;
+pub use graph::{GraphCycle, GraphReport};
 
 #[cfg(test)]
 mod tests;
