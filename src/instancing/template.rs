@@ -82,7 +82,7 @@ pub struct Instantiated {
 /// Registers every group's instances onto the group's reference (the instance with the most
 /// opaque Gaussians), checks each pose ([`PoseCheck`](crate::instancing::pose::PoseCheck), and
 /// [`RenderCheck`] when given), synchronises each group's poses over its sparse pose graph
-/// ([`synchronise_group`]), builds templates and offsets from the accepted instances. A
+/// (`pose::graph::synchronise_group`), builds templates and offsets from the accepted instances. A
 /// refused instance's Gaussians stay background, as do a whole group's when fewer than two of
 /// its instances are left; Gaussians of no group's instance stay background. `progress`
 /// receives one line per step.

@@ -12,7 +12,7 @@ use crate::register::{centroid, object_size, RegisterOptions, Sim3};
 /// Seconds between the progress lines of a long step (the group's synchronisation).
 const PROGRESS_SECONDS: f64 = 10.0;
 
-/// A group's pose graph as [`synchronise_group`] decided it (instance ids, not indices).
+/// A group's pose graph as `synchronise_group` decided it (instance ids, not indices).
 #[derive(Clone, Debug, Default, serde::Serialize)]
 pub struct GraphReport {
     pub group: String,
