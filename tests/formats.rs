@@ -841,7 +841,8 @@ fn what_a_gltf_says_is_checked_against_what_it_holds() {
     let glb = tmp("edited.glb");
     formats::gltf::write_instanced_gltf(&scene, &glb).unwrap();
     let expanded = scene.expand();
-    let edits: [(&str, &dyn Fn(&mut serde_json::Value, &mut Vec<u8>)); 3] = [
+    type Edit<'a> = (&'a str, &'a dyn Fn(&mut serde_json::Value, &mut Vec<u8>));
+    let edits: [Edit; 3] = [
         ("two instances name one node", &|d, _| {
             let n = d["extras"]["instgs"]["groups"][0]["instances"][0]["node"].clone();
             d["extras"]["instgs"]["groups"][0]["instances"][1]["node"] = n;

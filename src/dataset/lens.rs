@@ -45,7 +45,7 @@ impl Undistort {
                 let (cx_, cy_) = lens.distort(x, y + e);
                 let (dx, dy) = lens.distort(x, y - e);
                 let det = (ax - bx) * (cy_ - dy) - (ay - by) * (cx_ - dx);
-                if !(det > 0.0) {
+                if det.is_nan() || det <= 0.0 {
                     bail!(
                         "{what}: the {} distortion folds over near pixel ({:.0}, {:.0}) (the Jacobian's determinant there is {:.2e}, not positive); it cannot be undistorted (are its parameters for this image size?)",
                         lens.name(),

@@ -298,7 +298,7 @@ impl Ctx<'_> {
 
     /// The held-out scores (rendered exactly, as `eval`), GPU bytes (as `bench` and the player
     /// hold it: an instanced scene with its levels of detail) and file bytes of a scene file.
-    pub(super) fn score(&self, path: &PathBuf) -> Result<Scored> {
+    pub(super) fn score(&self, path: &Path) -> Result<Scored> {
         let scene = AnyScene::read(path)?;
         let gs = scene.upload(self.gpu).with_context(|| path.display().to_string())?;
         let mut r = crate::render::raster::Rasterizer::new(self.gpu, self.k)?;

@@ -137,6 +137,9 @@ pub fn significance(
     scorer.read()
 }
 
+/// One backward pass of [`Scorer`]: its v_image and the (slot, channel) pairs it fills.
+type Pass = (Vec<[f32; 4]>, Vec<(u32, u32)>);
+
 /// Per-Gaussian GSeg sums on the GPU: slot j < ids.len() for mask id ids[j], the last slot for
 /// every pixel (GSeg(1)); `scores[slot·n + i]`.
 struct Scorer<'a> {
@@ -178,8 +181,7 @@ impl<'a> Scorer<'a> {
         self.r.render(&self.gs, &view.camera, [0.0; 3])?;
         // (v_image, [(slot, channel)]): the all-pixels pass in every channel, then the shown
         // instances three at a time.
-        let mut passes: Vec<(Vec<[f32; 4]>, Vec<(u32, u32)>)> =
-            vec![(vec![[1.0, 1.0, 1.0, 0.0]; mask.len()], vec![(self.slots as u32 - 1, 3)])];
+        let mut passes: Vec<Pass> = vec![(vec![[1.0, 1.0, 1.0, 0.0]; mask.len()], vec![(self.slots as u32 - 1, 3)])];
         let mut present = std::collections::BTreeSet::new();
         present.extend(mask.iter().map(|&m| m as u32));
         let shown: Vec<(usize, u32)> = ids.iter().copied().enumerate().filter(|(_, id)| present.contains(id)).collect();

@@ -147,7 +147,7 @@ fn agrees_with_nodes<'a>(
     let far = theirs.iter().map(|p| Vec3::from(*p).abs().max_element()).fold(0.0f32, f32::max).max(size);
     let tolerance = 1e-5 * far;
     let worst = ours.iter().zip(&theirs).map(|(a, b)| Vec3::from(*a).distance(Vec3::from(*b))).fold(0.0f32, f32::max);
-    if ours.len() != theirs.len() || !(worst <= tolerance) {
+    if ours.len() != theirs.len() || worst.is_nan() || worst > tolerance {
         bail!(
             "group {:?}: its template, transforms and offsets place splats up to {worst:.3e} from where its nodes do (more than {tolerance:.1e})",
             g.name
