@@ -7,7 +7,7 @@ use anyhow::{anyhow, Result};
 
 /// Every target: (name, what it reads).
 #[allow(dead_code)] // read by tests/fuzz_inputs.rs, not by the targets
-pub const TARGETS: [(&str, &str); 13] = [
+pub const TARGETS: [(&str, &str); 15] = [
     ("instgs_parse", ".instgs scene"),
     ("ply_parse", "3DGS PLY, plain and SuperSplat compressed"),
     ("points_ply", "a dataset's points3d.ply"),
@@ -16,6 +16,8 @@ pub const TARGETS: [(&str, &str); 13] = [
     ("sog_parse", "SOG meta.json with its WebP images"),
     ("sog_bundle", "a .sog bundle (zip of meta.json and WebP images)"),
     ("gltf_parse", "glTF (.glb or .gltf JSON) with KHR_gaussian_splatting, plain or instanced"),
+    ("gltf_files", "a .gltf/.glb file in a folder, its buffer URIs resolved there"),
+    ("sog_files", "a SOG meta.json file in a folder, its images resolved there"),
     ("colmap_parse", "COLMAP cameras/images/points3D, .bin and .txt"),
     ("json_inputs", "transforms JSON, instances.json, scene graph, labels"),
     ("config_toml", "training, instanced, pipeline and render configurations"),
@@ -74,6 +76,14 @@ pub fn run(target: &str, data: &[u8]) -> Result<()> {
             formats::gltf::GltfScene::Plain(s) => s.validate(what).expect("the reader validates"),
             formats::gltf::GltfScene::Instanced(s) => s.validate(what).expect("the reader validates"),
         },
+        "gltf_files" => {
+            let path = in_folder("scene.gltf", data)?;
+            match formats::gltf::read(&path)? {
+                formats::gltf::GltfScene::Plain(s) => s.validate(what).expect("the reader validates"),
+                formats::gltf::GltfScene::Instanced(s) => s.validate(what).expect("the reader validates"),
+            }
+        }
+        "sog_files" => formats::sog::read_sog(&in_folder("meta.json", data)?)?.validate(what)?,
         "colmap_parse" => {
             // First byte: the file (& 3: cameras, images, points3D, cameras), binary (& 4).
             let (&pick, content) = data.split_first().ok_or_else(|| anyhow!("empty"))?;
@@ -135,6 +145,56 @@ pub fn run(target: &str, data: &[u8]) -> Result<()> {
         other => panic!("no fuzz target {other}"),
     }
     Ok(())
+}
+
+/// The *_files targets' folder, made once per process in the temporary directory: the files
+/// their seeds name (`fuzz/files/`: a glTF buffer, a SOG's images, also in `sub/`), and beside
+/// them what a hostile file may name instead (`fuzz/regressions/*_files/`): a link to /dev/zero,
+/// a FIFO (opening it would block), a folder, a link out of the folder to `../outside.bin`.
+/// Reads in these processes are held to a 256 MiB budget (`--max-memory`), under the fuzzer's
+/// 2 GiB RSS limit, so an allocation the budget lets through is one the fuzzer catches.
+fn folder() -> &'static std::path::Path {
+    use std::os::unix::fs::symlink;
+    static FOLDER: std::sync::OnceLock<std::path::PathBuf> = std::sync::OnceLock::new();
+    FOLDER.get_or_init(|| {
+        instgs_vk::limits::set(instgs_vk::limits::Limits { allow_outside: false, max_memory: 256 << 20 });
+        let root = std::env::temp_dir().join(format!("instgs-fuzz-files-{}", std::process::id()));
+        let dir = root.join("files");
+        std::fs::create_dir_all(dir.join("sub")).unwrap();
+        std::fs::create_dir_all(dir.join("dir.bin")).unwrap();
+        std::fs::write(root.join("outside.bin"), vec![7u8; 4096]).unwrap();
+        let files: [(&str, &[u8]); 8] = [
+            ("a.bin", include_bytes!("files/a.bin")),
+            ("means_l.webp", include_bytes!("files/means_l.webp")),
+            ("means_u.webp", include_bytes!("files/means_u.webp")),
+            ("quats.webp", include_bytes!("files/quats.webp")),
+            ("scales.webp", include_bytes!("files/scales.webp")),
+            ("sh0.webp", include_bytes!("files/sh0.webp")),
+            ("shN_centroids.webp", include_bytes!("files/shN_centroids.webp")),
+            ("shN_labels.webp", include_bytes!("files/shN_labels.webp")),
+        ];
+        for (name, bytes) in files {
+            std::fs::write(dir.join(name), bytes).unwrap();
+            std::fs::write(dir.join("sub").join(name), bytes).unwrap();
+        }
+        for (link, target) in [("zero.bin", "/dev/zero"), ("link-out.bin", "../outside.bin")] {
+            let _ = symlink(target, dir.join(link));
+        }
+        let fifo = dir.join("fifo.bin");
+        if !fifo.exists() {
+            let status = std::process::Command::new("mkfifo").arg(&fifo).status().unwrap();
+            assert!(status.success(), "mkfifo {}", fifo.display());
+        }
+        dir
+    })
+}
+
+/// Writes `data` as the file `name` (one per thread) in [`folder`] and returns its path.
+fn in_folder(name: &str, data: &[u8]) -> Result<std::path::PathBuf> {
+    let thread = format!("{:?}", std::thread::current().id()).replace(|c: char| !c.is_ascii_alphanumeric(), "");
+    let path = folder().join(format!("{thread}-{name}"));
+    std::fs::write(&path, data)?;
+    Ok(path)
 }
 
 /// `data` with its last 4 bytes replaced by the CRC-32 of the bytes before them (how version-2

@@ -21,6 +21,11 @@ python3 tools/fuzz_seeds.py ascii-scene "$seeds/ply_parse/tiny_ascii.ply"
 "$bin" convert "$seeds/instgs_parse/f32.instgs" "$seeds/gltf_parse/instanced.glb" 2>/dev/null
 "$bin" convert "$tmp/tiny.ply" "$tmp/sog/meta.json" 2>/dev/null
 python3 tools/fuzz_seeds.py sog "$tmp/sog/meta.json" "$seeds/sog_parse/tiny.sog-fuzz"
+# The *_files targets read from a folder (fuzz/inputs.rs): its real files go to fuzz/files/, the
+# documents naming them to the seeds, those naming hostile paths to the regression inputs.
+mkdir -p "$seeds"/{gltf_files,sog_files} fuzz/regressions/{gltf_files,sog_files} fuzz/files
+python3 tools/fuzz_seeds.py gltf-files "$seeds/gltf_parse/tiny.gltf" "$seeds/gltf_files" fuzz/regressions/gltf_files fuzz/files
+python3 tools/fuzz_seeds.py sog-files "$tmp/sog/meta.json" "$seeds/sog_files" fuzz/regressions/sog_files fuzz/files
 python3 tools/fuzz_seeds.py points "$seeds/points_ply"
 python3 tools/fuzz_seeds.py colmap "$seeds/colmap_parse"
 python3 tools/fuzz_seeds.py json "$seeds/json_inputs" demo/ducks6-mini

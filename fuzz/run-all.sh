@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Runs every fuzz target for RUNS inputs (default 1 000 000) on one core, one after another,
-# starting from its seeds (fuzz/seeds/<target>/, copied into the working corpus
-# fuzz/corpus/<target>/), and prints one line per target: inputs, seconds, result. A crash
+# starting from its seeds and regression inputs (fuzz/seeds/<target>/, fuzz/regressions/<target>/,
+# copied into the working corpus fuzz/corpus/<target>/), and prints one line per target: inputs, seconds, result. A crash
 # stops that target and leaves its input in fuzz/artifacts/<target>/; once fixed, keep the input
 # in fuzz/regressions/<target>/ (tests/fuzz_inputs.rs checks it is refused).
 # Needs a nightly toolchain and cargo-fuzz (cargo install cargo-fuzz). Usage, from the
@@ -12,13 +12,14 @@ runs=${1:-1000000}
 shift || true
 targets=("$@")
 if [ ${#targets[@]} -eq 0 ]; then
-    targets=(instgs_parse ply_parse points_ply spz_parse splat_parse sog_parse sog_bundle gltf_parse colmap_parse json_inputs
+    targets=(instgs_parse ply_parse points_ply spz_parse splat_parse sog_parse sog_bundle gltf_parse gltf_files sog_files colmap_parse json_inputs
              config_toml checkpoint_parse mask_png)
 fi
 cargo +nightly fuzz build -O
 for t in "${targets[@]}"; do
     mkdir -p "fuzz/corpus/$t" "fuzz/artifacts/$t"
     cp -n fuzz/seeds/"$t"/* "fuzz/corpus/$t/" 2>/dev/null
+    cp -n fuzz/regressions/"$t"/* "fuzz/corpus/$t/" 2>/dev/null   # refused inputs are starts too
     log="fuzz/artifacts/$t/last-run.log"
     start=$(date +%s)
     cargo +nightly fuzz run -O "$t" "fuzz/corpus/$t" -- -runs="$runs" -timeout=10 -rss_limit_mb=2048 \

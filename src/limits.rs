@@ -18,7 +18,7 @@ use std::io::Read;
 use std::path::{Component, Path, PathBuf};
 use std::sync::RwLock;
 
-use anyhow::{anyhow, bail, Context, Result};
+use anyhow::{bail, Context, Result};
 
 /// The read limits of this process.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -171,21 +171,21 @@ pub fn confined(referrer: &Path, field: &str, name: &str) -> Result<PathBuf> {
 
 /// Reads the regular file at `path` (already [`confined`]): its first `limit` bytes when
 /// `whole` is false (what a glTF buffer declares), else the whole file, refused when it holds
-/// more than `limit` bytes. The budget is checked first; `what` names the file that asked and
-/// `field` its element.
+/// more than `limit` bytes. The bytes it will hold (the file's size, at most `limit`) are checked
+/// against the budget before reading; `what` names the file that asked and `field` its element.
 pub fn read_limited(path: &Path, what: &str, field: &str, limit: u64, whole: bool) -> Result<Vec<u8>> {
-    check_bytes(what, field, limit)?;
-    let f = std::fs::File::open(path).with_context(|| format!("{what}: {field}: cannot read {}", path.display()))?;
+    let cannot = || format!("{what}: {field}: cannot read {}", path.display());
+    let f = std::fs::File::open(path).with_context(cannot)?;
+    let len = f.metadata().with_context(cannot)?.len();
+    if whole && len > limit {
+        bail!("{what}: {field}: {} holds {}, more than {} (the limit of this read)", path.display(), size(len), size(limit));
+    }
+    let hold = len.min(limit);
+    check_bytes(what, field, hold)?;
     let mut out = Vec::new();
-    f.take(if whole { limit.saturating_add(1) } else { limit })
-        .read_to_end(&mut out)
-        .with_context(|| format!("{what}: {field}: cannot read {}", path.display()))?;
-    if out.len() as u64 > limit {
-        return Err(anyhow!(
-            "{what}: {field}: {} holds more than {} (the limit of this read)",
-            path.display(),
-            size(limit)
-        ));
+    f.take(if whole { hold.saturating_add(1) } else { hold }).read_to_end(&mut out).with_context(cannot)?;
+    if out.len() as u64 > hold {
+        bail!("{what}: {field}: {} grew while it was read (past the {} it held)", path.display(), size(len));
     }
     Ok(out)
 }

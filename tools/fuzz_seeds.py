@@ -12,7 +12,12 @@
   configs DIR CONFIGS       the shipped configurations, pick-prefixed
   mask DIR                  4x4 masks: 8-bit and 16-bit grey PNG
   checkpoint IN OUT         a plain checkpoint cut down to its first two Gaussians
+  gltf-files TINY.gltf SEEDS REGRESSIONS FILES
+                            a .gltf naming its buffer file beside it, and hostile names for it
+  sog-files META.json SEEDS REGRESSIONS FILES
+                            a SOG meta.json naming its images beside it, and hostile names
 """
+import base64
 import json
 import os
 import struct
@@ -170,8 +175,44 @@ def instgs_v2(src, out):
     open(out, "wb").write(body + struct.pack("<I", zlib.crc32(body)))
 
 
+# The hostile names a file may give for another file (fuzz/regressions/*_files/): a parent, an
+# absolute path, a device, a FIFO, a folder, links out of the folder, undecodable escapes. The
+# *_files targets' folder holds each (fuzz/inputs.rs, `folder`).
+HOSTILE = ["../outside.bin", "/etc/passwd", "/dev/zero", "zero.bin", "fifo.bin", "dir.bin",
+           "link-out.bin", "sub/../../outside.bin", "%FF.bin", "%2E%2E/outside.bin", "file:///etc/passwd"]
+
+
+def gltf_files(tiny_gltf, seeds, regressions, files):
+    """A .gltf whose buffer is the file a.bin beside it (its seed; a.bin into FILES), and the same
+    document naming each HOSTILE path instead (regression inputs, all to be refused)."""
+    doc = json.load(open(tiny_gltf))
+    uri = doc["buffers"][0]["uri"]
+    open(os.path.join(files, "a.bin"), "wb").write(base64.b64decode(uri.split(";base64,", 1)[1]))
+    doc["buffers"][0]["uri"] = "a.bin"
+    json.dump(doc, open(os.path.join(seeds, "beside.gltf"), "w"))
+    doc["buffers"][0]["uri"] = "sub/a.bin"
+    json.dump(doc, open(os.path.join(seeds, "in-a-subfolder.gltf"), "w"))
+    for i, name in enumerate(HOSTILE):
+        doc["buffers"][0]["uri"] = name
+        json.dump(doc, open(os.path.join(regressions, f"uri-{i:02d}.gltf"), "w"))
+
+
+def sog_files(meta_path, seeds, regressions, files):
+    """A SOG meta.json with its WebP images (into FILES), and the same meta.json naming each
+    HOSTILE path for one of them (regression inputs)."""
+    d = os.path.dirname(meta_path)
+    meta = json.load(open(meta_path))
+    for n in sorted(os.listdir(d)):
+        if n.endswith(".webp"):
+            open(os.path.join(files, n), "wb").write(open(os.path.join(d, n), "rb").read())
+    json.dump(meta, open(os.path.join(seeds, "meta.json"), "w"))
+    for i, name in enumerate(HOSTILE):
+        meta["quats"]["files"] = [name]
+        json.dump(meta, open(os.path.join(regressions, f"image-{i:02d}.json"), "w"))
+
+
 if __name__ == "__main__":
     cmd, args = sys.argv[1], sys.argv[2:]
     {"scene": scene, "ascii-scene": ascii_scene, "sog": sog, "points": points, "colmap": colmap,
      "json": json_inputs, "configs": configs, "mask": mask, "checkpoint": checkpoint,
-     "instgs-v2": instgs_v2}[cmd](*args)
+     "instgs-v2": instgs_v2, "gltf-files": gltf_files, "sog-files": sog_files}[cmd](*args)
