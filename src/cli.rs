@@ -149,15 +149,17 @@ pub(crate) enum Cmd {
     },
     /// Convert a scene between formats, chosen by OUT's name: .ply (Inria), .compressed.ply
     /// (SuperSplat, with SH), .spz (version 4), DIR/meta.json (SOG version 2), OUT.sog (the same
-    /// in one zip), .glb/.gltf (KHR_gaussian_splatting), .splat (no SH), or .json (an instanced
-    /// scene's scene graph). An instanced scene (.instgs, or a .glb we wrote from one) is
-    /// expanded first (SH bands rotated per instance), except to .glb/.gltf, which share its
-    /// templates (a node per instance) unless --expand.
+    /// in one zip), .glb/.gltf (KHR_gaussian_splatting), DIR/tileset.json (3D Tiles 1.1 for
+    /// CesiumJS: SPZ-compressed glTF tiles beside it, a tile per instance), .splat (no SH), or
+    /// .json (an instanced scene's scene graph). An instanced scene (.instgs, or a .glb we wrote
+    /// from one) is expanded first (SH bands rotated per instance), except to .glb/.gltf, which
+    /// share its templates (a node per instance) unless --expand.
     Convert {
-        /// Any scene we read (PLY, compressed PLY, .spz, SOG, .splat, .glb/.gltf, .instgs).
+        /// Any scene we read (PLY, compressed PLY, .spz, SOG, .splat, .glb/.gltf, tileset.json,
+        /// .instgs).
         scene: PathBuf,
         /// OUT.ply, OUT.compressed.ply, OUT.spz, DIR/meta.json, OUT.sog, OUT.glb, OUT.gltf,
-        /// OUT.splat or OUT.json.
+        /// DIR/tileset.json, OUT.splat or OUT.json.
         out: PathBuf,
         /// Write an instanced scene to .glb/.gltf expanded (one plain splat primitive).
         #[arg(long)]

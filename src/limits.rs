@@ -178,7 +178,12 @@ pub fn read_limited(path: &Path, what: &str, field: &str, limit: u64, whole: boo
     let f = std::fs::File::open(path).with_context(cannot)?;
     let len = f.metadata().with_context(cannot)?.len();
     if whole && len > limit {
-        bail!("{what}: {field}: {} holds {}, more than {} (the limit of this read)", path.display(), size(len), size(limit));
+        bail!(
+            "{what}: {field}: {} holds {}, more than {} (the limit of this read)",
+            path.display(),
+            size(len),
+            size(limit)
+        );
     }
     let hold = len.min(limit);
     check_bytes(what, field, hold)?;

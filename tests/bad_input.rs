@@ -260,6 +260,51 @@ fn bad_input_table() {
         assert!(std::process::Command::new(bin).arg("convert").arg(&seed).arg(&out).output().unwrap().status.success());
         std::fs::read(&out).unwrap()
     };
+    // ---- 3D Tiles (the glTF seed as a tileset: one SPZ-compressed tile of three splats).
+    let tileset = |d: PathBuf, edit: &dyn Fn(&mut serde_json::Value)| {
+        let bin = env!("CARGO_BIN_EXE_instgs-vk");
+        let out = d.join("tileset.json");
+        assert!(std::process::Command::new(bin).arg("convert").arg(&seed).arg(&out).output().unwrap().status.success());
+        let mut doc: serde_json::Value = serde_json::from_slice(&std::fs::read(&out).unwrap()).unwrap();
+        edit(&mut doc);
+        std::fs::write(&out, serde_json::to_vec(&doc).unwrap()).unwrap();
+    };
+    tileset(t.dir("tiles_content_outside"), &|d| {
+        d["root"]["children"][0]["content"]["uri"] = "../gltf_seed/s.glb".into()
+    });
+    t.case(
+        "tiles_content_outside",
+        &["info", "{d}/tileset.json"],
+        &["tileset.json", "root.children[0]'s content uri", "outside the file's folder"],
+    );
+    tileset(t.dir("tiles_sheared"), &|d| {
+        d["root"]["children"][0]["transform"] =
+            serde_json::json!([2.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0])
+    });
+    t.case(
+        "tiles_sheared",
+        &["info", "{d}/tileset.json"],
+        &["tileset.json", "root.children[0]'s transform", "not a rotation times a uniform scale"],
+    );
+    // The tile's accessors say 4 splats; its SPZ data holds 3 (checked before decoding).
+    tileset(t.dir("tiles_spz_count"), &|_| ());
+    {
+        let tile = t.dir("tiles_spz_count").join("tile-0.glb");
+        let bytes = std::fs::read(&tile).unwrap();
+        let mut edited = bytes.clone();
+        let (json_len, start) = (u32::from_le_bytes(bytes[12..16].try_into().unwrap()) as usize, 20);
+        let json = String::from_utf8(bytes[start..start + json_len].to_vec()).unwrap();
+        assert!(json.contains("\"count\":3,"));
+        let json = json.replace("\"count\":3,", "\"count\":4,");
+        edited[start..start + json_len].copy_from_slice(json.as_bytes());
+        std::fs::write(&tile, edited).unwrap();
+    }
+    t.case(
+        "tiles_spz_count",
+        &["info", "{d}/tileset.json"],
+        &["tile-0.glb", "KHR_gaussian_splatting_compression_spz_2", "holds 3 Gaussians, its accessors say 4"],
+    );
+
     t.put("glb_truncated", "s.glb", &glb[..glb.len() - 10]);
     t.case("glb_truncated", &["info", "{d}/s.glb"], &["s.glb", "not a valid GLB"]);
     t.put(

@@ -7,7 +7,8 @@
 //! | Niantic `.spz` (versions 2 and 3: gzip; 4: zstd streams) | yes | `.spz` (version 4) | yes: 24-bit fixed-point positions (12 fractional bits when written), 8-bit log-scales (1/16), rotations (smallest three, 10 bits), 8-bit colour (±1/0.15·½), opacity and SH (±1, 1/128) |
 //! | PlayCanvas SOG versions 1 and 2 (`meta.json` + WebP images) | yes | version 2 | yes: 16-bit log-positions, 256-entry codebooks, 8-bit rotations, palettised SH |
 //! | antimatter15 `.splat` (32-byte rows, no SH) | yes | `.splat` | yes: 8-bit colour, opacity and rotation; SH dropped |
-//! | glTF 2.0 with `KHR_gaussian_splatting` (`.glb`, `.gltf`; quantised accessors read) | yes | `.glb`, `.gltf` (an `.instgs` scene with its templates shared, [`gltf`]) | no: float accessors |
+//! | glTF 2.0 with `KHR_gaussian_splatting` (`.glb`, `.gltf`; quantised accessors and `KHR_gaussian_splatting_compression_spz_2` read) | yes | `.glb`, `.gltf` (an `.instgs` scene with its templates shared, [`gltf`]) | no: float accessors |
+//! | 3D Tiles 1.1 (`tileset.json`, one `.glb` per tile, SPZ-compressed: what CesiumJS draws) | yes (as one plain scene) | `…tileset.json` (a tile per instance, placed by its transform) | yes: as `.spz` (version 2 inside) |
 //! | `.instgs` (ours, `docs/format.md`) | yes | `.instgs` | f16 offsets on request |
 //!
 //! Conventions on reading: every scene comes out in the Inria/COLMAP frame the PLY formats use
@@ -48,6 +49,7 @@ pub enum Format {
     Sog,
     Splat,
     Gltf,
+    Tiles,
     Instgs,
 }
 
@@ -59,6 +61,7 @@ impl Format {
             Format::Sog => "SOG",
             Format::Splat => ".splat",
             Format::Gltf => "glTF",
+            Format::Tiles => "3D Tiles",
             Format::Instgs => ".instgs",
         }
     }
@@ -67,7 +70,7 @@ impl Format {
 /// What we read, for errors.
 pub const READABLE: &str =
     "PLY (Inria 3DGS or SuperSplat compressed), .spz (versions 2-4), SOG versions 1-2 (a meta.json \
-                            with its WebP images, their folder, or a .sog bundle of them), .splat (32-byte rows), glTF (.glb, .gltf with KHR_gaussian_splatting) and .instgs";
+                            with its WebP images, their folder, or a .sog bundle of them), .splat (32-byte rows), glTF (.glb, .gltf with KHR_gaussian_splatting, SPZ-compressed or not), 3D Tiles (a tileset.json of such glTF) and .instgs";
 
 /// The format of `path` by its content (a folder holding `meta.json` is SOG; `.splat` has no
 /// magic bytes and is taken by its extension when its size is a multiple of 32).
@@ -122,6 +125,10 @@ pub fn detect(path: &Path) -> Result<Format> {
     let named_meta = path.file_name().is_some_and(|n| n.eq_ignore_ascii_case("meta.json"));
     if first == Some(&b'{') && (named_meta || is_sog_meta(path)) {
         return Ok(Format::Sog);
+    }
+    // A tileset has a glTF-like `asset` too: its `root` tells them apart.
+    if first == Some(&b'{') && gltf::looks_like_tileset(path) {
+        return Ok(Format::Tiles);
     }
     if first == Some(&b'{') && gltf::looks_like_gltf(head, path) {
         return Ok(Format::Gltf);
@@ -197,6 +204,7 @@ pub fn read_scene(path: &Path) -> Result<Scene> {
             let bytes = std::fs::read(path).with_context(|| format!("{what}: cannot read"))?;
             read_splat(&what, &bytes)?
         }
+        Format::Tiles => gltf::read_tileset(path)?,
         Format::Instgs => bail!(
             "{what}: an instanced scene (.instgs); this command takes a plain scene — `instgs-vk convert {what} OUT.ply` expands it"
         ),
@@ -229,7 +237,7 @@ pub fn write_scene(scene: &Scene, out: &Path) -> Result<()> {
         write_splat(scene, out)
     } else {
         bail!(
-            "{}: cannot write this format; the output's name chooses: .ply (Inria), .compressed.ply (SuperSplat), .spz (version 4), meta.json (SOG version 2, its images beside it), .sog (the same in one zip), .glb or .gltf (glTF with KHR_gaussian_splatting), .splat, or .json (an instanced scene's scene graph)",
+            "{}: cannot write this format; the output's name chooses: .ply (Inria), .compressed.ply (SuperSplat), .spz (version 4), meta.json (SOG version 2, its images beside it), .sog (the same in one zip), .glb or .gltf (glTF with KHR_gaussian_splatting), tileset.json (3D Tiles, SPZ-compressed glTF tiles beside it), .splat, or .json (an instanced scene's scene graph)",
             out.display()
         )
     }
@@ -285,6 +293,11 @@ pub fn convert(path: &Path, out: &Path, expand: bool) -> Result<()> {
     let scene = AnyScene::read(path)?;
     let name = out.file_name().map(|n| n.to_string_lossy().to_ascii_lowercase()).unwrap_or_default();
     let gltf_out = name.ends_with(".glb") || name.ends_with(".gltf");
+    if name.ends_with("tileset.json") {
+        gltf::write_tileset(&scene, out)?;
+        eprintln!("wrote {} and its tiles", out.display());
+        return Ok(());
+    }
     match (&scene, name.ends_with(".json") && !name.ends_with("meta.json")) {
         (AnyScene::Instanced(s), false) if gltf_out && !expand => gltf::write_instanced_gltf(s, out)?,
         (AnyScene::Instanced(s), true) => {

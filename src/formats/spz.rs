@@ -32,9 +32,13 @@ pub fn set_frame(frame: SpzFrame) {
 /// Negates y and z of the whole scene (the `.spz` frame ↔ the PLY frame; its own inverse),
 /// unless the frame is [`SpzFrame::AsStored`].
 fn flip_yz(s: &mut Scene) {
-    if AS_STORED.load(std::sync::atomic::Ordering::Relaxed) {
-        return;
+    if !AS_STORED.load(std::sync::atomic::Ordering::Relaxed) {
+        negate_yz(s);
     }
+}
+
+/// Negates y and z of the whole scene: means, rotations and SH (a half turn about x).
+fn negate_yz(s: &mut Scene) {
     let coeffs = s.sh_coeffs();
     for m in &mut s.means {
         m[1] = -m[1];
@@ -90,8 +94,29 @@ fn check_spz_header(what: &str, h: &SpzHeader) -> Result<()> {
     Ok(())
 }
 
-/// Reads a `.spz` file's bytes (versions 2-3 gzip-compressed, 4 with zstd streams).
+/// Reads a `.spz` file's bytes (versions 2-3 gzip-compressed, 4 with zstd streams), framed as
+/// [`set_frame`] says.
 pub fn read_spz(what: &str, bytes: &[u8]) -> Result<Scene> {
+    let mut s = read_spz_stored(what, bytes, None)?;
+    flip_yz(&mut s);
+    Ok(s)
+}
+
+/// SPZ bytes inside glTF (`KHR_gaussian_splatting_compression_spz_2`), in glTF's frame as
+/// stored: CesiumJS, the extension's implementation, unpacks them without an axis change
+/// ([`spz_in_gltf`] says why). Refused unless it holds `count` Gaussians (its accessors'
+/// count; checked before decoding).
+pub fn read_spz_in_gltf(what: &str, bytes: &[u8], count: usize) -> Result<Scene> {
+    read_spz_stored(what, bytes, Some(count))
+}
+
+/// A `.spz` file's Gaussians as stored (no axis change); refused before decoding when its
+/// header's count is not `expected`.
+fn read_spz_stored(what: &str, bytes: &[u8], expected: Option<usize>) -> Result<Scene> {
+    let check_count = |h: &SpzHeader| match expected {
+        Some(n) if n != h.count => bail!("{what}: the SPZ data holds {} Gaussians, its accessors say {n}", h.count),
+        _ => Ok(()),
+    };
     if bytes.starts_with(&[0x1f, 0x8b]) {
         let mut gz = flate2::read::GzDecoder::new(bytes);
         let mut head = [0u8; 16];
@@ -106,6 +131,7 @@ pub fn read_spz(what: &str, bytes: &[u8]) -> Result<Scene> {
             fractional_bits: head[13] as u32,
         };
         check_spz_header(what, &h)?;
+        check_count(&h)?;
         if h.version == 4 {
             bail!("{what}: .spz version 4 inside gzip (version 4 files are not gzip-wrapped)");
         }
@@ -156,6 +182,7 @@ pub fn read_spz(what: &str, bytes: &[u8]) -> Result<Scene> {
         bail!("{what}: a plain NGSP header says version {}, but only version 4 is stored without gzip", h.version);
     }
     check_spz_header(what, &h)?;
+    check_count(&h)?;
     let streams_n = bytes[15] as usize;
     let toc = u32_at(bytes, 16) as usize;
     let strides = spz_strides(&h);
@@ -223,7 +250,6 @@ fn decode_spz(h: &SpzHeader, st: &[Vec<u8>]) -> Result<Scene> {
         let xyzw = if h.version >= 3 { unpack_smallest_three(r) } else { first_three(r) };
         s.quats.push([xyzw[3], xyzw[0], xyzw[1], xyzw[2]]);
     }
-    flip_yz(&mut s);
     Ok(s)
 }
 
@@ -255,6 +281,13 @@ fn first_three(r: &[u8]) -> [f32; 4] {
     [xyz[0], xyz[1], xyz[2], w]
 }
 
+/// Version 2: the unit quaternion with w ≥ 0, its x, y, z as bytes (v·127.5 + 127.5).
+fn pack_first_three(xyzw: [f32; 4]) -> [u8; 3] {
+    let n = xyzw.iter().map(|v| v * v).sum::<f32>().sqrt().max(f32::MIN_POSITIVE);
+    let sign = if xyzw[3] < 0.0 { -1.0 } else { 1.0 };
+    std::array::from_fn(|a| (xyzw[a] * sign / n * 127.5 + 127.5).round().clamp(0.0, 255.0) as u8)
+}
+
 fn pack_smallest_three(xyzw: [f32; 4]) -> [u8; 4] {
     let (largest, q) = largest_component(xyzw);
     let mask = (1u32 << 9) - 1;
@@ -269,12 +302,32 @@ fn pack_smallest_three(xyzw: [f32; 4]) -> [u8; 4] {
     comp.to_le_bytes()
 }
 
-/// `scene` as a version-4 `.spz` (12 fractional bits; zstd level 12).
+/// `scene` as a version-4 `.spz` (12 fractional bits; zstd level 12), framed as [`set_frame`]
+/// says.
 pub fn write_spz(scene: &Scene, path: &Path) -> Result<()> {
     let what = path.display().to_string();
     scene.validate(&format!("{what}: not written"))?;
     let mut s = scene.clone();
     flip_yz(&mut s);
+    let out = encode(&s, &what, 4)?;
+    crate::util::write_atomic(path, |f| std::io::Write::write_all(f, &out))
+}
+
+/// `scene`, in glTF's frame, as the SPZ bytes `KHR_gaussian_splatting_compression_spz_2`
+/// holds: a version-2 `.spz` (gzip; the version its "SPZ v2" library writes and every reader
+/// reads) with glTF's axes stored as they are. The extension's text asks writers to pack from
+/// glTF's frame into SPZ's own (x right, y up, z back: a half turn about y), but CesiumJS
+/// 1.145 unpacks with no conversion (`coordinateSystem: "UNSPECIFIED"`), so data packed that
+/// way draws turned (glTF issue #2509); we store what Cesium draws right, and read it the same
+/// way ([`read_spz_in_gltf`]).
+pub fn spz_in_gltf(scene: &Scene, what: &str) -> Result<Vec<u8>> {
+    scene.validate(&format!("{what}: not written"))?;
+    encode(scene, what, 2)
+}
+
+/// `s` (already in the frame to store) as `.spz` bytes: version 4 (zstd streams with a table of
+/// contents) or 2 (one gzip stream; rotations as x, y, z bytes with w ≥ 0); 12 fractional bits.
+fn encode(s: &Scene, what: &str, version: u32) -> Result<Vec<u8>> {
     let n = s.len();
     let coeffs = s.sh_coeffs();
     let bits = 12;
@@ -300,17 +353,35 @@ pub fn write_spz(scene: &Scene, path: &Path) -> Result<()> {
             streams[3].push(((v + 10.0) * 16.0).round().clamp(0.0, 255.0) as u8);
         }
         let [w, x, y, z] = s.quats[i];
-        streams[4].extend_from_slice(&pack_smallest_three([x, y, z, w]));
+        if version >= 3 {
+            streams[4].extend_from_slice(&pack_smallest_three([x, y, z, w]));
+        } else {
+            streams[4].extend_from_slice(&pack_first_three([x, y, z, w]));
+        }
         for v in &sh[3..] {
             streams[5].push((v * 128.0 + 128.0).round().clamp(0.0, 255.0) as u8);
         }
+    }
+    let mut out = Vec::new();
+    if version == 2 {
+        let mut body = Vec::new();
+        body.extend_from_slice(SPZ_MAGIC);
+        body.extend_from_slice(&2u32.to_le_bytes());
+        body.extend_from_slice(&(n as u32).to_le_bytes());
+        body.extend_from_slice(&[s.sh_degree as u8, bits as u8, 0, 0]);
+        for st in &streams {
+            body.extend_from_slice(st);
+        }
+        let mut gz = flate2::write::GzEncoder::new(&mut out, flate2::Compression::best());
+        std::io::Write::write_all(&mut gz, &body).with_context(|| format!("{what}: gzip"))?;
+        gz.finish().with_context(|| format!("{what}: gzip"))?;
+        return Ok(out);
     }
     let streams: Vec<Vec<u8>> = streams.into_iter().filter(|s| !s.is_empty()).collect();
     let mut compressed = Vec::new();
     for st in &streams {
         compressed.push(zstd::bulk::compress(st, 12).with_context(|| format!("{what}: zstd"))?);
     }
-    let mut out = Vec::new();
     out.extend_from_slice(SPZ_MAGIC);
     out.extend_from_slice(&4u32.to_le_bytes());
     out.extend_from_slice(&(n as u32).to_le_bytes());
@@ -324,5 +395,5 @@ pub fn write_spz(scene: &Scene, path: &Path) -> Result<()> {
     for c in &compressed {
         out.extend_from_slice(c);
     }
-    crate::util::write_atomic(path, |f| std::io::Write::write_all(f, &out))
+    Ok(out)
 }

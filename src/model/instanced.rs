@@ -240,6 +240,24 @@ impl InstancedScene {
         out
     }
 
+    /// Instance `k` of group `g` in its template's frame: the template with the instance's
+    /// offsets (Δposition taken back through its transform: R⁻¹·Δp / s; Δopacity; Δ base colour),
+    /// so that `transform_gaussians(&own, &transform)` is its part of [`Self::expand`].
+    pub fn instance_in_template_frame(&self, g: usize, k: usize) -> Scene {
+        let (group, mut own) = (&self.groups[g], self.groups[g].template.clone());
+        let (x, n, c) = (group.instances[k].transform, own.len(), own.sh_coeffs());
+        for j in 0..n {
+            let p = k * n + j;
+            let d = x.rotation.inverse() * Vec3::from(group.offsets.d_means[p]) / x.scale;
+            own.means[j] = (Vec3::from(own.means[j]) + d).to_array();
+            own.opacities[j] += group.offsets.d_opacities[p];
+            for ch in 0..3 {
+                own.sh[j * c * 3 + ch] += group.offsets.d_sh0[p][ch];
+            }
+        }
+        own
+    }
+
     /// The fully expanded plain scene (splat order as the GPU's), higher SH bands rotated so the
     /// plain scene renders the same colours.
     pub fn expand(&self) -> Scene {

@@ -53,6 +53,7 @@
 mod buffers;
 mod instanced;
 mod read;
+mod tiles;
 mod write;
 
 use anyhow::Result;
@@ -70,6 +71,7 @@ pub enum GltfScene {
     Plain(Scene),
     Instanced(InstancedScene),
 }
+pub use tiles::{looks_like_tileset, read_tileset, write_tileset, SPZ_EXTENSION};
 pub use write::{write_gltf, write_instanced_gltf};
 
 /// The extension's name (on the primitive and in `extensionsUsed`).
@@ -77,7 +79,7 @@ pub const EXTENSION: &str = "KHR_gaussian_splatting";
 /// Attribute names' prefix.
 pub(crate) const PREFIX: &str = "KHR_gaussian_splatting:";
 /// `extensionsRequired` entries we read; any other is refused.
-pub(crate) const KNOWN_REQUIRED: [&str; 2] = [EXTENSION, "KHR_mesh_quantization"];
+pub(crate) const KNOWN_REQUIRED: [&str; 3] = [EXTENSION, "KHR_mesh_quantization", tiles::SPZ_EXTENSION];
 /// The primitive's extension object we write.
 pub(crate) fn extension_object() -> Value {
     json!({"kernel": "ellipse", "colorSpace": "srgb_rec709_display", "projection": "perspective", "sortingMethod": "cameraDistance"})

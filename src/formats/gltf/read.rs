@@ -1,7 +1,7 @@
 //! Reading glTF: splat primitives placed by their nodes, or the instanced scene our extras
 //! describe.
 use std::cell::RefCell;
-use std::collections::HashMap;
+use std::collections::{HashMap, HashSet};
 use std::path::Path;
 use std::rc::Rc;
 
@@ -9,7 +9,7 @@ use anyhow::{anyhow, bail, Context, Result};
 use glam::Mat4;
 use gltf::accessor::DataType;
 use gltf::mesh::Semantic;
-use serde_json::Value;
+use serde_json::{json, Value};
 
 use super::{half_turn_z, sh_name, GltfScene, EXTENSION, KNOWN_REQUIRED, PREFIX};
 use crate::formats::quant::OPACITY_LOGIT_LIMIT;
@@ -64,6 +64,38 @@ pub fn from_bytes(bytes: &[u8], what: &str, file: Option<&Path>) -> Result<GltfS
             }
         }
     }
+    // Accessors without a buffer view (glTF: zeros, or data an extension provides, as
+    // KHR_gaussian_splatting_compression_spz_2's do) are refused by gltf-json's validation:
+    // each is pointed at one extra view of buffer 0 here and remembered, so that they are
+    // never read as data (`Ctx::values`).
+    let dataless: HashSet<usize> = doc
+        .get("accessors")
+        .and_then(Value::as_array)
+        .into_iter()
+        .flatten()
+        .enumerate()
+        .filter(|(_, a)| a.is_object() && a.get("bufferView").is_none() && a.get("sparse").is_none())
+        .map(|(i, _)| i)
+        .collect();
+    if !dataless.is_empty() {
+        if doc.get("buffers").and_then(Value::as_array).is_none_or(Vec::is_empty) {
+            bail!("{what}: accessors without a buffer view in a file without buffers");
+        }
+        let extra = json!({"buffer": 0, "byteLength": 1});
+        let views = match doc.get_mut("bufferViews").and_then(Value::as_array_mut) {
+            Some(v) => {
+                v.push(extra);
+                v.len() - 1
+            }
+            None => {
+                doc["bufferViews"] = json!([extra]);
+                0
+            }
+        };
+        for &i in &dataless {
+            doc["accessors"][i]["bufferView"] = json!(views);
+        }
+    }
     let mut root: gltf::json::Root =
         serde_json::from_value(doc).map_err(|e| anyhow!("{what}: not a glTF 2.0 document: {e}"))?;
     if let Some(ext) = root.extensions_required.iter().find(|e| !KNOWN_REQUIRED.contains(&e.as_str())) {
@@ -85,7 +117,7 @@ pub fn from_bytes(bytes: &[u8], what: &str, file: Option<&Path>) -> Result<GltfS
     }
     let document = gltf::Document::from_json(root).map_err(|e| anyhow!("{what}: an invalid glTF document: {e}"))?;
     let buffers = super::buffers::load_buffers(&document, what, file, blob)?;
-    let ctx = Ctx { what, buffers, cache: RefCell::new(HashMap::new()) };
+    let ctx = Ctx { what, buffers, dataless, cache: RefCell::new(HashMap::new()) };
     let splats = splat_primitives(&document, what)?;
     if splats.is_empty() {
         bail!("{what}: a glTF file without {EXTENSION} primitives (no splats in its scene)");
@@ -126,7 +158,7 @@ pub fn from_bytes(bytes: &[u8], what: &str, file: Option<&Path>) -> Result<GltfS
 
 /// Host bytes of one splat as we hold it (degree 3: mean, scales, quaternion, opacity, 48 SH
 /// values, f32 each), for the memory budget.
-const BYTES_PER_SPLAT: u64 = 4 * (3 + 3 + 4 + 1 + 48);
+pub(super) const BYTES_PER_SPLAT: u64 = 4 * (3 + 3 + 4 + 1 + 48);
 
 /// One splat primitive of the scene: node, primitive index, world matrix.
 pub(super) struct SplatPrimitive {
@@ -179,6 +211,8 @@ pub(super) fn append_any_degree(a: Scene, b: Scene) -> Scene {
 pub(super) struct Ctx<'a> {
     pub(super) what: &'a str,
     buffers: Vec<Rc<Vec<u8>>>,
+    /// Accessors without a buffer view of their own (from_bytes).
+    dataless: HashSet<usize>,
     cache: RefCell<HashMap<usize, Rc<Vec<f32>>>>,
 }
 
@@ -222,6 +256,12 @@ impl Ctx<'_> {
         }
         if let Some(v) = self.cache.borrow().get(&acc.index()) {
             return Ok(v.clone());
+        }
+        if self.dataless.contains(&acc.index()) {
+            bail!(
+                "{what}: accessor {} ({name}) has no buffer view (data from an extension we do not read, or all zeros)",
+                acc.index()
+            );
         }
         if acc.sparse().is_some() {
             bail!("{what}: accessor {} ({name}) is sparse; sparse accessors are not read", acc.index());
@@ -274,6 +314,9 @@ impl Ctx<'_> {
                 "{what}: {EXTENSION}.colorSpace {other} is not read (srgb_rec709_display and lin_rec709_display are)"
             ),
         };
+        if let Some(spz) = ext.pointer(&format!("/extensions/{}", super::tiles::SPZ_EXTENSION)) {
+            return self.spz_primitive(doc, &prim, spz, &what);
+        }
         let mut attrs: HashMap<String, gltf::Accessor> = HashMap::new();
         for (sem, acc) in prim.attributes() {
             match sem {
@@ -325,6 +368,37 @@ impl Ctx<'_> {
         Ok(scene)
     }
 
+    /// An SPZ-compressed primitive (`KHR_gaussian_splatting_compression_spz_2`): its splats
+    /// decoded from the extension's buffer view (glTF space), as many as its POSITION accessor
+    /// says (checked before decoding); its accessors hold no data of their own.
+    fn spz_primitive(&self, doc: &gltf::Document, prim: &gltf::Primitive, spz: &Value, what: &str) -> Result<Scene> {
+        let ext = super::tiles::SPZ_EXTENSION;
+        let view = spz
+            .get("bufferView")
+            .and_then(Value::as_u64)
+            .and_then(|v| doc.views().nth(usize::try_from(v).ok()?))
+            .ok_or_else(|| {
+                anyhow!(
+                    "{what}: {ext}.bufferView {} names no buffer view",
+                    spz.get("bufferView").unwrap_or(&Value::Null)
+                )
+            })?;
+        let data = &self.buffers[view.buffer().index()];
+        let bytes = view
+            .offset()
+            .checked_add(view.length())
+            .and_then(|end| data.get(view.offset()..end))
+            .ok_or_else(|| anyhow!("{what}: {ext}'s buffer view {} reaches past its buffer", view.index()))?;
+        let count = prim
+            .get(&Semantic::Positions)
+            .map(|a| a.count())
+            .ok_or_else(|| anyhow!("{what}: no POSITION attribute (required, with the SPZ data's count)"))?;
+        if prim.indices().is_some() {
+            bail!("{what}: an SPZ-compressed primitive with indices (the extension has none)");
+        }
+        crate::formats::spz::read_spz_in_gltf(&format!("{what}: {ext}"), bytes, count)
+    }
+
     /// A POINTS primitive's `indices`: the vertices it draws, each below `n`.
     fn indices(&self, acc: &gltf::Accessor, n: usize, what: &str) -> Result<Vec<usize>> {
         let (dt, i) = (acc.data_type(), acc.index());
@@ -337,8 +411,8 @@ impl Ctx<'_> {
                 acc.dimensions()
             );
         }
-        if acc.sparse().is_some() {
-            bail!("{what}: indices accessor {i} is sparse; sparse accessors are not read");
+        if acc.sparse().is_some() || self.dataless.contains(&i) {
+            bail!("{what}: indices accessor {i} is sparse or has no buffer view; neither is read");
         }
         let view = acc.view().ok_or_else(|| anyhow!("{what}: indices accessor {i} has no buffer view"))?;
         let data = &self.buffers[view.buffer().index()];

@@ -2,7 +2,6 @@
 use std::path::Path;
 
 use anyhow::{anyhow, bail, Result};
-use glam::Vec3;
 use serde_json::{json, Map, Value};
 
 use super::{
@@ -146,15 +145,20 @@ fn write_document(mut doc: Value, bin: Vec<u8>, out: &Path) -> Result<()> {
         doc["buffers"][0]["uri"] = json!(format!("data:application/octet-stream;base64,{}", base64::encode(&bin)));
         serde_json::to_vec(&doc)?
     } else {
-        let json = serde_json::to_vec(&doc)?;
-        if json.len() as u64 + bin.len() as u64 + 64 > u32::MAX as u64 {
-            bail!("{}: a GLB holds at most 4 GiB; this scene needs {} bytes", out.display(), json.len() + bin.len());
-        }
-        let header = gltf::binary::Header { magic: *b"glTF", version: 2, length: 0 };
-        let glb = gltf::binary::Glb { header, json: json.into(), bin: Some(bin.into()) };
-        glb.to_vec().map_err(|e| anyhow!("{}: {e}", out.display()))?
+        glb_bytes(&doc, bin, &out.display().to_string())?
     };
     crate::util::write_atomic(out, |f| std::io::Write::write_all(f, &bytes))
+}
+
+/// The document and its buffer as GLB bytes (JSON and BIN chunks); `what` names the file.
+pub(super) fn glb_bytes(doc: &Value, bin: Vec<u8>, what: &str) -> Result<Vec<u8>> {
+    let json = serde_json::to_vec(doc)?;
+    if json.len() as u64 + bin.len() as u64 + 64 > u32::MAX as u64 {
+        bail!("{what}: a GLB holds at most 4 GiB; this scene needs {} bytes", json.len() + bin.len());
+    }
+    let header = gltf::binary::Header { magic: *b"glTF", version: 2, length: 0 };
+    let glb = gltf::binary::Glb { header, json: json.into(), bin: Some(bin.into()) };
+    glb.to_vec().map_err(|e| anyhow!("{what}: {e}"))
 }
 
 /// Writes a plain scene as `.glb` (or `.gltf`, the buffer embedded): one node, one splat
@@ -178,11 +182,10 @@ pub fn write_instanced_gltf(scene: &InstancedScene, out: &Path) -> Result<()> {
         nodes.push(json!({"name": "background", "mesh": 0}));
         extras.background.push(0);
     }
-    for g in &scene.groups {
+    for (gi, g) in scene.groups.iter().enumerate() {
         let mut t = g.template.clone();
         half_turn_z(&mut t);
         let shared = shared_accessors(&mut b, &t);
-        let c = t.sh_coeffs();
         let dc = coefficient(&t, 0);
         let template = TemplateExtras {
             position: b.floats(&t.means.concat(), "VEC3", 3, false),
@@ -191,19 +194,11 @@ pub fn write_instanced_gltf(scene: &InstancedScene, out: &Path) -> Result<()> {
         };
         let mut group = GroupExtras { name: g.name.clone(), template, instances: Vec::new() };
         for (k, inst) in g.instances.iter().enumerate() {
-            let x = inst.transform;
-            let mut own = t.clone();
-            for j in 0..t.len() {
-                let p = k * t.len() + j;
-                let d = x.rotation.inverse() * Vec3::from(g.offsets.d_means[p]) / x.scale;
-                // Δp is in our frame; the template rows here are turned: turn it too.
-                own.means[j] = [t.means[j][0] - d.x, t.means[j][1] - d.y, t.means[j][2] + d.z];
-                own.opacities[j] = t.opacities[j] + g.offsets.d_opacities[p];
-                for ch in 0..3 {
-                    own.sh[j * c * 3 + ch] += g.offsets.d_sh0[p][ch];
-                }
-            }
-            let node_x = turn_similarity(&x)?;
+            // Its own rows in the template's frame, turned like the template's (rotations,
+            // scales and higher SH bands are the template's: shared).
+            let mut own = scene.instance_in_template_frame(gi, k);
+            half_turn_z(&mut own);
+            let node_x = turn_similarity(&inst.transform)?;
             let r = node_x.rotation;
             meshes.push(json!({"name": g.name, "primitives": [primitive(&mut b, &own, &shared)]}));
             nodes.push(json!({
