@@ -8,7 +8,7 @@
 //! | PlayCanvas SOG versions 1 and 2 (`meta.json` + WebP images) | yes | version 2 | yes: 16-bit log-positions, 256-entry codebooks, 8-bit rotations, palettised SH |
 //! | antimatter15 `.splat` (32-byte rows, no SH) | yes | `.splat` | yes: 8-bit colour, opacity and rotation; SH dropped |
 //! | glTF 2.0 with `KHR_gaussian_splatting` (`.glb`, `.gltf`; quantised accessors and `KHR_gaussian_splatting_compression_spz_2` read) | yes | `.glb`, `.gltf` (an `.instgs` scene with its templates shared, [`gltf`]) | no: float accessors |
-//! | 3D Tiles 1.1 (`tileset.json`, one `.glb` per tile, SPZ-compressed: what CesiumJS draws) | yes (as one plain scene) | `…tileset.json` (a tile per instance, placed by its transform) | yes: as `.spz` (version 2 inside) |
+//! | 3D Tiles 1.1 (`tileset.json`, one `.glb` per tile, SPZ-compressed: what CesiumJS draws) | yes (as one plain scene) | `…tileset.json` (a tile per instance, placed by its transform) | yes: as `.spz` (version 3 inside: gzip, smallest-three rotations) |
 //! | `.instgs` (ours, `docs/format.md`) | yes | `.instgs` | f16 offsets on request |
 //!
 //! Conventions on reading: every scene comes out in the Inria/COLMAP frame the PLY formats use
@@ -294,7 +294,10 @@ pub fn convert(path: &Path, out: &Path, expand: bool) -> Result<()> {
     let name = out.file_name().map(|n| n.to_string_lossy().to_ascii_lowercase()).unwrap_or_default();
     let gltf_out = name.ends_with(".glb") || name.ends_with(".gltf");
     if name.ends_with("tileset.json") {
-        gltf::write_tileset(&scene, out)?;
+        match &scene {
+            AnyScene::Plain(s) => gltf::write_tileset(s, out)?,
+            AnyScene::Instanced(s) => gltf::write_instanced_tileset(s, out)?,
+        }
         eprintln!("wrote {} and its tiles", out.display());
         return Ok(());
     }

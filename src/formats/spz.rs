@@ -281,13 +281,6 @@ fn first_three(r: &[u8]) -> [f32; 4] {
     [xyz[0], xyz[1], xyz[2], w]
 }
 
-/// Version 2: the unit quaternion with w ≥ 0, its x, y, z as bytes (v·127.5 + 127.5).
-fn pack_first_three(xyzw: [f32; 4]) -> [u8; 3] {
-    let n = xyzw.iter().map(|v| v * v).sum::<f32>().sqrt().max(f32::MIN_POSITIVE);
-    let sign = if xyzw[3] < 0.0 { -1.0 } else { 1.0 };
-    std::array::from_fn(|a| (xyzw[a] * sign / n * 127.5 + 127.5).round().clamp(0.0, 255.0) as u8)
-}
-
 fn pack_smallest_three(xyzw: [f32; 4]) -> [u8; 4] {
     let (largest, q) = largest_component(xyzw);
     let mask = (1u32 << 9) - 1;
@@ -314,19 +307,20 @@ pub fn write_spz(scene: &Scene, path: &Path) -> Result<()> {
 }
 
 /// `scene`, in glTF's frame, as the SPZ bytes `KHR_gaussian_splatting_compression_spz_2`
-/// holds: a version-2 `.spz` (gzip; the version its "SPZ v2" library writes and every reader
-/// reads) with glTF's axes stored as they are. The extension's text asks writers to pack from
+/// holds: a version-3 `.spz` (gzip, rotations as smallest three: what Niantic's library
+/// writes; version 2's three 8-bit components err by up to 0.09 where w is small) with glTF's
+/// axes stored as they are. The extension's text asks writers to pack from
 /// glTF's frame into SPZ's own (x right, y up, z back: a half turn about y), but CesiumJS
 /// 1.145 unpacks with no conversion (`coordinateSystem: "UNSPECIFIED"`), so data packed that
 /// way draws turned (glTF issue #2509); we store what Cesium draws right, and read it the same
 /// way ([`read_spz_in_gltf`]).
 pub fn spz_in_gltf(scene: &Scene, what: &str) -> Result<Vec<u8>> {
     scene.validate(&format!("{what}: not written"))?;
-    encode(scene, what, 2)
+    encode(scene, what, 3)
 }
 
 /// `s` (already in the frame to store) as `.spz` bytes: version 4 (zstd streams with a table of
-/// contents) or 2 (one gzip stream; rotations as x, y, z bytes with w ≥ 0); 12 fractional bits.
+/// contents) or 3 (one gzip stream); rotations as smallest three; 12 fractional bits.
 fn encode(s: &Scene, what: &str, version: u32) -> Result<Vec<u8>> {
     let n = s.len();
     let coeffs = s.sh_coeffs();
@@ -353,20 +347,16 @@ fn encode(s: &Scene, what: &str, version: u32) -> Result<Vec<u8>> {
             streams[3].push(((v + 10.0) * 16.0).round().clamp(0.0, 255.0) as u8);
         }
         let [w, x, y, z] = s.quats[i];
-        if version >= 3 {
-            streams[4].extend_from_slice(&pack_smallest_three([x, y, z, w]));
-        } else {
-            streams[4].extend_from_slice(&pack_first_three([x, y, z, w]));
-        }
+        streams[4].extend_from_slice(&pack_smallest_three([x, y, z, w]));
         for v in &sh[3..] {
             streams[5].push((v * 128.0 + 128.0).round().clamp(0.0, 255.0) as u8);
         }
     }
     let mut out = Vec::new();
-    if version == 2 {
+    if version < 4 {
         let mut body = Vec::new();
         body.extend_from_slice(SPZ_MAGIC);
-        body.extend_from_slice(&2u32.to_le_bytes());
+        body.extend_from_slice(&version.to_le_bytes());
         body.extend_from_slice(&(n as u32).to_le_bytes());
         body.extend_from_slice(&[s.sh_degree as u8, bits as u8, 0, 0]);
         for st in &streams {

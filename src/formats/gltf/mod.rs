@@ -71,7 +71,7 @@ pub enum GltfScene {
     Plain(Scene),
     Instanced(InstancedScene),
 }
-pub use tiles::{looks_like_tileset, read_tileset, write_tileset, SPZ_EXTENSION};
+pub use tiles::{looks_like_tileset, read_tileset, write_instanced_tileset, write_tileset, SPZ_EXTENSION};
 pub use write::{write_gltf, write_instanced_gltf};
 
 /// The extension's name (on the primitive and in `extensionsUsed`).

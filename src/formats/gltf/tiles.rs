@@ -21,8 +21,7 @@ use glam::{Mat3, Mat4, Vec3};
 use serde_json::{json, Value};
 
 use super::{extension_object, half_turn_z, sh_name, EXTENSION, PREFIX};
-use crate::formats::AnyScene;
-use crate::model::instanced::{transform_gaussians, Similarity};
+use crate::model::instanced::{transform_gaussians, InstancedScene, Similarity};
 use crate::model::scene::Scene;
 
 /// The SPZ compression extension inside `KHR_gaussian_splatting`.
@@ -115,29 +114,35 @@ fn tile_transform(x: &Similarity) -> Vec<f32> {
     (m * x.render_mat4() * m.transpose()).to_cols_array().to_vec()
 }
 
-/// Writes `scene` as a tileset: `out` (its `tileset.json`) and the tiles' `.glb` files beside
-/// it (`tile-0.glb`, … in the order the tileset lists them). Nothing is left half-written: on
-/// an error the tiles already written are removed and no `tileset.json` is written.
-pub fn write_tileset(scene: &AnyScene, out: &Path) -> Result<()> {
+/// Writes a plain scene as a tileset of one tile: `out` (its `tileset.json`) and `tile-0.glb`
+/// beside it.
+pub fn write_tileset(scene: &Scene, out: &Path) -> Result<()> {
+    write_tiles(vec![(scene.clone(), None)], out)
+}
+
+/// Writes an instanced scene as a tileset: `out` and, beside it, a background tile and a tile
+/// per instance (`tile-0.glb`, … in the order the tileset lists them).
+pub fn write_instanced_tileset(scene: &InstancedScene, out: &Path) -> Result<()> {
+    scene.validate(&out.display().to_string())?;
+    let mut tiles: Vec<(Scene, Option<Similarity>)> = Vec::new();
+    if !scene.background.is_empty() {
+        tiles.push((scene.background.clone(), None));
+    }
+    for (g, group) in scene.groups.iter().enumerate() {
+        for (k, inst) in group.instances.iter().enumerate() {
+            tiles.push((scene.instance_in_template_frame(g, k), Some(inst.transform)));
+        }
+    }
+    write_tiles(tiles, out)
+}
+
+/// The tiles (content in our frame, the transform of an instance's) and their tileset.
+/// Nothing is left half-written: on an error the tiles already written are removed and no
+/// `tileset.json` is written.
+fn write_tiles(tiles: Vec<(Scene, Option<Similarity>)>, out: &Path) -> Result<()> {
     let what = out.display().to_string();
     let dir = out.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
     std::fs::create_dir_all(dir).with_context(|| format!("{what}: cannot create its folder"))?;
-    // (the tile's content in our frame, its transform when it is an instance's).
-    let mut tiles: Vec<(Scene, Option<Similarity>)> = Vec::new();
-    match scene {
-        AnyScene::Plain(s) => tiles.push((s.clone(), None)),
-        AnyScene::Instanced(s) => {
-            s.validate(&what)?;
-            if !s.background.is_empty() {
-                tiles.push((s.background.clone(), None));
-            }
-            for (g, group) in s.groups.iter().enumerate() {
-                for (k, inst) in group.instances.iter().enumerate() {
-                    tiles.push((s.instance_in_template_frame(g, k), Some(inst.transform)));
-                }
-            }
-        }
-    }
     let mut written: Vec<PathBuf> = Vec::new();
     let result = (|| -> Result<Value> {
         let mut children = Vec::new();
@@ -158,8 +163,13 @@ pub fn write_tileset(scene: &AnyScene, out: &Path) -> Result<()> {
             }
             children.push(tile);
         }
-        let all = scene.means();
-        let root_box = bounding_box(all.iter().map(|m| TO_TILES * Vec3::from(*m)), 0.0);
+        let all = tiles.iter().flat_map(|(content, x)| {
+            content.means.iter().map(move |m| {
+                let p = Vec3::from(*m);
+                TO_TILES * x.map_or(p, |x| x.rotation * (p * x.scale) + x.translation)
+            })
+        });
+        let root_box = bounding_box(all, 0.0);
         let diagonal = Vec3::new(
             root_box[3].as_f64().unwrap_or(1.0) as f32,
             root_box[7].as_f64().unwrap_or(1.0) as f32,
