@@ -93,16 +93,18 @@ PY
 done
 status=0
 summary='[]'
+# Appends run.mjs's JSON list of runs to the summary.
+add_runs() { summary=$(python3 -c 'import json,sys; print(json.dumps(json.loads(sys.argv[1]) + json.loads(sys.argv[2])))' "$summary" "$1"); }
 for case in "${cases[@]}"; do
     t=${case%:*}; k=${case#*:}; name="$t-K$k"
     s=$(node tools/viewers/run.mjs --modules "$cache/node_modules" --out "$out/pictures" --chromium "$chromium" \
         --scenes "$name=$out/scenes/$name.glb,$name-expanded=$out/scenes/$name-expanded.glb" \
         --cameras "$out/scenes/$name.cameras.json" --viewers three,babylon,playcanvas) || status=1
-    summary=$(python3 -c 'import json,sys; print(json.dumps(json.loads(sys.argv[1]) + json.loads(sys.argv[2])))' "$summary" "$s")
+    add_runs "$s"
     s=$(node tools/viewers/run.mjs --modules "$cache/node_modules" --out "$out/pictures" --chromium "$chromium" \
         --scenes "$name-tiles=$out/scenes/$name-tiles/tileset.json" \
         --cameras "$out/scenes/$name.cameras.json" --viewers cesium) || status=1
-    summary=$(python3 -c 'import json,sys; print(json.dumps(json.loads(sys.argv[1]) + json.loads(sys.argv[2])))' "$summary" "$s")
+    add_runs "$s"
 done
 echo "$summary" > "$out/runs.json"
 # Thresholds (dB), from measurement (BENCHMARKS.md "Web viewers"): a viewer's instanced picture

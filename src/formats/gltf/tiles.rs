@@ -34,7 +34,8 @@ const TO_TILES: Mat3 = Mat3::from_cols(Vec3::new(-1.0, 0.0, 0.0), Vec3::new(0.0,
 const MAX_DEPTH: usize = 64;
 const MAX_TILES: usize = 1 << 16;
 
-/// Whether `text` (a JSON file's start) is a 3D Tiles tileset: an object with `asset` and `root`.
+/// Whether the JSON file at `path` (its first 64 MiB) is a 3D Tiles tileset: an object with
+/// `asset` and `root`.
 pub fn looks_like_tileset(path: &Path) -> bool {
     std::fs::File::open(path)
         .ok()
@@ -51,11 +52,7 @@ fn tile_glb(s: &Scene, what: &str) -> Result<Vec<u8>> {
     half_turn_z(&mut turned);
     let spz = crate::formats::spz::spz_in_gltf(&turned, what)?;
     // POSITION's bounds (glTF requires them), widened by SPZ's 1/4096 fixed-point step.
-    let (mut lo, mut hi) = (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY));
-    for m in &turned.means {
-        lo = lo.min(Vec3::from(*m));
-        hi = hi.max(Vec3::from(*m));
-    }
+    let (lo, hi) = bounds(turned.means.iter().map(|m| Vec3::from(*m)));
     let step = 1.0 / 4096.0;
     let float = |ty: &str| json!({"componentType": 5126, "count": n, "type": ty});
     let mut accessors = vec![
@@ -91,14 +88,14 @@ fn tile_glb(s: &Scene, what: &str) -> Result<Vec<u8>> {
     super::write::glb_bytes(&doc, spz, what)
 }
 
-/// The axis-aligned box (3D Tiles `box`: centre, then three half axes) around `points`, padded
-/// by `pad` and at least 1e-6 thick.
-fn bounding_box(points: impl Iterator<Item = Vec3>, pad: f32) -> Value {
-    let (mut lo, mut hi) = (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY));
-    for p in points {
-        lo = lo.min(p);
-        hi = hi.max(p);
-    }
+/// The smallest and largest coordinates of `points`.
+fn bounds(points: impl Iterator<Item = Vec3>) -> (Vec3, Vec3) {
+    points.fold((Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY)), |(lo, hi), p| (lo.min(p), hi.max(p)))
+}
+
+/// The axis-aligned box (3D Tiles `box`: centre, then three half axes) from `lo` to `hi`,
+/// padded by `pad` and at least 1e-6 thick.
+fn bounding_box((lo, hi): (Vec3, Vec3), pad: f32) -> Value {
     let (c, h) = ((lo + hi) * 0.5, ((hi - lo) * 0.5 + Vec3::splat(pad)).max(Vec3::splat(1e-6)));
     json!([c.x, c.y, c.z, h.x, 0.0, 0.0, 0.0, h.y, 0.0, 0.0, 0.0, h.z])
 }
@@ -154,7 +151,7 @@ fn write_tiles(tiles: Vec<(Scene, Option<Similarity>)>, out: &Path) -> Result<()
             written.push(path);
             let points = content.means.iter().map(|m| TO_TILES * Vec3::from(*m));
             let mut tile = json!({
-                "boundingVolume": {"box": bounding_box(points, reach(content))},
+                "boundingVolume": {"box": bounding_box(bounds(points), reach(content))},
                 "geometricError": 0.0,
                 "content": {"uri": name},
             });
@@ -169,14 +166,8 @@ fn write_tiles(tiles: Vec<(Scene, Option<Similarity>)>, out: &Path) -> Result<()
                 TO_TILES * x.map_or(p, |x| x.rotation * (p * x.scale) + x.translation)
             })
         });
-        let root_box = bounding_box(all, 0.0);
-        let diagonal = Vec3::new(
-            root_box[3].as_f64().unwrap_or(1.0) as f32,
-            root_box[7].as_f64().unwrap_or(1.0) as f32,
-            root_box[11].as_f64().unwrap_or(1.0) as f32,
-        )
-        .length()
-            * 2.0;
+        let (lo, hi) = bounds(all);
+        let (root_box, diagonal) = (bounding_box((lo, hi), 0.0), (hi - lo).length().max(1e-6));
         let extensions = json!([EXTENSION, SPZ_EXTENSION]);
         Ok(json!({
             "asset": {"version": "1.1", "generator": concat!("instgs-vk ", env!("CARGO_PKG_VERSION"))},
