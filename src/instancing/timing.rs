@@ -8,7 +8,7 @@ use std::time::Instant;
 use anyhow::Result;
 use serde::Serialize;
 
-use crate::instancing::pose::{RenderCheck, RenderScore};
+use crate::instancing::pose::{Detail, RenderCheck, RenderScore};
 use crate::model::scene::Scene;
 use crate::register::Sim3;
 
@@ -97,19 +97,19 @@ impl<'a> Timed<'a> {
 
 impl RenderCheck for Timed<'_> {
     fn score(&mut self, reference: &Scene, instance: &Scene, id: u32, x: &Sim3) -> Result<Option<RenderScore>> {
-        self.score_views(reference, instance, id, x, None)
+        self.score_at(reference, instance, id, x, Detail::Full)
     }
 
-    fn score_views(
+    fn score_at(
         &mut self,
         reference: &Scene,
         instance: &Scene,
         id: u32,
         x: &Sim3,
-        views: Option<usize>,
+        detail: Detail,
     ) -> Result<Option<RenderScore>> {
         let t = Instant::now();
-        let s = self.inner.score_views(reference, instance, id, x, views);
+        let s = self.inner.score_at(reference, instance, id, x, detail);
         self.clock.seconds.set(self.clock.seconds.get() + t.elapsed().as_secs_f64());
         self.clock.calls.set(self.clock.calls.get() + 1);
         s

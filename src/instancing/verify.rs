@@ -10,7 +10,9 @@
 //! Views: those where the instance's own silhouette covers at least [`MIN_VIEW_PIXELS`]; with
 //! masks whose ids are the labels' (`instances.json` datasets), only those where the mask shows
 //! at least half of that silhouette (the instance is mostly unoccluded there); the
-//! [`MAX_VIEWS`] with the largest silhouettes.
+//! [`MAX_VIEWS`] with the largest silhouettes. A search's cheaper scores ([`Detail`]) take the
+//! first [`SEARCH_VIEWS`] of them, at full or half resolution (the instance's own renders and
+//! the mask sampled there too).
 //!
 //! Crops: every render covers only the instance's window in the view ([`window`]: the
 //! projected extent of its Gaussians, three standard deviations wide, plus a [`CROP_MARGIN`]),
@@ -28,7 +30,7 @@ use nalgebra::{DMatrix, DVector};
 
 use crate::gpu::kernels::Kernels;
 use crate::gpu::Gpu;
-use crate::instancing::pose::{sim3_to_similarity, RenderCheck, RenderScore};
+use crate::instancing::pose::{sim3_to_similarity, Detail, RenderCheck, RenderScore, SEARCH_VIEWS};
 use crate::model::camera::Camera;
 use crate::model::instanced::transform_gaussians;
 use crate::model::scene::Scene;
@@ -66,8 +68,9 @@ pub struct ImageCheck {
     rasterizer: Rasterizer,
     cameras: Vec<Camera>,
     masks: Option<Vec<Vec<u16>>>,
-    /// Per instance id: the chosen views, cropped, and the instance's own renders there.
-    own: HashMap<u32, Vec<OwnView>>,
+    /// Per instance id and detail: the chosen views, cropped, and the instance's own renders
+    /// there.
+    own: HashMap<(u32, Detail), Vec<OwnView>>,
 }
 
 /// The pixels (x0, y0, x1, y1; half-open, inside the image) where `scene` can show in `cam`:
@@ -113,8 +116,27 @@ impl ImageCheck {
         cameras.map(|c| Ok(self.rasterizer.render(&gs, c, [0.0; 3])?.image)).collect()
     }
 
-    fn own_views(&mut self, instance: &Scene, id: u32) -> Result<()> {
-        if !self.own.contains_key(&id) {
+    /// The instance's views at `detail`, chosen (and rendered) on first use.
+    fn own_views(&mut self, instance: &Scene, id: u32, detail: Detail) -> Result<()> {
+        if detail == Detail::Coarse && !self.own.contains_key(&(id, detail)) {
+            self.own_views(instance, id, Detail::Full)?;
+            let coarse: Vec<(Camera, Option<Vec<u16>>, usize)> = self.own[&(id, Detail::Full)]
+                .iter()
+                .take(SEARCH_VIEWS)
+                .map(|o| {
+                    let (camera, mask) = half_resolution(&o.camera, o.mask.as_deref());
+                    (camera, mask, o.truth_outside / 4)
+                })
+                .collect();
+            let images = self.render(instance, coarse.iter().map(|c| &c.0))?;
+            let views = coarse
+                .into_iter()
+                .zip(images)
+                .map(|((camera, mask, truth_outside), image)| OwnView { camera, image, mask, truth_outside })
+                .collect();
+            self.own.insert((id, detail), views);
+        }
+        if !self.own.contains_key(&(id, detail)) {
             let crops: Vec<(usize, [u32; 4], Camera)> = (0..self.cameras.len())
                 .filter_map(|v| {
                     let [x0, y0, x1, y1] = window(instance, &self.cameras[v])?;
@@ -146,7 +168,7 @@ impl ImageCheck {
             }
             seen.sort_by_key(|s| (std::cmp::Reverse(s.0), s.1));
             seen.truncate(MAX_VIEWS);
-            self.own.insert(id, seen.into_iter().map(|(_, _, o)| o).collect());
+            self.own.insert((id, detail), seen.into_iter().map(|(_, _, o)| o).collect());
         }
         Ok(())
     }
@@ -157,37 +179,60 @@ fn silhouette(p: &[f32; 4]) -> bool {
     p[3] < 0.5
 }
 
+/// `camera` at half its resolution (rounded up; the same rays through pixel-centre-scaled
+/// intrinsics) and `mask` sampled there (each half-resolution pixel takes the mask's pixel at
+/// its top-left full-resolution pixel).
+fn half_resolution(camera: &Camera, mask: Option<&[u16]>) -> (Camera, Option<Vec<u16>>) {
+    let (w, h) = (camera.width.div_ceil(2), camera.height.div_ceil(2));
+    let half = Camera {
+        width: w,
+        height: h,
+        fx: camera.fx / 2.0,
+        fy: camera.fy / 2.0,
+        cx: camera.cx / 2.0,
+        cy: camera.cy / 2.0,
+        ..camera.clone()
+    };
+    let full_width = camera.width as usize;
+    let mask = mask
+        .map(|m| (0..h as usize).flat_map(|y| (0..w as usize).map(move |x| m[2 * y * full_width + 2 * x])).collect());
+    (half, mask)
+}
+
 impl RenderCheck for ImageCheck {
     fn score(&mut self, reference: &Scene, instance: &Scene, id: u32, x: &Sim3) -> Result<Option<RenderScore>> {
-        self.score_views(reference, instance, id, x, None)
+        self.score_at(reference, instance, id, x, Detail::Full)
     }
 
-    /// Over the instance's first `views` views (they are kept largest silhouette first).
-    fn score_views(
+    fn score_at(
         &mut self,
         reference: &Scene,
         instance: &Scene,
         id: u32,
         x: &Sim3,
-        views: Option<usize>,
+        detail: Detail,
     ) -> Result<Option<RenderScore>> {
-        self.own_views(instance, id)?;
+        // Fine: the first of the full views (they are kept largest silhouette first).
+        let (key, views) = match detail {
+            Detail::Fine => ((id, Detail::Full), SEARCH_VIEWS),
+            _ => ((id, detail), usize::MAX),
+        };
+        self.own_views(instance, id, key.1)?;
         // Out of the map while the rasterizer renders (no copy of the images).
-        let all = self.own.remove(&id).unwrap_or_default();
-        let own = &all[..all.len().min(views.unwrap_or(usize::MAX))];
+        let own = self.own.remove(&key).unwrap_or_default();
+        let score = self.score_own(reference, &own[..own.len().min(views)], id, x);
+        self.own.insert(key, own);
+        score
+    }
+}
+
+impl ImageCheck {
+    fn score_own(&mut self, reference: &Scene, own: &[OwnView], id: u32, x: &Sim3) -> Result<Option<RenderScore>> {
         if own.is_empty() {
-            self.own.insert(id, all);
             return Ok(None);
         }
         let placed = transform_gaussians(reference, &sim3_to_similarity(&x.inverse()));
-        let renders = self.render(&placed, own.iter().map(|o| &o.camera));
-        let renders = match renders {
-            Ok(r) => r,
-            Err(e) => {
-                self.own.insert(id, all);
-                return Err(e);
-            }
-        };
+        let renders = self.render(&placed, own.iter().map(|o| &o.camera))?;
         let compared: Vec<Compared> = own
             .iter()
             .zip(&renders)
@@ -198,9 +243,7 @@ impl RenderCheck for ImageCheck {
                 truth_outside: o.truth_outside,
             })
             .collect();
-        let score = compare(&compared, id);
-        self.own.insert(id, all);
-        Ok(Some(score))
+        Ok(Some(compare(&compared, id)))
     }
 }
 
@@ -366,6 +409,19 @@ mod tests {
             let (mix_psnr, gain_psnr) = (score.psnr, score.pose_psnr);
             assert!(mix_psnr > at_least && mix_psnr > gain_psnr + 10.0, "mix {mix_psnr} dB, gain {gain_psnr} dB");
         }
+    }
+
+    #[test]
+    fn half_resolution_sees_the_same_rays_and_samples_the_mask() {
+        let cam = Camera::from_c2w_opengl("c", glam::Mat4::IDENTITY, 7, 5, [6.0, 6.0, 3.5, 2.5]);
+        let mask: Vec<u16> = (0..35).collect();
+        let (half, m) = half_resolution(&cam, Some(&mask));
+        assert_eq!((half.width, half.height), (4, 3));
+        let p = Vec3::new(0.3, -0.2, -2.0);
+        let (a, b) = (cam.project(p).unwrap(), half.project(p).unwrap());
+        assert!((a[0] / 2.0 - b[0]).abs() < 1e-6 && (a[1] / 2.0 - b[1]).abs() < 1e-6, "{a:?} {b:?}");
+        // Each half-resolution pixel takes its top-left full-resolution pixel's id.
+        assert_eq!(m.unwrap(), [0, 2, 4, 6, 14, 16, 18, 20, 28, 30, 32, 34]);
     }
 
     #[test]

@@ -3,7 +3,7 @@
 //! was decided ([`GraphReport`]).
 use anyhow::Result;
 
-use super::{refine_pose, InstanceReport, PoseCheck, RenderCheck, MAX_EVALUATIONS};
+use super::{refine_pose, Detail, InstanceReport, PoseCheck, RenderCheck, MAX_EVALUATIONS};
 use crate::instancing::options::{InstanceOptions, Status};
 use crate::instancing::synchronise::{candidate_edges, size_signature, synchronise};
 use crate::model::scene::Scene;
@@ -71,10 +71,11 @@ pub(crate) fn synchronise_group(
             progress(&format!("synchronising the group's poses: edge {done} of {total}"));
             last = std::time::Instant::now();
         }
-        let Some(score) = rc.score(&parts[b], &parts[a], ids[a], &start)? else { return Ok(None) };
+        let Some(score) = rc.score_at(&parts[b], &parts[a], ids[a], &start, Detail::Coarse)? else { return Ok(None) };
         let (centre, size) = (centroid(&opaque[b]), object_size(&opaque[b]));
         let search = (2..4, MAX_EVALUATIONS);
-        Ok(Some(refine_pose(rc, &parts[b], &parts[a], ids[a], start, score, centre, size, rigid, search)?.0))
+        let start = (start, score, Detail::Coarse);
+        Ok(Some(refine_pose(rc, &parts[b], &parts[a], ids[a], start, centre, size, rigid, search)?.0))
     })?;
     let by_id = |from: usize, to: usize, rotation_deg: f64, translation_fraction: f64| GraphCycle {
         from: ids[from],

@@ -193,31 +193,46 @@ pub trait RenderCheck {
     /// world → reference world. None when the instance shows in no view.
     fn score(&mut self, reference: &Scene, instance: &Scene, id: u32, x: &Sim3) -> Result<Option<RenderScore>>;
 
-    /// The same check over only the `views` views that show the instance largest (None: all of
-    /// them): a cheaper score for the coarse steps of a search, comparable only with scores
-    /// over the same views. By default the whole check.
-    fn score_views(
+    /// The check at `detail`: [`Detail::Coarse`] and [`Detail::Fine`] are cheaper scores for
+    /// the steps of a search, each comparable only with scores at the same detail. By default
+    /// the whole check.
+    fn score_at(
         &mut self,
         reference: &Scene,
         instance: &Scene,
         id: u32,
         x: &Sim3,
-        views: Option<usize>,
+        detail: Detail,
     ) -> Result<Option<RenderScore>> {
-        let _ = views;
+        let _ = detail;
         self.score(reference, instance, id, x)
     }
+}
+
+/// How much of the render check a score covers.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum Detail {
+    /// Every view the check keeps, at full resolution: what accepts or refuses a pose.
+    Full,
+    /// The [`SEARCH_VIEWS`] views that show the instance largest, at full resolution.
+    Fine,
+    /// The same views at half resolution.
+    Coarse,
 }
 
 /// Render checks one pose refinement may run ([`refine_pose`]; shared by a rival's levels).
 pub const MAX_EVALUATIONS: usize = 120;
 
-/// Views of a coarse step of [`refine_pose`] (levels below [`FINE_LEVEL`]): the 8 that show
-/// the instance largest. Each step there moves 2° to 0.5°, which these views tell apart; the
-/// last level, which pins the pose down, scores every view, and so does every score returned.
-/// With it, cafe40's instance stage (40 objects, 24 views each) takes 14–15 minutes on
-/// lavapipe's two cores, its render checks most of that (BENCHMARKS.md).
-pub const COARSE_VIEWS: usize = 8;
+/// Views of a search step: the 8 that show the instance largest. The hypotheses are screened
+/// and the coarse levels of [`refine_pose`] (below [`FINE_LEVEL`], steps of 2° to 0.5°) score
+/// them at half resolution ([`Detail::Coarse`]: a 2° turn of a 100-pixel object still moves
+/// its outline by a pixel there), the last level (0.25°) at full resolution
+/// ([`Detail::Fine`]); every score returned, which accepts or refuses, is over every view
+/// ([`Detail::Full`]). Most of a check's time on lavapipe is the blend pass (pixels times the
+/// splats of their tiles) and per-pass costs that do not shrink with the image: on cafe40 a
+/// coarse check of 8 views took 35 ms, a full one of 24 views 146 ms, and the last level run
+/// in full was 60 % of the render checks' time (BENCHMARKS.md, "Where sharing pays").
+pub const SEARCH_VIEWS: usize = 8;
 /// The first refinement level (0.25° steps) scored over every view.
 pub const FINE_LEVEL: i32 = 3;
 pub(crate) fn to_f64(p: [f32; 3]) -> [f64; 3] {
@@ -235,9 +250,10 @@ pub fn sim3_to_similarity(x: &Sim3) -> Similarity {
 /// Registers instance `k` onto the reference `r` and checks the hypotheses, the most plausible
 /// first, over two RANSAC seeds (up to `max_candidates`). Without a render check the first that
 /// passes the geometric checks ([`PoseCheck::failure`]) is kept. With one, every hypothesis
-/// that passes them is rendered; the best-rendering one whose silhouettes agree
-/// ([`Acceptance::min_render_iou`]) is refined against the renders ([`refine_pose`]) and kept
-/// if it still passes every check. Returns the pose and the verdict; `report` receives the kept
+/// that passes them is screened by a coarse render check ([`Detail::Coarse`]; a refusal there
+/// reports its figures); those whose silhouettes agree ([`Acceptance::min_render_iou`]) are
+/// refined against the renders ([`refine_rivals`]) and the best is kept if its full check
+/// ([`Detail::Full`]) still passes every check. Returns the pose and the verdict; `report` receives the kept
 /// (or, when refused, the most plausible) pose's checks.
 #[allow(clippy::too_many_arguments)]
 pub fn register_and_check(
@@ -302,7 +318,8 @@ pub fn register_and_check(
                 report.tried = tried;
                 return Ok((x, Status::Accepted));
             };
-            let Some(score) = rc.score(&parts[r], &parts[k], ids[k], &x).with_context(context)? else {
+            let Some(score) = rc.score_at(&parts[r], &parts[k], ids[k], &x, Detail::Coarse).with_context(context)?
+            else {
                 first.get_or_insert((x, check, None, "the instance shows in no training view".into()));
                 continue;
             };
@@ -427,7 +444,7 @@ fn turns(
             if PoseCheck::measure(&opaque[k], &opaque[r], &x, reg.voxel).failure(&x, a, rigid).is_some() {
                 continue;
             }
-            if let Some(score) = rc.score(&parts[r], &parts[k], id, &x)? {
+            if let Some(score) = rc.score_at(&parts[r], &parts[k], id, &x, Detail::Coarse)? {
                 if score.iou >= a.min_render_iou {
                     rendered.push((x, score));
                 }
@@ -478,7 +495,8 @@ pub fn refine_rivals(
     let mut kept: Option<(Sim3, RenderScore, usize)> = None;
     for (x, score) in rivals {
         let search = (0..FINE_LEVEL, MAX_EVALUATIONS);
-        let (x, score, used) = refine_pose(rc, reference, instance, id, x, score, centre, size, rigid, search)?;
+        let start = (x, score, Detail::Coarse);
+        let (x, score, used) = refine_pose(rc, reference, instance, id, start, centre, size, rigid, search)?;
         if kept.as_ref().is_none_or(|b| score.pose_psnr > b.1.pose_psnr) {
             kept = Some((x, score, used));
         }
@@ -486,7 +504,8 @@ pub fn refine_rivals(
     // The kept rival's last level within what is left of its budget.
     let (x, score, used) = kept.context("no hypothesis to refine")?;
     let search = (FINE_LEVEL..4, MAX_EVALUATIONS.saturating_sub(used));
-    let (x, score, _) = refine_pose(rc, reference, instance, id, x, score, centre, size, rigid, search)?;
+    let (x, score, _) =
+        refine_pose(rc, reference, instance, id, (x, score, Detail::Full), centre, size, rigid, search)?;
     Ok((x, score, n))
 }
 
@@ -496,8 +515,8 @@ pub fn refine_rivals(
 /// and repeated while it keeps rising; at `levels` l the steps are 2° / 1 % of `size` / 1 % of
 /// scale times 2^−l, the next level when no move helps (`0..4`: 2° down to 0.25°), at most
 /// `budget` render checks ([`MAX_EVALUATIONS`]); returns the pose, its score and the checks
-/// used. Levels below [`FINE_LEVEL`] score [`COARSE_VIEWS`] views, the rest
-/// all (`score`, given and returned, is over all views). Registration on a few hundred Gaussian
+/// used. Levels below [`FINE_LEVEL`] score at [`Detail::Coarse`], the rest at [`Detail::Fine`];
+/// `score` (given at `scored_at`) is returned in full. Registration on a few hundred Gaussian
 /// means leaves a few degrees of error that the pictures still show; the check's optimum is
 /// where the reference's pictures match the instance's.
 #[allow(clippy::too_many_arguments)]
@@ -506,23 +525,20 @@ pub fn refine_pose(
     reference: &Scene,
     instance: &Scene,
     id: u32,
-    x: Sim3,
-    score: RenderScore,
+    (x, score, scored_at): (Sim3, RenderScore, Detail),
     centre: nalgebra::Vector3<f64>,
     size: f64,
     rigid: bool,
     (levels, budget): (std::ops::Range<i32>, usize),
 ) -> Result<(Sim3, RenderScore, usize)> {
-    let (mut x, mut score) = (x, score);
+    let (mut x, mut score, mut scored_at) = (x, score, scored_at);
     let mut evaluations = 0;
     let params = if rigid { 6 } else { 7 };
-    // The views `score` is over (None: all).
-    let mut scored_on: Option<usize> = None;
     for level in levels {
-        let views = (level < FINE_LEVEL).then_some(COARSE_VIEWS);
-        if views != scored_on {
-            match rc.score_views(reference, instance, id, &x, views)? {
-                Some(s) => (score, scored_on) = (s, views),
+        let detail = if level < FINE_LEVEL { Detail::Coarse } else { Detail::Fine };
+        if detail != scored_at {
+            match rc.score_at(reference, instance, id, &x, detail)? {
+                Some(s) => (score, scored_at) = (s, detail),
                 None => break,
             }
         }
@@ -550,7 +566,7 @@ pub fn refine_pose(
                     // render check per step rather than a sweep).
                     while evaluations < budget {
                         evaluations += 1;
-                        match rc.score_views(reference, instance, id, &y, views)? {
+                        match rc.score_at(reference, instance, id, &y, detail)? {
                             Some(s) if s.pose_psnr > score.pose_psnr + 0.01 => {
                                 (x, score, improved, moved) = (y, s, true, true);
                                 y = d.compose(&x);
@@ -565,7 +581,7 @@ pub fn refine_pose(
             }
         }
     }
-    if scored_on.is_some() {
+    if scored_at != Detail::Full {
         score = rc.score(reference, instance, id, &x)?.context("the refined pose shows in no view")?;
     }
     Ok((x, score, evaluations))
