@@ -164,6 +164,11 @@ pub(crate) enum Cmd {
         /// Write an instanced scene to .glb/.gltf expanded (one plain splat primitive).
         #[arg(long)]
         expand: bool,
+        /// .glb/.gltf only: 16-bit positions (KHR_mesh_quantization, dequantised by the node's
+        /// translation and scale) and rotations; scales, opacities and SH stay float
+        /// (docs/formats.md).
+        #[arg(long)]
+        quantize: bool,
     },
     /// Export a dataset's cameras (NeRF-synthetic or COLMAP folder) as a NeRF-synthetic
     /// transforms JSON: OpenGL camera-to-world matrices, per-frame intrinsics, image paths.

@@ -72,7 +72,11 @@ fn run(cli: Cli) -> Result<()> {
                 &out,
             )
         }
-        Cmd::Convert { scene, out, expand } => formats::convert(&scene, &out, expand),
+        Cmd::Convert { scene, out, expand, quantize } => {
+            let accessors =
+                if quantize { formats::gltf::Accessors::Quantized } else { formats::gltf::Accessors::Float };
+            formats::convert(&scene, &out, expand, accessors)
+        }
         Cmd::Cameras { data, split, out } => dataset::export_cameras(&data, &split, &out),
         Cmd::Segment { scene, data, split, alpha, out, export_dir, per_frame_ids } => {
             segment::run::segment(device, &scene, &data, &split, alpha, &out, export_dir.as_deref(), per_frame_ids)

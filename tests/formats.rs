@@ -632,7 +632,7 @@ fn instanced_gltf_shares_templates_and_reads_back_the_instanced_scene() {
     let mut rng = common::Rng::new(46);
     let scene = common::random_instanced(&mut rng, 3, 200, &[(150, 4), (80, 3)]);
     let glb = tmp("instanced.glb");
-    formats::gltf::write_instanced_gltf(&scene, &glb).unwrap();
+    formats::gltf::write_instanced_gltf(&scene, &glb, formats::gltf::Accessors::Float).unwrap();
     let formats::AnyScene::Instanced(back) = formats::AnyScene::read(&glb).unwrap() else { panic!("read as plain") };
     assert_eq!(back.groups.len(), 2);
     for (a, b) in scene.groups.iter().zip(&back.groups) {
@@ -669,6 +669,51 @@ fn instanced_gltf_shares_templates_and_reads_back_the_instanced_scene() {
     let (shared, full) = (std::fs::metadata(&glb).unwrap().len(), std::fs::metadata(&expanded).unwrap().len());
     // 430 rows for 1040 splats: the background's 200 rows are whole in both.
     assert!(shared * 4 < full * 3, "{shared} vs {full} bytes");
+}
+
+#[test]
+fn quantised_gltf_round_trips_within_16_bits_and_is_smaller() {
+    use formats::gltf::Accessors;
+    // A plain scene (SH degree 3): 16-bit positions under the node's dequantisation, 16-bit
+    // rotations; KHR_mesh_quantization required.
+    let source = read_ply(&shared_data("splats/fruit_drops_minimal.ply")).unwrap();
+    let (float, quantised) = (tmp("fruit-float.glb"), tmp("fruit-quantised.glb"));
+    formats::gltf::write_gltf(&source, &float, Accessors::Float).unwrap();
+    formats::gltf::write_gltf(&source, &quantised, Accessors::Quantized).unwrap();
+    let (doc, _) = glb_parts(&quantised);
+    assert_eq!(doc["extensionsRequired"], serde_json::json!(["KHR_mesh_quantization"]));
+    let position =
+        &doc["accessors"][doc["meshes"][0]["primitives"][0]["attributes"]["POSITION"].as_u64().unwrap() as usize];
+    assert_eq!((position["componentType"].as_u64(), position["normalized"].as_bool()), (Some(5122), Some(true)));
+    let back = formats::read_scene(&quantised).unwrap();
+    let db = render_agreement(&source, &back);
+    let ratio = std::fs::metadata(&quantised).unwrap().len() as f64 / std::fs::metadata(&float).unwrap().len() as f64;
+    eprintln!("fruit_drops through a quantised .glb: {db:.1} dB, {ratio:.3}x the float file's bytes");
+    assert!(db >= 45.0, "{db:.1} dB");
+    assert!(ratio < 1.0, "{ratio}");
+    // An instanced scene: read back instanced, each instance's transform out of its node's
+    // matrix (transform · dequantisation), within 16 bits of the float file's scene.
+    let mut rng = common::Rng::new(47);
+    let scene = common::random_instanced(&mut rng, 3, 200, &[(150, 4), (80, 3)]);
+    let (float, quantised) = (tmp("instanced-float.glb"), tmp("instanced-quantised.glb"));
+    formats::gltf::write_instanced_gltf(&scene, &float, Accessors::Float).unwrap();
+    formats::gltf::write_instanced_gltf(&scene, &quantised, Accessors::Quantized).unwrap();
+    let formats::AnyScene::Instanced(back) = formats::AnyScene::read(&quantised).unwrap() else {
+        panic!("read as plain")
+    };
+    for (a, b) in scene.groups.iter().zip(&back.groups) {
+        for (x, y) in a.instances.iter().zip(&b.instances) {
+            let (x, y) = (x.transform, y.transform);
+            assert!((x.scale - y.scale).abs() < 1e-4 && x.translation.distance(y.translation) < 1e-4, "{x:?} {y:?}");
+            assert!(x.rotation.dot(y.rotation).abs() > 1.0 - 1e-6);
+        }
+    }
+    let db = render_agreement(&scene.expand(), &back.expand());
+    let plain_db = render_agreement(&scene.expand(), &formats::read_scene(&quantised).unwrap());
+    let ratio = std::fs::metadata(&quantised).unwrap().len() as f64 / std::fs::metadata(&float).unwrap().len() as f64;
+    eprintln!("an instanced scene through a quantised .glb: {db:.1} dB (read plainly {plain_db:.1} dB), {ratio:.3}x");
+    assert!(db >= 45.0 && plain_db >= 45.0, "{db:.1} / {plain_db:.1} dB");
+    assert!(ratio < 1.0, "{ratio}");
 }
 
 #[test]
@@ -877,7 +922,7 @@ fn what_a_gltf_says_is_checked_against_what_it_holds() {
     let mut rng = common::Rng::new(54);
     let scene = common::random_instanced(&mut rng, 3, 50, &[(40, 3)]);
     let glb = tmp("edited.glb");
-    formats::gltf::write_instanced_gltf(&scene, &glb).unwrap();
+    formats::gltf::write_instanced_gltf(&scene, &glb, formats::gltf::Accessors::Float).unwrap();
     let expanded = scene.expand();
     type Edit<'a> = (&'a str, &'a dyn Fn(&mut serde_json::Value, &mut Vec<u8>));
     let edits: [Edit; 3] = [

@@ -11,10 +11,13 @@
 # axis change, the Niantic specification (which we follow) stores y up, z back; the table has
 # both our readings (`--spz-frame spec`, `--spz-frame as-stored`). SOG's k-means runs on the CPU
 # (`-g cpu`: no WebGPU adapter on lavapipe machines).
-# Then our .glb files (a plain one and an instanced one) go through the Khronos glTF validator
+# Then our .glb files (a plain one, an instanced one, its --quantize twin and the tiles of its
+# tileset) go through the Khronos glTF validator
 # (npm gltf-validator, pinned, same scratch folder): it does not know KHR_gaussian_splatting, so
 # each of the extension's attribute names is an error (MESH_PRIMITIVE_INVALID_ATTRIBUTE, as for
-# splat-transform's own .glb); any other error or warning fails.
+# splat-transform's own .glb); any other error or warning fails. Infos pass: the extensions it
+# does not know, the instanced file's three accessors per template that only our extras name
+# (UNUSED_OBJECT), a tile's SPZ buffer view that only the SPZ extension names.
 # Usage: bash tools/interop.sh [--quick] [SPLAT...]   (default: the shared fruit_drops_minimal,
 # playbot_lod6 and guitar; --quick: fruit_drops only, what CI runs). Prints a Markdown table;
 # exits 1 when a row the specification and splat-transform agree on is below 30 dB (every format
@@ -99,7 +102,9 @@ echo
 echo "Khronos glTF validator $validator on our .glb (errors and warnings other than the extension's attribute names):"
 "$bin" convert "${splats[0]}" "$work/plain.glb" 2> /dev/null
 "$bin" convert fuzz/seeds/instgs_parse/f32.instgs "$work/instanced.glb" 2> /dev/null
-for f in "$work/plain.glb" "$work/instanced.glb"; do
+"$bin" convert --quantize fuzz/seeds/instgs_parse/f32.instgs "$work/quantized.glb" 2> /dev/null
+"$bin" convert fuzz/seeds/instgs_parse/f32.instgs "$work/tiles/tileset.json" 2> /dev/null
+for f in "$work/plain.glb" "$work/instanced.glb" "$work/quantized.glb" "$work"/tiles/tile-*.glb; do
     NODE_PATH="$scratch/node_modules" node -e '
 const v = require("gltf-validator"), fs = require("fs"), f = process.argv[1];
 v.validateBytes(new Uint8Array(fs.readFileSync(f)), { maxIssues: 0 }).then((r) => {

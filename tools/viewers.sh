@@ -1,12 +1,13 @@
 #!/usr/bin/env bash
 # Our instanced glTF in the web viewers people use, checked in a real browser (issue 55): each
 # viewer (three.js, Babylon.js, PlayCanvas; pinned below, npm-installed into a cache outside the
-# repository, served from this machine — no CDN) draws our instanced .glb and its expanded twin
-# (one plain splat primitive) from fixed cameras in headless Chromium (Debian's, driven by
+# repository, served from this machine — no CDN) draws our instanced .glb, its expanded twin
+# (one plain splat primitive) and its quantised twin (`convert --quantize`: 16-bit positions and
+# rotations, KHR_mesh_quantization) from fixed cameras in headless Chromium (Debian's, driven by
 # puppeteer-core; SwiftShader WebGL 2). Each viewer's picture of the instanced file is compared
 # with its own picture of the expanded file (how right it places, turns and shades instances)
 # and with our renderer's picture from the same camera (how close the viewer's splats are to
-# ours); PSNR in dB, thresholds below, chosen from measurement (BENCHMARKS.md "Web viewers").
+# ours); the quantised file's pictures with the same two; PSNR in dB, thresholds below, chosen from measurement (BENCHMARKS.md "Web viewers").
 # CesiumJS draws splats only from 3D Tiles: it draws our tileset of the same scene
 # (`convert … tileset.json`: SPZ-compressed tiles, one per instance placed by its transform),
 # compared with our renderer's picture of the instanced file.
@@ -57,6 +58,7 @@ for case in "${cases[@]}"; do
         --random-offsets 0.01 --out "$out/scenes/$name.instgs" 2> /dev/null
     "$bin" convert "$out/scenes/$name.instgs" "$out/scenes/$name.glb" 2> /dev/null
     "$bin" convert --expand "$out/scenes/$name.instgs" "$out/scenes/$name-expanded.glb" 2> /dev/null
+    "$bin" convert --quantize "$out/scenes/$name.instgs" "$out/scenes/$name-quantized.glb" 2> /dev/null
     "$bin" convert "$out/scenes/$name.instgs" "$out/scenes/$name-tiles/tileset.json" 2> /dev/null
     scene_args+=("$name=$out/scenes/$name.glb" "$name-expanded=$out/scenes/$name-expanded.glb")
     # Cameras from the scene's bounds: in glTF's frame for the viewers, in ours (the half turn
@@ -98,7 +100,7 @@ add_runs() { summary=$(python3 -c 'import json,sys; print(json.dumps(json.loads(
 for case in "${cases[@]}"; do
     t=${case%:*}; k=${case#*:}; name="$t-K$k"
     s=$(node tools/viewers/run.mjs --modules "$cache/node_modules" --out "$out/pictures" --chromium "$chromium" \
-        --scenes "$name=$out/scenes/$name.glb,$name-expanded=$out/scenes/$name-expanded.glb" \
+        --scenes "$name=$out/scenes/$name.glb,$name-expanded=$out/scenes/$name-expanded.glb,$name-quantized=$out/scenes/$name-quantized.glb" \
         --cameras "$out/scenes/$name.cameras.json" --viewers three,babylon,playcanvas) || status=1
     add_runs "$s"
     s=$(node tools/viewers/run.mjs --modules "$cache/node_modules" --out "$out/pictures" --chromium "$chromium" \
@@ -131,9 +133,11 @@ for r in runs:
         pairs.append({"key": [r["viewer"], r["scene"], r["camera"], "vs_ours"], "a": pic,
                       "b": f"{out}/ours/{r['scene'][:-len('-tiles')]}/{r['camera']}.png"})
         continue
+    # The quantised instanced file against the float expanded one and ours of the float file.
+    base = r["scene"][:-len("-quantized")] if r["scene"].endswith("-quantized") else r["scene"]
     pairs.append({"key": [r["viewer"], r["scene"], r["camera"], "instanced_vs_expanded"],
-                  "a": pic, "b": f"{out}/pictures/{r['viewer']}/{r['scene']}-expanded/{r['camera']}.png"})
-    pairs.append({"key": [r["viewer"], r["scene"], r["camera"], "vs_ours"], "a": pic, "b": f"{out}/ours/{r['scene']}/{r['camera']}.png"})
+                  "a": pic, "b": f"{out}/pictures/{r['viewer']}/{base}-expanded/{r['camera']}.png"})
+    pairs.append({"key": [r["viewer"], r["scene"], r["camera"], "vs_ours"], "a": pic, "b": f"{out}/ours/{base}/{r['camera']}.png"})
 json.dump(pairs, open(f"{out}/pairs.json", "w"))
 psnr = json.loads(subprocess.check_output(["node", "tools/viewers/compare.mjs", modules, f"{out}/pairs.json"]))
 rows, failures = [], []

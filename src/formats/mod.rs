@@ -229,7 +229,7 @@ pub fn write_scene(scene: &Scene, out: &Path) -> Result<()> {
     } else if name.ends_with(".sog") {
         sog::write_sog_bundle(scene, out)
     } else if name.ends_with(".glb") || name.ends_with(".gltf") {
-        gltf::write_gltf(scene, out)
+        gltf::write_gltf(scene, out, gltf::Accessors::Float)
     } else if name.ends_with(".splat") {
         if scene.sh_degree > 0 {
             eprintln!("note: .splat holds no SH bands: degree {} dropped", scene.sh_degree);
@@ -288,11 +288,15 @@ impl AnyScene {
 
 /// `instgs-vk convert`: `path` (any readable scene) to `out`, the format chosen by `out`'s name
 /// ([`write_scene`]); an instanced scene to `.json` writes its scene graph, to `.glb`/`.gltf`
-/// an instanced glTF (templates shared) unless `expand`.
-pub fn convert(path: &Path, out: &Path, expand: bool) -> Result<()> {
-    let scene = AnyScene::read(path)?;
+/// an instanced glTF (templates shared) unless `expand`; glTF's attributes as `accessors` says
+/// (quantised only to .glb/.gltf, refused before reading otherwise).
+pub fn convert(path: &Path, out: &Path, expand: bool, accessors: gltf::Accessors) -> Result<()> {
     let name = out.file_name().map(|n| n.to_string_lossy().to_ascii_lowercase()).unwrap_or_default();
     let gltf_out = name.ends_with(".glb") || name.ends_with(".gltf");
+    if accessors == gltf::Accessors::Quantized && !gltf_out {
+        bail!("{}: --quantize writes .glb or .gltf only", out.display());
+    }
+    let scene = AnyScene::read(path)?;
     if name.ends_with("tileset.json") {
         match &scene {
             AnyScene::Plain(s) => gltf::write_tileset(s, out)?,
@@ -302,7 +306,9 @@ pub fn convert(path: &Path, out: &Path, expand: bool) -> Result<()> {
         return Ok(());
     }
     match (&scene, name.ends_with(".json") && !name.ends_with("meta.json")) {
-        (AnyScene::Instanced(s), false) if gltf_out && !expand => gltf::write_instanced_gltf(s, out)?,
+        (AnyScene::Instanced(s), false) if gltf_out && !expand => gltf::write_instanced_gltf(s, out, accessors)?,
+        (AnyScene::Plain(s), false) if gltf_out => gltf::write_gltf(s, out, accessors)?,
+        (AnyScene::Instanced(s), false) if gltf_out => gltf::write_gltf(&s.expand(), out, accessors)?,
         (AnyScene::Instanced(s), true) => {
             let text = serde_json::to_string_pretty(&crate::model::instanced::scene_graph(s))?;
             crate::util::write_atomic(out, |f| {

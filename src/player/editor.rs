@@ -401,7 +401,7 @@ impl Editor {
         // A glTF scene stays glTF (its templates shared); anything else is written as .instgs.
         let name = path.to_string_lossy().to_ascii_lowercase();
         if name.ends_with(".glb") || name.ends_with(".gltf") {
-            crate::formats::gltf::write_instanced_gltf(&scene, path)?;
+            crate::formats::gltf::write_instanced_gltf(&scene, path, crate::formats::gltf::Accessors::Float)?;
         } else {
             crate::formats::instgs::write(&scene, path, dtype)?;
         }
@@ -584,7 +584,7 @@ mod tests {
         assert!(ed.unsaved());
         // An instanced glTF opened in the player is saved as glTF again.
         let glb = dir.join("s.glb");
-        crate::formats::gltf::write_instanced_gltf(&s, &glb).unwrap();
+        crate::formats::gltf::write_instanced_gltf(&s, &glb, crate::formats::gltf::Accessors::Float).unwrap();
         let mut ed = Editor::new(&s);
         ed.selected = Some((0, 0));
         ed.turn(&mut s, 20.0, Vec3::Z).unwrap();

@@ -79,6 +79,14 @@ fn read_group<'a>(
     if pos.len() != n * 3 || logits.len() != n || dc.len() != n * 3 {
         bail!("group {:?}: the template's accessors hold other counts than its instances", g.name);
     }
+    // Quantised positions: the instances' rows are dequantised by `d`, which their nodes
+    // apply after their transforms; the shared scales were divided by its scale.
+    let d = g.dequantise;
+    if let Some(d) = &d {
+        d.check().with_context(|| format!("group {:?}", g.name))?;
+        let ln = d.scale.ln();
+        t.scales.iter_mut().flatten().for_each(|v| *v += ln);
+    }
     let c = t.sh_coeffs();
     let shared = shared_of(doc, node_prim(first.node)?)?;
     for j in 0..n {
@@ -98,11 +106,12 @@ fn read_group<'a>(
         if own.len() != n {
             bail!("instance {:?} has {} splats, its template {n}", inst.id, own.len());
         }
-        let x = turn_similarity(&Similarity::from_mat4(p.world, "a node's matrix")?)?;
+        let dequantise = d.map_or(glam::Mat4::IDENTITY, |d| d.mat4());
+        let x = turn_similarity(&Similarity::from_mat4(p.world * dequantise.inverse(), "a node's matrix")?)?;
         for j in 0..n {
             let q = k * n + j;
             // The instance's template-space mean, turned into our frame.
-            let m = own.means[j];
+            let m = dequantise.transform_point3(Vec3::from(own.means[j]));
             let local = Vec3::new(-m[0], -m[1], m[2]) - Vec3::from(t.means[j]);
             offsets.d_means[q] = (x.rotation * (local * x.scale)).to_array();
             offsets.d_opacities[q] = own.opacities[j] - t.opacities[j];

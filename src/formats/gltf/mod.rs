@@ -29,7 +29,8 @@
 //!   signed bytes or shorts; SCALE as signed bytes or shorts, normalized or not; OPACITY as
 //!   normalized unsigned bytes or shorts; POSITION as any integer type `KHR_mesh_quantization`
 //!   allows (the node's matrix dequantises). SH is float. Sparse accessors are refused.
-//!   We write floats (the extension's advice for precision).
+//!   We write floats (the extension's advice for precision), or with [`Accessors::Quantized`]
+//!   (`convert --quantize`) 16-bit POSITION and ROTATION.
 //! - Node transforms place splat primitives: the node's world matrix must be a similarity
 //!   (rotation, uniform scale > 0, translation); positions take the matrix, rotations its
 //!   rotation, log-scales its ln s, and SH bands are rotated by its rotation (the same maths as
@@ -73,13 +74,15 @@ pub enum GltfScene {
 }
 pub use tiles::{looks_like_tileset, read_tileset, write_instanced_tileset, write_tileset, SPZ_EXTENSION};
 pub use write::{write_gltf, write_instanced_gltf};
+/// `KHR_mesh_quantization`: required by files with [`Accessors::Quantized`].
+pub(crate) const MESH_QUANTIZATION: &str = "KHR_mesh_quantization";
 
 /// The extension's name (on the primitive and in `extensionsUsed`).
 pub const EXTENSION: &str = "KHR_gaussian_splatting";
 /// Attribute names' prefix.
 pub(crate) const PREFIX: &str = "KHR_gaussian_splatting:";
 /// `extensionsRequired` entries we read; any other is refused.
-pub(crate) const KNOWN_REQUIRED: [&str; 3] = [EXTENSION, "KHR_mesh_quantization", tiles::SPZ_EXTENSION];
+pub(crate) const KNOWN_REQUIRED: [&str; 3] = [EXTENSION, MESH_QUANTIZATION, tiles::SPZ_EXTENSION];
 /// The primitive's extension object we write.
 pub(crate) fn extension_object() -> Value {
     json!({"kernel": "ellipse", "colorSpace": "srgb_rec709_display", "projection": "perspective", "sortingMethod": "cameraDistance"})
@@ -117,6 +120,64 @@ pub(crate) fn sh_name(k: usize) -> String {
     format!("{PREFIX}SH_DEGREE_{l}_COEF_{}", k - l * l)
 }
 
+/// How a writer stores the splat attributes.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Accessors {
+    /// Every attribute float32 (the extension's advice for precision).
+    Float,
+    /// POSITION as normalized signed shorts (`KHR_mesh_quantization`, required) dequantised by
+    /// the node's translation and uniform scale ([`Dequantise`]), ROTATION as normalized signed
+    /// shorts; SCALE (linear, divided by the node's scale), OPACITY, SH and the DC term stay
+    /// float: the extension allows no integer SH, and a vertex attribute's rows align to 4
+    /// bytes, so a 1- or 2-byte OPACITY would take a float's space. A short spends 1/65 534 of
+    /// the bounding box's largest side per position axis (docs/formats.md).
+    Quantized,
+}
+
+/// A dequantisation of positions: `POSITION = translation + scale · q`, q ∈ [−1, 1]³ the
+/// normalized signed shorts; the node's transform (translation, uniform scale) in the file.
+#[derive(Serialize, Deserialize, Clone, Copy, Debug, PartialEq)]
+pub(crate) struct Dequantise {
+    pub(crate) translation: [f32; 3],
+    pub(crate) scale: f32,
+}
+
+impl Dequantise {
+    /// The bounding box of `means`: its centre, half its largest side (at least 1e-6).
+    pub(crate) fn of(means: &[[f32; 3]]) -> Dequantise {
+        let (lo, hi) = means.iter().fold((Vec3::splat(f32::MAX), Vec3::splat(f32::MIN)), |(lo, hi), m| {
+            (lo.min(Vec3::from(*m)), hi.max(Vec3::from(*m)))
+        });
+        if means.is_empty() {
+            return Dequantise { translation: [0.0; 3], scale: 1.0 };
+        }
+        Dequantise { translation: ((lo + hi) / 2.0).to_array(), scale: ((hi - lo).max_element() / 2.0).max(1e-6) }
+    }
+
+    pub(crate) fn mat4(&self) -> Mat4 {
+        Mat4::from_translation(Vec3::from(self.translation)) * Mat4::from_scale(Vec3::splat(self.scale))
+    }
+
+    /// A position as normalized signed shorts.
+    pub(crate) fn quantise(&self, p: [f32; 3]) -> [i16; 3] {
+        std::array::from_fn(|a| snorm16((p[a] - self.translation[a]) / self.scale))
+    }
+
+    /// Refuses what no writer of ours writes: a scale that is not finite and positive, a
+    /// translation that is not finite.
+    pub(crate) fn check(&self) -> Result<()> {
+        if !(self.scale.is_finite() && self.scale > 0.0 && self.translation.iter().all(|v| v.is_finite())) {
+            anyhow::bail!("dequantisation {:?} is not a finite translation and a positive scale", self);
+        }
+        Ok(())
+    }
+}
+
+/// A value in [−1, 1] as a normalized signed short (glTF: c / 32 767, at least −1).
+pub(crate) fn snorm16(v: f32) -> i16 {
+    (v.clamp(-1.0, 1.0) * 32767.0).round() as i16
+}
+
 /// Root `extras.instgs`: what a reader needs to get the instanced scene back.
 #[derive(Serialize, Deserialize)]
 pub(crate) struct InstgsExtras {
@@ -129,6 +190,10 @@ pub(crate) struct InstgsExtras {
 #[derive(Serialize, Deserialize)]
 pub(crate) struct GroupExtras {
     pub(crate) name: String,
+    /// With quantised positions ([`Accessors::Quantized`]): the dequantisation every instance's
+    /// node applies after its transform (its node's matrix is transform · dequantisation).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub(crate) dequantise: Option<Dequantise>,
     /// The template's own means (glTF frame, template space), opacity logits and DC.
     pub(crate) template: TemplateExtras,
     pub(crate) instances: Vec<InstanceExtras>,

@@ -5,11 +5,11 @@ use anyhow::{anyhow, bail, Result};
 use serde_json::{json, Map, Value};
 
 use super::{
-    extension_object, half_turn_z, sh_name, turn_similarity, GroupExtras, InstanceExtras, InstgsExtras, TemplateExtras,
-    EXTENSION, PREFIX,
+    extension_object, half_turn_z, sh_name, snorm16, turn_similarity, Accessors, Dequantise, GroupExtras,
+    InstanceExtras, InstgsExtras, TemplateExtras, EXTENSION, MESH_QUANTIZATION, PREFIX,
 };
 use crate::math::sigmoid;
-use crate::model::instanced::InstancedScene;
+use crate::model::instanced::{InstancedScene, Similarity};
 use crate::model::scene::Scene;
 
 /// The BIN chunk, its buffer views and accessors as they are built.
@@ -39,6 +39,26 @@ impl Builder {
         self.push(bytemuck::cast_slice(values), acc)
     }
 
+    /// POSITION: floats, or under `d` normalized signed shorts, each row padded to 8 bytes
+    /// (a vertex attribute's rows align to 4), min/max in the stored integers.
+    fn positions(&mut self, means: &[[f32; 3]], d: Option<&Dequantise>) -> usize {
+        let Some(d) = d else { return self.floats(&means.concat(), "VEC3", 3, true) };
+        let (mut lo, mut hi) = ([i16::MAX; 3], [i16::MIN; 3]);
+        let mut bytes = Vec::with_capacity(means.len() * 8);
+        for m in means {
+            let q = d.quantise(*m);
+            for a in 0..3 {
+                (lo[a], hi[a]) = (lo[a].min(q[a]), hi[a].max(q[a]));
+                bytes.extend_from_slice(&q[a].to_le_bytes());
+            }
+            bytes.extend_from_slice(&[0, 0]);
+        }
+        let acc = json!({"componentType": 5122, "normalized": true, "count": means.len(), "type": "VEC3", "min": lo, "max": hi});
+        let i = self.push(&bytes, acc);
+        self.views[i_view(&self.accessors[i])]["byteStride"] = json!(8);
+        i
+    }
+
     fn push(&mut self, bytes: &[u8], mut acc: Value) -> usize {
         let offset = self.bin.len();
         self.bin.extend_from_slice(bytes);
@@ -50,6 +70,11 @@ impl Builder {
         self.accessors.push(acc);
         self.accessors.len() - 1
     }
+}
+
+/// The buffer view an accessor we wrote reads.
+fn i_view(acc: &Value) -> usize {
+    acc["bufferView"].as_u64().unwrap_or_default() as usize
 }
 
 /// SH coefficient `k` (RGB) of every splat, in splat order (k = 0: the DC term).
@@ -65,8 +90,10 @@ struct Shared {
     sh_rest: Vec<usize>,
 }
 
-/// Writes `s`'s (glTF frame) rotations, linear scales and SH rest coefficients.
-fn shared_accessors(b: &mut Builder, s: &Scene) -> Shared {
+/// Writes `s`'s (glTF frame) rotations, linear scales and SH rest coefficients; under `d`
+/// the rotations as normalized signed shorts and the scales divided by its scale (the node's
+/// scale multiplies them back).
+fn shared_accessors(b: &mut Builder, s: &Scene, d: Option<&Dequantise>) -> Shared {
     // Unit quaternions (the extension's requirement; ours need not be normalised).
     let rot: Vec<f32> = s
         .quats
@@ -76,16 +103,26 @@ fn shared_accessors(b: &mut Builder, s: &Scene) -> Shared {
             [q[1] / n, q[2] / n, q[3] / n, q[0] / n]
         })
         .collect();
-    let scale: Vec<f32> = s.scales.iter().flatten().map(|v| v.exp()).collect();
+    let rotation = match d {
+        None => b.floats(&rot, "VEC4", 4, false),
+        Some(_) => {
+            let q: Vec<i16> = rot.iter().map(|&v| snorm16(v)).collect();
+            b.push(
+                bytemuck::cast_slice(&q),
+                json!({"componentType": 5122, "normalized": true, "count": s.len(), "type": "VEC4"}),
+            )
+        }
+    };
+    let node_scale = d.map_or(1.0, |d| d.scale);
+    let scale: Vec<f32> = s.scales.iter().flatten().map(|v| v.exp() / node_scale).collect();
     let c = s.sh_coeffs();
     let sh_rest = (1..c).map(|k| b.floats(&coefficient(s, k), "VEC3", 3, false)).collect();
-    Shared { rotation: b.floats(&rot, "VEC4", 4, false), scale: b.floats(&scale, "VEC3", 3, false), sh_rest }
+    Shared { rotation, scale: b.floats(&scale, "VEC3", 3, false), sh_rest }
 }
 
-/// Writes `s`'s own attributes (POSITION, OPACITY, DC, COLOR_0) and returns the primitive with
-/// `shared` for the rest.
-fn primitive(b: &mut Builder, s: &Scene, shared: &Shared) -> Value {
-    let pos: Vec<f32> = s.means.iter().flatten().copied().collect();
+/// Writes `s`'s own attributes (POSITION, under `d` quantised; OPACITY, DC, COLOR_0) and
+/// returns the primitive with `shared` for the rest.
+fn primitive(b: &mut Builder, s: &Scene, shared: &Shared, d: Option<&Dequantise>) -> Value {
     let alpha: Vec<f32> = s.opacities.iter().map(|&o| sigmoid(o)).collect();
     let dc = coefficient(s, 0);
     let colour: Vec<u8> = (0..s.len())
@@ -96,7 +133,7 @@ fn primitive(b: &mut Builder, s: &Scene, shared: &Shared) -> Value {
         })
         .collect();
     let mut attributes = Map::new();
-    attributes.insert("POSITION".into(), json!(b.floats(&pos, "VEC3", 3, true)));
+    attributes.insert("POSITION".into(), json!(b.positions(&s.means, d)));
     let colour = b.push(&colour, json!({"componentType": 5121, "normalized": true, "count": s.len(), "type": "VEC4"}));
     attributes.insert("COLOR_0".into(), json!(colour));
     attributes.insert(format!("{PREFIX}ROTATION"), json!(shared.rotation));
@@ -109,16 +146,23 @@ fn primitive(b: &mut Builder, s: &Scene, shared: &Shared) -> Value {
     json!({"attributes": attributes, "mode": 0, "extensions": {EXTENSION: extension_object()}})
 }
 
-/// A whole plain scene's primitive (in our frame; turned here).
-fn plain_primitive(b: &mut Builder, scene: &Scene) -> Value {
+/// A whole plain scene's primitive (in our frame; turned here) and its node (a dequantising
+/// translation and scale with quantised positions).
+fn plain_primitive(b: &mut Builder, scene: &Scene, accessors: Accessors) -> (Value, Map<String, Value>) {
     let mut s = scene.clone();
     half_turn_z(&mut s);
-    let shared = shared_accessors(b, &s);
-    primitive(b, &s, &shared)
+    let d = (accessors == Accessors::Quantized).then(|| Dequantise::of(&s.means));
+    let shared = shared_accessors(b, &s, d.as_ref());
+    let mut node = Map::new();
+    if let Some(d) = &d {
+        node.insert("translation".into(), json!(d.translation));
+        node.insert("scale".into(), json!([d.scale, d.scale, d.scale]));
+    }
+    (primitive(b, &s, &shared, d.as_ref()), node)
 }
 
 /// The document around `nodes` (all roots of scene 0) and `meshes`.
-fn document(b: &Builder, nodes: Vec<Value>, meshes: Vec<Value>, extras: Option<Value>) -> Value {
+fn document(b: &Builder, nodes: Vec<Value>, meshes: Vec<Value>, extras: Option<Value>, accessors: Accessors) -> Value {
     let roots: Vec<usize> = (0..nodes.len()).collect();
     let mut doc = json!({
         "asset": {"version": "2.0", "generator": concat!("instgs-vk ", env!("CARGO_PKG_VERSION"))},
@@ -133,6 +177,10 @@ fn document(b: &Builder, nodes: Vec<Value>, meshes: Vec<Value>, extras: Option<V
     });
     if let Some(e) = extras {
         doc["extras"] = e;
+    }
+    if accessors == Accessors::Quantized {
+        doc["extensionsUsed"] = json!([EXTENSION, MESH_QUANTIZATION]);
+        doc["extensionsRequired"] = json!([MESH_QUANTIZATION]);
     }
     doc
 }
@@ -162,45 +210,61 @@ pub(super) fn glb_bytes(doc: &Value, bin: Vec<u8>, what: &str) -> Result<Vec<u8>
 }
 
 /// Writes a plain scene as `.glb` (or `.gltf`, the buffer embedded): one node, one splat
-/// primitive, float accessors.
-pub fn write_gltf(scene: &Scene, out: &Path) -> Result<()> {
+/// primitive, its attributes as `accessors` says.
+pub fn write_gltf(scene: &Scene, out: &Path, accessors: Accessors) -> Result<()> {
     scene.validate(&out.display().to_string())?;
     let mut b = Builder::default();
-    let prim = plain_primitive(&mut b, scene);
-    let doc = document(&b, vec![json!({"mesh": 0})], vec![json!({"primitives": [prim]})], None);
+    let (prim, mut node) = plain_primitive(&mut b, scene, accessors);
+    node.insert("mesh".into(), json!(0));
+    let doc = document(&b, vec![Value::Object(node)], vec![json!({"primitives": [prim]})], None, accessors);
     write_document(doc, b.bin, out)
 }
 
-/// Writes an instanced scene with its templates shared (module docs).
-pub fn write_instanced_gltf(scene: &InstancedScene, out: &Path) -> Result<()> {
+/// Writes an instanced scene with its templates shared (module docs), its attributes as
+/// `accessors` says: quantised, each group's positions (its instances' own rows in template
+/// space) share one dequantisation, which each instance's node applies after its transform.
+pub fn write_instanced_gltf(scene: &InstancedScene, out: &Path, accessors: Accessors) -> Result<()> {
     scene.validate(&out.display().to_string())?;
     let mut b = Builder::default();
     let (mut nodes, mut meshes) = (Vec::new(), Vec::new());
     let mut extras = InstgsExtras { version: 1, background: Vec::new(), groups: Vec::new() };
     if !scene.background.is_empty() {
-        meshes.push(json!({"name": "background", "primitives": [plain_primitive(&mut b, &scene.background)]}));
-        nodes.push(json!({"name": "background", "mesh": 0}));
+        let (prim, mut node) = plain_primitive(&mut b, &scene.background, accessors);
+        meshes.push(json!({"name": "background", "primitives": [prim]}));
+        node.insert("name".into(), json!("background"));
+        node.insert("mesh".into(), json!(0));
+        nodes.push(Value::Object(node));
         extras.background.push(0);
     }
     for (gi, g) in scene.groups.iter().enumerate() {
         let mut t = g.template.clone();
         half_turn_z(&mut t);
-        let shared = shared_accessors(&mut b, &t);
+        // Its instances' own rows in the template's frame, turned like the template's
+        // (rotations, scales and higher SH bands are the template's: shared).
+        let own: Vec<Scene> = (0..g.instances.len())
+            .map(|k| {
+                let mut own = scene.instance_in_template_frame(gi, k);
+                half_turn_z(&mut own);
+                own
+            })
+            .collect();
+        let d = (accessors == Accessors::Quantized)
+            .then(|| Dequantise::of(&own.iter().flat_map(|o| o.means.iter().copied()).collect::<Vec<_>>()));
+        let shared = shared_accessors(&mut b, &t, d.as_ref());
         let dc = coefficient(&t, 0);
         let template = TemplateExtras {
             position: b.floats(&t.means.concat(), "VEC3", 3, false),
             opacity_logit: b.floats(&t.opacities, "SCALAR", 1, false),
             sh_degree_0_coef_0: b.floats(&dc, "VEC3", 3, false),
         };
-        let mut group = GroupExtras { name: g.name.clone(), template, instances: Vec::new() };
-        for (k, inst) in g.instances.iter().enumerate() {
-            // Its own rows in the template's frame, turned like the template's (rotations,
-            // scales and higher SH bands are the template's: shared).
-            let mut own = scene.instance_in_template_frame(gi, k);
-            half_turn_z(&mut own);
-            let node_x = turn_similarity(&inst.transform)?;
+        let mut group = GroupExtras { name: g.name.clone(), dequantise: d, template, instances: Vec::new() };
+        for (inst, own) in g.instances.iter().zip(&own) {
+            let mut node_x = turn_similarity(&inst.transform)?;
+            if let Some(d) = &d {
+                node_x = Similarity::from_mat4(node_x.render_mat4() * d.mat4(), "an instance's node")?;
+            }
             let r = node_x.rotation;
-            meshes.push(json!({"name": g.name, "primitives": [primitive(&mut b, &own, &shared)]}));
+            meshes.push(json!({"name": g.name, "primitives": [primitive(&mut b, own, &shared, d.as_ref())]}));
             nodes.push(json!({
                 "name": inst.id,
                 "mesh": meshes.len() - 1,
@@ -212,6 +276,6 @@ pub fn write_instanced_gltf(scene: &InstancedScene, out: &Path) -> Result<()> {
         }
         extras.groups.push(group);
     }
-    let doc = document(&b, nodes, meshes, Some(json!({"instgs": extras})));
+    let doc = document(&b, nodes, meshes, Some(json!({"instgs": extras})), accessors);
     write_document(doc, b.bin, out)
 }
