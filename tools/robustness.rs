@@ -246,8 +246,17 @@ fn equivalent(
     };
     let opaque = pose::registration_cloud(&reference, InstanceOptions::default().min_opacity).0;
     let (centre, size) = (centroid(&opaque), instgs_vk::register::object_size(&opaque));
-    let (refined, at_refined, _) =
-        pose::refine_pose(check, &reference, &own, r.id, truth, at_truth, centre, size, false, (0..4, 120))?;
+    let (refined, at_refined, _) = pose::refine_pose(
+        check,
+        &reference,
+        &own,
+        r.id,
+        (truth, at_truth, pose::Detail::Full),
+        centre,
+        size,
+        false,
+        (0..4, 120),
+    )?;
     eprintln!(
         "  {} {}: the instance's own render against the reference placed by the accepted pose {:.2} dB, by the true pose {:.2} dB, refined ({:.2}° away) {:.2} dB",
         r.group,
