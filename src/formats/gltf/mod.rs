@@ -126,7 +126,7 @@ pub enum Accessors {
     /// Every attribute float32 (the extension's advice for precision).
     Float,
     /// POSITION as normalized signed shorts (`KHR_mesh_quantization`, required) dequantised by
-    /// the node's translation and uniform scale ([`Dequantise`]), ROTATION as normalized signed
+    /// the node's translation and uniform scale, ROTATION as normalized signed
     /// shorts; SCALE (linear, divided by the node's scale), OPACITY, SH and the DC term stay
     /// float: the extension allows no integer SH, and a vertex attribute's rows align to 4
     /// bytes, so a 1- or 2-byte OPACITY would take a float's space. A short spends 1/65 534 of
