@@ -20,6 +20,11 @@ pub fn largest_component(q: [f32; 4]) -> (usize, [f32; 4]) {
     (largest, if q[largest] < 0.0 { q.map(|v| -v) } else { q })
 }
 
+/// A value in [−1, 1] as a normalized signed short (glTF: c / 32 767, at least −1).
+pub fn snorm16(v: f32) -> i16 {
+    (v.clamp(-1.0, 1.0) * 32767.0).round() as i16
+}
+
 pub fn unorm8(v: f32) -> u8 {
     (v * 255.0).round().clamp(0.0, 255.0) as u8
 }

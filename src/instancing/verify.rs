@@ -116,61 +116,71 @@ impl ImageCheck {
         cameras.map(|c| Ok(self.rasterizer.render(&gs, c, [0.0; 3])?.image)).collect()
     }
 
-    /// The instance's views at `detail`, chosen (and rendered) on first use.
+    /// The instance's views at `detail` (Full or Coarse), chosen (and rendered) on first use.
     fn own_views(&mut self, instance: &Scene, id: u32, detail: Detail) -> Result<()> {
-        if detail == Detail::Coarse && !self.own.contains_key(&(id, detail)) {
-            self.own_views(instance, id, Detail::Full)?;
-            let coarse: Vec<(Camera, Option<Vec<u16>>, usize)> = self.own[&(id, Detail::Full)]
-                .iter()
-                .take(SEARCH_VIEWS)
-                .map(|o| {
-                    let (camera, mask) = half_resolution(&o.camera, o.mask.as_deref());
-                    (camera, mask, o.truth_outside / 4)
-                })
-                .collect();
-            let images = self.render(instance, coarse.iter().map(|c| &c.0))?;
-            let views = coarse
-                .into_iter()
-                .zip(images)
-                .map(|((camera, mask, truth_outside), image)| OwnView { camera, image, mask, truth_outside })
-                .collect();
+        if !self.own.contains_key(&(id, detail)) {
+            let views = match detail {
+                Detail::Coarse => self.coarse_views(instance, id)?,
+                _ => self.full_views(instance, id)?,
+            };
             self.own.insert((id, detail), views);
         }
-        if !self.own.contains_key(&(id, detail)) {
-            let crops: Vec<(usize, [u32; 4], Camera)> = (0..self.cameras.len())
-                .filter_map(|v| {
-                    let [x0, y0, x1, y1] = window(instance, &self.cameras[v])?;
-                    Some((v, [x0, y0, x1, y1], self.cameras[v].cropped(x0, y0, x1 - x0, y1 - y0)))
-                })
-                .collect();
-            let images = self.render(instance, crops.iter().map(|c| &c.2))?;
-            let mut seen: Vec<(usize, usize, OwnView)> = Vec::new();
-            for ((v, [x0, y0, x1, y1], camera), image) in crops.into_iter().zip(images) {
-                let area = image.iter().filter(|p| silhouette(p)).count();
-                let full_width = self.cameras[v].width as usize;
-                let (mask, shown, truth_outside) = match &self.masks {
-                    Some(m) => {
-                        let crop: Vec<u16> = (y0..y1)
-                            .flat_map(|y| {
-                                let row = y as usize * full_width;
-                                m[v][row + x0 as usize..row + x1 as usize].iter().copied()
-                            })
-                            .collect();
-                        let shown = m[v].iter().filter(|&&x| x as u32 == id).count();
-                        let inside = crop.iter().filter(|&&x| x as u32 == id).count();
-                        (Some(crop), shown, shown - inside)
-                    }
-                    None => (None, area, 0),
-                };
-                if area >= MIN_VIEW_PIXELS && 2 * shown >= area {
-                    seen.push((area, v, OwnView { camera, image, mask, truth_outside }));
-                }
-            }
-            seen.sort_by_key(|s| (std::cmp::Reverse(s.0), s.1));
-            seen.truncate(MAX_VIEWS);
-            self.own.insert((id, detail), seen.into_iter().map(|(_, _, o)| o).collect());
-        }
         Ok(())
+    }
+
+    /// The first [`SEARCH_VIEWS`] full views at half resolution, the instance rendered there.
+    fn coarse_views(&mut self, instance: &Scene, id: u32) -> Result<Vec<OwnView>> {
+        self.own_views(instance, id, Detail::Full)?;
+        let coarse: Vec<(Camera, Option<Vec<u16>>, usize)> = self.own[&(id, Detail::Full)]
+            .iter()
+            .take(SEARCH_VIEWS)
+            .map(|o| {
+                let (camera, mask) = half_resolution(&o.camera, o.mask.as_deref());
+                (camera, mask, o.truth_outside / 4)
+            })
+            .collect();
+        let images = self.render(instance, coarse.iter().map(|c| &c.0))?;
+        Ok(coarse
+            .into_iter()
+            .zip(images)
+            .map(|((camera, mask, truth_outside), image)| OwnView { camera, image, mask, truth_outside })
+            .collect())
+    }
+
+    /// The views where the instance shows (module docs), largest first, with its own renders.
+    fn full_views(&mut self, instance: &Scene, id: u32) -> Result<Vec<OwnView>> {
+        let crops: Vec<(usize, [u32; 4], Camera)> = (0..self.cameras.len())
+            .filter_map(|v| {
+                let [x0, y0, x1, y1] = window(instance, &self.cameras[v])?;
+                Some((v, [x0, y0, x1, y1], self.cameras[v].cropped(x0, y0, x1 - x0, y1 - y0)))
+            })
+            .collect();
+        let images = self.render(instance, crops.iter().map(|c| &c.2))?;
+        let mut seen: Vec<(usize, usize, OwnView)> = Vec::new();
+        for ((v, [x0, y0, x1, y1], camera), image) in crops.into_iter().zip(images) {
+            let area = image.iter().filter(|p| silhouette(p)).count();
+            let full_width = self.cameras[v].width as usize;
+            let (mask, shown, truth_outside) = match &self.masks {
+                Some(m) => {
+                    let crop: Vec<u16> = (y0..y1)
+                        .flat_map(|y| {
+                            let row = y as usize * full_width;
+                            m[v][row + x0 as usize..row + x1 as usize].iter().copied()
+                        })
+                        .collect();
+                    let shown = m[v].iter().filter(|&&x| x as u32 == id).count();
+                    let inside = crop.iter().filter(|&&x| x as u32 == id).count();
+                    (Some(crop), shown, shown - inside)
+                }
+                None => (None, area, 0),
+            };
+            if area >= MIN_VIEW_PIXELS && 2 * shown >= area {
+                seen.push((area, v, OwnView { camera, image, mask, truth_outside }));
+            }
+        }
+        seen.sort_by_key(|s| (std::cmp::Reverse(s.0), s.1));
+        seen.truncate(MAX_VIEWS);
+        Ok(seen.into_iter().map(|(_, _, o)| o).collect())
     }
 }
 

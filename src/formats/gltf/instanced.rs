@@ -81,12 +81,13 @@ fn read_group<'a>(
     }
     // Quantised positions: the instances' rows are dequantised by `d`, which their nodes
     // apply after their transforms; the shared scales were divided by its scale.
-    let d = g.dequantise;
-    if let Some(d) = &d {
+    if let Some(d) = &g.dequantise {
         d.check().with_context(|| format!("group {:?}", g.name))?;
         let ln = d.scale.ln();
         t.scales.iter_mut().flatten().for_each(|v| *v += ln);
     }
+    let dequantise = g.dequantise.map_or(glam::Mat4::IDENTITY, |d| d.mat4());
+    let requantise = dequantise.inverse();
     let c = t.sh_coeffs();
     let shared = shared_of(doc, node_prim(first.node)?)?;
     for j in 0..n {
@@ -106,8 +107,7 @@ fn read_group<'a>(
         if own.len() != n {
             bail!("instance {:?} has {} splats, its template {n}", inst.id, own.len());
         }
-        let dequantise = d.map_or(glam::Mat4::IDENTITY, |d| d.mat4());
-        let x = turn_similarity(&Similarity::from_mat4(p.world * dequantise.inverse(), "a node's matrix")?)?;
+        let x = turn_similarity(&Similarity::from_mat4(p.world * requantise, "a node's matrix")?)?;
         for j in 0..n {
             let q = k * n + j;
             // The instance's template-space mean, turned into our frame.

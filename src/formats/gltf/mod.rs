@@ -145,12 +145,10 @@ pub(crate) struct Dequantise {
 impl Dequantise {
     /// The bounding box of `means`: its centre, half its largest side (at least 1e-6).
     pub(crate) fn of(means: &[[f32; 3]]) -> Dequantise {
-        let (lo, hi) = means.iter().fold((Vec3::splat(f32::MAX), Vec3::splat(f32::MIN)), |(lo, hi), m| {
-            (lo.min(Vec3::from(*m)), hi.max(Vec3::from(*m)))
-        });
         if means.is_empty() {
             return Dequantise { translation: [0.0; 3], scale: 1.0 };
         }
+        let (lo, hi) = bounds(means.iter().map(|m| Vec3::from(*m)));
         Dequantise { translation: ((lo + hi) / 2.0).to_array(), scale: ((hi - lo).max_element() / 2.0).max(1e-6) }
     }
 
@@ -160,7 +158,7 @@ impl Dequantise {
 
     /// A position as normalized signed shorts.
     pub(crate) fn quantise(&self, p: [f32; 3]) -> [i16; 3] {
-        std::array::from_fn(|a| snorm16((p[a] - self.translation[a]) / self.scale))
+        std::array::from_fn(|a| crate::formats::quant::snorm16((p[a] - self.translation[a]) / self.scale))
     }
 
     /// Refuses what no writer of ours writes: a scale that is not finite and positive, a
@@ -173,9 +171,9 @@ impl Dequantise {
     }
 }
 
-/// A value in [−1, 1] as a normalized signed short (glTF: c / 32 767, at least −1).
-pub(crate) fn snorm16(v: f32) -> i16 {
-    (v.clamp(-1.0, 1.0) * 32767.0).round() as i16
+/// The smallest and largest coordinates of `points`.
+pub(crate) fn bounds(points: impl Iterator<Item = Vec3>) -> (Vec3, Vec3) {
+    points.fold((Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY)), |(lo, hi), p| (lo.min(p), hi.max(p)))
 }
 
 /// Root `extras.instgs`: what a reader needs to get the instanced scene back.

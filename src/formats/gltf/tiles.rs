@@ -20,7 +20,7 @@ use anyhow::{anyhow, bail, Context, Result};
 use glam::{Mat3, Mat4, Vec3};
 use serde_json::{json, Value};
 
-use super::{extension_object, half_turn_z, sh_name, EXTENSION, PREFIX};
+use super::{bounds, extension_object, half_turn_z, sh_name, EXTENSION, PREFIX};
 use crate::model::instanced::{transform_gaussians, InstancedScene, Similarity};
 use crate::model::scene::Scene;
 
@@ -86,11 +86,6 @@ fn tile_glb(s: &Scene, what: &str) -> Result<Vec<u8>> {
         "accessors": accessors,
     });
     super::write::glb_bytes(&doc, spz, what)
-}
-
-/// The smallest and largest coordinates of `points`.
-fn bounds(points: impl Iterator<Item = Vec3>) -> (Vec3, Vec3) {
-    points.fold((Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY)), |(lo, hi), p| (lo.min(p), hi.max(p)))
 }
 
 /// The axis-aligned box (3D Tiles `box`: centre, then three half axes) from `lo` to `hi`,

@@ -5,9 +5,10 @@ use anyhow::{anyhow, bail, Result};
 use serde_json::{json, Map, Value};
 
 use super::{
-    extension_object, half_turn_z, sh_name, snorm16, turn_similarity, Accessors, Dequantise, GroupExtras,
-    InstanceExtras, InstgsExtras, TemplateExtras, EXTENSION, MESH_QUANTIZATION, PREFIX,
+    extension_object, half_turn_z, sh_name, turn_similarity, Accessors, Dequantise, GroupExtras, InstanceExtras,
+    InstgsExtras, TemplateExtras, EXTENSION, MESH_QUANTIZATION, PREFIX,
 };
+use crate::formats::quant::snorm16;
 use crate::math::sigmoid;
 use crate::model::instanced::{InstancedScene, Similarity};
 use crate::model::scene::Scene;
@@ -55,7 +56,10 @@ impl Builder {
         }
         let acc = json!({"componentType": 5122, "normalized": true, "count": means.len(), "type": "VEC3", "min": lo, "max": hi});
         let i = self.push(&bytes, acc);
-        self.views[i_view(&self.accessors[i])]["byteStride"] = json!(8);
+        // `push` wrote this accessor's view last.
+        if let Some(view) = self.views.last_mut() {
+            view["byteStride"] = json!(8);
+        }
         i
     }
 
@@ -70,11 +74,6 @@ impl Builder {
         self.accessors.push(acc);
         self.accessors.len() - 1
     }
-}
-
-/// The buffer view an accessor we wrote reads.
-fn i_view(acc: &Value) -> usize {
-    acc["bufferView"].as_u64().unwrap_or_default() as usize
 }
 
 /// SH coefficient `k` (RGB) of every splat, in splat order (k = 0: the DC term).
