@@ -660,6 +660,19 @@ fn instanced_gltf_shares_templates_and_reads_back_the_instanced_scene() {
     assert!(max_errors(&scene.background, &back.background).iter().all(|v| *v < 1e-5));
     let db = render_agreement(&scene.expand(), &back.expand());
     assert!(db >= 60.0, "{db:.1} dB");
+    // Every accessor is one a primitive of the scene uses (the validator's UNUSED_OBJECT): the
+    // templates' own rows are attributes of their first instances.
+    let (doc, _) = glb_parts(&glb);
+    let mut used: Vec<u64> = doc["meshes"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .flat_map(|m| m["primitives"].as_array().unwrap().iter())
+        .flat_map(|p| p["attributes"].as_object().unwrap().values().map(|a| a.as_u64().unwrap()))
+        .collect();
+    used.sort();
+    used.dedup();
+    assert_eq!(used, (0..doc["accessors"].as_array().unwrap().len() as u64).collect::<Vec<_>>());
     // A plain reading (any other viewer's) is the expanded scene; the file is smaller than
     // the expanded .glb.
     let plain = formats::read_scene(&glb).unwrap();
@@ -935,7 +948,10 @@ fn what_a_gltf_says_is_checked_against_what_it_holds() {
             d["extras"]["instgs"]["background"][0] = n;
         }),
         ("a template moved by 1e7", &|d, bin| {
-            let acc = d["extras"]["instgs"]["groups"][0]["template"]["POSITION"].as_u64().unwrap() as usize;
+            let first =
+                &d["nodes"][d["extras"]["instgs"]["groups"][0]["instances"][0]["node"].as_u64().unwrap() as usize];
+            let mesh = &d["meshes"][first["mesh"].as_u64().unwrap() as usize];
+            let acc = mesh["primitives"][0]["attributes"]["_INSTGS_TEMPLATE_POSITION"].as_u64().unwrap() as usize;
             let v = &d["bufferViews"][d["accessors"][acc]["bufferView"].as_u64().unwrap() as usize];
             let (o, l) = (v["byteOffset"].as_u64().unwrap() as usize, v["byteLength"].as_u64().unwrap() as usize);
             for c in bin[o..o + l].chunks_exact_mut(4) {

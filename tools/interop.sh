@@ -16,8 +16,8 @@
 # (npm gltf-validator, pinned, same scratch folder): it does not know KHR_gaussian_splatting, so
 # each of the extension's attribute names is an error (MESH_PRIMITIVE_INVALID_ATTRIBUTE, as for
 # splat-transform's own .glb); any other error or warning fails. Infos pass: the extensions it
-# does not know, the instanced file's three accessors per template that only our extras name
-# (UNUSED_OBJECT), a tile's SPZ buffer view that only the SPZ extension names.
+# does not know, a tile's SPZ buffer view that only the SPZ extension names (UNUSED_OBJECT). Every
+# UNUSED_OBJECT is listed; an unused accessor fails.
 # Usage: bash tools/interop.sh [--quick] [SPLAT...]   (default: the shared fruit_drops_minimal,
 # playbot_lod6 and guitar; --quick: fruit_drops only, what CI runs). Prints a Markdown table;
 # exits 1 when a row the specification and splat-transform agree on is below 30 dB (every format
@@ -99,7 +99,7 @@ for src in "${splats[@]}"; do
 done
 
 echo
-echo "Khronos glTF validator $validator on our .glb (errors and warnings other than the extension's attribute names):"
+echo "Khronos glTF validator $validator on our .glb (errors and warnings other than the extension's attribute names; unused objects):"
 "$bin" convert "${splats[0]}" "$work/plain.glb" 2> /dev/null
 "$bin" convert fuzz/seeds/instgs_parse/f32.instgs "$work/instanced.glb" 2> /dev/null
 "$bin" convert --quantize fuzz/seeds/instgs_parse/f32.instgs "$work/quantized.glb" 2> /dev/null
@@ -110,8 +110,11 @@ const v = require("gltf-validator"), fs = require("fs"), f = process.argv[1];
 v.validateBytes(new Uint8Array(fs.readFileSync(f)), { maxIssues: 0 }).then((r) => {
   const other = r.issues.messages.filter((m) => m.severity <= 1 && m.code !== "MESH_PRIMITIVE_INVALID_ATTRIBUTE");
   const names = r.issues.messages.filter((m) => m.code === "MESH_PRIMITIVE_INVALID_ATTRIBUTE").length;
-  console.log(`  ${f.split("/").pop()}: ${names} attribute-name errors, ${other.length} others` + other.map((m) => ` [${m.code} ${m.pointer}]`).join(""));
-  process.exit(other.length ? 1 : 0);
+  const unused = r.issues.messages.filter((m) => m.code === "UNUSED_OBJECT").map((m) => m.pointer);
+  const accessors = unused.filter((p) => p.startsWith("/accessors/"));
+  console.log(`  ${f.split("/").pop()}: ${names} attribute-name errors, ${other.length} others` + other.map((m) => ` [${m.code} ${m.pointer}]`).join("")
+    + `; unused: ${unused.join(" ") || "nothing"}`);
+  process.exit(other.length || accessors.length ? 1 : 0);
 });' "$f" || failed=1
 done
 exit $failed

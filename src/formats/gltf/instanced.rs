@@ -9,7 +9,10 @@ use gltf::mesh::Semantic;
 use serde_json::Value;
 
 use super::read::{append_any_degree, Ctx, SplatPrimitive};
-use super::{half_turn_z, turn_similarity, GroupExtras, InstgsExtras, PREFIX};
+use super::{
+    half_turn_z, turn_similarity, GroupExtras, InstgsExtras, EXTRAS_VERSION, PREFIX, TEMPLATE_DC,
+    TEMPLATE_OPACITY_LOGIT, TEMPLATE_POSITION,
+};
 use crate::model::instanced::{Group, Instance, InstancedScene, Offsets, Similarity};
 use crate::model::scene::Scene;
 
@@ -21,8 +24,8 @@ pub(super) fn read_instanced(
     extras: &Value,
 ) -> Result<InstancedScene> {
     let x: InstgsExtras = serde_json::from_value(extras.clone()).context("unreadable")?;
-    if x.version != 1 {
-        bail!("version {} (we write 1)", x.version);
+    if x.version != EXTRAS_VERSION {
+        bail!("version {} (we read {EXTRAS_VERSION})", x.version);
     }
     let by_node: HashMap<usize, &SplatPrimitive> = splats.iter().map(|p| (p.node, p)).collect();
     let named: usize = x.background.len() + x.groups.iter().map(|g| g.instances.len()).sum::<usize>();
@@ -59,8 +62,8 @@ pub(super) fn read_instanced(
     Ok(scene)
 }
 
-/// One group: its template (shared rows + its own means, logits and DC), transforms and
-/// offsets, in our frame.
+/// One group: its template (shared rows + its own means, logits and DC, on its first instance's
+/// primitive), transforms and offsets, in our frame.
 fn read_group<'a>(
     ctx: &Ctx,
     doc: &gltf::Document,
@@ -68,12 +71,18 @@ fn read_group<'a>(
     node_prim: &dyn Fn(usize) -> Result<&'a SplatPrimitive>,
 ) -> Result<Group> {
     let first = g.instances.first().ok_or_else(|| anyhow!("group {:?} has no instances", g.name))?;
-    let acc = |i: usize| doc.accessors().nth(i).ok_or_else(|| anyhow!("no accessor {i}"));
     let mut t = ctx.primitive(doc, node_prim(first.node)?)?;
+    let own_attribute = |name: &str, dims: usize| {
+        let acc = gltf_primitive(doc, node_prim(first.node)?)?
+            .attributes()
+            .find_map(|(s, a)| matches!(s, Semantic::Extras(n) if n == name[1..]).then_some(a))
+            .ok_or_else(|| anyhow!("group {:?}: its first instance has no {name} attribute", g.name))?;
+        ctx.values(&acc, name, dims)
+    };
     let (pos, logits, dc) = (
-        ctx.values(&acc(g.template.position)?, "POSITION", 3)?,
-        ctx.values(&acc(g.template.opacity_logit)?, "OPACITY_LOGIT", 1)?,
-        ctx.values(&acc(g.template.sh_degree_0_coef_0)?, "SH_DEGREE_0_COEF_0", 3)?,
+        own_attribute(TEMPLATE_POSITION, 3)?,
+        own_attribute(TEMPLATE_OPACITY_LOGIT, 1)?,
+        own_attribute(TEMPLATE_DC, 3)?,
     );
     let n = t.len();
     if pos.len() != n * 3 || logits.len() != n || dc.len() != n * 3 {
@@ -165,15 +174,18 @@ fn agrees_with_nodes<'a>(
     Ok(())
 }
 
-/// The accessor indices of a primitive's ROTATION, SCALE and SH rest (what instances share).
-fn shared_of(doc: &gltf::Document, p: &SplatPrimitive) -> Result<Vec<(String, usize)>> {
-    let prim = doc
-        .nodes()
+/// The document's primitive of `p`.
+fn gltf_primitive<'a>(doc: &'a gltf::Document, p: &SplatPrimitive) -> Result<gltf::Primitive<'a>> {
+    doc.nodes()
         .nth(p.node)
         .and_then(|n| n.mesh())
         .and_then(|m| m.primitives().nth(p.primitive))
-        .ok_or_else(|| anyhow!("no primitive"))?;
-    let mut v: Vec<(String, usize)> = prim
+        .ok_or_else(|| anyhow!("no primitive"))
+}
+
+/// The accessor indices of a primitive's ROTATION, SCALE and SH rest (what instances share).
+fn shared_of(doc: &gltf::Document, p: &SplatPrimitive) -> Result<Vec<(String, usize)>> {
+    let mut v: Vec<(String, usize)> = gltf_primitive(doc, p)?
         .attributes()
         .filter_map(|(s, a)| match s {
             Semantic::Extras(n)

@@ -47,10 +47,12 @@
 //! background is one more node. A viewer renders it right when it honours node transforms on
 //! splat primitives as above — including the SH rotation, without which view-dependent colour
 //! of a turned instance is evaluated in the wrong direction (its DC colour stays right).
-//! Root `extras.instgs` names the groups, their instances' nodes and each template's own
-//! means, opacity logits and DC (three accessors, once per group) so a reader gets templates,
-//! transforms and offsets back; a file whose extras do not match its nodes is read as a
-//! plain scene (said on stderr).
+//! Each template's own means, opacity logits and DC (float, glTF frame, template space) are
+//! three application-specific attributes of its first instance's primitive
+//! ([`TEMPLATE_POSITION`], …: the "_" names of glTF 2.0 §3.7.2.1, which viewers ignore), so
+//! every accessor of the file is one a primitive of its scene uses. Root `extras.instgs` names
+//! the groups and their instances' nodes, so a reader gets templates, transforms and offsets
+//! back; a file whose extras do not match its nodes is read as a plain scene (said on stderr).
 mod buffers;
 mod instanced;
 mod read;
@@ -81,6 +83,18 @@ pub(crate) const MESH_QUANTIZATION: &str = "KHR_mesh_quantization";
 pub const EXTENSION: &str = "KHR_gaussian_splatting";
 /// Attribute names' prefix.
 pub(crate) const PREFIX: &str = "KHR_gaussian_splatting:";
+/// An instanced group's template means (glTF frame, template space), on its first instance's
+/// primitive (module docs).
+pub(crate) const TEMPLATE_POSITION: &str = "_INSTGS_TEMPLATE_POSITION";
+/// … its opacity logits.
+pub(crate) const TEMPLATE_OPACITY_LOGIT: &str = "_INSTGS_TEMPLATE_OPACITY_LOGIT";
+/// … its DC terms.
+pub(crate) const TEMPLATE_DC: &str = "_INSTGS_TEMPLATE_SH_DEGREE_0_COEF_0";
+/// The three, the only application-specific attributes we read.
+pub(crate) const TEMPLATE_ATTRIBUTES: [&str; 3] = [TEMPLATE_POSITION, TEMPLATE_OPACITY_LOGIT, TEMPLATE_DC];
+/// The `extras.instgs` version we write and read (1, until 2026-11-27, named the template's
+/// rows as accessors only the extras used).
+pub(crate) const EXTRAS_VERSION: u32 = 2;
 /// `extensionsRequired` entries we read; any other is refused.
 pub(crate) const KNOWN_REQUIRED: [&str; 3] = [EXTENSION, MESH_QUANTIZATION, tiles::SPZ_EXTENSION];
 /// The primitive's extension object we write.
@@ -192,17 +206,8 @@ pub(crate) struct GroupExtras {
     /// node applies after its transform (its node's matrix is transform · dequantisation).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub(crate) dequantise: Option<Dequantise>,
-    /// The template's own means (glTF frame, template space), opacity logits and DC.
-    pub(crate) template: TemplateExtras,
+    /// The first instance's primitive also holds the template's own rows ([`TEMPLATE_POSITION`]).
     pub(crate) instances: Vec<InstanceExtras>,
-}
-
-#[derive(Serialize, Deserialize)]
-#[serde(rename_all = "SCREAMING_SNAKE_CASE")]
-pub(crate) struct TemplateExtras {
-    pub(crate) position: usize,
-    pub(crate) opacity_logit: usize,
-    pub(crate) sh_degree_0_coef_0: usize,
 }
 
 #[derive(Serialize, Deserialize)]

@@ -11,7 +11,7 @@ use gltf::accessor::DataType;
 use gltf::mesh::Semantic;
 use serde_json::{json, Value};
 
-use super::{half_turn_z, sh_name, GltfScene, EXTENSION, KNOWN_REQUIRED, PREFIX};
+use super::{half_turn_z, sh_name, GltfScene, EXTENSION, KNOWN_REQUIRED, PREFIX, TEMPLATE_ATTRIBUTES};
 use crate::formats::quant::OPACITY_LOGIT_LIMIT;
 use crate::model::instanced::{Group, Instance, InstancedScene, Offsets, Similarity};
 use crate::model::scene::Scene;
@@ -49,16 +49,16 @@ pub fn from_bytes(bytes: &[u8], what: &str, file: Option<&Path>) -> Result<GltfS
     };
     let mut doc: Value =
         serde_json::from_slice(&json).map_err(|e| anyhow!("{what}: the glTF JSON does not parse: {e}"))?;
-    // gltf-json keeps attribute names it does not know only when they start with '_': ours get
-    // one. Application-specific attributes (already '_'-prefixed, which we never read) are
-    // dropped first, so that none — `_KHR_gaussian_splatting:SCALE`, say — can stand in for
-    // ours: attribute names are matched exactly.
+    // gltf-json keeps attribute names it does not know only when they start with '_': the
+    // extension's get one. Application-specific attributes (already '_'-prefixed) other than
+    // our templates' rows are dropped first, so that none — `_KHR_gaussian_splatting:SCALE`,
+    // say — can stand in for the extension's: attribute names are matched exactly.
     for mesh in doc.get_mut("meshes").and_then(|m| m.as_array_mut()).into_iter().flatten() {
         for prim in mesh.get_mut("primitives").and_then(|p| p.as_array_mut()).into_iter().flatten() {
             if let Some(Value::Object(attrs)) = prim.get_mut("attributes") {
                 *attrs = std::mem::take(attrs)
                     .into_iter()
-                    .filter(|(k, _)| !k.starts_with('_'))
+                    .filter(|(k, _)| !k.starts_with('_') || TEMPLATE_ATTRIBUTES.contains(&k.as_str()))
                     .map(|(k, v)| if k.starts_with(PREFIX) { (format!("_{k}"), v) } else { (k, v) })
                     .collect();
             }

@@ -6,7 +6,8 @@ use serde_json::{json, Map, Value};
 
 use super::{
     extension_object, half_turn_z, sh_name, turn_similarity, Accessors, Dequantise, GroupExtras, InstanceExtras,
-    InstgsExtras, TemplateExtras, EXTENSION, MESH_QUANTIZATION, PREFIX,
+    InstgsExtras, EXTENSION, EXTRAS_VERSION, MESH_QUANTIZATION, PREFIX, TEMPLATE_DC, TEMPLATE_OPACITY_LOGIT,
+    TEMPLATE_POSITION,
 };
 use crate::formats::quant::snorm16;
 use crate::math::sigmoid;
@@ -226,7 +227,7 @@ pub fn write_instanced_gltf(scene: &InstancedScene, out: &Path, accessors: Acces
     scene.validate(&out.display().to_string())?;
     let mut b = Builder::default();
     let (mut nodes, mut meshes) = (Vec::new(), Vec::new());
-    let mut extras = InstgsExtras { version: 1, background: Vec::new(), groups: Vec::new() };
+    let mut extras = InstgsExtras { version: EXTRAS_VERSION, background: Vec::new(), groups: Vec::new() };
     if !scene.background.is_empty() {
         let (prim, mut node) = plain_primitive(&mut b, &scene.background, accessors);
         meshes.push(json!({"name": "background", "primitives": [prim]}));
@@ -250,20 +251,21 @@ pub fn write_instanced_gltf(scene: &InstancedScene, out: &Path, accessors: Acces
         let d = (accessors == Accessors::Quantized)
             .then(|| Dequantise::of(&own.iter().flat_map(|o| o.means.iter().copied()).collect::<Vec<_>>()));
         let shared = shared_accessors(&mut b, &t, d.as_ref());
-        let dc = coefficient(&t, 0);
-        let template = TemplateExtras {
-            position: b.floats(&t.means.concat(), "VEC3", 3, false),
-            opacity_logit: b.floats(&t.opacities, "SCALAR", 1, false),
-            sh_degree_0_coef_0: b.floats(&dc, "VEC3", 3, false),
-        };
-        let mut group = GroupExtras { name: g.name.clone(), dequantise: d, template, instances: Vec::new() };
-        for (inst, own) in g.instances.iter().zip(&own) {
+        let mut group = GroupExtras { name: g.name.clone(), dequantise: d, instances: Vec::new() };
+        for (k, (inst, own)) in g.instances.iter().zip(&own).enumerate() {
             let mut node_x = turn_similarity(&inst.transform)?;
             if let Some(d) = &d {
                 node_x = Similarity::from_mat4(node_x.render_mat4() * d.mat4(), "an instance's node")?;
             }
             let r = node_x.rotation;
-            meshes.push(json!({"name": g.name, "primitives": [primitive(&mut b, own, &shared, d.as_ref())]}));
+            let mut prim = primitive(&mut b, own, &shared, d.as_ref());
+            if k == 0 {
+                // The template's own rows, on the first instance (module docs).
+                prim["attributes"][TEMPLATE_POSITION] = json!(b.floats(&t.means.concat(), "VEC3", 3, false));
+                prim["attributes"][TEMPLATE_OPACITY_LOGIT] = json!(b.floats(&t.opacities, "SCALAR", 1, false));
+                prim["attributes"][TEMPLATE_DC] = json!(b.floats(&coefficient(&t, 0), "VEC3", 3, false));
+            }
+            meshes.push(json!({"name": g.name, "primitives": [prim]}));
             nodes.push(json!({
                 "name": inst.id,
                 "mesh": meshes.len() - 1,
