@@ -730,7 +730,7 @@ fn quantised_gltf_round_trips_within_16_bits_and_is_smaller() {
 }
 
 #[test]
-fn tilesets_round_trip_within_spz_and_place_instances_by_their_tiles() {
+fn tilesets_round_trip_within_spz_with_a_tile_per_instance() {
     // A plain scene (SH degree 3): one tile, as .spz's quantisation allows (version 3 inside),
     // in glTF's frame as stored.
     let source = read_ply(&shared_data("splats/fruit_drops_minimal.ply")).unwrap();
@@ -749,8 +749,9 @@ fn tilesets_round_trip_within_spz_and_place_instances_by_their_tiles() {
     let (doc, _) = glb_parts(&out.with_file_name("tile-0.glb"));
     assert_eq!(doc["extensionsRequired"], serde_json::json!(["KHR_gaussian_splatting", formats::gltf::SPZ_EXTENSION]));
     assert!(doc["accessors"].as_array().unwrap().iter().all(|a| a.get("bufferView").is_none()));
-    // An instanced scene: a background tile and a tile per instance, its template with its
-    // offsets placed by the tile's transform; read back as the expanded scene.
+    // An instanced scene: a background tile and a tile per instance in the scene's frame (no
+    // tile transform: CesiumJS evaluates every tile's SH in the first tile's frame); the root's
+    // box holds every tile's; read back as the expanded scene.
     let mut rng = common::Rng::new(55);
     let scene = common::random_instanced(&mut rng, 3, 200, &[(150, 4), (80, 3)]);
     let out = tmp("instanced-tiles/tileset.json");
@@ -758,7 +759,16 @@ fn tilesets_round_trip_within_spz_and_place_instances_by_their_tiles() {
     let tileset: serde_json::Value = serde_json::from_slice(&std::fs::read(&out).unwrap()).unwrap();
     let tiles = tileset["root"]["children"].as_array().unwrap();
     assert_eq!(tiles.len(), 1 + 4 + 3);
-    assert!(tiles[0].get("transform").is_none() && tiles[1..].iter().all(|t| t.get("transform").is_some()));
+    assert!(tiles.iter().all(|t| t.get("transform").is_none()));
+    let range = |b: &serde_json::Value| {
+        let v: Vec<f64> = b["boundingVolume"]["box"].as_array().unwrap().iter().map(|x| x.as_f64().unwrap()).collect();
+        [0, 1, 2].map(|a| (v[a] - v[3 + 4 * a], v[a] + v[3 + 4 * a]))
+    };
+    let root = range(&tileset["root"]);
+    for t in tiles {
+        let r = range(t);
+        assert!((0..3).all(|a| r[a].0 >= root[a].0 - 1e-5 && r[a].1 <= root[a].1 + 1e-5), "{r:?} outside {root:?}");
+    }
     let expanded = scene.expand();
     let back = formats::read_scene(&out).unwrap();
     assert_eq!(back.len(), expanded.len());

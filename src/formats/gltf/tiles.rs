@@ -4,14 +4,17 @@
 //! data is an SPZ blob (`KHR_gaussian_splatting` with `KHR_gaussian_splatting_compression_spz_2`,
 //! both required by the glTF and, through `3DTILES_content_gltf`, by the tileset: CesiumJS
 //! 1.145 draws splats only then, and only the first primitive of the first node). A plain
-//! scene is one tile. An instanced scene is a background tile and one tile per instance: its
-//! template with its offsets in the template's frame, placed by the tile's `transform` (SPZ
-//! has no shared rows, so an instance's bytes are its own; the transform is what it shares).
+//! scene is one tile. An instanced scene is a background tile and one tile per instance, its
+//! splats placed in the scene's frame: SPZ has no shared rows, so an instance's bytes are its
+//! own either way, and CesiumJS 1.145 evaluates every tile's SH bands in the *first* selected
+//! tile's frame (`GaussianSplatPrimitive`: "all tiles in a typical GS tileset share the same
+//! root coordinate frame"), so a tile turned by its `transform` would show its view-dependent
+//! colour from the wrong direction. The root's box holds every tile's.
 //!
 //! Frames: glTF content in 3D Tiles is y-up and turned to the tileset's z-up by a quarter
 //! turn about x ((x, y, z) → (x, −z, y), the specification's rule); our frame goes to glTF's by
 //! the half turn about z ([`super::half_turn_z`]). A point p of ours is the tileset's M·p with
-//! M(x, y, z) = (−x, −z, −y), and an instance transform X is the tile's M·X·M⁻¹. The SPZ blob
+//! M(x, y, z) = (−x, −z, −y), and a tile `transform` T (other tools' tilesets) is our M⁻¹·T·M. The SPZ blob
 //! holds glTF's frame as it is, as CesiumJS reads it (not as the extension's text asks:
 //! [`crate::formats::spz::spz_in_gltf`]).
 use std::path::{Path, PathBuf};
@@ -88,10 +91,10 @@ fn tile_glb(s: &Scene, what: &str) -> Result<Vec<u8>> {
     super::write::glb_bytes(&doc, spz, what)
 }
 
-/// The axis-aligned box (3D Tiles `box`: centre, then three half axes) from `lo` to `hi`,
-/// padded by `pad` and at least 1e-6 thick.
-fn bounding_box((lo, hi): (Vec3, Vec3), pad: f32) -> Value {
-    let (c, h) = ((lo + hi) * 0.5, ((hi - lo) * 0.5 + Vec3::splat(pad)).max(Vec3::splat(1e-6)));
+/// The axis-aligned box (3D Tiles `box`: centre, then three half axes) from `lo` to `hi`, at
+/// least 1e-6 thick.
+fn bounding_box((lo, hi): (Vec3, Vec3)) -> Value {
+    let (c, h) = ((lo + hi) * 0.5, ((hi - lo) * 0.5).max(Vec3::splat(1e-6)));
     json!([c.x, c.y, c.z, h.x, 0.0, 0.0, 0.0, h.y, 0.0, 0.0, 0.0, h.z])
 }
 
@@ -100,69 +103,54 @@ fn reach(s: &Scene) -> f32 {
     3.0 * s.scales.iter().flatten().fold(f32::NEG_INFINITY, |a, &v| a.max(v)).exp()
 }
 
-/// `x` (our frame) as the tileset frame's column-major 4×4.
-fn tile_transform(x: &Similarity) -> Vec<f32> {
-    let m = Mat4::from_mat3(TO_TILES);
-    (m * x.render_mat4() * m.transpose()).to_cols_array().to_vec()
-}
-
 /// Writes a plain scene as a tileset of one tile: `out` (its `tileset.json`) and `tile-0.glb`
 /// beside it.
 pub fn write_tileset(scene: &Scene, out: &Path) -> Result<()> {
-    write_tiles(vec![(scene.clone(), None)], out)
+    write_tiles(vec![scene.clone()], out)
 }
 
 /// Writes an instanced scene as a tileset: `out` and, beside it, a background tile and a tile
-/// per instance (`tile-0.glb`, … in the order the tileset lists them).
+/// per instance in the scene's frame (`tile-0.glb`, … in the order the tileset lists them).
 pub fn write_instanced_tileset(scene: &InstancedScene, out: &Path) -> Result<()> {
     scene.validate(&out.display().to_string())?;
-    let mut tiles: Vec<(Scene, Option<Similarity>)> = Vec::new();
+    let mut tiles: Vec<Scene> = Vec::new();
     if !scene.background.is_empty() {
-        tiles.push((scene.background.clone(), None));
+        tiles.push(scene.background.clone());
     }
     for (g, group) in scene.groups.iter().enumerate() {
         for (k, inst) in group.instances.iter().enumerate() {
-            tiles.push((scene.instance_in_template_frame(g, k), Some(inst.transform)));
+            tiles.push(transform_gaussians(&scene.instance_in_template_frame(g, k), &inst.transform));
         }
     }
     write_tiles(tiles, out)
 }
 
-/// The tiles (content in our frame, the transform of an instance's) and their tileset.
-/// Nothing is left half-written: on an error the tiles already written are removed and no
-/// `tileset.json` is written.
-fn write_tiles(tiles: Vec<(Scene, Option<Similarity>)>, out: &Path) -> Result<()> {
+/// The tiles (content in our frame) and their tileset. Nothing is left half-written: on an
+/// error the tiles already written are removed and no `tileset.json` is written.
+fn write_tiles(tiles: Vec<Scene>, out: &Path) -> Result<()> {
     let what = out.display().to_string();
     let dir = out.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
     std::fs::create_dir_all(dir).with_context(|| format!("{what}: cannot create its folder"))?;
     let mut written: Vec<PathBuf> = Vec::new();
     let result = (|| -> Result<Value> {
         let mut children = Vec::new();
-        for (i, (content, x)) in tiles.iter().enumerate() {
+        let (mut lo, mut hi) = (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY));
+        for (i, content) in tiles.iter().enumerate() {
             let name = format!("tile-{i}.glb");
             let path = dir.join(&name);
             let bytes = tile_glb(content, &format!("{what}: {name}"))?;
             crate::util::write_atomic(&path, |f| std::io::Write::write_all(f, &bytes))?;
             written.push(path);
-            let points = content.means.iter().map(|m| TO_TILES * Vec3::from(*m));
-            let mut tile = json!({
-                "boundingVolume": {"box": bounding_box(bounds(points), reach(content))},
+            let (a, b) = bounds(content.means.iter().map(|m| TO_TILES * Vec3::from(*m)));
+            let pad = Vec3::splat(reach(content));
+            (lo, hi) = (lo.min(a - pad), hi.max(b + pad));
+            children.push(json!({
+                "boundingVolume": {"box": bounding_box((a - pad, b + pad))},
                 "geometricError": 0.0,
                 "content": {"uri": name},
-            });
-            if let Some(x) = x {
-                tile["transform"] = json!(tile_transform(x));
-            }
-            children.push(tile);
+            }));
         }
-        let all = tiles.iter().flat_map(|(content, x)| {
-            content.means.iter().map(move |m| {
-                let p = Vec3::from(*m);
-                TO_TILES * x.map_or(p, |x| x.rotation * (p * x.scale) + x.translation)
-            })
-        });
-        let (lo, hi) = bounds(all);
-        let (root_box, diagonal) = (bounding_box((lo, hi), 0.0), (hi - lo).length().max(1e-6));
+        let (root_box, diagonal) = (bounding_box((lo, hi)), (hi - lo).length().max(1e-6));
         let extensions = json!([EXTENSION, SPZ_EXTENSION]);
         Ok(json!({
             "asset": {"version": "1.1", "generator": concat!("instgs-vk ", env!("CARGO_PKG_VERSION"))},
