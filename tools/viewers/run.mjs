@@ -45,6 +45,7 @@ const port = server.address().port;
 const browser = await puppeteer.launch({
   executablePath: args.chromium || '/usr/bin/chromium',
   headless: true,
+  protocolTimeout: 2 * timeout,
   args: ['--no-sandbox', '--enable-unsafe-swiftshader', '--use-angle=swiftshader', '--ignore-gpu-blocklist',
     '--disable-background-networking', '--disable-component-update', '--disable-sync', '--disable-quic',
     '--no-first-run'],
@@ -71,9 +72,16 @@ for (const viewer of viewers) {
       } catch (e) {
         state = { error: `no picture within ${timeout / 1000} s (${e.message.split('\n')[0]})` };
       }
+      // The page's frames are submitted, not necessarily drawn: SwiftShader's work lands in
+      // the screenshot (minutes for Cesium's 727 k guitar splats). A failure there is this
+      // run's, not the whole script's.
       if (state.drawn) {
-        const canvas = await page.$('canvas');
-        await canvas.screenshot({ path: path.join(dir, `${c.name}.png`) });
+        try {
+          const canvas = await page.$('canvas');
+          await canvas.screenshot({ path: path.join(dir, `${c.name}.png`) });
+        } catch (e) {
+          state = { error: `drawn, but no screenshot (${e.message.split('\n')[0]})` };
+        }
       }
       summary.push({ viewer, scene: s.name, camera: c.name, ok: !!state.drawn, error: state.error || null,
         seconds: (Date.now() - started) / 1000 });
