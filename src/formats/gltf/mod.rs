@@ -49,7 +49,7 @@
 //! of a turned instance is evaluated in the wrong direction (its DC colour stays right).
 //! Each template's own means, opacity logits and DC (float, glTF frame, template space) are
 //! three application-specific attributes of its first instance's primitive
-//! ([`TEMPLATE_POSITION`], …: the "_" names of glTF 2.0 §3.7.2.1, which viewers ignore), so
+//! (`_INSTGS_TEMPLATE_POSITION`, …: the "_" names of glTF 2.0 §3.7.2.1, which viewers ignore), so
 //! every accessor of the file is one a primitive of its scene uses. Root `extras.instgs` names
 //! the groups and their instances' nodes, so a reader gets templates, transforms and offsets
 //! back; a file whose extras do not match its nodes is read as a plain scene (said on stderr).
