@@ -14,9 +14,9 @@
 //! Frames: glTF content in 3D Tiles is y-up and turned to the tileset's z-up by a quarter
 //! turn about x ((x, y, z) → (x, −z, y), the specification's rule); our frame goes to glTF's by
 //! the half turn about z ([`super::half_turn_z`]). A point p of ours is the tileset's M·p with
-//! M(x, y, z) = (−x, −z, −y), and a tile `transform` T (other tools' tilesets) is our M⁻¹·T·M. The SPZ blob
-//! holds glTF's frame as it is, as CesiumJS reads it (not as the extension's text asks:
-//! [`crate::formats::spz::spz_in_gltf`]).
+//! M(x, y, z) = (−x, −z, −y), and a tile `transform` T (other tools' tilesets) is our
+//! M⁻¹·T·M. The SPZ blob holds glTF's frame as it is, as CesiumJS reads it (not as the
+//! extension's text asks: [`crate::formats::spz::spz_in_gltf`]).
 use std::path::{Path, PathBuf};
 
 use anyhow::{anyhow, bail, Context, Result};
