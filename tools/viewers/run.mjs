@@ -6,6 +6,8 @@
 //
 //   node run.mjs --modules NODE_MODULES --out OUT --scenes name=FILE,... --cameras CAMERAS.json
 //        --viewers three,babylon,playcanvas[,cesium] [--chromium /usr/bin/chromium] [--timeout S]
+//        [--frames N]   (frames three.js, Babylon.js and PlayCanvas draw before the picture; else
+//        each page's own, measured count)
 // CAMERAS.json: [{"name", "eye": [x,y,z], "target": [x,y,z], "up": [x,y,z], "fovy": degrees,
 // "w", "h"}] in glTF's frame. A scene FILE may be a .glb or a tileset.json (Cesium).
 import http from 'node:http';
@@ -63,6 +65,7 @@ for (const viewer of viewers) {
       await page.setViewport({ width: c.w, height: c.h });
       const q = new URLSearchParams({ scene: `/scenes/${i}/${path.basename(s.file)}`, eye: c.eye.join(','),
         target: c.target.join(','), up: c.up.join(','), fovy: String(c.fovy), w: String(c.w), h: String(c.h) });
+      if (args.frames) q.set('frames', args.frames);
       const started = Date.now();
       let state;
       try {
