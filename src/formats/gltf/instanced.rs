@@ -72,8 +72,9 @@ fn read_group<'a>(
 ) -> Result<Group> {
     let first = g.instances.first().ok_or_else(|| anyhow!("group {:?} has no instances", g.name))?;
     let mut t = ctx.primitive(doc, node_prim(first.node)?)?;
+    let first_prim = gltf_primitive(doc, node_prim(first.node)?)?;
     let own_attribute = |name: &str, dims: usize| {
-        let acc = gltf_primitive(doc, node_prim(first.node)?)?
+        let acc = first_prim
             .attributes()
             .find_map(|(s, a)| matches!(s, Semantic::Extras(n) if n == name[1..]).then_some(a))
             .ok_or_else(|| anyhow!("group {:?}: its first instance has no {name} attribute", g.name))?;
