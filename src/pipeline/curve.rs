@@ -4,7 +4,9 @@
 //! ([`crate::instancing::compact::Spending`], from the instance stage's whole instanced scene)
 //! and is optimised jointly; the plain scene is pruned to the same GPU bytes by significance
 //! (`compact::prune_to_bytes`) and fine-tuned as long, with the same schedule (`[joint]`).
-//! Both are scored on the held-out views. With the run's own InstGS, pruned and plain scenes
+//! Both are scored on the held-out views. At InstGS's own PSNR (the default budget), the memory
+//! pruning needs is interpolated between the pruned points about it, and the plain scene
+//! pruned to just that memory and fine-tuned as long is benched against InstGS. With the run's own InstGS, pruned and plain scenes
 //! (the default budget), the points go to `RUN/rate_distortion.json` and
 //! `RUN/rate_distortion.png`, and the report shows them. Each point is resumable: its training
 //! runs keep checkpoints under `RUN/curve/`, and a finished point is kept in
@@ -68,10 +70,14 @@ pub struct EqualQuality {
     /// about it; and that over InstGS's.
     pub pruned_gpu_bytes_needed: f64,
     pub memory_ratio: f64,
-    /// The smallest pruned scene at least as good as InstGS (or within 0.05 dB), benched
-    /// interleaved with it from the held-out cameras (`bench`: culling and level of detail on).
+    /// The pruned scene InstGS is benched against, interleaved, from the held-out cameras
+    /// (`bench`: culling and level of detail on): the plain scene pruned to the bytes above and
+    /// fine-tuned as long as every point, when it reaches InstGS's PSNR (within 0.05 dB);
+    /// otherwise the smallest pruned point at least as good (`at_needed_bytes` false).
     pub pruned_file: String,
     pub pruned_psnr: f64,
+    pub pruned_gpu_bytes: u64,
+    pub at_needed_bytes: bool,
     pub fps_instgs: f64,
     pub fps_pruned: f64,
     pub fps_ratio: f64,
@@ -168,7 +174,9 @@ pub fn curve(c: CurveArgs) -> Result<()> {
         .filter(|(_, g)| **g < 0.0)
         .map(|(p, g)| format!("{:.2} MB: {g:+.2} dB", p.instgs.gpu_bytes as f64 / 1e6))
         .collect();
-    let equal_quality = ctx.equal_quality(&points)?;
+    let Some(equal_quality) = ctx.equal_quality(&dir, &points, &plain_scene)? else {
+        bail!("interrupted; run the same command again to resume")
+    };
     let curve = Curve { plain, iterations: cfg.joint.iterations, points, gain_db, instgs_loses_at, equal_quality };
     crate::util::write_json(&run.join(CURVE_FILE), &serde_json::to_value(&curve)?, true)?;
     crate::train::plot::write_rate_distortion(&plot_of(&curve, &a.data), &run.join(CURVE_PLOT))?;
@@ -223,20 +231,10 @@ impl Ctx<'_> {
             return Ok(None);
         }
         let instgs = self.score(&inst_dir.join("scene.instgs"))?;
-        let pruned_dir = dir.join("pruned");
-        let init = if crate::train::checkpoint_path(&pruned_dir).exists() {
-            crate::model::scene::Scene::default()
-        } else {
-            let sig = read_significance(&self.a.out.join("significance.bin"), plain.len())?;
-            let keep = crate::instancing::compact::prune_to_bytes(self.gpu, plain, &sig, instgs.gpu_bytes)?;
-            eprintln!("[curve] {label}: the plain scene pruned to {} Gaussians; fine-tuning", keep.len());
-            plain.select(&keep)
-        };
-        if !self.train_point(&pruned_dir, Init::Plain(init), Stage::Pruned)? {
+        let Some(pruned) = self.pruned_point(&dir.join("pruned"), instgs.gpu_bytes, plain, &label)? else {
             return Ok(None);
-        }
-        let point =
-            Point { fraction: Some(fraction), instgs, pruned: self.score(&pruned_dir.join("point_cloud.ply"))? };
+        };
+        let point = Point { fraction: Some(fraction), instgs, pruned };
         eprintln!(
             "[curve] {label}: InstGS {:.2} dB at {:.2} MB, pruned {:.2} dB at {:.2} MB",
             point.instgs.psnr,
@@ -247,15 +245,45 @@ impl Ctx<'_> {
         Ok(Some(point))
     }
 
+    /// The plain scene pruned to `bytes` by significance and fine-tuned in `dir` (resumed from
+    /// its checkpoint), scored; None when interrupted.
+    fn pruned_point(
+        &self,
+        dir: &Path,
+        bytes: u64,
+        plain: &crate::model::scene::Scene,
+        label: &str,
+    ) -> Result<Option<Scored>> {
+        let init = if crate::train::checkpoint_path(dir).exists() {
+            crate::model::scene::Scene::default()
+        } else {
+            let sig = read_significance(&self.a.out.join("significance.bin"), plain.len())?;
+            let keep = crate::instancing::compact::prune_to_bytes(self.gpu, plain, &sig, bytes)?;
+            eprintln!("[curve] {label}: the plain scene pruned to {} Gaussians; fine-tuning", keep.len());
+            plain.select(&keep)
+        };
+        if !self.train_point(dir, Init::Plain(init), Stage::Pruned)? {
+            return Ok(None);
+        }
+        Ok(Some(self.score(&dir.join("point_cloud.ply"))?))
+    }
+
     /// The run's own InstGS (the point without a fraction) against pruning at its PSNR: the
-    /// memory pruning needs (interpolated between the pruned points about it) and the frame rate
-    /// against the smallest pruned scene at least as good.
-    fn equal_quality(&self, points: &[Point]) -> Result<Option<EqualQuality>> {
-        let Some(own) = points.iter().find(|p| p.fraction.is_none()) else { return Ok(None) };
+    /// memory pruning needs (interpolated between the pruned points about it), and the frame
+    /// rate against the plain scene pruned to just that memory (trained in `curve_dir`) — or,
+    /// where that falls short of InstGS's PSNR, against the smallest pruned point at least as
+    /// good. Some(None) without a pruned point at least as good; None when interrupted.
+    fn equal_quality(
+        &self,
+        curve_dir: &Path,
+        points: &[Point],
+        plain: &crate::model::scene::Scene,
+    ) -> Result<Option<Option<EqualQuality>>> {
+        let Some(own) = points.iter().find(|p| p.fraction.is_none()) else { return Ok(Some(None)) };
         let target = own.instgs.psnr;
         let mut pruned: Vec<&Scored> = points.iter().map(|p| &p.pruned).collect();
         pruned.sort_by_key(|s| s.gpu_bytes);
-        let Some(good) = pruned.iter().find(|s| s.psnr >= target - 0.05) else { return Ok(None) };
+        let Some(good) = pruned.iter().find(|s| s.psnr >= target - 0.05) else { return Ok(Some(None)) };
         let needed = match pruned.windows(2).find(|w| w[0].psnr < target && w[1].psnr >= target) {
             Some(w) => {
                 let t = (target - w[0].psnr) / (w[1].psnr - w[0].psnr);
@@ -263,9 +291,23 @@ impl Ctx<'_> {
             }
             None => good.gpu_bytes as f64,
         };
+        let mut versus = (*good).clone();
+        let mut at_needed_bytes = false;
+        if (needed as u64) < good.gpu_bytes {
+            let bytes = needed.ceil() as u64;
+            let label = format!("equal quality ({:.2} MB)", bytes as f64 / 1e6);
+            let Some(s) = self.pruned_point(&curve_dir.join(format!("equal-{bytes}")), bytes, plain, &label)? else {
+                return Ok(None);
+            };
+            eprintln!("[curve] {label}: pruned {:.2} dB against InstGS's {target:.2} dB", s.psnr);
+            if s.psnr >= target - 0.05 {
+                versus = s;
+                at_needed_bytes = true;
+            }
+        }
         let render = crate::render::lod::RenderConfig::load(None)?;
         let cams: Vec<_> = self.views().iter().map(|v| v.camera.clone()).collect();
-        let (a, b) = (PathBuf::from(&own.instgs.file), PathBuf::from(&good.file));
+        let (a, b) = (PathBuf::from(&own.instgs.file), PathBuf::from(&versus.file));
         let forward = crate::render::raster::Forward::Compute;
         let v = crate::bench::bench_scenes(
             self.gpu,
@@ -278,17 +320,19 @@ impl Ctx<'_> {
             ("[curve] equal quality: ", crate::util::ProgressMode::Tenths),
         )?;
         let fps = |x: &serde_json::Value| x["fps_median"].as_f64().unwrap_or(f64::NAN);
-        Ok(Some(EqualQuality {
+        Ok(Some(Some(EqualQuality {
             instgs_psnr: target,
             instgs_gpu_bytes: own.instgs.gpu_bytes,
             pruned_gpu_bytes_needed: needed,
             memory_ratio: needed / own.instgs.gpu_bytes as f64,
-            pruned_file: good.file.clone(),
-            pruned_psnr: good.psnr,
+            pruned_file: versus.file,
+            pruned_psnr: versus.psnr,
+            pruned_gpu_bytes: versus.gpu_bytes,
+            at_needed_bytes,
             fps_instgs: fps(&v),
             fps_pruned: fps(&v["compare"]),
             fps_ratio: v["ratios"]["fps"].as_f64().unwrap_or(f64::NAN),
-        }))
+        })))
     }
 
     /// Fine-tunes `init` in `dir` with the joint schedule (resumed from its checkpoint).
