@@ -57,7 +57,7 @@ pub struct Curve {
     pub gain_db: Vec<f64>,
     pub instgs_loses_at: Vec<String>,
     /// The run's own InstGS against pruning at the same quality (None without a pruned point
-    /// at least as good).
+    /// at least as good as it).
     pub equal_quality: Option<EqualQuality>,
 }
 
