@@ -4,13 +4,13 @@
 //! ([`crate::instancing::compact::Spending`], from the instance stage's whole instanced scene)
 //! and is optimised jointly; the plain scene is pruned to the same GPU bytes by significance
 //! (`compact::prune_to_bytes`) and fine-tuned as long, with the same schedule (`[joint]`).
-//! Both are scored on the held-out views. At InstGS's own PSNR (the default budget), the memory
-//! pruning needs is interpolated between the pruned points about it, and the plain scene
-//! pruned to just that memory and fine-tuned as long is benched against InstGS. With the run's own InstGS, pruned and plain scenes
+//! Both are scored on the held-out views. With the run's own InstGS, pruned and plain scenes
 //! (the default budget), the points go to `RUN/rate_distortion.json` and
-//! `RUN/rate_distortion.png`, and the report shows them. Each point is resumable: its training
-//! runs keep checkpoints under `RUN/curve/`, and a finished point is kept in
-//! `RUN/curve/points.json`.
+//! `RUN/rate_distortion.png`, and the report shows them. At the run's own InstGS PSNR the
+//! memory pruning needs is interpolated between the pruned points about it, and the plain
+//! scene pruned to just that memory and fine-tuned as long is benched against InstGS. Each
+//! point is resumable: its training runs keep checkpoints under `RUN/curve/`, and a finished
+//! point is kept in `RUN/curve/points.json`.
 use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context, Result};

@@ -447,7 +447,7 @@ fn curve_section(md: &mut String, run: &Path) {
             if e["at_needed_bytes"].as_bool() == Some(true) {
                 "the plain scene pruned to that memory and fine-tuned as long"
             } else {
-                "the smallest pruned scene at least as good (pruned to just that memory it fell short)"
+                "the smallest pruned point at least as good"
             },
             mb(v("pruned_gpu_bytes")),
             v("pruned_psnr"),
