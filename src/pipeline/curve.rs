@@ -174,9 +174,7 @@ pub fn curve(c: CurveArgs) -> Result<()> {
         .filter(|(_, g)| **g < 0.0)
         .map(|(p, g)| format!("{:.2} MB: {g:+.2} dB", p.instgs.gpu_bytes as f64 / 1e6))
         .collect();
-    let Some(equal_quality) = ctx.equal_quality(&dir, &points, &plain_scene)? else {
-        bail!("interrupted; run the same command again to resume")
-    };
+    let equal_quality = ctx.equal_quality(&dir, &points, &plain_scene)?;
     let curve = Curve { plain, iterations: cfg.joint.iterations, points, gain_db, instgs_loses_at, equal_quality };
     crate::util::write_json(&run.join(CURVE_FILE), &serde_json::to_value(&curve)?, true)?;
     crate::train::plot::write_rate_distortion(&plot_of(&curve, &a.data), &run.join(CURVE_PLOT))?;
@@ -272,18 +270,18 @@ impl Ctx<'_> {
     /// memory pruning needs (interpolated between the pruned points about it), and the frame
     /// rate against the plain scene pruned to just that memory (trained in `curve_dir`) — or,
     /// where that falls short of InstGS's PSNR, against the smallest pruned point at least as
-    /// good. Some(None) without a pruned point at least as good; None when interrupted.
+    /// good. None without a pruned point at least as good.
     fn equal_quality(
         &self,
         curve_dir: &Path,
         points: &[Point],
         plain: &crate::model::scene::Scene,
-    ) -> Result<Option<Option<EqualQuality>>> {
-        let Some(own) = points.iter().find(|p| p.fraction.is_none()) else { return Ok(Some(None)) };
+    ) -> Result<Option<EqualQuality>> {
+        let Some(own) = points.iter().find(|p| p.fraction.is_none()) else { return Ok(None) };
         let target = own.instgs.psnr;
         let mut pruned: Vec<&Scored> = points.iter().map(|p| &p.pruned).collect();
         pruned.sort_by_key(|s| s.gpu_bytes);
-        let Some(good) = pruned.iter().find(|s| s.psnr >= target - 0.05) else { return Ok(Some(None)) };
+        let Some(good) = pruned.iter().find(|s| s.psnr >= target - 0.05) else { return Ok(None) };
         let needed = match pruned.windows(2).find(|w| w[0].psnr < target && w[1].psnr >= target) {
             Some(w) => {
                 let t = (target - w[0].psnr) / (w[1].psnr - w[0].psnr);
@@ -297,7 +295,7 @@ impl Ctx<'_> {
             let bytes = needed.ceil() as u64;
             let label = format!("equal quality ({:.2} MB)", bytes as f64 / 1e6);
             let Some(s) = self.pruned_point(&curve_dir.join(format!("equal-{bytes}")), bytes, plain, &label)? else {
-                return Ok(None);
+                bail!("interrupted; run the same command again to resume")
             };
             eprintln!("[curve] {label}: pruned {:.2} dB against InstGS's {target:.2} dB", s.psnr);
             if s.psnr >= target - 0.05 {
@@ -320,7 +318,7 @@ impl Ctx<'_> {
             ("[curve] equal quality: ", crate::util::ProgressMode::Tenths),
         )?;
         let fps = |x: &serde_json::Value| x["fps_median"].as_f64().unwrap_or(f64::NAN);
-        Ok(Some(Some(EqualQuality {
+        Ok(Some(EqualQuality {
             instgs_psnr: target,
             instgs_gpu_bytes: own.instgs.gpu_bytes,
             pruned_gpu_bytes_needed: needed,
@@ -332,7 +330,7 @@ impl Ctx<'_> {
             fps_instgs: fps(&v),
             fps_pruned: fps(&v["compare"]),
             fps_ratio: v["ratios"]["fps"].as_f64().unwrap_or(f64::NAN),
-        })))
+        }))
     }
 
     /// Fine-tunes `init` in `dir` with the joint schedule (resumed from its checkpoint).
