@@ -1,8 +1,10 @@
 #!/usr/bin/env bash
 # Every GPU row of BENCHMARKS.md in one command (docs/benchmarking.md, "On a GPU machine").
 #
-#   tools/gpu-rows.sh --prepare              on a machine with network, before the GPU comes:
-#                                            builds everything the rows need into out/gpu-kit/
+#   tools/gpu-rows.sh --prepare [--only ROW,ROW] [--curve-run RUN]
+#                                            on a machine with network, before the GPU comes:
+#                                            builds what the rows need into out/gpu-kit/ (--only:
+#                                            just those rows' binaries and data, a smaller kit)
 #   tools/gpu-rows.sh [--budget-min 40] [--only ROW,ROW] [--install-libs]
 #                                            on the GPU machine (no network, no Rust needed)
 #   tools/gpu-rows.sh --smoke                every row's code path, scaled down, on any device
@@ -10,9 +12,15 @@
 #
 # Rows, in order of priority (each one's time on an H100 in brackets, what the budget plans by):
 #   forward-1080p      our frame at 1920x1080 beside web-splat's, the shared guitar, biker and
-#                      playbot_lod2, 8 orbit cameras (tools/bench-peers.sh)           [5 min]
+#                      playbot_lod2, 8 orbit cameras (tools/bench-peers.sh; our forward path
+#                      `auto`: whichever is faster on the device, named in the row)  [5 min]
 #   splats-1m-11m      1M and 11.6M splats (11 and 128 copies of the guitar, expanded into plain
-#                      PLYs) at 1920x1080: goals < 2 ms and < 10 ms a frame          [6 min]
+#                      PLYs) at 1920x1080, both forward paths: goals < 2 ms and < 10 ms a frame
+#                                                                                     [6 min]
+#   equal-quality      InstGS against the plain scene pruned to the same held-out PSNR (a
+#                      `curve` run's equal-quality point; --prepare --curve-run RUN puts its two
+#                      scenes and test cameras in the kit), interleaved, both forward paths, at
+#                      the cameras' size and at 1080 lines                            [3 min]
 #   training-brush     plain training beside brush on a 2 MP dataset rendered from the biker
 #                      (150 + 15 views), 2 000 and 7 000 iterations (tools/bench-brush.sh) [15 min]
 #   pipeline-full      `instgs-vk train` with today's defaults, 30 000 + 10 000 iterations, on
@@ -23,15 +31,16 @@
 # figures. Peers missing from the kit leave their half of a row empty, said in the row.
 #
 # The kit (out/gpu-kit/, ignored by git): bin/ (instgs-vk, web-splat-harness, brush, stripped),
-# data/ (the ../shared data the rows read: the GPU machine sees the checkout only), debs/ (the
-# Vulkan loader and libglvnd as Debian packages, for --install-libs), libs.txt (the shared
-# libraries each binary needs), commit (what was built).
+# data/ (the ../shared data the rows read: the GPU machine sees the checkout only; equal/: the
+# curve run's scenes), debs/ (the Vulkan loader and libglvnd as Debian packages, for
+# --install-libs), libs.txt (the shared libraries each binary needs), commit (what was built);
+# all of it packed into out/gpu-kit.tar.xz (unpack with tar -C out -xJf out/gpu-kit.tar.xz).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 repo=$(pwd)
 kit=$repo/out/gpu-kit
 out=$repo/out/gpu-rows
-budget_min=40 prepare=0 smoke=0 install_libs=0 only=""
+budget_min=40 prepare=0 smoke=0 install_libs=0 only="" curve_run=""
 while [[ $# -gt 0 ]]; do
     case $1 in
         --prepare) prepare=1; shift ;;
@@ -39,53 +48,95 @@ while [[ $# -gt 0 ]]; do
         --budget-min) budget_min=$2; shift 2 ;;
         --only) only=$2; shift 2 ;;
         --install-libs) install_libs=1; shift ;;
-        -h | --help) sed -n 2,28p "$0"; exit 0 ;;
+        --curve-run) curve_run=$2; shift 2 ;;
+        -h | --help) sed -n 2,40p "$0"; exit 0 ;;
         *) echo "gpu-rows.sh: unknown argument $1 (--help lists them)" >&2; exit 2 ;;
     esac
 done
-rows=(forward-1080p splats-1m-11m training-brush pipeline-full)
-declare -A planned_min=([forward-1080p]=5 [splats-1m-11m]=6 [training-brush]=15 [pipeline-full]=30)
+rows=(forward-1080p splats-1m-11m equal-quality training-brush pipeline-full)
+declare -A planned_min=([forward-1080p]=5 [splats-1m-11m]=6 [equal-quality]=3 [training-brush]=15 [pipeline-full]=30)
+for r in ${only//,/ }; do
+    [[ " ${rows[*]} " == *" $r "* ]] || { echo "gpu-rows.sh: --only: no row $r (rows: ${rows[*]})" >&2; exit 2; }
+done
+wanted() { [[ -z $only || ",$only," == *",$1,"* ]]; }
 export XDG_RUNTIME_DIR=${XDG_RUNTIME_DIR:-/tmp}
 
 # ---------------------------------------------------------------------------------------------
 # --prepare: build and gather everything, with network.
 if [[ $prepare == 1 ]]; then
+    if wanted equal-quality && [[ -z $curve_run ]]; then
+        echo "gpu-rows.sh: the equal-quality row needs --curve-run RUN (a finished \`instgs-vk curve\` run), or leave it out with --only" >&2
+        exit 2
+    fi
+    rm -rf "$kit/bin" "$kit/data"
     mkdir -p "$kit/bin" "$kit/data/splats" "$kit/data/scenes" "$kit/debs"
     bash tools/install-deps.sh
     cargo build --release --bin instgs-vk
     cp target/release/instgs-vk "$kit/bin/"
     scratch=$kit/peers-src
-    PEERS_SCRATCH=$scratch bash tools/bench-peers.sh --build-only
-    PEERS_SCRATCH=$scratch bash tools/bench-brush.sh --build-only
-    cp "$scratch/web-splat-harness/target/release/web-splat-harness" "$scratch/brush/target/release/brush" "$kit/bin/"
+    if wanted forward-1080p; then
+        PEERS_SCRATCH=$scratch bash tools/bench-peers.sh --build-only
+        cp "$scratch/web-splat-harness/target/release/web-splat-harness" "$kit/bin/"
+    fi
+    if wanted training-brush; then
+        PEERS_SCRATCH=$scratch bash tools/bench-brush.sh --build-only
+        cp "$scratch/brush/target/release/brush" "$kit/bin/"
+    fi
     strip "$kit/bin/"*
-    for f in guitar.ply biker.ply playbot_lod2.ply; do cp ../shared/data/splats/$f "$kit/data/splats/"; done
-    for s in ducks6 tabletop; do rm -rf "$kit/data/scenes/$s"; cp -r ../shared/data/scenes/$s "$kit/data/scenes/"; done
+    splats=()
+    wanted forward-1080p && splats+=(guitar.ply biker.ply playbot_lod2.ply)
+    wanted splats-1m-11m && splats+=(guitar.ply)
+    wanted training-brush && splats+=(biker.ply)
+    for f in "${splats[@]}"; do cp ../shared/data/splats/$f "$kit/data/splats/"; done
+    if wanted pipeline-full; then
+        for s in ducks6 tabletop; do cp -r ../shared/data/scenes/$s "$kit/data/scenes/"; done
+    fi
+    if wanted equal-quality; then
+        # The curve's InstGS scene, its equal-quality pruned scene and the held-out cameras.
+        mkdir -p "$kit/data/equal"
+        python3 - "$curve_run" "$kit/data/equal" <<'EOF'
+import json, os, shutil, sys
+run, dst = sys.argv[1:]
+try:
+    eq = json.load(open(os.path.join(run, "rate_distortion.json")))["equal_quality"]
+    cams = [p for p in json.load(open(os.path.join(run, "dataset-files.json"))) if p.endswith("transforms_test.json")]
+except (OSError, ValueError, KeyError) as e:
+    sys.exit(f"gpu-rows.sh: {run}: not a finished curve run with an equal-quality point ({e})")
+if not eq or len(cams) != 1:
+    sys.exit(f"gpu-rows.sh: {run}: no equal-quality point, or not one transforms_test.json")
+shutil.copy(os.path.join(run, "scene.instgs"), os.path.join(dst, "instgs.instgs"))
+shutil.copy(eq["pruned_file"], os.path.join(dst, "pruned.ply"))
+shutil.copy(cams[0], os.path.join(dst, "transforms_test.json"))
+json.dump({"run": run, **eq}, open(os.path.join(dst, "equal.json"), "w"), indent=1)
+EOF
+    fi
     # The loader and libglvnd (wgpu's peers need libEGL/libGL through libglvnd on NVIDIA).
     (cd "$kit/debs" && apt-get download libvulkan1 libegl1 libglvnd0 libopengl0 libgl1 libglx0 libgles2 > /dev/null)
     for b in "$kit/bin/"*; do echo "== $(basename "$b")"; ldd "$b"; done > "$kit/libs.txt"
     git rev-parse HEAD > "$kit/commit"
     du -sh "$kit/bin" "$kit/data" "$kit/debs"
-    echo "kit ready: $kit (copy the checkout with it to the GPU machine, then: tools/gpu-rows.sh)"
+    # One packed file for machines that take little (PLYs and binaries shrink to about a third).
+    tar -C "$repo/out" -cf - gpu-kit/bin gpu-kit/data gpu-kit/debs gpu-kit/libs.txt gpu-kit/commit | xz -6 -T2 > "$kit.tar.xz"
+    echo "kit ready$([[ -n $only ]] && echo " for rows $only"): $kit, packed into $kit.tar.xz ($(du -m "$kit.tar.xz" | cut -f1) MiB;"
+    echo "  without peers-src/). On the GPU machine, in the checkout: tar -C out -xJf out/gpu-kit.tar.xz; tools/gpu-rows.sh"
     exit 0
 fi
 
 # ---------------------------------------------------------------------------------------------
-# The binaries and data: the kit's, or (smoke, or no kit) this checkout's build and ../shared.
-bin=$kit/bin/instgs-vk
-if [[ ! -x $bin ]]; then
-    if [[ $smoke == 0 ]]; then
-        echo "gpu-rows.sh: no kit at $kit: run tools/gpu-rows.sh --prepare on a machine with network first" >&2
-        exit 1
-    fi
-    bin=$repo/target/release/instgs-vk
+# The binaries and data: the kit's; a smoke run takes this checkout's build and ../shared (and the
+# kit's peers where it has them).
+bin=$kit/bin/instgs-vk data=$kit/data
+if [[ $smoke == 1 ]]; then
+    bin=$repo/target/release/instgs-vk data=$repo/../shared/data
     [[ -x $bin ]] || cargo build --release --quiet --bin instgs-vk
+elif [[ ! -x $bin ]]; then
+    echo "gpu-rows.sh: no kit at $kit: run tools/gpu-rows.sh --prepare on a machine with network first" >&2
+    exit 1
 fi
-data=$kit/data
-[[ -d $data/splats ]] || data=$repo/../shared/data
 harness=$kit/bin/web-splat-harness
 brush=$kit/bin/brush
-commit=$(cat "$kit/commit" 2> /dev/null || git rev-parse HEAD)
+commit=$(git rev-parse HEAD)
+[[ $smoke == 1 ]] || commit=$(cat "$kit/commit")
 
 # Before any row: the libraries. Ours loads the Vulkan loader at run time (not in ldd), the peers
 # (wgpu) too, and EGL/GL through libglvnd.
@@ -160,24 +211,24 @@ row_forward() {
     if [[ -x $harness ]]; then
         run forward-1080p env INSTGS_BIN="$bin" WEB_SPLAT_HARNESS="$harness" BENCH_OUT="$work/forward-1080p" \
             PEERS_SCRATCH="$work/forward-1080p/scratch" bash tools/bench-peers.sh --rounds $rounds --frames 3 \
-            --size $size --cameras $cams "${scenes[@]}"
+            --forward auto --size $size --cameras $cams "${scenes[@]}"
     else
         for s in "${scenes[@]}"; do
             run forward-1080p "$bin" bench --scene "$s" --orbit $cams --width ${size%x*} --height ${size#*x} \
-                --frames 3 --json "$work/forward-1080p/$(basename "$s" .ply)-ours.json"
+                --frames 3 --forward auto --json "$work/forward-1080p/$(basename "$s" .ply)-ours.json"
         done
     fi
     python3 - "$work/forward-1080p" "$size" "$( [[ -x $harness ]] && echo 1 || echo 0)" <<'EOF'
 import glob, json, os, sys
 d, size, peer = sys.argv[1], sys.argv[2], sys.argv[3] == "1"
-table = [["scene", "size", "ours (ms)", "web-splat (ms)", "ours / web-splat"]]
+table = [["scene", "size", "our forward path", "ours (ms)", "web-splat (ms)", "ours / web-splat"]]
 for f in sorted(glob.glob(os.path.join(d, "*.json"))):
     v = json.load(open(f))
     if f.endswith("-ours.json"):
-        table.append([os.path.basename(f)[:-10], size, f"{v['frame_ms_median']:.2f}", "—", "—"])
+        table.append([os.path.basename(f)[:-10], size, v["forward"], f"{v['frame_ms_median']:.2f}", "—", "—"])
     elif "ratio_median" in v:
         med = lambda x: sorted(x)[len(x) // 2]
-        table.append([v["scene"], size, f"{med(v['ours_frame_ms']):.2f}", f"{med(v['web_splat_frame_ms']):.2f}",
+        table.append([v["scene"], size, v["forward"], f"{med(v['ours_frame_ms']):.2f}", f"{med(v['web_splat_frame_ms']):.2f}",
                       f"{v['ratio_median']:.2f}"])
 notes = [] if peer else ["web-splat is not in the kit (tools/gpu-rows.sh --prepare builds it): ours alone."]
 notes.append("brush has no offscreen frame timer (its viewer is interactive): not timed here.")
@@ -195,22 +246,68 @@ row_splats() {
             --random-offsets 0.01 --out "$d/K$k.instgs"
         run splats-1m-11m "$bin" convert "$d/K$k.instgs" "$d/K$k.ply"
         run splats-1m-11m "$bin" bench --scene "$d/K$k.ply" --orbit 8 --width ${size%x*} --height ${size#*x} \
-            --frames 5 --json "$d/K$k-bench.json" || true
+            --frames 5 --compare-forward quads --json "$d/K$k-bench.json" || true
         rm -f "$d/K$k.ply"
     done
     python3 - "$d" "$size" "${ks[@]}" <<'EOF'
 import json, os, sys
 d, size, ks = sys.argv[1], sys.argv[2], sys.argv[3:]
-table = [["copies", "splats", "size", "frame median (ms)", "p90 (ms)", "goal"]]
+table = [["copies", "splats", "size", "compute: frame median (ms)", "p90 (ms)", "quads: frame median (ms)", "p90 (ms)", "goal"]]
 goals = {0: "< 2 ms", 1: "< 10 ms"}
 for i, k in enumerate(ks):
     p = os.path.join(d, f"K{k}-bench.json")
     if not os.path.exists(p):
-        table.append([k, "—", size, "failed (see log)", "—", goals.get(i, "")])
+        table.append([k, "—", size, "failed (see log)", "—", "—", "—", goals.get(i, "")])
         continue
     v = json.load(open(p))
-    table.append([k, v["splats"], size, f"{v['frame_ms_median']:.2f}", f"{v['frame_ms_p90']:.2f}", goals.get(i, "")])
+    q = v["compare"]
+    table.append([k, v["splats"], size, f"{v['frame_ms_median']:.2f}", f"{v['frame_ms_p90']:.2f}",
+                  f"{q['frame_ms_median']:.2f}", f"{q['frame_ms_p90']:.2f}", goals.get(i, "")])
 json.dump({"table": table}, open(os.path.join(d, "result.json"), "w"), indent=1)
+EOF
+}
+
+row_equal() {
+    local d=$work/equal-quality e=$data/equal sizes=("" 1440x1080) frames=5 a b cams
+    a=$e/instgs.instgs b=$e/pruned.ply cams=$e/transforms_test.json
+    if [[ $smoke == 1 ]]; then
+        # The code path on what any checkout has: one copy of the demo guitar against itself.
+        sizes=("" 96x72) frames=1
+        run equal-quality python3 tools/grid_scene_graph.py 1 3.0 "$d/K1.json" guitar
+        run equal-quality "$bin" compose --template guitar="$repo/demo/guitar.compressed.ply" \
+            --scene-graph "$d/K1.json" --out "$d/K1.instgs"
+        a=$d/K1.instgs b=$repo/demo/guitar.compressed.ply cams=$repo/demo/ducks6-mini/transforms_test.json
+        printf '{"smoke": true}\n' > "$d/equal.json"
+    elif [[ ! -f $a ]]; then
+        echo "no curve run in the kit (tools/gpu-rows.sh --prepare --curve-run RUN)" >> "$d/log"
+        return 1
+    else
+        cp "$e/equal.json" "$d/equal.json"
+    fi
+    # InstGS (A) against the pruned scene (B), interleaved, each forward path, each size.
+    for forward in compute quads; do
+        for size in "${sizes[@]}"; do
+            run equal-quality "$bin" bench --scene "$a" --compare "$b" --cameras "$cams" --forward "$forward" \
+                ${size:+--width ${size%x*} --height ${size#*x}} --frames $frames \
+                --json "$d/$forward-${size:-native}.json" || true
+        done
+    done
+    python3 - "$d" <<'EOF'
+import glob, json, os, sys
+d = sys.argv[1]
+eq = json.load(open(os.path.join(d, "equal.json")))
+table = [["forward path", "size", "InstGS (ms)", "pruned (ms)", "InstGS FPS / pruned FPS", "GPU bytes ratio"]]
+for f in sorted(glob.glob(os.path.join(d, "*-*.json"))):
+    v = json.load(open(f))
+    table.append([v["forward"], f"{v['width']}x{v['height']}", f"{v['frame_ms_median']:.2f}",
+                  f"{v['compare']['frame_ms_median']:.2f}", f"{v['ratios']['fps']:.2f}",
+                  f"{v['ratios']['scene_gpu_bytes']:.2f}"])
+notes = []
+if "instgs_psnr" in eq:
+    notes.append(f"From the curve run {eq['run']}: InstGS {eq['instgs_psnr']:.2f} dB held-out at "
+                 f"{eq['instgs_gpu_bytes'] / 1e6:.2f} MB, the plain scene pruned to {eq['pruned_gpu_bytes'] / 1e6:.2f} MB "
+                 f"{eq['pruned_psnr']:.2f} dB; on lavapipe InstGS rendered at {eq['fps_ratio']:.2f}x its FPS.")
+json.dump({"table": table, "notes": notes}, open(os.path.join(d, "result.json"), "w"), indent=1)
 EOF
 }
 
@@ -281,9 +378,9 @@ json.dump({"table": table}, open(os.path.join(d, "result.json"), "w"), indent=1)
 EOF
 }
 
-declare -A fn=([forward-1080p]=row_forward [splats-1m-11m]=row_splats [training-brush]=row_training [pipeline-full]=row_pipeline)
+declare -A fn=([forward-1080p]=row_forward [splats-1m-11m]=row_splats [equal-quality]=row_equal [training-brush]=row_training [pipeline-full]=row_pipeline)
 for row in "${rows[@]}"; do
-    if [[ -n $only && ",$only," != *",$row,"* ]]; then
+    if ! wanted "$row"; then
         status[$row]="not asked (--only)"
         continue
     fi
