@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Every GPU row of BENCHMARKS.md in one command (docs/benchmarking.md, "On a GPU machine").
 #
-#   tools/gpu-rows.sh --prepare [--only ROW,ROW] [--curve-run RUN]
+#   tools/gpu-rows.sh --prepare [--only ROW,ROW] [--curve-run RUN --curve-data DATA]
 #                                            on a machine with network, before the GPU comes:
 #                                            builds what the rows need into out/gpu-kit/ (--only:
 #                                            just those rows' binaries and data, a smaller kit)
@@ -18,8 +18,9 @@
 #                      PLYs) at 1920x1080, both forward paths: goals < 2 ms and < 10 ms a frame
 #                                                                                     [6 min]
 #   equal-quality      InstGS against the plain scene pruned to the same held-out PSNR (a
-#                      `curve` run's equal-quality point; --prepare --curve-run RUN puts its two
-#                      scenes and test cameras in the kit), interleaved, both forward paths, at
+#                      `curve` run's equal-quality point; --prepare --curve-run RUN --curve-data
+#                      DATA puts its two scenes and DATA/transforms_test.json in the kit),
+#                      interleaved, both forward paths, at
 #                      the cameras' size and at 1080 lines                            [3 min]
 #   training-brush     plain training beside brush on a 2 MP dataset rendered from the biker
 #                      (150 + 15 views), 2 000 and 7 000 iterations (tools/bench-brush.sh) [15 min]
@@ -40,7 +41,7 @@ cd "$(dirname "$0")/.."
 repo=$(pwd)
 kit=$repo/out/gpu-kit
 out=$repo/out/gpu-rows
-budget_min=40 prepare=0 smoke=0 install_libs=0 only="" curve_run=""
+budget_min=40 prepare=0 smoke=0 install_libs=0 only="" curve_run="" curve_data=""
 while [[ $# -gt 0 ]]; do
     case $1 in
         --prepare) prepare=1; shift ;;
@@ -49,6 +50,7 @@ while [[ $# -gt 0 ]]; do
         --only) only=$2; shift 2 ;;
         --install-libs) install_libs=1; shift ;;
         --curve-run) curve_run=$2; shift 2 ;;
+        --curve-data) curve_data=$2; shift 2 ;;
         -h | --help) sed -n 2,40p "$0"; exit 0 ;;
         *) echo "gpu-rows.sh: unknown argument $1 (--help lists them)" >&2; exit 2 ;;
     esac
@@ -64,8 +66,8 @@ export XDG_RUNTIME_DIR=${XDG_RUNTIME_DIR:-/tmp}
 # ---------------------------------------------------------------------------------------------
 # --prepare: build and gather everything, with network.
 if [[ $prepare == 1 ]]; then
-    if wanted equal-quality && [[ -z $curve_run ]]; then
-        echo "gpu-rows.sh: the equal-quality row needs --curve-run RUN (a finished \`instgs-vk curve\` run), or leave it out with --only" >&2
+    if wanted equal-quality && [[ -z $curve_run || ! -f $curve_data/transforms_test.json ]]; then
+        echo "gpu-rows.sh: the equal-quality row needs --curve-run RUN (a finished \`instgs-vk curve\` run) and --curve-data DATA (its dataset, with transforms_test.json), or leave it out with --only" >&2
         exit 2
     fi
     rm -rf "$kit/bin" "$kit/data"
@@ -94,19 +96,18 @@ if [[ $prepare == 1 ]]; then
     if wanted equal-quality; then
         # The curve's InstGS scene, its equal-quality pruned scene and the held-out cameras.
         mkdir -p "$kit/data/equal"
+        cp "$curve_data/transforms_test.json" "$kit/data/equal/"
         python3 - "$curve_run" "$kit/data/equal" <<'EOF'
 import json, os, shutil, sys
 run, dst = sys.argv[1:]
 try:
     eq = json.load(open(os.path.join(run, "rate_distortion.json")))["equal_quality"]
-    cams = [p for p in json.load(open(os.path.join(run, "dataset-files.json"))) if p.endswith("transforms_test.json")]
 except (OSError, ValueError, KeyError) as e:
-    sys.exit(f"gpu-rows.sh: {run}: not a finished curve run with an equal-quality point ({e})")
-if not eq or len(cams) != 1:
-    sys.exit(f"gpu-rows.sh: {run}: no equal-quality point, or not one transforms_test.json")
+    sys.exit(f"gpu-rows.sh: {run}: not a finished curve run ({e})")
+if not eq:
+    sys.exit(f"gpu-rows.sh: {run}: the curve found no equal-quality point")
 shutil.copy(os.path.join(run, "scene.instgs"), os.path.join(dst, "instgs.instgs"))
 shutil.copy(eq["pruned_file"], os.path.join(dst, "pruned.ply"))
-shutil.copy(cams[0], os.path.join(dst, "transforms_test.json"))
 json.dump({"run": run, **eq}, open(os.path.join(dst, "equal.json"), "w"), indent=1)
 EOF
     fi
