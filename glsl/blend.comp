@@ -81,7 +81,15 @@ void blend_row(int r, uint n, vec2 xy, vec4 co, vec3 rgb) {
 }
 
 // Blends splat number n (1-based in the tile) into this invocation's pixels that it reaches.
-void blend_rows(uint n, vec2 xy, vec4 co, vec3 rgb, vec2 reach) {
+// One pixel per invocation (GPUs): blended without the reach test, whose log, division and
+// square roots cost more than the pixel; beyond the reach alpha < 1/255 and the pixel is
+// unchanged either way.
+void blend_rows(uint n, vec2 xy, vec4 co, vec3 rgb) {
+    if (PIXELS_PER_THREAD == 1) {
+        blend_row(0, n, xy, co, rgb);
+        return;
+    }
+    vec2 reach = splat_reach(co);
     ivec2 rows = splat_rows(xy.y, reach.y, float(py0) + 0.5, PIXELS_PER_THREAD);
     int r_lo = rows.x;
     int r_hi = xy.x + reach.x < box_x.x || xy.x - reach.x > box_x.y ? -1 : rows.y;
@@ -102,7 +110,7 @@ void blend_batch_splat(uint first, uint j, uint count) {
     if (j < count) {
         uint b = min(j, BATCH - 1);
         vec4 co = s_conic[b];
-        blend_rows(first + j + 1, s_xy[b], co, s_rgb[b], splat_reach(co));
+        blend_rows(first + j + 1, s_xy[b], co, s_rgb[b]);
     }
 }
 
@@ -112,7 +120,7 @@ void blend_fetched_splat(uint i, uint first, uint end) {
     if (i < end) {
         uint g = texel_u32(isect_ids, i);
         vec4 co = texelFetch(conics, int(g));
-        blend_rows(i - first + 1, texel_vec2(xys, g), co, texelFetch(colours, int(g)).rgb, splat_reach(co));
+        blend_rows(i - first + 1, texel_vec2(xys, g), co, texelFetch(colours, int(g)).rgb);
     }
 }
 
@@ -172,7 +180,7 @@ void main() {
             if (CROWDED_TILES == 0) {
                 for (uint j = 0; !thread_done && j < count; j++) {
                     vec4 co = s_conic[j];
-                    blend_rows(start - range.x + j + 1, s_xy[j], co, s_rgb[j], splat_reach(co));
+                    blend_rows(start - range.x + j + 1, s_xy[j], co, s_rgb[j]);
                     thread_done = n_done == PIXELS_PER_THREAD;
                 }
             } else {

@@ -104,24 +104,30 @@ void row_backward(int r, uint n, vec2 xy, vec4 co, vec3 rgb, float min_power) {
 // Splat number n (1-based in the tile) of Gaussian g: its gradient over this subgroup's pixels,
 // added to the outputs. Workgroup-uniform arguments; call in uniform control flow.
 void splat_backward(uint n, uint g, vec2 xy, vec4 co, vec3 rgb) {
-    vec2 reach = splat_reach(co);
     float min_power = log(1.0 / (255.0 * co.w));
     g_xy = vec2(0.0);
     g_conic = vec3(0.0);
     g_rgb = vec3(0.0);
     g_op = 0.0;
     hit = false;
-    ivec2 rows = splat_rows(xy.y, reach.y, float(py0) + 0.5, PIXELS_PER_THREAD);
-    int r_lo = rows.x;
-    int r_hi = xy.x + reach.x < box_x.x || xy.x - reach.x > box_x.y ? -1 : rows.y;
-    if (CROWDED_TILES == 0) {
-        int r = r_lo;
-        do { // max(1, rows) bodies; a `for` would run one more, masked, for its failing test
-            if (r <= r_hi) row_backward(min(r, int(PIXELS_PER_THREAD) - 1), n, xy, co, rgb, min_power);
-        } while (++r <= r_hi);
+    if (PIXELS_PER_THREAD == 1) {
+        // One pixel per invocation (GPUs): row_backward's own test on the power costs less than
+        // the reach's log, division and square roots; beyond the reach it returns at once.
+        row_backward(0, n, xy, co, rgb, min_power);
     } else {
-        for (int r = 0; r < int(PIXELS_PER_THREAD); r++) {
-            if (r >= r_lo && r <= r_hi) row_backward(r, n, xy, co, rgb, min_power);
+        vec2 reach = splat_reach(co);
+        ivec2 rows = splat_rows(xy.y, reach.y, float(py0) + 0.5, PIXELS_PER_THREAD);
+        int r_lo = rows.x;
+        int r_hi = xy.x + reach.x < box_x.x || xy.x - reach.x > box_x.y ? -1 : rows.y;
+        if (CROWDED_TILES == 0) {
+            int r = r_lo;
+            do { // max(1, rows) bodies; a `for` would run one more, masked, for its failing test
+                if (r <= r_hi) row_backward(min(r, int(PIXELS_PER_THREAD) - 1), n, xy, co, rgb, min_power);
+            } while (++r <= r_hi);
+        } else {
+            for (int r = 0; r < int(PIXELS_PER_THREAD); r++) {
+                if (r >= r_lo && r <= r_hi) row_backward(r, n, xy, co, rgb, min_power);
+            }
         }
     }
     if (subgroupAny(hit)) {

@@ -17,7 +17,9 @@
 // indirectly from it.
 #include "common.glsl"
 #include "sh.glsl"
-#include "tiles.glsl"
+// Specialization constant 1: large splats' tiles counted by their subgroup (tiles_subgroup.glsl).
+layout(constant_id = 1) const uint LARGE_SPLATS_BY_SUBGROUP = 1;
+#include "tiles_subgroup.glsl"
 layout(local_size_x = WG_SIZE) in;
 #define FRAME_BINDING 0
 #include "frame.glsl"
@@ -66,6 +68,25 @@ void cull(uint i) {
     radii.v[i] = uvec2(0);
     tiles_touched.v[i] = 0;
 }
+
+void store(uint i, vec2 xy, vec4 co, vec3 rgb, float depth, uvec2 radius, uint touched) {
+    xys.v[i] = xy;
+    conics.v[i] = co;
+    colours.v[i] = vec4(rgb, 0.0);
+    depths.v[i] = depth;
+    radii.v[i] = radius;
+    tiles_touched.v[i] = touched;
+}
+
+// A large splat (tiles_subgroup.glsl), projected and coloured, whose tiles the subgroup counts
+// before it is stored (or culled where it reaches none).
+bool large;
+vec2 large_xy;
+vec4 large_co;
+ivec2 large_lo, large_hi;
+vec3 large_rgb;
+float large_depth;
+uvec2 large_radius;
 
 void preprocess(uint i) {
     SplatRef ref = frame.p.select != 0 ? selected_ref(i) : splat_ref(i);
@@ -126,12 +147,15 @@ void preprocess(uint i) {
     tile_rect(xy, radius, uvec2(frame.p.tiles_x, frame.p.tiles_y), rmin, rmax);
     vec4 co = vec4(conic, opacity);
     uint touched = 0;
-    for (int ty = rmin.y; ty < rmax.y; ty++) {
-        for (int tx = rmin.x; tx < rmax.x; tx++) touched += splat_hits_tile(xy, co, ivec2(tx, ty)) ? 1 : 0;
-    }
-    if (touched == 0) {
-        cull(i);
-        return;
+    large = rect_is_large(rmin, rmax);
+    if (!large) {
+        for (int ty = rmin.y; ty < rmax.y; ty++) {
+            for (int tx = rmin.x; tx < rmax.x; tx++) touched += splat_hits_tile(xy, co, ivec2(tx, ty)) ? 1 : 0;
+        }
+        if (touched == 0) {
+            cull(i);
+            return;
+        }
     }
 
     // SH in template space: direction R^T d.
@@ -157,18 +181,31 @@ void preprocess(uint i) {
     }
     rgb = max(rgb + 0.5, vec3(0.0));
 
-    xys.v[i] = xy;
-    conics.v[i] = co;
-    colours.v[i] = vec4(rgb, 0.0);
-    depths.v[i] = t.z;
-    radii.v[i] = radius;
-    tiles_touched.v[i] = touched;
+    if (large) {
+        large_xy = xy;
+        large_co = co;
+        large_lo = rmin;
+        large_hi = rmax;
+        large_rgb = rgb;
+        large_depth = t.z;
+        large_radius = radius;
+        return;
+    }
+    store(i, xy, co, rgb, t.z, radius, touched);
 }
 
 void main() {
     load_frame();
     uint n = counts.v[COUNT_GAUSSIANS];
-    for (uint i = gl_GlobalInvocationID.x; i < n; i += gl_NumWorkGroups.x * WG_SIZE) {
-        preprocess(i);
+    // The loop ends for the whole subgroup at once: its lanes count the large splats' tiles
+    // together (tiles_subgroup.glsl).
+    for (uint i = gl_GlobalInvocationID.x; any_below(i, n); i += gl_NumWorkGroups.x * WG_SIZE) {
+        large = false;
+        if (i < n) preprocess(i);
+        uint touched = count_large_splat_tiles(large, large_xy, large_co, large_lo, large_hi);
+        if (large) {
+            if (touched == 0) cull(i);
+            else store(i, large_xy, large_co, large_rgb, large_depth, large_radius, touched);
+        }
     }
 }

@@ -70,13 +70,17 @@ pub struct KernelPolicy {
     /// (else every invocation fetches each splat from the texel buffers itself: no shared
     /// memory, no barrier).
     pub blend_shared_batches: bool,
+    /// `preprocess` and `emit` test the tiles of a splat larger than the subgroup with the whole
+    /// subgroup (`glsl/tiles_subgroup.glsl`), else each splat's own invocation tests them.
+    pub large_splats_by_subgroup: bool,
     /// Gradient kernels add floats with atomics (else a compare-and-swap loop).
     pub float_atomics: bool,
 }
 
 impl KernelPolicy {
-    /// For GPUs: short sort runs for many workgroups; one pixel per blend invocation. No
-    /// one-dispatch sort: its threads' long serial runs suit a CPU, not a GPU.
+    /// For GPUs: short sort runs for many workgroups; one pixel per blend invocation; a large
+    /// splat's tiles tested by its whole subgroup. No one-dispatch sort: its threads' long
+    /// serial runs suit a CPU, not a GPU.
     pub const GPU: KernelPolicy = KernelPolicy {
         sort_items: SORT_ITEMS_GPU,
         thread_runs: false,
@@ -84,15 +88,16 @@ impl KernelPolicy {
         sort_small_max: 0,
         blend_pixels_per_thread: 1,
         blend_shared_batches: true,
+        large_splats_by_subgroup: true,
         float_atomics: true,
     };
     /// For CPU devices (lavapipe): every workgroup with barriers has a large fixed cost
     /// (llvmpipe runs such workgroups as coroutines) and every load costs far more than
     /// arithmetic, so long sort runs that are their own histogram columns (no barrier), 8-bit
     /// digits (4 passes for a 31-bit depth key instead of 6), inputs up to SORT_SMALL_MAX_CPU
-    /// keys sorted in one dispatch, and a whole tile column per blend invocation that fetches
+    /// keys sorted in one dispatch, a whole tile column per blend invocation that fetches
     /// every splat itself (a texel fetch is a vector gather on lavapipe, a shared-memory load a
-    /// loop over the lanes).
+    /// loop over the lanes), and each splat's tiles tested by its own invocation.
     pub const CPU: KernelPolicy = KernelPolicy {
         sort_items: SORT_ITEMS_CPU,
         thread_runs: true,
@@ -100,6 +105,7 @@ impl KernelPolicy {
         sort_small_max: SORT_SMALL_MAX_CPU,
         blend_pixels_per_thread: TILE_SIZE,
         blend_shared_batches: false,
+        large_splats_by_subgroup: false,
         float_atomics: true,
     };
 
@@ -148,9 +154,19 @@ impl Kernels {
             ]
         };
         Ok(Arc::new(Kernels {
-            preprocess: k("preprocess", spirv::PREPROCESS)?,
+            preprocess: Kernel::with_spec(
+                gpu,
+                "preprocess",
+                spirv::PREPROCESS,
+                &[policy.large_splats_by_subgroup as u32],
+            )?,
             compact: k("compact", spirv::COMPACT)?,
-            emit: Kernel::with_spec(gpu, "emit", spirv::EMIT, &[policy.blend_pixels_per_thread])?,
+            emit: Kernel::with_spec(
+                gpu,
+                "emit",
+                spirv::EMIT,
+                &[policy.blend_pixels_per_thread, policy.large_splats_by_subgroup as u32],
+            )?,
             ranges: k("ranges", spirv::RANGES)?,
             blend: [
                 Kernel::with_spec(gpu, "blend", spirv::BLEND, &blend_spec(0))?,
