@@ -41,14 +41,14 @@ scratch=${PEERS_SCRATCH:-${TMPDIR:-/tmp}/instgs-peers}
 out=${BENCH_OUT:-$repo/out/bench-peers}
 mkdir -p "$scratch" "$out"
 
+# Pinned commits (../shared/docs/peers.md); a prebuilt harness is of the same commit.
+WEB_SPLAT_REV=959a3ecc2b649a2677fa6c56f4a1a19eb4c3fc80
+CGMATH_REV=ff840cbf48d79441eaac3e78155df4723511d247
+SPLINES_REV=cdb1be6c7ffbfc5eee0aca91df405c62b62b2c0a
 if [[ -n ${WEB_SPLAT_HARNESS:-} ]]; then
     harness=$WEB_SPLAT_HARNESS
 else
 
-# Pinned commits (../shared/docs/peers.md).
-WEB_SPLAT_REV=959a3ecc2b649a2677fa6c56f4a1a19eb4c3fc80
-CGMATH_REV=ff840cbf48d79441eaac3e78155df4723511d247
-SPLINES_REV=cdb1be6c7ffbfc5eee0aca91df405c62b62b2c0a
 checkout() { # name source rev
     local dir=$scratch/$1
     if [[ ! -d $dir/.git ]]; then
