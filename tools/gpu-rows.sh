@@ -10,18 +10,19 @@
 #   tools/gpu-rows.sh --smoke                every row's code path, scaled down, on any device
 #                                            (lavapipe in the test command), a few minutes
 #
-# Rows, in order of priority (each one's time on an H100 in brackets, what the budget plans by):
+# Rows, in order of priority (each one's time on an H100 in brackets, what the budget plans by;
+# measured on 2026-11-27 for the first three, with a margin):
 #   forward-1080p      our frame at 1920x1080 beside web-splat's, the shared guitar, biker and
 #                      playbot_lod2, 8 orbit cameras (tools/bench-peers.sh; our forward path
-#                      `auto`: whichever is faster on the device, named in the row)  [5 min]
+#                      `auto`: whichever is faster on the device, named in the row)  [1 min]
 #   splats-1m-11m      1M and 11.6M splats (11 and 128 copies of the guitar, expanded into plain
 #                      PLYs) at 1920x1080, both forward paths: goals < 2 ms and < 10 ms a frame
-#                                                                                     [6 min]
+#                                                                                     [2 min]
 #   equal-quality      InstGS against the plain scene pruned to the same held-out PSNR (a
 #                      `curve` run's equal-quality point; --prepare --curve-run RUN --curve-data
 #                      DATA puts its two scenes and DATA/transforms_test.json in the kit),
 #                      interleaved, both forward paths, at
-#                      the cameras' size and at 1080 lines                            [3 min]
+#                      the cameras' size and at 1080 lines                            [1 min]
 #   training-brush     plain training beside brush on a 2 MP dataset rendered from the biker
 #                      (150 + 15 views), 2 000 and 7 000 iterations (tools/bench-brush.sh) [15 min]
 #   pipeline-full      `instgs-vk train` with today's defaults, 30 000 + 10 000 iterations, on
@@ -56,7 +57,7 @@ while [[ $# -gt 0 ]]; do
     esac
 done
 rows=(forward-1080p splats-1m-11m equal-quality training-brush pipeline-full)
-declare -A planned_min=([forward-1080p]=5 [splats-1m-11m]=6 [equal-quality]=3 [training-brush]=15 [pipeline-full]=30)
+declare -A planned_min=([forward-1080p]=1 [splats-1m-11m]=2 [equal-quality]=1 [training-brush]=15 [pipeline-full]=30)
 for r in ${only//,/ }; do
     [[ " ${rows[*]} " == *" $r "* ]] || { echo "gpu-rows.sh: --only: no row $r (rows: ${rows[*]})" >&2; exit 2; }
 done
