@@ -159,6 +159,23 @@ fn camera_inside_the_scene_culls_and_matches() {
 }
 
 #[test]
+fn large_and_small_splats_side_by_side_match() {
+    // Every other Gaussian huge (hundreds of tiles), the rest small: the GPU policy's subgroups
+    // test the large ones' tiles together (glsl/tiles_subgroup.glsl) while their small
+    // neighbours loop on their own; counts, lists and images against the CPU twin.
+    let mut rng = Rng::new(14);
+    let mut scene = random_scene(&mut rng, 2000, 1);
+    for (i, s) in scene.scales.iter_mut().enumerate() {
+        if i % 2 == 0 {
+            *s = [-0.7, -0.9, -1.2];
+        }
+    }
+    let cam = look_at(Vec3::new(0.2, -0.3, -4.5), Vec3::ZERO, -Vec3::Y, 320, 240, 260.0);
+    let p = check_passes(&scene, &cam, [0.1, 0.1, 0.1]);
+    assert!(p >= 50.0, "PSNR {p:.1} dB");
+}
+
+#[test]
 fn intersection_buffers_grow_when_a_frame_needs_more() {
     // 400 huge Gaussians each covering most of a 640x480 image: far more intersections than
     // the initial capacity (65536).
