@@ -292,16 +292,14 @@ impl Progress {
         if tenth || timed || done == self.total {
             self.last_line = std::time::Instant::now();
             let rate = done.saturating_sub(self.first) as f64 / self.start.elapsed().as_secs_f64().max(1e-9);
-            let eta = self.total.saturating_sub(done) as f64 / rate.max(1e-9);
             let msg = if msg.is_empty() { String::new() } else { format!(": {msg}") };
-            eprintln!(
-                "{}{} {done}/{}{msg}, {rate:.2} {}, ETA {}",
-                self.label,
-                self.unit,
-                self.total,
-                self.rate_unit,
-                duration(eta)
-            );
+            // No estimate before the first step is done (no rate to go by).
+            let eta = if done > self.first {
+                format!(", ETA {}", duration(self.total.saturating_sub(done) as f64 / rate))
+            } else {
+                String::new()
+            };
+            eprintln!("{}{} {done}/{}{msg}, {rate:.2} {}{eta}", self.label, self.unit, self.total, self.rate_unit);
         }
     }
 
