@@ -37,7 +37,11 @@
 //! RUN/instance.json, its pose read from RUN/init.instgs, against the ground truth (up to a
 //! symmetry of the object with `--meshes`): shared (accepted, within 5° and 5 %), shared
 //! wrongly (another group's, or farther off), left plain with its reason. Exits with 1 when one
-//! is shared wrongly or left plain without a reason.
+//! is shared wrongly or left plain without a reason. DIR may be a capture of
+//! `tools/make-capture.sh` (its `ground_truth.json`, poses in COLMAP's frame, in place of
+//! `instances.json`): the run's instance ids, which a segmenter's masks leave unrelated to the
+//! truth's, are then matched to the true instances by their centres, as the `instance` stage
+//! itself does (`pose_error::match_ids_by_centre`).
 use std::collections::BTreeMap;
 use std::path::PathBuf;
 
@@ -406,10 +410,22 @@ fn main() -> Result<()> {
     }
     let scene = instgs_vk::formats::ply::read_ply(&run.join("point_cloud.ply"))?;
     let labels = instgs_vk::instancing::labels::read_labels(&run.join("labels.json"), scene.len())?;
-    let groups_path = data.join("instances.json");
-    let groups = instgs_vk::dataset::masks::read_groups(&groups_path)?;
-    let truth = instgs_vk::instancing::pose_error::read_ground_truth(&groups_path)?
-        .context("instances.json has no ground-truth poses")?;
+    use instgs_vk::instancing::pose_error::{match_ids_by_centre, read_ground_truth, GROUND_TRUTH_FILE};
+    let capture = !data.join("instances.json").exists() && data.join(GROUND_TRUTH_FILE).exists();
+    let groups_path = data.join(if capture { GROUND_TRUTH_FILE } else { "instances.json" });
+    let mut groups = instgs_vk::dataset::masks::read_groups(&groups_path)?;
+    let mut truth = read_ground_truth(&groups_path)?.context("instances.json has no ground-truth poses")?;
+    // The run's instance id → the true one (the same ids, but for a capture).
+    let mut true_id: BTreeMap<u32, u32> = truth.keys().map(|&t| (t, t)).collect();
+    if capture {
+        let centres = instgs_vk::instancing::build::instance_centres(&scene, &labels);
+        true_id = match_ids_by_centre(&truth, &centres);
+        truth = true_id.iter().map(|(&id, t)| (id, truth[t].clone())).collect();
+        for g in &mut groups {
+            g.ids = true_id.iter().filter(|(_, t)| g.ids.contains(t)).map(|(&id, _)| id).collect();
+        }
+        println!("{}: {} of the run's instances matched to true ones by their centres", data.display(), true_id.len());
+    }
     // Per instance id, the surface of its object (with --meshes).
     let mut surfaces: BTreeMap<u32, std::rc::Rc<symmetry::Surface>> = BTreeMap::new();
     if let Some(dir) = &meshes {
@@ -418,7 +434,10 @@ fn main() -> Result<()> {
         for g in file["groups"].as_array().context("instances.json: no groups")? {
             let surface = std::rc::Rc::new(symmetry::load(g, dir)?);
             for i in g["instances"].as_array().into_iter().flatten() {
-                surfaces.insert(i["id"].as_u64().context("an instance without an id")? as u32, surface.clone());
+                let t = i["id"].as_u64().context("an instance without an id")? as u32;
+                for (&id, _) in true_id.iter().filter(|(_, &x)| x == t) {
+                    surfaces.insert(id, surface.clone());
+                }
             }
         }
     }

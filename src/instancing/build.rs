@@ -223,7 +223,10 @@ pub enum TruthIds {
 }
 
 /// Every labelled instance's centre: the opacity-weighted mean of its Gaussians' means.
-fn instance_centres(scene: &crate::model::scene::Scene, labels: &[u32]) -> std::collections::BTreeMap<u32, [f64; 3]> {
+pub fn instance_centres(
+    scene: &crate::model::scene::Scene,
+    labels: &[u32],
+) -> std::collections::BTreeMap<u32, [f64; 3]> {
     let mut sums: std::collections::BTreeMap<u32, ([f64; 3], f64)> = Default::default();
     for (i, &l) in labels.iter().enumerate().filter(|(_, &l)| l != 0) {
         let w = crate::math::sigmoid(scene.opacities[i]) as f64;

@@ -76,13 +76,21 @@ pub fn pose_error(relative: &Sim3, first: &GroundTruthPose, this: &GroundTruthPo
 /// matched to the run's instances by [`match_by_centre`] (`tools/make_capture.py` writes one).
 pub const GROUND_TRUTH_FILE: &str = "ground_truth.json";
 
-/// Ground-truth poses keyed by the run's instance ids: each instance (its Gaussians' centre,
-/// `centres`) takes the true instance whose centre is nearest, closest pairs first, one each,
-/// and only within half the true object's size (else it has no ground truth).
+/// Ground-truth poses keyed by the run's instance ids (see [`match_ids_by_centre`]).
 pub fn match_by_centre(
     truth: &BTreeMap<u32, GroundTruthPose>,
     centres: &BTreeMap<u32, [f64; 3]>,
 ) -> BTreeMap<u32, GroundTruthPose> {
+    match_ids_by_centre(truth, centres).into_iter().map(|(id, t)| (id, truth[&t].clone())).collect()
+}
+
+/// The true instance id of each of the run's instances: each instance (its Gaussians' centre,
+/// `centres`) takes the true instance whose centre is nearest, closest pairs first, one each,
+/// and only within half the true object's size (else it has none).
+pub fn match_ids_by_centre(
+    truth: &BTreeMap<u32, GroundTruthPose>,
+    centres: &BTreeMap<u32, [f64; 3]>,
+) -> BTreeMap<u32, u32> {
     let mut pairs: Vec<(f64, u32, u32)> = centres
         .iter()
         .flat_map(|(&id, c)| {
@@ -97,7 +105,7 @@ pub fn match_by_centre(
     let (mut out, mut used) = (BTreeMap::new(), std::collections::BTreeSet::new());
     for (_, id, t) in pairs {
         if !out.contains_key(&id) && used.insert(t) {
-            out.insert(id, truth[&t].clone());
+            out.insert(id, t);
         }
     }
     out
