@@ -152,8 +152,11 @@ for b in "$bin" "$harness" "$brush"; do
     m=$(ldd "$b" | awk '/not found/ {print $1}' | tr '\n' ' ')
     [[ -z $m ]] || missing+="$(basename "$b") needs ${m}; "
 done
-ldconfig -p | grep -q 'libvulkan\.so\.1' || missing+="the Vulkan loader libvulkan.so.1; "
-if [[ -x $harness || -x $brush ]] && ! ldconfig -p | grep -q 'libEGL\.so\.1'; then
+# (Held in a variable: `ldconfig -p | grep -q` fails under pipefail whenever grep's early exit
+# cuts ldconfig off with SIGPIPE.)
+cache=$(ldconfig -p)
+[[ $cache == *libvulkan.so.1* ]] || missing+="the Vulkan loader libvulkan.so.1; "
+if [[ (-x $harness || -x $brush) && $cache != *libEGL.so.1* ]]; then
     missing+="libEGL.so.1 (libglvnd) for the wgpu peers; "
 fi
 if [[ -n $missing ]]; then
