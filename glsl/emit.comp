@@ -66,7 +66,7 @@ void main() {
             LargeSplat s = large_splat(l, xy, co, rmin, rmax);
             uint si = from_lane(i, l);
             uint next = from_lane(o, l);
-            uint area = uint(s.hi.x - s.lo.x) * uint(s.hi.y - s.lo.y);
+            uint area = rect_tiles(s.lo, s.hi);
             for (uint t0 = 0; t0 < area; t0 += gl_SubgroupSize) {
                 ivec2 tile;
                 bool hit = large_splat_tile(s, t0 + gl_SubgroupInvocationID, tile);

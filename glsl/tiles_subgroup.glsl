@@ -17,10 +17,15 @@
 #extension GL_KHR_shader_subgroup_arithmetic : require
 #include "tiles.glsl"
 
+// The number of tiles in the rectangle [lo, hi).
+uint rect_tiles(ivec2 lo, ivec2 hi) {
+    ivec2 n = max(hi - lo, ivec2(0));
+    return uint(n.x) * uint(n.y);
+}
+
 // Whether a splat's tile rectangle [lo, hi) is large (tested by its subgroup).
 bool rect_is_large(ivec2 lo, ivec2 hi) {
-    ivec2 n = max(hi - lo, ivec2(0));
-    return LARGE_SPLATS_BY_SUBGROUP != 0 && uint(n.x) * uint(n.y) > gl_SubgroupSize;
+    return LARGE_SPLATS_BY_SUBGROUP != 0 && rect_tiles(lo, hi) > gl_SubgroupSize;
 }
 
 // Lane l's value of v, in every lane.
@@ -34,13 +39,13 @@ int from_lane(int v, uint l) {
     return int(from_lane(uint(v), l));
 }
 
-// The lane of the next large splat still to do (`todo`), or NO_LANE once there is none.
-const uint NO_LANE = 0xffffffffu;
-
 // Whether any lane's value of i is below n (the subgroup's loops over its items end together).
 bool any_below(uint i, uint n) {
     return (LARGE_SPLATS_BY_SUBGROUP == 0 ? i : subgroupMin(i)) < n;
 }
+
+// The lane of the next large splat still to do (`todo`), or NO_LANE once there is none.
+const uint NO_LANE = 0xffffffffu;
 uint next_lane(bool todo) {
     return LARGE_SPLATS_BY_SUBGROUP == 0 ? NO_LANE : subgroupMin(todo ? gl_SubgroupInvocationID : NO_LANE);
 }
@@ -62,9 +67,8 @@ LargeSplat large_splat(uint l, vec2 xy, vec4 co, ivec2 lo, ivec2 hi) {
 // (false for t past the rectangle).
 bool large_splat_tile(LargeSplat s, uint t, out ivec2 tile) {
     uint w = uint(s.hi.x - s.lo.x);
-    uint area = w * uint(s.hi.y - s.lo.y);
     tile = s.lo + ivec2(t % w, t / w);
-    return t < area && splat_hits_tile(s.xy, s.co, tile);
+    return t < rect_tiles(s.lo, s.hi) && splat_hits_tile(s.xy, s.co, tile);
 }
 
 // The number of tiles each lane's large splat reaches (0 where `large` is false).
@@ -73,7 +77,7 @@ uint count_large_splat_tiles(bool large, vec2 xy, vec4 co, ivec2 lo, ivec2 hi) {
     bool todo = large;
     for (uint l = next_lane(todo); l != NO_LANE; l = next_lane(todo)) {
         LargeSplat s = large_splat(l, xy, co, lo, hi);
-        uint area = uint(s.hi.x - s.lo.x) * uint(s.hi.y - s.lo.y);
+        uint area = rect_tiles(s.lo, s.hi);
         uint hits = 0;
         for (uint t = gl_SubgroupInvocationID; t < area; t += gl_SubgroupSize) {
             ivec2 tile;
