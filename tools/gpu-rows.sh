@@ -21,8 +21,8 @@
 #   equal-quality      InstGS against the plain scene pruned to the same held-out PSNR (a
 #                      `curve` run's equal-quality point; --prepare --curve-run RUN --curve-data
 #                      DATA puts its two scenes and DATA/transforms_test.json in the kit),
-#                      interleaved, both forward paths, at
-#                      the cameras' size and at 1080 lines                            [1 min]
+#                      interleaved, both forward paths, at the cameras' size and at 1080 lines
+#                                                                                     [1 min]
 #   training-brush     plain training beside brush on a 2 MP dataset rendered from the biker
 #                      (150 + 15 views), 2 000 and 7 000 iterations (tools/bench-brush.sh) [15 min]
 #   pipeline-full      `instgs-vk train` with today's defaults, 30 000 + 10 000 iterations, on
@@ -90,7 +90,7 @@ if [[ $prepare == 1 ]]; then
     wanted forward-1080p && splats+=(guitar.ply biker.ply playbot_lod2.ply)
     wanted splats-1m-11m && splats+=(guitar.ply)
     wanted training-brush && splats+=(biker.ply)
-    for f in "${splats[@]}"; do cp ../shared/data/splats/$f "$kit/data/splats/"; done
+    for f in $(printf '%s\n' "${splats[@]}" | sort -u); do cp ../shared/data/splats/$f "$kit/data/splats/"; done
     if wanted pipeline-full; then
         for s in ducks6 tabletop; do cp -r ../shared/data/scenes/$s "$kit/data/scenes/"; done
     fi
