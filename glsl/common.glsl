@@ -101,7 +101,7 @@ struct FrameParams {
                  // splats after the background are the selected instances' Gaussians, packed
                  // (see preprocess.comp). 0: every (template Gaussian, instance) pair, fixed order.
     uint num_instances; // instances of all groups (rows of the `xforms` buffer)
-    uint offset_codes; // 1: offsets are product-quantised (d_codes, codebooks), 0: f32 arrays
+    uint offset_storage; // OFFSETS_F32, OFFSETS_PQ8 or OFFSETS_F16 (instance.glsl)
     uint num_visible; // visible Gaussians: copied on the GPU from counts before the backward
                       // pass of a plain scene (preprocess_backward's VISIBLE_ROWS); 0 otherwise
     uint _pad1;
@@ -130,6 +130,16 @@ struct GroupInfo {
     uvec4 level_pair_first; // [0] = splat_first - num_background
     vec4 bound; // template-space bounding sphere of the Gaussians' 3-sigma extents: centre, radius
 };
+
+// How a scene's per-pair offsets are held on the device (FrameParams.offset_storage):
+// f32 arrays d_means, d_sh0, d_opacities (28 bytes per pair; training writes them); product-quantised
+// codes in d_codes with codebooks (2 bytes per pair, crate::formats::pq8); or seven halves per pair
+// packed into d_codes (14 bytes per pair: dp xyz, d SH DC rgb, d opacity logit).
+#define OFFSETS_F32 0
+#define OFFSETS_PQ8 1
+#define OFFSETS_F16 2
+// Halves per pair in OFFSETS_F16.
+#define OFFSET_HALVES 7
 
 // Level-of-detail levels per template at most, the template (level 0) included.
 #define LOD_LEVELS 4

@@ -3,10 +3,13 @@
 //   mean = s R mean_t + t + dp,  log-scales = log-scales_t + ln s,  quat = q_T * q_t,
 //   opacity logit = logit_t + do,  SH DC = dc_t + dc,  higher SH evaluated in template space
 //   at the direction R^T d (view-dependent colour turns with the instance).
-// Offsets are f32 arrays, or with frame.p.offset_codes product-quantised (crate::codes): per
-// pair 16 bits in d_codes (two pairs per word, low half first), the low byte indexing the
-// group's dp codebook (codebooks[group * 512 + code].xyz), the high byte its (d SH DC, d
-// opacity) codebook (codebooks[group * 512 + 256 + code]).
+// Offsets (frame.p.offset_storage, common.glsl) are f32 arrays; or product-quantised
+// (crate::formats::pq8): per pair 16 bits in d_codes (two pairs per word, low half first), the
+// low byte indexing the group's dp codebook (codebooks[group * 512 + code].xyz), the high byte
+// its (d SH DC, d opacity) codebook (codebooks[group * 512 + 256 + code]); or f16: pair p's
+// OFFSET_HALVES halves (dp xyz, d SH DC rgb, d opacity) are halves 7p .. 7p + 6 of d_codes (two
+// per word, low half first), so they lie in the four words from 7p / 2 on, from the high half of
+// the first where p is odd.
 // The including kernel declares `frame` (frame.glsl) and the parameter buffers means, scales,
 // quats, opacities as samplerBuffers, and defines INSTANCE_BINDING, the first of the seven bindings below.
 #include "texels.glsl"
@@ -76,7 +79,15 @@ Expanded expand(SplatRef r) {
         uint p = r.pair;
         vec3 dp;
         float dop;
-        if (frame.p.offset_codes != 0) {
+        if (frame.p.offset_storage == OFFSETS_F16) {
+            uint w = (OFFSET_HALVES * p) >> 1;
+            uvec4 h = uvec4(d_codes.v[w], d_codes.v[w + 1], d_codes.v[w + 2], d_codes.v[w + 3]);
+            if ((p & 1) != 0) h = uvec4((h.xyz >> 16) | (h.yzw << 16), h.w >> 16);
+            vec2 a = unpackHalf2x16(h.x), b = unpackHalf2x16(h.y), c = unpackHalf2x16(h.z);
+            dp = vec3(a, b.x);
+            e.dc = vec3(b.y, c);
+            dop = unpackHalf2x16(h.w).x;
+        } else if (frame.p.offset_storage == OFFSETS_PQ8) {
             uint code = (d_codes.v[p >> 1] >> (16 * (p & 1))) & 0xFFFF;
             dp = codebooks.v[r.group * 512 + (code & 0xFF)].xyz;
             vec4 c = codebooks.v[r.group * 512 + 256 + (code >> 8)];

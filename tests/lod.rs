@@ -195,9 +195,9 @@ fn product_quantised_offsets_render_as_their_decoded_values() {
     assert_ne!(decoded.groups[0].offsets, scene.groups[0].offsets, "k-means codes are lossy");
     let cfg = RenderConfig::load(None).unwrap();
     let coded = GpuScene::instanced_for_rendering(&gpu, &decoded, &cfg.clone().exact()).unwrap();
-    assert!(coded.inst.codes);
+    assert_eq!(coded.inst.storage, OFFSETS_PQ8);
     let plain = GpuScene::instanced(&gpu, &decoded).unwrap();
-    assert!(!plain.inst.codes);
+    assert_eq!(plain.inst.storage, OFFSETS_F32);
     assert!(coded.gpu_bytes() < plain.gpu_bytes());
     let mut r = Rasterizer::new(&gpu, &k).unwrap();
     r.poison = true;
@@ -212,11 +212,67 @@ fn product_quantised_offsets_render_as_their_decoded_values() {
     // With level of detail the coarser levels' offsets take their nearest codes.
     let lod_coded = GpuScene::instanced_for_rendering(&gpu, &decoded, &cfg).unwrap();
     let lod_f32 = GpuScene::instanced_for_rendering(&gpu, &scene, &cfg).unwrap();
-    assert!(lod_coded.inst.codes && !lod_f32.inst.codes);
+    assert_eq!((lod_coded.inst.storage, lod_f32.inst.storage), (OFFSETS_PQ8, OFFSETS_F32));
     let fc = r.render(&lod_coded, &camera(), [0.0; 3]).unwrap();
     let ff = r.render(&lod_f32, &camera(), [0.0; 3]).unwrap();
     let db = psnr(&fc.image, &ff.image);
     assert!(db >= 30.0, "level of detail, coded vs original offsets: {db:.1} dB");
+    assert_clean(&gpu);
+}
+
+#[test]
+fn f16_offsets_stay_f16_on_the_device_and_render_as_their_f32_values() {
+    // An f16 file's offsets are held as seven halves per pair (14 bytes instead of 28) and
+    // unpacked by instance.glsl: the frames equal those of the same values as f32 arrays. An odd
+    // number of pairs (9 × 301 + 7 × 200) puts the last pair's halves at the buffer's end.
+    use instgs_vk::formats::instgs::{from_bytes, to_bytes, Dtype};
+    let (gpu, k) = gpu();
+    let mut rng = Rng::new(17);
+    let mut scene = random_instanced(&mut rng, 1, 40, &[(301, 9), (200, 7)]);
+    for g in &mut scene.groups {
+        for i in &mut g.instances {
+            let t = Vec3::new(rng.range(-3.0, 3.0), rng.range(-2.0, 2.0), rng.range(4.0, 12.0));
+            i.transform =
+                instgs_vk::model::instanced::Similarity::from_parts(i.transform.rotation, i.transform.scale, t);
+        }
+    }
+    for m in &mut scene.background.means {
+        m[2] += 6.0;
+    }
+    let halves = from_bytes(&to_bytes(&scene, Dtype::F16), "f16").unwrap();
+    assert_ne!(halves.groups[0].offsets, scene.groups[0].offsets, "f16 rounds");
+    let cfg = RenderConfig::load(None).unwrap();
+    let compact = GpuScene::instanced_for_rendering(&gpu, &halves, &cfg.clone().exact()).unwrap();
+    let wide = GpuScene::instanced(&gpu, &halves).unwrap();
+    let other = GpuScene::instanced_for_rendering(&gpu, &scene, &cfg.clone().exact()).unwrap();
+    assert_eq!(
+        (compact.inst.storage, wide.inst.storage, other.inst.storage),
+        (OFFSETS_F16, OFFSETS_F32, OFFSETS_F32),
+        "only offsets that f16 holds exactly are stored as f16"
+    );
+    let pairs = wide.inst.pairs as u64;
+    assert_eq!(pairs % 2, 1);
+    // 28 bytes per pair against 4 per two halves; each side keeps placeholders (16 bytes, the
+    // smallest buffer) for the other's buffers: the three f32 arrays, d_codes.
+    assert_eq!(wide.gpu_bytes() + 3 * 16, compact.gpu_bytes() + 28 * pairs + 16 - 4 * (7 * pairs).div_ceil(2));
+    let mut r = Rasterizer::new(&gpu, &k).unwrap();
+    r.poison = true;
+    for turn in 0..3 {
+        let a = 0.4 * turn as f32 - 0.4;
+        let cam = look_at(Vec3::ZERO, Vec3::new(a.sin(), 0.0, a.cos()), Vec3::new(0.0, -1.0, 0.0), 128, 96, 110.0);
+        let fc = r.render(&compact, &cam, [0.0; 3]).unwrap();
+        let fw = r.render(&wide, &cam, [0.0; 3]).unwrap();
+        assert!(fc.intersections > 1000, "the instances are in view");
+        assert_eq!(fc.image, fw.image, "f16 offsets vs the same values as f32 (view {turn})");
+    }
+    // With level of detail the coarser levels' merged offsets are rounded to f16.
+    let lod_f16 = GpuScene::instanced_for_rendering(&gpu, &halves, &cfg).unwrap();
+    let lod_f32 = GpuScene::instanced_for_rendering(&gpu, &scene, &cfg).unwrap();
+    assert_eq!((lod_f16.inst.storage, lod_f32.inst.storage), (OFFSETS_F16, OFFSETS_F32));
+    let fh = r.render(&lod_f16, &camera(), [0.0; 3]).unwrap();
+    let ff = r.render(&lod_f32, &camera(), [0.0; 3]).unwrap();
+    let db = psnr(&fh.image, &ff.image);
+    assert!(db >= 50.0, "level of detail, f16 vs f32 offsets: {db:.1} dB");
     assert_clean(&gpu);
 }
 

@@ -40,6 +40,16 @@ pub enum Dtype {
 }
 
 impl Dtype {
+    /// An offset storage by its configuration name ("f32", "f16" or "pq8").
+    pub fn offsets(name: &str) -> Result<Dtype> {
+        match name {
+            "f32" => Ok(Dtype::F32),
+            "f16" => Ok(Dtype::F16),
+            "pq8" => Ok(Dtype::Pq8),
+            _ => bail!("offset storage must be \"f32\", \"f16\" or \"pq8\", not {name:?}"),
+        }
+    }
+
     fn size(self) -> usize {
         match self {
             Dtype::F32 => 4,

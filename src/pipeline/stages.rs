@@ -153,11 +153,7 @@ impl Ctx<'_> {
         let _s = Stage::Instance;
         let c = &self.cfg.instance;
         let opts = instance_options(c)?;
-        let dtype = match c.offset_dtype.as_str() {
-            "f16" => crate::formats::instgs::Dtype::F16,
-            "pq8" => crate::formats::instgs::Dtype::Pq8,
-            _ => crate::formats::instgs::Dtype::F32,
-        };
+        let dtype = crate::formats::instgs::Dtype::offsets(&c.offset_dtype)?;
         // Ground-truth poses where the dataset has them: its groups file, or for ids that
         // are not the truth's, ground_truth.json matched by the instances' centres.
         use crate::instancing::build::TruthIds;
@@ -326,6 +322,7 @@ impl Ctx<'_> {
             appearance,
             label: s.label(),
             stop_after: hooked.then_some((cfg.iterations / 2).max(1)),
+            offset_dtype: crate::formats::instgs::Dtype::offsets(&self.cfg.instance.offset_dtype)?,
             ..train::RunOptions::new(out.to_path_buf(), resume, self.a.progress)
         };
         let r = train::run(self.gpu, self.k, self.ds, cfg, &opts)?;

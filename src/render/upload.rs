@@ -1,6 +1,6 @@
 //! A scene on the device: parameter rows (background Gaussians, then every group's template
 //! Gaussians) and the instancing tables (`glsl/instance.glsl`: groups, per-instance transforms,
-//! per-pair offsets or their pq8 codes). Rendering expands the splats on the fly.
+//! per-pair offsets as f32, f16 or pq8 codes). Rendering expands the splats on the fly.
 use std::sync::Arc;
 
 use anyhow::{bail, Result};
@@ -22,11 +22,13 @@ pub struct GpuInstancing {
     pub d_means: Buffer,
     pub d_sh0: Buffer,
     pub d_opacities: Buffer,
-    /// Product-quantised offsets (`crate::formats::pq8`; placeholders unless `codes`): 16 bits per
-    /// pair, and per group 512 codebook entries (vec4).
+    /// Compact offsets (placeholders for `OFFSETS_F32`): product-quantised codes
+    /// (`crate::formats::pq8`), 16 bits per pair, with per group 512 codebook entries (vec4); or
+    /// `OFFSET_HALVES` halves per pair.
     pub d_codes: Buffer,
     pub codebooks: Buffer,
-    pub codes: bool,
+    /// `OFFSETS_F32`, `OFFSETS_PQ8` or `OFFSETS_F16` (glsl/common.glsl).
+    pub storage: u32,
     pub num_groups: u32,
     /// Offset pairs of level 0 (every template Gaussian × its instances); a scene uploaded with
     /// level of detail holds the coarser levels' pairs after these.
@@ -92,6 +94,26 @@ pub fn all_offsets(scene: &InstancedScene) -> Offsets {
         o.d_opacities.extend_from_slice(&g.offsets.d_opacities);
     }
     o
+}
+
+/// Whether every offset is an f16 value (converting it to f16 and back changes nothing).
+pub fn halves_hold(o: &Offsets) -> bool {
+    let exact = |v: &f32| half::f16::from_f32(*v).to_f32().to_bits() == v.to_bits();
+    o.d_means.iter().flatten().chain(o.d_sh0.iter().flatten()).chain(&o.d_opacities).all(exact)
+}
+
+/// Offsets as `OFFSET_HALVES` f16 per pair (Δp xyz, Δ SH DC rgb, Δ opacity logit), two halves per
+/// word, low half first, pair after pair without padding (glsl/instance.glsl); values round to
+/// the nearest f16.
+pub fn pack_halves(o: &Offsets) -> Vec<u32> {
+    let halves = o.d_means.iter().zip(&o.d_sh0).zip(&o.d_opacities).flat_map(|((p, c), a)| {
+        [p[0], p[1], p[2], c[0], c[1], c[2], *a].map(|v| half::f16::from_f32(v).to_bits() as u32)
+    });
+    let mut words = vec![0u32; (OFFSET_HALVES as usize * o.len()).div_ceil(2)];
+    for (h, v) in halves.enumerate() {
+        words[h / 2] |= v << (16 * (h % 2));
+    }
+    words
 }
 
 /// The parameter rows of an instanced scene: background, then every template.
@@ -190,7 +212,10 @@ impl GpuScene {
         let (mut groups, xforms, max_offsets) = instancing_tables(scene);
         let mut rows = scene_rows(scene);
         let mut offsets = all_offsets(scene);
-        // Offsets that are product-quantised already (a pq8 file) stay so on the device.
+        // Offsets that are product-quantised already (a pq8 file) stay so on the device, and
+        // offsets that f16 holds exactly (an f16 file) stay f16 (the coarser levels' merged
+        // offsets are rounded to it); others are f32.
+        let f16_exact = scene.groups.iter().all(|g| halves_hold(&g.offsets));
         let books: Option<Vec<crate::formats::pq8::OffsetCodes>> =
             scene.groups.iter().map(|g| crate::formats::pq8::OffsetCodes::exact(&g.offsets)).collect();
         let mut codes: Vec<[u8; 2]> = books.iter().flatten().flat_map(|b| b.codes.iter().copied()).collect();
@@ -229,7 +254,14 @@ impl GpuScene {
                     .collect();
                 gs.inst.d_codes = upload_or_placeholder(gpu, "d_codes", &words)?;
                 gs.inst.codebooks = upload_or_placeholder(gpu, "codebooks", &table)?;
-                gs.inst.codes = true;
+                gs.inst.storage = OFFSETS_PQ8;
+                gs
+            }
+            None if f16_exact => {
+                let mut gs =
+                    Self::upload(gpu, &rows, nb, scene.splats(), &groups, &xforms, &Offsets::default(), !selecting)?;
+                gs.inst.d_codes = upload_or_placeholder(gpu, "d_codes", &pack_halves(&offsets))?;
+                gs.inst.storage = OFFSETS_F16;
                 gs
             }
             None => Self::upload(gpu, &rows, nb, scene.splats(), &groups, &xforms, &offsets, !selecting)?,
@@ -286,7 +318,7 @@ impl GpuScene {
                 d_opacities: upload_or_placeholder(gpu, "d_opacities", &offsets.d_opacities)?,
                 d_codes: upload_or_placeholder::<u32>(gpu, "d_codes", &[])?,
                 codebooks: upload_or_placeholder::<[f32; 4]>(gpu, "codebooks", &[])?,
-                codes: false,
+                storage: OFFSETS_F32,
                 num_groups: groups.len() as u32,
                 pairs: offsets.len(),
                 instances: xforms.len(),
@@ -322,8 +354,9 @@ impl GpuScene {
     /// `transform` and its level-0 Δp `d_means` (T rows); the coarser levels' merged Δp (weighted
     /// means of level 0's, [`crate::render::lod::merge_clusters`]) are mapped by `linear`, the
     /// linear part of the edit, as level 0's were. Returns false, changing nothing, where the
-    /// offsets are product-quantised on the device (their codebook is shared by every instance):
-    /// the caller uploads the scene again.
+    /// edit has a linear part and the offsets are compact on the device (pq8 codes share one
+    /// codebook per group; mapped Δp are no longer f16 values): the caller uploads the scene
+    /// again.
     pub fn write_instance(
         &mut self,
         gpu: &Arc<Gpu>,
@@ -343,7 +376,7 @@ impl GpuScene {
                 g.rows
             );
         }
-        if i.codes && linear != glam::Mat3::IDENTITY {
+        if i.storage != OFFSETS_F32 && linear != glam::Mat3::IDENTITY {
             return Ok(false);
         }
         let index = g.instance_first as usize + k;

@@ -337,9 +337,8 @@ impl PipelineConfig {
         if !matches!(t.instance.init.as_str(), "merge" | "max" | "first") {
             bail!("{what}: instance.init must be \"merge\", \"max\" or \"first\"");
         }
-        if !matches!(t.instance.offset_dtype.as_str(), "f32" | "f16" | "pq8") {
-            bail!("{what}: instance.offset_dtype must be \"f32\", \"f16\" or \"pq8\"");
-        }
+        crate::formats::instgs::Dtype::offsets(&t.instance.offset_dtype)
+            .map_err(|e| anyhow!("{what}: instance.offset_dtype: {e}"))?;
         match &t.instance.background_keep {
             BackgroundKeep::Fraction(f) if *f > 0.0 && *f <= 1.0 => {}
             BackgroundKeep::Auto(a) if a == "auto" => {}

@@ -86,6 +86,8 @@ pub struct RunOptions {
     /// A fresh run that learns colour transforms starts from these (one per training view: the
     /// joint stage from the plain stage's); else from the identity.
     pub appearance: Option<Vec<crate::render::appearance::ColourTransform>>,
+    /// How an instanced result stores its offsets (`scene.instgs`).
+    pub offset_dtype: crate::formats::instgs::Dtype,
 }
 
 impl RunOptions {
@@ -100,6 +102,7 @@ impl RunOptions {
             label: String::new(),
             stop_after: None,
             appearance: None,
+            offset_dtype: crate::formats::instgs::Dtype::F32,
         }
     }
 }
@@ -450,9 +453,7 @@ pub fn run(gpu: &Arc<Gpu>, k: &Arc<Kernels>, ds: &Dataset, cfg: &Config, opts: &
         write_appearance(&opts.out.join(APPEARANCE_FILE), ds, &state.appearance.params)?;
     }
     match state.to_instanced()? {
-        Some(inst) => {
-            crate::formats::instgs::write(&inst, &opts.out.join("scene.instgs"), crate::formats::instgs::Dtype::F32)?
-        }
+        Some(inst) => crate::formats::instgs::write(&inst, &opts.out.join("scene.instgs"), opts.offset_dtype)?,
         None => crate::formats::ply::write_ply(&state.scene, &opts.out.join("point_cloud.ply"))?,
     }
     crate::train::plot::write(&curves(&rows, cfg, state.layout.is_none(), ds), &opts.out.join("curves.png"))?;

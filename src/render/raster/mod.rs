@@ -61,7 +61,7 @@ pub fn frame_params(
         xform_grads: 0,
         select: 0,
         num_instances: 0,
-        offset_codes: 0,
+        offset_storage: OFFSETS_F32,
         num_visible: 0,
         _pad1: 0,
         _pad2: 0,
@@ -79,7 +79,7 @@ impl GpuScene {
         fp.xform_grads = self.inst.xform_grads as u32;
         fp.select = self.inst.select.is_some() as u32;
         fp.num_instances = self.inst.instances as u32;
-        fp.offset_codes = self.inst.codes as u32;
+        fp.offset_storage = self.inst.storage;
         fp
     }
 }
