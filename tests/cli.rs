@@ -216,7 +216,11 @@ fn compose_info_convert_and_render_an_instanced_scene() {
     };
     assert_eq!(b2["splats"], 950);
     assert_eq!(b2["intersections"], b2["compare"]["intersections"], "{b2}");
-    assert!((b2["ratios"]["scene_gpu_bytes"].as_f64().unwrap() - 1.0).abs() < 0.01, "instanced on the GPU too: {b2}");
+    // Instanced on the GPU too (expanded, its 950 splats would take 2.6× the .instgs's bytes);
+    // the .instgs's f16 offsets stay f16 there, the glTF's do not (its Δp pass through the node
+    // transforms): 14 bytes more per offset pair, levels of detail included.
+    let r = b2["ratios"]["scene_gpu_bytes"].as_f64().unwrap();
+    assert!((1.0..1.25).contains(&r), "instanced on the GPU too: {b2}");
     let worst: f64 = o.stdout.split("dB mean, ").nth(1).and_then(|t| t.split(' ').next()).unwrap().parse().unwrap();
     assert!(worst >= 60.0, "{}", o.stdout);
     let frames = d.join("glb-frames");
