@@ -26,7 +26,7 @@
 //! Gaussians scattered in each instance's box, 20 % larger).
 //!
 //! ```sh
-//! cargo run --release --example robustness -- RUN DIR [--downscale K] [--seeds N] [--up z|y]
+//! cargo run --release --example robustness -- RUN DIR [--judge] [--downscale K] [--seeds N] [--up z|y]
 //!     [--only CASE[,CASE]] [--refit N] [--no-synchronise] [--meshes DIR]
 //! ```
 //!
@@ -381,7 +381,7 @@ fn main() -> Result<()> {
     let mut it = std::env::args().skip(1);
     let (Some(run), Some(data)) = (it.next().map(PathBuf::from), it.next().map(PathBuf::from)) else {
         bail!(
-            "usage: robustness RUN DIR [--downscale K] [--seeds N] [--up z|y] [--only CASE] [--refit N] [--no-synchronise] [--meshes DIR]"
+            "usage: robustness RUN DIR [--judge] [--downscale K] [--seeds N] [--up z|y] [--only CASE] [--refit N] [--no-synchronise] [--meshes DIR]"
         );
     };
     let (mut downscale, mut seeds, mut up, mut only, mut synchronise, mut refit_its) =
