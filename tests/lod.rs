@@ -183,6 +183,24 @@ fn level_of_detail_keeps_distant_guitars() {
     assert_clean(&gpu);
 }
 
+/// PSNR between frames of `a` and `b` uploaded with the default level of detail (from
+/// [`camera`]), each checked to hold its offsets as the given storage.
+fn lod_psnr(
+    gpu: &std::sync::Arc<instgs_vk::gpu::Gpu>,
+    r: &mut Rasterizer,
+    a: (&InstancedScene, u32),
+    b: (&InstancedScene, u32),
+) -> f64 {
+    let cfg = RenderConfig::load(None).unwrap();
+    let frame = |(scene, storage): (&InstancedScene, u32), r: &mut Rasterizer| {
+        let gs = GpuScene::instanced_for_rendering(gpu, scene, &cfg).unwrap();
+        assert_eq!(gs.inst.storage, storage);
+        r.render(&gs, &camera(), [0.0; 3]).unwrap().image
+    };
+    let (fa, fb) = (frame(a, r), frame(b, r));
+    psnr(&fa, &fb)
+}
+
 #[test]
 fn product_quantised_offsets_render_as_their_decoded_values() {
     let (gpu, k) = gpu();
@@ -210,12 +228,7 @@ fn product_quantised_offsets_render_as_their_decoded_values() {
         assert!(db >= 60.0, "coded vs f32 offsets: {db:.1} dB");
     }
     // With level of detail the coarser levels' offsets take their nearest codes.
-    let lod_coded = GpuScene::instanced_for_rendering(&gpu, &decoded, &cfg).unwrap();
-    let lod_f32 = GpuScene::instanced_for_rendering(&gpu, &scene, &cfg).unwrap();
-    assert_eq!((lod_coded.inst.storage, lod_f32.inst.storage), (OFFSETS_PQ8, OFFSETS_F32));
-    let fc = r.render(&lod_coded, &camera(), [0.0; 3]).unwrap();
-    let ff = r.render(&lod_f32, &camera(), [0.0; 3]).unwrap();
-    let db = psnr(&fc.image, &ff.image);
+    let db = lod_psnr(&gpu, &mut r, (&decoded, OFFSETS_PQ8), (&scene, OFFSETS_F32));
     assert!(db >= 30.0, "level of detail, coded vs original offsets: {db:.1} dB");
     assert_clean(&gpu);
 }
@@ -266,12 +279,7 @@ fn f16_offsets_stay_f16_on_the_device_and_render_as_their_f32_values() {
         assert_eq!(fc.image, fw.image, "f16 offsets vs the same values as f32 (view {turn})");
     }
     // With level of detail the coarser levels' merged offsets are rounded to f16.
-    let lod_f16 = GpuScene::instanced_for_rendering(&gpu, &halves, &cfg).unwrap();
-    let lod_f32 = GpuScene::instanced_for_rendering(&gpu, &scene, &cfg).unwrap();
-    assert_eq!((lod_f16.inst.storage, lod_f32.inst.storage), (OFFSETS_F16, OFFSETS_F32));
-    let fh = r.render(&lod_f16, &camera(), [0.0; 3]).unwrap();
-    let ff = r.render(&lod_f32, &camera(), [0.0; 3]).unwrap();
-    let db = psnr(&fh.image, &ff.image);
+    let db = lod_psnr(&gpu, &mut r, (&halves, OFFSETS_F16), (&scene, OFFSETS_F32));
     assert!(db >= 50.0, "level of detail, f16 vs f32 offsets: {db:.1} dB");
     assert_clean(&gpu);
 }

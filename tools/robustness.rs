@@ -414,7 +414,8 @@ fn main() -> Result<()> {
     let capture = !data.join("instances.json").exists() && data.join(GROUND_TRUTH_FILE).exists();
     let groups_path = data.join(if capture { GROUND_TRUTH_FILE } else { "instances.json" });
     let mut groups = instgs_vk::dataset::masks::read_groups(&groups_path)?;
-    let mut truth = read_ground_truth(&groups_path)?.context("instances.json has no ground-truth poses")?;
+    let mut truth = read_ground_truth(&groups_path)?
+        .with_context(|| format!("{}: no ground-truth poses", groups_path.display()))?;
     // The run's instance id → the true one (the same ids, but for a capture).
     let mut true_id: BTreeMap<u32, u32> = truth.keys().map(|&t| (t, t)).collect();
     if capture {
@@ -430,8 +431,8 @@ fn main() -> Result<()> {
     let mut surfaces: BTreeMap<u32, std::rc::Rc<symmetry::Surface>> = BTreeMap::new();
     if let Some(dir) = &meshes {
         let text = std::fs::read_to_string(&groups_path).with_context(|| groups_path.display().to_string())?;
-        let file: serde_json::Value = serde_json::from_str(&text)?;
-        for g in file["groups"].as_array().context("instances.json: no groups")? {
+        let file: serde_json::Value = serde_json::from_str(&text).with_context(|| groups_path.display().to_string())?;
+        for g in file["groups"].as_array().with_context(|| format!("{}: no groups", groups_path.display()))? {
             let surface = std::rc::Rc::new(symmetry::load(g, dir)?);
             for i in g["instances"].as_array().into_iter().flatten() {
                 let t = i["id"].as_u64().context("an instance without an id")? as u32;
