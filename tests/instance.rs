@@ -6,6 +6,7 @@ mod common;
 
 use common::*;
 use glam::{DVec3, Vec3};
+use instgs_vk::formats::instgs::Dtype;
 use instgs_vk::model::camera::Camera;
 use instgs_vk::model::instanced::{
     quat_mul, xform_from_params, xform_param_grads, xform_params, InstancedScene, Offsets, ShRotation,
@@ -636,7 +637,7 @@ fn rebalance_spends_the_bytes_where_they_show_and_refuses_what_renders_worse() {
     let mut inst = truth.clone();
     inst.background = truth.background.select(&(0..20).collect::<Vec<_>>());
     let dropped = truth.background.select(&(20..60).collect::<Vec<_>>());
-    let (out, r) = rebalance(&gpu, &k, &inst, &dropped, &views, [0.0; 3], 0.0, |_| {}).unwrap();
+    let (out, r) = rebalance(&gpu, &k, &inst, &dropped, &views, [0.0; 3], 0.0, Dtype::F32, |_| {}).unwrap();
     assert!(r.accepted, "{r:?}");
     assert!(r.bytes_after <= r.bytes_before, "{r:?}");
     assert!(r.psnr_after > r.psnr_before + 1.0, "{r:?}");
@@ -659,8 +660,17 @@ fn rebalance_spends_the_bytes_where_they_show_and_refuses_what_renders_worse() {
     // Views that show the scene as instanced: bringing the dropped background back renders them
     // worse, so the check refuses and the scene stays as it was.
     let views = rendered_views(&inst, 8, 0.0);
-    let (same, r) = rebalance(&gpu, &k, &inst, &dropped, &views, [0.0; 3], 0.0, |_| {}).unwrap();
+    let (same, r) = rebalance(&gpu, &k, &inst, &dropped, &views, [0.0; 3], 0.0, Dtype::F32, |_| {}).unwrap();
     assert!(!r.accepted && r.psnr_after < r.psnr_before, "{r:?}");
     assert!(same == inst);
+    // Offsets stored as f16 cost half: the budget is counted so, and a template Gaussian (one
+    // row and four offset pairs) is cheaper against a background one.
+    let views = rendered_views(&truth, 8, 0.0);
+    let (out16, r16) = rebalance(&gpu, &k, &inst, &dropped, &views, [0.0; 3], 0.0, Dtype::F16, |_| {}).unwrap();
+    assert!(r16.accepted && r16.bytes_after <= r16.bytes_before, "{r16:?}");
+    assert_eq!(r16.bytes_before, GpuScene::stored_bytes(&gpu, &inst, Dtype::F16).unwrap());
+    assert!(r16.bytes_before < r.bytes_before, "{r16:?} against {r:?}");
+    assert_eq!(r16.bytes_after, GpuScene::stored_bytes(&gpu, &out16, Dtype::F16).unwrap());
+    out16.validate("rebalanced, f16").unwrap();
     assert_clean(&gpu);
 }

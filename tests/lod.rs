@@ -268,6 +268,13 @@ fn f16_offsets_stay_f16_on_the_device_and_render_as_their_f32_values() {
     // 28 bytes per pair against 4 per two halves; each side keeps placeholders (16 bytes, the
     // smallest buffer) for the other's buffers: the three f32 arrays, d_codes.
     assert_eq!(wide.gpu_bytes() + 3 * 16, compact.gpu_bytes() + 28 * pairs + 16 - 4 * (7 * pairs).div_ceil(2));
+    // A memory budget counts the bytes as stored: f16 as the file's viewer holds them (before
+    // its levels of detail), whether or not the offsets are f16 values yet; pq8 counted as f16.
+    for s in [&scene, &halves] {
+        assert_eq!(GpuScene::stored_bytes(&gpu, s, Dtype::F16).unwrap(), compact.gpu_bytes());
+        assert_eq!(GpuScene::stored_bytes(&gpu, s, Dtype::Pq8).unwrap(), compact.gpu_bytes());
+        assert_eq!(GpuScene::stored_bytes(&gpu, s, Dtype::F32).unwrap(), wide.gpu_bytes());
+    }
     let mut r = Rasterizer::new(&gpu, &k).unwrap();
     r.poison = true;
     for turn in 0..3 {

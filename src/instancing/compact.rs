@@ -14,6 +14,7 @@ use anyhow::{bail, Result};
 use kiddo::SquaredEuclidean;
 
 use crate::dataset::View;
+use crate::formats::instgs::Dtype;
 use crate::gpu::kernels::Kernels;
 use crate::gpu::Gpu;
 use crate::instancing::template::prune_background;
@@ -149,7 +150,8 @@ pub fn prune_to_bytes(gpu: &Arc<Gpu>, scene: &Scene, significance: &[f32], bytes
 /// What [`rebalance`] decided (instance.json's `rebalance`).
 #[derive(Clone, Debug, serde::Serialize)]
 pub struct Rebalance {
-    /// GPU bytes of the instanced scene (every pair rendered): the budget, and after.
+    /// GPU bytes of the instanced scene (every pair rendered, offsets as stored): the budget,
+    /// and after.
     pub bytes_before: u64,
     pub bytes_after: u64,
     pub template_gaussians_before: usize,
@@ -170,7 +172,8 @@ pub struct Rebalance {
 /// an instance first, as [`protect_outlines`]) per Gaussian's bytes, each template Gaussian by
 /// its significance summed over its instances per Gaussian's bytes plus one offset row per
 /// instance. Each template keeps at least its most significant Gaussian. [`Spending::at`] keeps
-/// the best that fit a budget.
+/// the best that fit a budget. Bytes are counted with the offsets as the scene will be stored
+/// (`storage`, [`GpuScene::stored_bytes`]): an f16 pair costs half an f32 one.
 pub struct Spending {
     cand: InstancedScene,
     /// (forced, value per byte, which), best first.
@@ -178,6 +181,7 @@ pub struct Spending {
     /// Bytes of one Gaussian row and of one offset row (estimates from the device's layout).
     row: f64,
     pair: f64,
+    storage: Dtype,
 }
 
 impl Spending {
@@ -189,6 +193,7 @@ impl Spending {
         cand: InstancedScene,
         views: &[View],
         outline_fraction: f64,
+        storage: Dtype,
         mut progress: impl FnMut(&str),
     ) -> Result<Spending> {
         let nb = cand.background.len();
@@ -209,7 +214,7 @@ impl Spending {
         }
         let (ranking, _) = protect_outlines(&expanded, &labels, &sig, outline_fraction);
         let top = sig.iter().copied().filter(|s| s.is_finite()).fold(0.0f32, f32::max);
-        let whole = GpuScene::instanced(gpu, &cand)?.gpu_bytes() as f64;
+        let whole = GpuScene::stored_bytes(gpu, &cand, storage)? as f64;
         let row = GpuScene::new(gpu, &cand.background)?.gpu_bytes() as f64 / nb.max(1) as f64;
         let pairs: usize = cand.groups.iter().map(|g| g.template.len() * g.instances.len()).sum();
         let pair = ((whole - row * cand.rows() as f64) / pairs.max(1) as f64).max(0.0);
@@ -231,7 +236,12 @@ impl Spending {
             first += t * g.instances.len();
         }
         items.sort_by(|a, b| b.0.cmp(&a.0).then(b.1.total_cmp(&a.1)));
-        Ok(Spending { cand, items, row, pair })
+        Ok(Spending { cand, items, row, pair, storage })
+    }
+
+    /// How the offsets are counted.
+    pub fn storage(&self) -> Dtype {
+        self.storage
     }
 
     /// The scene of the most valuable Gaussians whose GPU bytes (the device's own count) fit
@@ -249,7 +259,7 @@ impl Spending {
             take += 1;
         }
         let forced = items.iter().filter(|i| i.0).count();
-        let bytes_of = |s: &InstancedScene| -> Result<u64> { Ok(GpuScene::instanced(gpu, s)?.gpu_bytes()) };
+        let bytes_of = |s: &InstancedScene| GpuScene::stored_bytes(gpu, s, self.storage);
         // The estimate's take, then the most items whose scene the device's own count fits in
         // the budget (bytes grow with every item kept).
         let fits =
@@ -277,7 +287,7 @@ impl Spending {
 /// bytes ranks every Gaussian, objects' included, by one measure — and so spends its bytes
 /// better (BENCHMARKS.md, "Photos as users take them"). Here every background Gaussian, kept
 /// (`inst.background`) or dropped (`dropped`), and every template Gaussian compete for the
-/// instanced scene's own GPU bytes ([`Spending`]). Checked before it is trusted: the result is
+/// instanced scene's own GPU bytes with its offsets stored as `storage` ([`Spending`]). Checked before it is trusted: the result is
 /// kept only when it renders up to [`BUDGET_VIEWS`] of the views at least as well as `inst`
 /// (mean PSNR) within `inst`'s bytes; otherwise `inst` is returned unchanged, and the report
 /// says so.
@@ -290,13 +300,15 @@ pub fn rebalance(
     views: &[View],
     background: [f32; 3],
     outline_fraction: f64,
+    storage: Dtype,
     mut progress: impl FnMut(&str),
 ) -> Result<(InstancedScene, Rebalance)> {
     let n = views.len().min(BUDGET_VIEWS);
     let mut cand = inst.clone();
     cand.background = inst.background.concat(dropped);
-    let spending = Spending::new(gpu, k, cand, views, outline_fraction, |l| progress(&format!("rebalance: {l}")))?;
-    let bytes_of = |s: &InstancedScene| -> Result<u64> { Ok(GpuScene::instanced(gpu, s)?.gpu_bytes()) };
+    let spending =
+        Spending::new(gpu, k, cand, views, outline_fraction, storage, |l| progress(&format!("rebalance: {l}")))?;
+    let bytes_of = |s: &InstancedScene| GpuScene::stored_bytes(gpu, s, storage);
     let budget = bytes_of(inst)?;
     let out = spending.at(gpu, budget)?;
     let mut check = ViewCheck::new(gpu, k, views, background, "rebalance the scene's memory on")?;

@@ -150,6 +150,7 @@ pub fn curve(c: CurveArgs) -> Result<()> {
                 whole,
                 &ds.train,
                 cfg.instance.outline_fraction,
+                crate::formats::instgs::Dtype::offsets(&cfg.instance.offset_dtype)?,
                 |l| eprintln!("[curve] {l}"),
             )?);
         }
@@ -218,7 +219,7 @@ impl Ctx<'_> {
         let label = format!("budget {fraction:.3} ({:.2} MB)", budget as f64 / 1e6);
         let inst_dir = dir.join("instgs");
         let scene = spending.at(self.gpu, budget)?;
-        let bytes = GpuScene::instanced(self.gpu, &scene)?.gpu_bytes();
+        let bytes = GpuScene::stored_bytes(self.gpu, &scene, spending.storage())?;
         eprintln!(
             "[curve] {label}: InstGS keeps {} template and {} background Gaussians ({:.2} MB); joint optimisation",
             scene.groups.iter().map(|g| g.template.len()).sum::<usize>(),

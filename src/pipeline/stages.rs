@@ -210,10 +210,17 @@ impl Ctx<'_> {
             }
         };
         let mut rebalance = |inst: &crate::model::instanced::InstancedScene, dropped: &crate::model::scene::Scene| {
-            let (out, how) =
-                crate::instancing::compact::rebalance(gpu, k, inst, dropped, views, bg, c.outline_fraction, |l| {
-                    eprintln!("{l}")
-                })?;
+            let (out, how) = crate::instancing::compact::rebalance(
+                gpu,
+                k,
+                inst,
+                dropped,
+                views,
+                bg,
+                c.outline_fraction,
+                dtype,
+                |l| eprintln!("{l}"),
+            )?;
             Ok((out, serde_json::to_value(&how)?))
         };
         let rebalance = c.rebalance.then_some(&mut rebalance as &mut crate::instancing::build::RebalanceRule);

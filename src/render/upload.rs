@@ -8,6 +8,7 @@ use anyhow::{bail, Result};
 use crate::gpu::{Buffer, Gpu};
 use crate::model::instanced::{InstancedScene, Offsets};
 use crate::model::scene::Scene;
+use crate::render::lod::RenderConfig;
 use crate::shared::*;
 
 /// The instancing tables of a scene in device memory (instance.glsl). A plain scene has no groups
@@ -202,22 +203,43 @@ impl GpuScene {
         Ok(gs)
     }
 
+    /// GPU bytes of `scene` as the viewer holds it once written with its offsets stored as
+    /// `storage`, levels of detail left out: what a memory budget counts. f32 offsets take 28
+    /// bytes per (template Gaussian, instance) pair, f16 ones 14; pq8 is counted as f16 (its
+    /// codebooks are fitted when the file is written; its 2-byte codes are smaller still).
+    pub fn stored_bytes(gpu: &Arc<Gpu>, scene: &InstancedScene, storage: crate::formats::instgs::Dtype) -> Result<u64> {
+        if storage == crate::formats::instgs::Dtype::F32 {
+            return Ok(Self::instanced(gpu, scene)?.gpu_bytes());
+        }
+        let lod = crate::render::lod::LodConfig { enabled: false, fractions: Vec::new(), splats_per_pixel: 0.0 };
+        let every_pair = RenderConfig { cull: false, cull_margin_px: 0.0, lod };
+        Ok(Self::instanced_stored(gpu, scene, &every_pair, None, true)?.gpu_bytes())
+    }
+
     /// An instanced scene for viewing: instances culled per frame and, with `cfg.lod.enabled`,
     /// every template's coarser levels built and uploaded too (`crate::render::lod`).
-    pub fn instanced_for_rendering(
+    pub fn instanced_for_rendering(gpu: &Arc<Gpu>, scene: &InstancedScene, cfg: &RenderConfig) -> Result<GpuScene> {
+        // Offsets that are product-quantised already (a pq8 file) stay so on the device, and
+        // offsets that f16 holds exactly (an f16 file) stay f16 (the coarser levels' merged
+        // offsets are rounded to it); others are f32.
+        let books: Option<Vec<crate::formats::pq8::OffsetCodes>> =
+            scene.groups.iter().map(|g| crate::formats::pq8::OffsetCodes::exact(&g.offsets)).collect();
+        let f16 = scene.groups.iter().all(|g| halves_hold(&g.offsets));
+        Self::instanced_stored(gpu, scene, cfg, books, f16)
+    }
+
+    /// [`Self::instanced_for_rendering`] with the offsets as pq8 codes (`books`), else as f16
+    /// (rounded to the nearest) with `f16`, else as f32.
+    fn instanced_stored(
         gpu: &Arc<Gpu>,
         scene: &InstancedScene,
-        cfg: &crate::render::lod::RenderConfig,
+        cfg: &RenderConfig,
+        books: Option<Vec<crate::formats::pq8::OffsetCodes>>,
+        f16: bool,
     ) -> Result<GpuScene> {
         let (mut groups, xforms, max_offsets) = instancing_tables(scene);
         let mut rows = scene_rows(scene);
         let mut offsets = all_offsets(scene);
-        // Offsets that are product-quantised already (a pq8 file) stay so on the device, and
-        // offsets that f16 holds exactly (an f16 file) stay f16 (the coarser levels' merged
-        // offsets are rounded to it); others are f32.
-        let f16_exact = scene.groups.iter().all(|g| halves_hold(&g.offsets));
-        let books: Option<Vec<crate::formats::pq8::OffsetCodes>> =
-            scene.groups.iter().map(|g| crate::formats::pq8::OffsetCodes::exact(&g.offsets)).collect();
         let mut codes: Vec<[u8; 2]> = books.iter().flatten().flat_map(|b| b.codes.iter().copied()).collect();
         let fractions: &[f32] = if cfg.lod.enabled { &cfg.lod.fractions } else { &[] };
         for (gi, (info, g)) in groups.iter_mut().zip(&scene.groups).enumerate() {
@@ -257,7 +279,7 @@ impl GpuScene {
                 gs.inst.storage = OFFSETS_PQ8;
                 gs
             }
-            None if f16_exact => {
+            None if f16 => {
                 let mut gs =
                     Self::upload(gpu, &rows, nb, scene.splats(), &groups, &xforms, &Offsets::default(), !selecting)?;
                 gs.inst.d_codes = upload_or_placeholder(gpu, "d_codes", &pack_halves(&offsets))?;
@@ -432,11 +454,7 @@ impl crate::formats::AnyScene {
 
     /// The scene on the device for viewing: an instanced scene with per-frame culling and level
     /// of detail as `cfg` says (`crate::render::lod`); a plain scene as [`Self::upload`].
-    pub fn upload_for_rendering(
-        &self,
-        gpu: &std::sync::Arc<crate::gpu::Gpu>,
-        cfg: &crate::render::lod::RenderConfig,
-    ) -> Result<GpuScene> {
+    pub fn upload_for_rendering(&self, gpu: &std::sync::Arc<crate::gpu::Gpu>, cfg: &RenderConfig) -> Result<GpuScene> {
         match self {
             crate::formats::AnyScene::Plain(s) => GpuScene::new(gpu, s),
             crate::formats::AnyScene::Instanced(s) => GpuScene::instanced_for_rendering(gpu, s, cfg),
