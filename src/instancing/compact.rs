@@ -287,10 +287,10 @@ impl Spending {
 /// bytes ranks every Gaussian, objects' included, by one measure — and so spends its bytes
 /// better (BENCHMARKS.md, "Photos as users take them"). Here every background Gaussian, kept
 /// (`inst.background`) or dropped (`dropped`), and every template Gaussian compete for the
-/// instanced scene's own GPU bytes with its offsets stored as `storage` ([`Spending`]). Checked before it is trusted: the result is
-/// kept only when it renders up to [`BUDGET_VIEWS`] of the views at least as well as `inst`
-/// (mean PSNR) within `inst`'s bytes; otherwise `inst` is returned unchanged, and the report
-/// says so.
+/// instanced scene's own GPU bytes with its offsets stored as `storage` ([`Spending`]). Checked
+/// before it is trusted: the result is kept only when it renders up to [`BUDGET_VIEWS`] of the
+/// views at least as well as `inst` (mean PSNR) within `inst`'s bytes; otherwise `inst` is
+/// returned unchanged, and the report says so.
 #[allow(clippy::too_many_arguments)]
 pub fn rebalance(
     gpu: &Arc<Gpu>,

@@ -5,10 +5,11 @@ use std::sync::Arc;
 
 use anyhow::{bail, Result};
 
+use crate::formats::instgs::Dtype;
 use crate::gpu::{Buffer, Gpu};
 use crate::model::instanced::{InstancedScene, Offsets};
 use crate::model::scene::Scene;
-use crate::render::lod::RenderConfig;
+use crate::render::lod::{LodConfig, RenderConfig};
 use crate::shared::*;
 
 /// The instancing tables of a scene in device memory (instance.glsl). A plain scene has no groups
@@ -207,11 +208,11 @@ impl GpuScene {
     /// `storage`, levels of detail left out: what a memory budget counts. f32 offsets take 28
     /// bytes per (template Gaussian, instance) pair, f16 ones 14; pq8 is counted as f16 (its
     /// codebooks are fitted when the file is written; its 2-byte codes are smaller still).
-    pub fn stored_bytes(gpu: &Arc<Gpu>, scene: &InstancedScene, storage: crate::formats::instgs::Dtype) -> Result<u64> {
-        if storage == crate::formats::instgs::Dtype::F32 {
+    pub fn stored_bytes(gpu: &Arc<Gpu>, scene: &InstancedScene, storage: Dtype) -> Result<u64> {
+        if storage == Dtype::F32 {
             return Ok(Self::instanced(gpu, scene)?.gpu_bytes());
         }
-        let lod = crate::render::lod::LodConfig { enabled: false, fractions: Vec::new(), splats_per_pixel: 0.0 };
+        let lod = LodConfig { enabled: false, fractions: Vec::new(), splats_per_pixel: 0.0 };
         let every_pair = RenderConfig { cull: false, cull_margin_px: 0.0, lod };
         Ok(Self::instanced_stored(gpu, scene, &every_pair, None, true)?.gpu_bytes())
     }
