@@ -671,6 +671,8 @@ fn rebalance_spends_the_bytes_where_they_show_and_refuses_what_renders_worse() {
     assert_eq!(r16.bytes_before, GpuScene::stored_bytes(&gpu, &inst, Dtype::F16).unwrap());
     assert!(r16.bytes_before < r.bytes_before, "{r16:?} against {r:?}");
     assert_eq!(r16.bytes_after, GpuScene::stored_bytes(&gpu, &out16, Dtype::F16).unwrap());
+    // Filled to within one more Gaussian's bytes (a row and four offset rows), as counted.
+    assert!(r16.bytes_before - r16.bytes_after < 512, "{r16:?}");
     out16.validate("rebalanced, f16").unwrap();
     assert_clean(&gpu);
 }
