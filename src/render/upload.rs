@@ -446,7 +446,7 @@ impl GpuScene {
 /// Uploading a scene file of either kind (here, so that `formats` stays free of the GPU).
 impl crate::formats::AnyScene {
     /// The scene on the device (an instanced scene stays compact).
-    pub fn upload(&self, gpu: &std::sync::Arc<crate::gpu::Gpu>) -> Result<GpuScene> {
+    pub fn upload(&self, gpu: &Arc<Gpu>) -> Result<GpuScene> {
         match self {
             crate::formats::AnyScene::Plain(s) => GpuScene::new(gpu, s),
             crate::formats::AnyScene::Instanced(s) => GpuScene::instanced(gpu, s),
@@ -455,7 +455,7 @@ impl crate::formats::AnyScene {
 
     /// The scene on the device for viewing: an instanced scene with per-frame culling and level
     /// of detail as `cfg` says (`crate::render::lod`); a plain scene as [`Self::upload`].
-    pub fn upload_for_rendering(&self, gpu: &std::sync::Arc<crate::gpu::Gpu>, cfg: &RenderConfig) -> Result<GpuScene> {
+    pub fn upload_for_rendering(&self, gpu: &Arc<Gpu>, cfg: &RenderConfig) -> Result<GpuScene> {
         match self {
             crate::formats::AnyScene::Plain(s) => GpuScene::new(gpu, s),
             crate::formats::AnyScene::Instanced(s) => GpuScene::instanced_for_rendering(gpu, s, cfg),
