@@ -19,9 +19,11 @@
 #                      PLYs) at 1920x1080, both forward paths: goals < 2 ms and < 10 ms a frame
 #                                                                                     [2 min]
 #   equal-quality      InstGS against the plain scene pruned to the same held-out PSNR (a
-#                      `curve` run's equal-quality point; --prepare --curve-run RUN --curve-data
-#                      DATA puts its two scenes and DATA/transforms_test.json in the kit),
-#                      interleaved, both forward paths, at the cameras' size and at 1080 lines
+#                      `curve` run's equal-quality point: the pruned scenes just below and at or
+#                      above InstGS's PSNR; --prepare --curve-run RUN --curve-data DATA puts the
+#                      scenes and DATA/transforms_test.json in the kit), interleaved, both
+#                      forward paths, at the cameras' size and at 1080 lines, the pruned frame
+#                      rates interpolated to InstGS's PSNR
 #                                                                                     [1 min]
 #   training-brush     plain training beside brush on a 2 MP dataset rendered from the biker
 #                      (150 + 15 views), 2 000 and 7 000 iterations (tools/bench-brush.sh) [15 min]
@@ -95,7 +97,7 @@ if [[ $prepare == 1 ]]; then
         for s in ducks6 tabletop; do cp -r ../shared/data/scenes/$s "$kit/data/scenes/"; done
     fi
     if wanted equal-quality; then
-        # The curve's InstGS scene, its equal-quality pruned scene and the held-out cameras.
+        # The curve's InstGS scene, the pruned scenes about its PSNR and the held-out cameras.
         mkdir -p "$kit/data/equal"
         cp "$curve_data/transforms_test.json" "$kit/data/equal/"
         python3 - "$curve_run" "$kit/data/equal" <<'EOF'
@@ -108,7 +110,9 @@ except (OSError, ValueError, KeyError) as e:
 if not eq:
     sys.exit(f"gpu-rows.sh: {run}: the curve found no equal-quality point")
 shutil.copy(os.path.join(run, "scene.instgs"), os.path.join(dst, "instgs.instgs"))
-shutil.copy(eq["pruned_file"], os.path.join(dst, "pruned.ply"))
+shutil.copy(eq["above"]["scene"]["file"], os.path.join(dst, "pruned.ply"))
+if eq.get("below"):
+    shutil.copy(eq["below"]["scene"]["file"], os.path.join(dst, "pruned-below.ply"))
 json.dump({"run": run, **eq}, open(os.path.join(dst, "equal.json"), "w"), indent=1)
 EOF
     fi
@@ -273,7 +277,7 @@ EOF
 }
 
 row_equal() {
-    local d=$work/equal-quality e=$data/equal sizes=("" 1440x1080) frames=5 a b cams
+    local d=$work/equal-quality e=$data/equal sizes=("" 1440x1080) frames=5 a b cams versus
     a=$e/instgs.instgs b=$e/pruned.ply cams=$e/transforms_test.json
     if [[ $smoke == 1 ]]; then
         # The code path on what any checkout has: one copy of the demo guitar against itself.
@@ -289,29 +293,45 @@ row_equal() {
     else
         cp "$e/equal.json" "$d/equal.json"
     fi
-    # InstGS (A) against the pruned scene (B), interleaved, each forward path, each size.
+    # InstGS (A) against each pruned scene (B: at or above InstGS's PSNR, then the one below),
+    # interleaved, each forward path, each size.
+    versus=(above="$b")
+    [[ -f $e/pruned-below.ply ]] && versus+=(below="$e/pruned-below.ply")
     for forward in compute quads; do
         for size in "${sizes[@]}"; do
-            run equal-quality "$bin" bench --scene "$a" --compare "$b" --cameras "$cams" --forward "$forward" \
-                ${size:+--width ${size%x*} --height ${size#*x}} --frames $frames \
-                --json "$d/$forward-${size:-native}.json" || true
+            for v in "${versus[@]}"; do
+                run equal-quality "$bin" bench --scene "$a" --compare "${v#*=}" --cameras "$cams" --forward "$forward" \
+                    ${size:+--width ${size%x*} --height ${size#*x}} --frames $frames \
+                    --json "$d/${v%%=*}-$forward-${size:-native}.json" || true
+            done
         done
     done
     python3 - "$d" <<'EOF'
 import glob, json, os, sys
 d = sys.argv[1]
 eq = json.load(open(os.path.join(d, "equal.json")))
-table = [["forward path", "size", "InstGS (ms)", "pruned (ms)", "InstGS FPS / pruned FPS", "GPU bytes ratio"]]
-for f in sorted(glob.glob(os.path.join(d, "*-*.json"))):
+table = [["forward path", "size", "pruned scene", "InstGS (ms)", "pruned (ms)", "InstGS FPS / pruned FPS", "GPU bytes ratio"]]
+ratio = {}
+for f in sorted(glob.glob(os.path.join(d, "*-*-*.json"))):
     v = json.load(open(f))
-    table.append([v["forward"], f"{v['width']}x{v['height']}", f"{v['frame_ms_median']:.2f}",
+    which = os.path.basename(f).split("-")[0]
+    size = f"{v['width']}x{v['height']}"
+    ratio[(which, v["forward"], size)] = v["ratios"]["fps"]
+    table.append([v["forward"], size, which, f"{v['frame_ms_median']:.2f}",
                   f"{v['compare']['frame_ms_median']:.2f}", f"{v['ratios']['fps']:.2f}",
                   f"{v['ratios']['scene_gpu_bytes']:.2f}"])
 notes = []
 if "instgs_psnr" in eq:
-    notes.append(f"From the curve run {eq['run']}: InstGS {eq['instgs_psnr']:.2f} dB held-out at "
-                 f"{eq['instgs_gpu_bytes'] / 1e6:.2f} MB, the plain scene pruned to {eq['pruned_gpu_bytes'] / 1e6:.2f} MB "
-                 f"{eq['pruned_psnr']:.2f} dB; on lavapipe InstGS rendered at {eq['fps_ratio']:.2f}x its FPS.")
+    up, lo, t = eq["above"], eq.get("below"), eq["instgs_psnr"]
+    notes.append(f"From the curve run {eq['run']}: InstGS {t:.2f} dB held-out at {eq['instgs_gpu_bytes'] / 1e6:.2f} MB; "
+                 f"the plain scene pruned to {up['scene']['gpu_bytes'] / 1e6:.2f} MB {up['scene']['psnr']:.2f} dB"
+                 + (f" and to {lo['scene']['gpu_bytes'] / 1e6:.2f} MB {lo['scene']['psnr']:.2f} dB" if lo else "")
+                 + f"; on lavapipe InstGS rendered at {eq['fps_ratio']:.2f}x the pruned FPS at its PSNR.")
+    for (which, forward, size), r in sorted(ratio.items()):
+        if which == "above" and lo and ("below", forward, size) in ratio:
+            s = (t - lo["scene"]["psnr"]) / (up["scene"]["psnr"] - lo["scene"]["psnr"])
+            r = ratio[("below", forward, size)] + s * (r - ratio[("below", forward, size)])
+            notes.append(f"{forward} {size}: InstGS FPS over the pruned FPS at its PSNR (interpolated) {r:.2f}x")
 json.dump({"table": table, "notes": notes}, open(os.path.join(d, "result.json"), "w"), indent=1)
 EOF
 }

@@ -6,11 +6,14 @@
 //! (`compact::prune_to_bytes`) and fine-tuned as long, with the same schedule (`[joint]`).
 //! Both are scored on the held-out views. With the run's own InstGS, pruned and plain scenes
 //! (the default budget), the points go to `RUN/rate_distortion.json` and
-//! `RUN/rate_distortion.png`, and the report shows them. At the run's own InstGS PSNR the
-//! memory pruning needs is interpolated between the pruned points about it, and the plain
-//! scene pruned to just that memory and fine-tuned as long is benched against InstGS. Each
-//! point is resumable: its training runs keep checkpoints under `RUN/curve/`, and a finished
-//! point is kept in `RUN/curve/points.json`.
+//! `RUN/rate_distortion.png`, and the report shows them. At the run's own InstGS PSNR (equal
+//! quality) the plain scene is pruned to the memory interpolated between the pruned scenes
+//! about it and fine-tuned as long, again until one lands within 0.1 dB of InstGS (at most three
+//! times: a pruned scene's PSNR is not linear in its memory); the memory pruning needs is
+//! interpolated between the two that then straddle InstGS's PSNR, and both are benched against
+//! InstGS, their frame rates interpolated to its PSNR. Each point is resumable: its training
+//! runs keep checkpoints under `RUN/curve/`, and a finished point is kept in
+//! `RUN/curve/points.json`.
 use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context, Result};
@@ -56,6 +59,10 @@ pub struct Curve {
     /// Per point, InstGS's PSNR minus the pruned scene's (dB); and the budgets where InstGS loses.
     pub gain_db: Vec<f64>,
     pub instgs_loses_at: Vec<String>,
+    /// Per point, the GPU memory pruning needs to reach InstGS's PSNR over InstGS's own:
+    /// linear between the pruned scenes about it (every point's and the equal-quality
+    /// search's); None outside them.
+    pub pruning_needs: Vec<Option<f64>>,
     /// The run's own InstGS against pruning at the same quality (None without a pruned point
     /// at least as good as it).
     pub equal_quality: Option<EqualQuality>,
@@ -66,21 +73,67 @@ pub struct Curve {
 pub struct EqualQuality {
     pub instgs_psnr: f64,
     pub instgs_gpu_bytes: u64,
-    /// GPU bytes pruning needs to reach InstGS's PSNR: linear between the two pruned points
-    /// about it; and that over InstGS's.
+    /// GPU bytes pruning needs to reach InstGS's PSNR: linear between the two pruned scenes
+    /// about it (`below`, `above`); and that over InstGS's.
     pub pruned_gpu_bytes_needed: f64,
     pub memory_ratio: f64,
-    /// The pruned scene InstGS is benched against, interleaved, from the held-out cameras
-    /// (`bench`: culling and level of detail on): the plain scene pruned to the bytes above and
-    /// fine-tuned as long as every point, when it reaches InstGS's PSNR (within 0.05 dB);
-    /// otherwise the smallest pruned point at least as good (`at_needed_bytes` false).
-    pub pruned_file: String,
-    pub pruned_psnr: f64,
-    pub pruned_gpu_bytes: u64,
-    pub at_needed_bytes: bool,
+    /// The pruned scenes about InstGS's PSNR: the largest below it (None when even the
+    /// smallest pruned point reaches it; then the needed bytes are at most `above`'s) and the
+    /// smallest at or above it. The search trains the plain scene pruned to the interpolated
+    /// bytes (fine-tuned as long as every point) until one lands within
+    /// [`EQUAL_TOLERANCE_DB`] of InstGS's PSNR, at most [`EQUAL_TRAININGS`] times (`trained`:
+    /// those scenes, also on the curve's plot).
+    pub below: Option<Benched>,
+    pub above: Benched,
+    pub trained: Vec<Scored>,
+    /// Frame rates (`bench`, InstGS and both pruned scenes interleaved from the held-out
+    /// cameras, culling and level of detail on): InstGS's, the pruned scenes' interpolated
+    /// linearly in PSNR to InstGS's, and InstGS's over that (the paired ratios interpolated).
     pub fps_instgs: f64,
     pub fps_pruned: f64,
     pub fps_ratio: f64,
+}
+
+/// A pruned scene with its frame rate beside InstGS's.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct Benched {
+    pub scene: Scored,
+    pub fps: f64,
+    /// InstGS's FPS over this scene's (median of paired frames).
+    pub fps_ratio: f64,
+}
+
+/// How close (dB) a pruned scene's held-out PSNR must come to InstGS's to end the search.
+pub const EQUAL_TOLERANCE_DB: f64 = 0.1;
+/// At most this many pruned scenes trained by the equal-quality search.
+pub const EQUAL_TRAININGS: usize = 3;
+
+/// Among scenes sorted by GPU bytes, the adjacent pair whose PSNRs straddle `target` (the
+/// first below it, the second at or above it) and the bytes linear interpolation between them
+/// gives: (index below, bytes). None when no adjacent pair straddles it.
+pub fn bracket(by_bytes: &[(u64, f64)], target: f64) -> Option<(usize, f64)> {
+    let i = by_bytes.windows(2).position(|w| w[0].1 < target && w[1].1 >= target)?;
+    let ((b0, p0), (b1, p1)) = (by_bytes[i], by_bytes[i + 1]);
+    let t = (target - p0) / (p1 - p0);
+    Some((i, b0 as f64 + t * (b1 as f64 - b0 as f64)))
+}
+
+/// The equal-quality search's next step: the bytes to prune the plain scene to, or None once a
+/// scene lies within `tolerance` dB of `target`, no pair straddles it, or the interpolated bytes
+/// fall within 0.5 % of a scene already trained (`by_bytes` sorted by bytes).
+pub fn next_equal_bytes(by_bytes: &[(u64, f64)], target: f64, tolerance: f64) -> Option<u64> {
+    if by_bytes.iter().any(|&(_, p)| (p - target).abs() <= tolerance) {
+        return None;
+    }
+    let (_, bytes) = bracket(by_bytes, target)?;
+    let near = by_bytes.iter().any(|&(b, _)| (b as f64 - bytes).abs() <= 0.005 * bytes);
+    (!near).then_some(bytes.ceil() as u64)
+}
+
+/// Linear interpolation of `(psnr, y)` pairs at `target`.
+pub fn at_psnr(lo: (f64, f64), hi: (f64, f64), target: f64) -> f64 {
+    let t = (target - lo.0) / (hi.0 - lo.0);
+    lo.1 + t * (hi.1 - lo.1)
 }
 
 /// Points already finished, by their budget's name.
@@ -176,7 +229,26 @@ pub fn curve(c: CurveArgs) -> Result<()> {
         .map(|(p, g)| format!("{:.2} MB: {g:+.2} dB", p.instgs.gpu_bytes as f64 / 1e6))
         .collect();
     let equal_quality = ctx.equal_quality(&dir, &points, &plain_scene)?;
-    let curve = Curve { plain, iterations: cfg.joint.iterations, points, gain_db, instgs_loses_at, equal_quality };
+    let mut pruned: Vec<(u64, f64)> = points
+        .iter()
+        .map(|p| &p.pruned)
+        .chain(equal_quality.iter().flat_map(|e| &e.trained))
+        .map(|s| (s.gpu_bytes, s.psnr))
+        .collect();
+    pruned.sort_by_key(|p| p.0);
+    let pruning_needs = points
+        .iter()
+        .map(|p| bracket(&pruned, p.instgs.psnr).map(|(_, bytes)| bytes / p.instgs.gpu_bytes as f64))
+        .collect();
+    let curve = Curve {
+        plain,
+        iterations: cfg.joint.iterations,
+        points,
+        gain_db,
+        instgs_loses_at,
+        pruning_needs,
+        equal_quality,
+    };
     crate::util::write_json(&run.join(CURVE_FILE), &serde_json::to_value(&curve)?, true)?;
     crate::train::plot::write_rate_distortion(&plot_of(&curve, &a.data), &run.join(CURVE_PLOT))?;
     super::report::write(run, a, &State::read(run)?.summary())?;
@@ -199,7 +271,14 @@ fn plot_of(c: &Curve, data: &Path) -> crate::train::plot::RateDistortion {
     crate::train::plot::RateDistortion {
         title: format!("{name}: held-out PSNR against GPU memory ({} fine-tuning iterations per point)", c.iterations),
         instgs: c.points.iter().map(|p| (mb(&p.instgs), p.instgs.psnr)).collect(),
-        pruned: c.points.iter().map(|p| (mb(&p.pruned), p.pruned.psnr)).collect(),
+        pruned: {
+            // The equal-quality search's pruned scenes are points of the pruned curve too.
+            let extra = c.equal_quality.iter().flat_map(|e| &e.trained);
+            let mut v: Vec<(f64, f64)> =
+                c.points.iter().map(|p| &p.pruned).chain(extra).map(|s| (mb(s), s.psnr)).collect();
+            v.sort_by(|a, b| a.0.total_cmp(&b.0));
+            v
+        },
         plain: (mb(&c.plain), c.plain.psnr),
         default_mb: c.points.iter().find(|p| p.fraction.is_none()).map(|p| mb(&p.instgs)),
     }
@@ -268,10 +347,9 @@ impl Ctx<'_> {
     }
 
     /// The run's own InstGS (the point without a fraction) against pruning at its PSNR: the
-    /// memory pruning needs (interpolated between the pruned points about it), and the frame
-    /// rate against the plain scene pruned to just that memory (trained in `curve_dir`) — or,
-    /// where that falls short of InstGS's PSNR, against the smallest pruned point at least as
-    /// good. None without a pruned point at least as good.
+    /// pruned scenes about it (the search of [`EqualQuality`], its trainings in `curve_dir`),
+    /// the memory pruning needs between them and the frame rate there. None without a pruned
+    /// scene at least as good as InstGS.
     fn equal_quality(
         &self,
         curve_dir: &Path,
@@ -280,57 +358,80 @@ impl Ctx<'_> {
     ) -> Result<Option<EqualQuality>> {
         let Some(own) = points.iter().find(|p| p.fraction.is_none()) else { return Ok(None) };
         let target = own.instgs.psnr;
-        let mut pruned: Vec<&Scored> = points.iter().map(|p| &p.pruned).collect();
-        pruned.sort_by_key(|s| s.gpu_bytes);
-        let Some(good) = pruned.iter().find(|s| s.psnr >= target - 0.05) else { return Ok(None) };
-        let needed = match pruned.windows(2).find(|w| w[0].psnr < target && w[1].psnr >= target) {
-            Some(w) => {
-                let t = (target - w[0].psnr) / (w[1].psnr - w[0].psnr);
-                w[0].gpu_bytes as f64 + t * (w[1].gpu_bytes as f64 - w[0].gpu_bytes as f64)
-            }
-            None => good.gpu_bytes as f64,
-        };
-        let mut versus = (*good).clone();
-        let mut at_needed_bytes = false;
-        if (needed as u64) < good.gpu_bytes {
-            let bytes = needed.ceil() as u64;
+        let mut pruned: Vec<Scored> = points.iter().map(|p| p.pruned.clone()).collect();
+        let mut trained = Vec::new();
+        loop {
+            pruned.sort_by_key(|s| s.gpu_bytes);
+            let by_bytes: Vec<(u64, f64)> = pruned.iter().map(|s| (s.gpu_bytes, s.psnr)).collect();
+            let next = next_equal_bytes(&by_bytes, target, EQUAL_TOLERANCE_DB);
+            let Some(bytes) = next.filter(|_| trained.len() < EQUAL_TRAININGS) else { break };
             let label = format!("equal quality ({:.2} MB)", bytes as f64 / 1e6);
             let Some(s) = self.pruned_point(&curve_dir.join(format!("equal-{bytes}")), bytes, plain, &label)? else {
                 bail!("interrupted; run the same command again to resume")
             };
             eprintln!("[curve] {label}: pruned {:.2} dB against InstGS's {target:.2} dB", s.psnr);
-            if s.psnr >= target - 0.05 {
-                versus = s;
-                at_needed_bytes = true;
-            }
+            trained.push(s.clone());
+            pruned.push(s);
         }
+        let by_bytes: Vec<(u64, f64)> = pruned.iter().map(|s| (s.gpu_bytes, s.psnr)).collect();
+        let (below, above, needed) = match bracket(&by_bytes, target) {
+            Some((i, bytes)) => (Some(pruned[i].clone()), pruned[i + 1].clone(), bytes),
+            None => {
+                // No pair straddles InstGS's PSNR: the smallest pruned scene reaches it already,
+                // or none does.
+                let Some(first) = pruned.first().filter(|s| s.psnr >= target) else { return Ok(None) };
+                (None, first.clone(), first.gpu_bytes as f64)
+            }
+        };
         let render = crate::render::lod::RenderConfig::load(None)?;
         let cams: Vec<_> = self.views().iter().map(|v| v.camera.clone()).collect();
-        let (a, b) = (PathBuf::from(&own.instgs.file), PathBuf::from(&versus.file));
         let forward = crate::render::raster::Forward::Compute;
+        let own_path = PathBuf::from(&own.instgs.file);
+        let paths: Vec<PathBuf> =
+            [Some(&above), below.as_ref()].into_iter().flatten().map(|s| PathBuf::from(&s.file)).collect();
+        let mut others = Vec::new();
+        for p in &paths {
+            others.push(crate::bench::BenchInput::read(p, render.clone(), forward)?);
+        }
         let v = crate::bench::bench_scenes(
             self.gpu,
             self.k,
-            crate::bench::BenchInput::read(&a, render.clone(), forward)?,
-            vec![crate::bench::BenchInput::read(&b, render, forward)?],
+            crate::bench::BenchInput::read(&own_path, render.clone(), forward)?,
+            others,
             &cams,
             (self.cfg.bench.frames, self.cfg.bench.warmup),
             self.cfg.plain.background,
             ("[curve] equal quality: ", crate::util::ProgressMode::Tenths),
         )?;
-        let fps = |x: &serde_json::Value| x["fps_median"].as_f64().unwrap_or(f64::NAN);
+        let num = |x: &serde_json::Value| x.as_f64().unwrap_or(f64::NAN);
+        let benched = |s: Scored, x: &serde_json::Value, ratios: &serde_json::Value| Benched {
+            scene: s,
+            fps: num(&x["fps_median"]),
+            fps_ratio: num(&ratios["fps"]),
+        };
+        let above = benched(above, &v["compare"], &v["ratios"]);
+        let below = below.map(|s| benched(s, &v["compare_more"][0], &v["compare_more"][0]["ratios"]));
+        let (fps_pruned, fps_ratio) = match &below {
+            Some(b) => {
+                let (lo, hi) = (b.scene.psnr, above.scene.psnr);
+                (
+                    at_psnr((lo, b.fps), (hi, above.fps), target),
+                    at_psnr((lo, b.fps_ratio), (hi, above.fps_ratio), target),
+                )
+            }
+            None => (above.fps, above.fps_ratio),
+        };
         Ok(Some(EqualQuality {
             instgs_psnr: target,
             instgs_gpu_bytes: own.instgs.gpu_bytes,
             pruned_gpu_bytes_needed: needed,
             memory_ratio: needed / own.instgs.gpu_bytes as f64,
-            pruned_file: versus.file,
-            pruned_psnr: versus.psnr,
-            pruned_gpu_bytes: versus.gpu_bytes,
-            at_needed_bytes,
-            fps_instgs: fps(&v),
-            fps_pruned: fps(&v["compare"]),
-            fps_ratio: v["ratios"]["fps"].as_f64().unwrap_or(f64::NAN),
+            below,
+            above,
+            trained,
+            fps_instgs: num(&v["fps_median"]),
+            fps_pruned,
+            fps_ratio,
         }))
     }
 
@@ -366,4 +467,49 @@ pub(super) fn read_significance(path: &Path, n: usize) -> Result<Vec<f32>> {
         bail!("{}: {} bytes for {n} Gaussians; redo the segment stage (--from segment)", path.display(), bytes.len());
     }
     Ok(bytemuck::pod_collect_to_vec(&bytes))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn bracket_takes_the_first_pair_that_straddles_the_target() {
+        let pts = [(100, 30.0), (200, 32.0), (300, 33.0)];
+        assert_eq!(bracket(&pts, 31.0), Some((0, 150.0)));
+        assert_eq!(bracket(&pts, 32.0), Some((0, 200.0)));
+        // Not monotone (trainings scatter): the smallest memory that reaches the target.
+        let noisy = [(100, 30.0), (200, 32.5), (250, 32.1), (300, 33.0)];
+        assert_eq!(bracket(&noisy, 32.25).map(|b| b.0), Some(0));
+        assert_eq!(bracket(&pts, 29.0), None, "every scene reaches it");
+        assert_eq!(bracket(&pts, 34.0), None, "no scene reaches it");
+        assert!((at_psnr((30.0, 10.0), (32.0, 6.0), 31.5) - 7.0).abs() < 1e-12);
+    }
+
+    /// A pruned scene's PSNR rises ever more slowly with its memory (concave), so the bytes
+    /// interpolated between two far points overstate what pruning needs; the search trains the
+    /// interpolated bytes again until a scene lands within the tolerance.
+    #[test]
+    fn equal_quality_search_lands_within_the_tolerance() {
+        let psnr = |b: u64| 34.0 - 4.0 * (-(b as f64) / 3.0e6).exp();
+        let target = 32.2;
+        let mut pts: Vec<(u64, f64)> = [2_000_000u64, 10_000_000].iter().map(|&b| (b, psnr(b))).collect();
+        let (_, first) = bracket(&pts, target).unwrap();
+        let mut trained = 0;
+        while let Some(b) = next_equal_bytes(&pts, target, EQUAL_TOLERANCE_DB) {
+            assert!(trained < EQUAL_TRAININGS, "no convergence: {pts:?}");
+            pts.push((b, psnr(b)));
+            pts.sort_by_key(|p| p.0);
+            trained += 1;
+        }
+        assert!(pts.iter().any(|p| (p.1 - target).abs() <= EQUAL_TOLERANCE_DB), "{pts:?}");
+        let (_, needed) = bracket(&pts, target).unwrap();
+        let truth = -3.0e6 * ((34.0 - target) / 4.0f64).ln();
+        assert!(first > 1.2 * truth, "the first interpolation overstates: {first} against {truth}");
+        assert!((needed - truth).abs() < 0.1 * truth, "{needed} against {truth}");
+        // Within the tolerance already, outside every bracket, or next to a trained scene: no step.
+        assert_eq!(next_equal_bytes(&[(1, 32.15), (2, 33.0)], target, EQUAL_TOLERANCE_DB), None);
+        assert_eq!(next_equal_bytes(&[(1, 33.0), (2, 34.0)], target, EQUAL_TOLERANCE_DB), None);
+        assert_eq!(next_equal_bytes(&[(1000, 31.0), (1001, 33.0)], target, EQUAL_TOLERANCE_DB), None);
+    }
 }

@@ -407,14 +407,18 @@ fn curve_section(md: &mut String, run: &Path) {
         md,
         "## Memory and quality\n\nHeld-out PSNR against GPU memory (`instgs-vk curve`): InstGS at each memory budget \
          against the plain scene pruned to the same memory, both fine-tuned {} iterations; plain 3DGS {:.2} dB at {} MB. \
-         Numbers: `{}`.\n\n![memory and quality]({})\n\n| budget | InstGS MB | InstGS PSNR (dB) | pruned MB | pruned PSNR (dB) | InstGS − pruned (dB) | InstGS file MB | pruned file MB |\n|---|---|---|---|---|---|---|---|",
+         Numbers: `{}`.\n\n![memory and quality]({})\n\n| budget | InstGS MB | InstGS PSNR (dB) | pruned MB | pruned PSNR (dB) | InstGS − pruned (dB) | memory pruning needs for InstGS's PSNR | InstGS file MB | pruned file MB |\n|---|---|---|---|---|---|---|---|---|",
         c["iterations"],
         num(&c, "plain.psnr").unwrap_or(f64::NAN),
         mb(num(&c, "plain.gpu_bytes").unwrap_or(f64::NAN)),
         crate::pipeline::curve::CURVE_FILE,
         crate::pipeline::curve::CURVE_PLOT
     );
-    for p in c["points"].as_array().into_iter().flatten() {
+    for (i, p) in c["points"].as_array().into_iter().flatten().enumerate() {
+        let needs = match c["pruning_needs"][i].as_f64() {
+            Some(r) => format!("{r:.2}×"),
+            None => "outside the pruned scenes".into(),
+        };
         let budget = match num(p, "fraction") {
             Some(f) => format!("{:.0} % of plain", 100.0 * f),
             None => "default".into(),
@@ -422,7 +426,7 @@ fn curve_section(md: &mut String, run: &Path) {
         let v = |k: &str| num(p, k).unwrap_or(f64::NAN);
         let _ = writeln!(
             md,
-            "| {budget} | {} | {:.2} | {} | {:.2} | {:+.2} | {} | {} |",
+            "| {budget} | {} | {:.2} | {} | {:.2} | {:+.2} | {needs} | {} | {} |",
             mb(v("instgs.gpu_bytes")),
             v("instgs.psnr"),
             mb(v("pruned.gpu_bytes")),
@@ -435,22 +439,25 @@ fn curve_section(md: &mut String, run: &Path) {
     let e = &c["equal_quality"];
     if e.is_object() {
         let v = |k: &str| num(e, k).unwrap_or(f64::NAN);
+        let scene = |b: &serde_json::Value| {
+            let v = |k: &str| num(b, k).unwrap_or(f64::NAN);
+            format!("{} MB at {:.2} dB, {:.1} FPS", mb(v("scene.gpu_bytes")), v("scene.psnr"), v("fps"))
+        };
+        let about = match e["below"].is_object() {
+            true => format!("between the pruned scenes about it: {} and {}", scene(&e["below"]), scene(&e["above"])),
+            false => format!("at most: the smallest pruned scene, {}, reaches it already", scene(&e["above"])),
+        };
+        let trained = e["trained"].as_array().map_or(0, |t| t.len());
         let _ = writeln!(
             md,
-            "\nAt InstGS's {:.2} dB ({} MB), pruning needs {} MB to match it ({:.2}× InstGS's memory, between the pruned points about it). \
-             InstGS renders at {:.2}× the frame rate of {} ({} MB, {:.2} dB; {:.1} against {:.1} FPS, `bench` interleaved, culling and level of detail on).",
+            "\nAt InstGS's {:.2} dB ({} MB), pruning needs {} MB to match it ({:.2}× InstGS's memory, {about}; \
+             {trained} pruned scene(s) trained to find them). At that PSNR InstGS renders at {:.2}× the pruned scene's frame rate \
+             ({:.1} against {:.1} FPS interpolated; `bench` interleaved, culling and level of detail on).",
             v("instgs_psnr"),
             mb(v("instgs_gpu_bytes")),
             mb(v("pruned_gpu_bytes_needed")),
             v("memory_ratio"),
             v("fps_ratio"),
-            if e["at_needed_bytes"].as_bool() == Some(true) {
-                "the plain scene pruned to that memory and fine-tuned as long"
-            } else {
-                "the smallest pruned point at least as good"
-            },
-            mb(v("pruned_gpu_bytes")),
-            v("pruned_psnr"),
             v("fps_instgs"),
             v("fps_pruned")
         );
