@@ -37,4 +37,6 @@ INSTGS_DEVICE=llvmpipe "$bin" train --data demo/ducks6-mini --out "$tmp/run" --u
 python3 tools/fuzz_seeds.py checkpoint "$tmp/run/checkpoint.bin" "$seeds/checkpoint_parse/two-v2.ckpt"
 # .instgs version 2 (with its checksum) beside the version-1 seeds, which must still read.
 python3 tools/fuzz_seeds.py instgs-v2 "$seeds/instgs_parse/f32.instgs" "$seeds/instgs_parse/f32-v2.instgs"
+# .instgs version 3: the same scene with its parts as SOG bundles (`convert --compress`).
+"$bin" convert "$seeds/instgs_parse/f32-v2.instgs" "$seeds/instgs_parse/sog-v3.instgs" --compress
 ls -R "$seeds" | head -60

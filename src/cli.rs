@@ -150,16 +150,17 @@ pub(crate) enum Cmd {
     /// Convert a scene between formats, chosen by OUT's name: .ply (Inria), .compressed.ply
     /// (SuperSplat, with SH), .spz (version 4), DIR/meta.json (SOG version 2), OUT.sog (the same
     /// in one zip), .glb/.gltf (KHR_gaussian_splatting), DIR/tileset.json (3D Tiles 1.1 for
-    /// CesiumJS: SPZ-compressed glTF tiles beside it, a tile per instance), .splat (no SH), or
-    /// .json (an instanced scene's scene graph). An instanced scene (.instgs, or a .glb we wrote
-    /// from one) is expanded first (SH bands rotated per instance), except to .glb/.gltf, which
-    /// share its templates (a node per instance) unless --expand.
+    /// CesiumJS: SPZ-compressed glTF tiles beside it, a tile per instance), .splat (no SH),
+    /// .json (an instanced scene's scene graph) or .instgs (an instanced scene; --compress). An
+    /// instanced scene (.instgs, or a .glb we wrote from one) is expanded first (SH bands rotated
+    /// per instance), except to .glb/.gltf, which share its templates (a node per instance)
+    /// unless --expand, and to .instgs.
     Convert {
         /// Any scene we read (PLY, compressed PLY, .spz, SOG, .splat, .glb/.gltf, tileset.json,
         /// .instgs).
         scene: PathBuf,
         /// OUT.ply, OUT.compressed.ply, OUT.spz, DIR/meta.json, OUT.sog, OUT.glb, OUT.gltf,
-        /// DIR/tileset.json, OUT.splat or OUT.json.
+        /// DIR/tileset.json, OUT.splat, OUT.json or (an instanced scene) OUT.instgs.
         out: PathBuf,
         /// Write an instanced scene to .glb/.gltf expanded (one plain splat primitive).
         #[arg(long)]
@@ -169,6 +170,11 @@ pub(crate) enum Cmd {
         /// (docs/formats.md).
         #[arg(long)]
         quantize: bool,
+        /// .instgs only: a compressed file, lossy — background and templates as SOG bundles
+        /// (16-bit positions, 8-bit rotations and opacities, codebooks for scales, colours and
+        /// SH), offsets as f16. Without it, f32 throughout.
+        #[arg(long)]
+        compress: bool,
     },
     /// Export a dataset's cameras (NeRF-synthetic or COLMAP folder) as a NeRF-synthetic
     /// transforms JSON: OpenGL camera-to-world matrices, per-frame intrinsics, image paths.

@@ -72,10 +72,10 @@ fn run(cli: Cli) -> Result<()> {
                 &out,
             )
         }
-        Cmd::Convert { scene, out, expand, quantize } => {
+        Cmd::Convert { scene, out, expand, quantize, compress } => {
             let accessors =
                 if quantize { formats::gltf::Accessors::Quantized } else { formats::gltf::Accessors::Float };
-            formats::convert(&scene, &out, expand, accessors)
+            formats::convert(&scene, &out, expand, accessors, compress)
         }
         Cmd::Cameras { data, split, out } => dataset::export_cameras(&data, &split, &out),
         Cmd::Segment { scene, data, split, alpha, out, export_dir, per_frame_ids } => {

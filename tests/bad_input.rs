@@ -931,6 +931,12 @@ fn bad_input_table() {
 
     // ---- Outputs: a writer refuses a name it cannot write.
     t.case("convert_unknown_extension", &["convert", tiny, "{d}/x.txt"], &["x.txt", ".ply"]);
+    t.case("convert_plain_to_instgs", &["convert", tiny, "{d}/x.instgs"], &["x.instgs", "instanced scene", "plain"]);
+    t.case(
+        "compress_not_instgs",
+        &["convert", tiny, "{d}/x.ply", "--compress"],
+        &["x.ply", "--compress", ".instgs only"],
+    );
 
     // ---- Issue 45: cameras we cannot model are refused, never drawn as pinholes.
     let head = r#""camera_angle_x": 0.8, "w": 64, "h": 48,"#;
@@ -995,11 +1001,11 @@ fn bad_input_table() {
     flipped[at] ^= 0x04;
     t.put("instgs_flipped_byte", "s.instgs", flipped);
     t.case("instgs_flipped_byte", &["info", "{d}/s.instgs"], &["s.instgs", "damaged", "checksum"]);
-    let mut v3 = v2.clone();
-    let at = v3.windows(12).position(|w| w == b"\"version\": 2").expect("the seed's version") + 11;
-    v3[at] = b'3';
-    t.put("instgs_version_3", "s.instgs", v3);
-    t.case("instgs_version_3", &["info", "{d}/s.instgs"], &["s.instgs", "version 3 is not supported"]);
+    let mut v4 = v2.clone();
+    let at = v4.windows(12).position(|w| w == b"\"version\": 2").expect("the seed's version") + 11;
+    v4[at] = b'4';
+    t.put("instgs_version_4", "s.instgs", v4);
+    t.case("instgs_version_4", &["info", "{d}/s.instgs"], &["s.instgs", "version 4 is not supported"]);
 
     // ---- Every readable file means one thing.
     {

@@ -158,6 +158,12 @@ fn compose_info_convert_and_render_an_instanced_scene() {
     assert_eq!(run(&["convert", s(&scene), s(&ply)]).code, Some(0));
     let graph_out = d.join("graph_out.json");
     assert_eq!(run(&["convert", s(&scene), s(&graph_out)]).code, Some(0));
+    // The instanced scene again, compressed: the same structure, a version-3 file.
+    let small = d.join("small.instgs");
+    let o = run(&["convert", s(&scene), s(&small), "--compress"]);
+    assert_eq!(o.code, Some(0), "{}", o.stderr);
+    let c = instgs_vk::formats::instgs::read(&small).unwrap();
+    assert_eq!((c.background.len(), c.groups[0].instances.len()), (50, 3));
     let back: serde_json::Value = serde_json::from_slice(&std::fs::read(&graph_out).unwrap()).unwrap();
     assert_eq!(back[0]["instances"][2]["instance_id"], "3");
     let renders: Vec<PathBuf> = [&scene, &ply]

@@ -63,6 +63,54 @@ fn write_then_read_is_exact() {
     assert_eq!(instgs::from_bytes(&bytes, "mem").unwrap(), s);
 }
 
+/// The compressed file ([`instgs::write_compressed`]): each part's Gaussians read back as a SOG
+/// bundle of them decodes, the offsets f16-rounded, the instances exact; version 3, smaller than
+/// the f16 file; a part without Gaussians; pq8 offsets beside SOG parameters; a damaged bundle
+/// refused with its section named.
+#[test]
+fn compressed_file_holds_each_part_as_its_sog_bundle() {
+    use instgs_vk::formats::sog;
+    let mut rng = Rng::new(4);
+    let mut s = scene(&mut rng, 3);
+    s.background = random_scene(&mut rng, 2000, 3);
+    let dir = tempdir("instgs_compressed");
+    let (path, path16) = (dir.join("c.instgs"), dir.join("f16.instgs"));
+    instgs::write_compressed(&s, &path).unwrap();
+    instgs::write(&s, &path16, Dtype::F16).unwrap();
+    let back = instgs::read(&path).unwrap();
+    let via_sog =
+        |p: &instgs_vk::model::scene::Scene| sog::sog_from_bundle(&sog::bundle_bytes(p).unwrap(), "x").unwrap();
+    let mut want = instgs::read(&path16).unwrap();
+    want.background = via_sog(&s.background);
+    for (g, source) in want.groups.iter_mut().zip(&s.groups) {
+        g.template = via_sog(&source.template);
+    }
+    assert!(back == want, "each part is its SOG bundle's, the offsets f16, the instances exact");
+    let bytes = std::fs::read(&path).unwrap();
+    assert_eq!(split(&bytes).0["version"], 3);
+    let (size, size16) = (bytes.len(), std::fs::metadata(&path16).unwrap().len() as usize);
+    assert!(size * 3 < size16, "{size} against {size16} bytes");
+    // No background Gaussians: an empty section.
+    let mut empty = s.clone();
+    empty.background = instgs_vk::model::scene::Scene { sh_degree: 3, ..Default::default() };
+    instgs::write_compressed(&empty, &path).unwrap();
+    assert!(instgs::read(&path).unwrap().background.is_empty());
+    // pq8 offsets with SOG parameters.
+    let pq = instgs::to_bytes_with(&s, Dtype::Pq8, Dtype::Sog).unwrap();
+    assert_eq!(instgs::from_bytes(&pq, "pq").unwrap().background, back.background);
+    // A damaged bundle (re-sealed, so the checksum passes): its section is named.
+    let (h, mut data) = split(&bytes_of(&s));
+    let sec = &h["sections"][0];
+    assert_eq!(sec["name"], "background/sog");
+    data[sec["offset"].as_u64().unwrap() as usize] ^= 0xff;
+    let e = format!("{:#}", instgs::from_bytes(&join(&h, &data), "bad.instgs").unwrap_err());
+    assert!(e.starts_with("bad.instgs") && e.contains("background/sog"), "{e}");
+}
+
+fn bytes_of(s: &InstancedScene) -> Vec<u8> {
+    instgs::to_bytes_with(s, Dtype::F16, Dtype::Sog).unwrap()
+}
+
 /// (header JSON, data) of a version-2 file (its CRC-32 trailer left off).
 fn split(bytes: &[u8]) -> (serde_json::Value, Vec<u8>) {
     let len = u32::from_le_bytes(bytes[8..12].try_into().unwrap()) as usize;
@@ -112,7 +160,8 @@ fn malformed_files_are_refused_with_clear_errors() {
             },
             "malformed JSON",
         ),
-        (edit(&|h| h["version"] = 3.into()), "version 3 is not supported"),
+        (edit(&|h| h["version"] = 4.into()), "version 4 is not supported"),
+        (edit(&|h| h["param_dtype"] = "f16".into()), "not a parameter storage"),
         (edit(&|h| h["format"] = "ply".into()), "format"),
         (edit(&|h| h["groups"][0]["template_gaussians"] = 8.into()), "shape"),
         (edit(&|h| h["background_gaussians"] = 4.into()), "shape"),
@@ -148,11 +197,18 @@ fn corrupted_files_never_panic() {
     // A deterministic fuzz smoke test (the cargo-fuzz target in fuzz/ runs the same parser
     // for longer): bit flips, byte runs, truncations and header edits of a valid file.
     let mut rng = Rng::new(3);
-    let good = instgs::to_bytes(&scene(&mut rng, 2), Dtype::F16);
+    let s = scene(&mut rng, 2);
+    for (good, rounds) in [(instgs::to_bytes(&s, Dtype::F16), 3000), (bytes_of(&s), 600)] {
+        corrupt(&mut rng, &good, rounds);
+    }
+}
+
+/// `rounds` corruptions of `good`; some parse, most do not, none panics.
+fn corrupt(rng: &mut Rng, good: &[u8], rounds: usize) {
     let header_end = 12 + u32::from_le_bytes(good[8..12].try_into().unwrap()) as usize;
     let mut parsed = 0;
-    for round in 0..3000 {
-        let mut b = good.clone();
+    for round in 0..rounds {
+        let mut b = good.to_vec();
         match round % 4 {
             0 => {
                 for _ in 0..1 + rng.u32() % 8 {
@@ -179,5 +235,5 @@ fn corrupted_files_never_panic() {
         }
     }
     // Flips inside f16 offsets still parse; most corruptions do not.
-    assert!(parsed > 0 && parsed < 3000, "{parsed}");
+    assert!(parsed > 0 && parsed < rounds, "{parsed}");
 }

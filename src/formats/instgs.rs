@@ -9,7 +9,9 @@
 //! D   sections  little-endian arrays at header-declared offsets relative to D
 //! end−4  u32 LE  (version 2) CRC-32 (IEEE) of every byte before it
 //! ```
-//! Version 1 files (no checksum) still read.
+//! Version 1 files (no checksum) still read. Version 3 is version 2 with the Gaussian
+//! parameters of each part (background, templates) as one SOG bundle (header `param_dtype`
+//! "sog"; [`write_compressed`]).
 use std::io::Write;
 use std::path::Path;
 
@@ -22,6 +24,8 @@ use crate::model::scene::Scene;
 
 pub const MAGIC: &[u8; 8] = b"INSTGS\0\0";
 pub const VERSION: u32 = 2;
+/// The version of files whose Gaussian parameters are SOG bundles.
+pub const VERSION_SOG: u32 = 3;
 /// Headers larger than this are refused (a corrupt length would otherwise allocate gigabytes).
 const MAX_HEADER: usize = 64 << 20;
 
@@ -37,6 +41,10 @@ pub enum Dtype {
     /// Offset storage: product-quantised (`crate::formats::pq8`): sections `d_codes` (u8, [K, T, 2]),
     /// `d_codebook_dp` (f32, [256, 3]) and `d_codebook_dc` (f32, [256, 4]).
     Pq8,
+    /// Parameter storage (header `param_dtype`) and section type: a part's Gaussians as one SOG
+    /// bundle (`crate::formats::sog`: a zip of `meta.json` and WebP images), section `sog` of
+    /// shape [bytes]; empty for a part without Gaussians.
+    Sog,
 }
 
 impl Dtype {
@@ -54,7 +62,7 @@ impl Dtype {
         match self {
             Dtype::F32 => 4,
             Dtype::F16 => 2,
-            Dtype::U8 | Dtype::Pq8 => 1,
+            Dtype::U8 | Dtype::Pq8 | Dtype::Sog => 1,
         }
     }
 }
@@ -70,6 +78,9 @@ struct Header {
     sh_degree: u32,
     background_gaussians: usize,
     offset_dtype: Dtype,
+    /// f32 (absent: five f32 sections per part) or sog.
+    #[serde(default = "f32_params", skip_serializing_if = "is_f32")]
+    param_dtype: Dtype,
     groups: Vec<GroupHeader>,
     sections: Vec<Section>,
 }
@@ -98,6 +109,14 @@ struct Section {
     bytes: u64,
 }
 
+fn f32_params() -> Dtype {
+    Dtype::F32
+}
+
+fn is_f32(d: &Dtype) -> bool {
+    *d == Dtype::F32
+}
+
 /// Bytes of one part of a file, as `info` reports them.
 #[derive(Clone, Debug, Serialize)]
 pub struct PartBytes {
@@ -116,7 +135,7 @@ fn f32_bytes(v: &[f32], dtype: Dtype) -> Vec<u8> {
     match dtype {
         Dtype::F32 => v.iter().flat_map(|x| x.to_le_bytes()).collect(),
         Dtype::F16 => v.iter().flat_map(|x| f16::from_f32(*x).to_le_bytes()).collect(),
-        Dtype::U8 | Dtype::Pq8 => v.iter().map(|&x| x as u8).collect(),
+        Dtype::U8 | Dtype::Pq8 | Dtype::Sog => v.iter().map(|&x| x as u8).collect(),
     }
 }
 
@@ -124,8 +143,17 @@ fn scene_arrays(s: &Scene) -> [Vec<f32>; 5] {
     [s.means.concat(), s.scales.concat(), s.quats.concat(), s.opacities.clone(), s.sh.clone()]
 }
 
-/// Serialises `scene` (offsets stored as `offset_dtype`).
+/// Serialises `scene` (offsets stored as `offset_dtype`, parameters as f32).
 pub fn to_bytes(scene: &InstancedScene, offset_dtype: Dtype) -> Vec<u8> {
+    to_bytes_with(scene, offset_dtype, Dtype::F32).expect("f32 parameters serialise")
+}
+
+/// Serialises `scene` with its offsets stored as `offset_dtype` and its Gaussian parameters as
+/// `params` (f32, or sog: one SOG bundle per part, lossy as SOG is).
+pub fn to_bytes_with(scene: &InstancedScene, offset_dtype: Dtype, params: Dtype) -> Result<Vec<u8>> {
+    if ![Dtype::F32, Dtype::Sog].contains(&params) {
+        bail!("parameters are stored as f32 or sog, not {params:?}");
+    }
     let coeffs = ((scene.sh_degree + 1) * (scene.sh_degree + 1)) as usize;
     let mut sections = Vec::new();
     let mut data: Vec<u8> = Vec::new();
@@ -139,6 +167,11 @@ pub fn to_bytes(scene: &InstancedScene, offset_dtype: Dtype) -> Vec<u8> {
     let mut parts: Vec<(String, &Scene)> = vec![("background".into(), &scene.background)];
     parts.extend(scene.groups.iter().enumerate().map(|(i, g)| (format!("group/{i}"), &g.template)));
     for (part, s) in &parts {
+        if params == Dtype::Sog {
+            let bundle = if s.is_empty() { Vec::new() } else { crate::formats::sog::bundle_bytes(s)? };
+            push(format!("{part}/sog"), Dtype::Sog, vec![bundle.len()], bundle, &mut data);
+            continue;
+        }
         for ((suffix, tail), arr) in gauss_sections(coeffs).into_iter().zip(scene_arrays(s)) {
             let shape = [vec![s.len()], tail].concat();
             push(format!("{part}/{suffix}"), Dtype::F32, shape, f32_bytes(&arr, Dtype::F32), &mut data);
@@ -174,10 +207,11 @@ pub fn to_bytes(scene: &InstancedScene, offset_dtype: Dtype) -> Vec<u8> {
     }
     let header = Header {
         format: "instgs".into(),
-        version: VERSION,
+        version: if params == Dtype::Sog { VERSION_SOG } else { VERSION },
         sh_degree: scene.sh_degree,
         background_gaussians: scene.background.len(),
         offset_dtype,
+        param_dtype: params,
         groups: scene
             .groups
             .iter()
@@ -204,12 +238,25 @@ pub fn to_bytes(scene: &InstancedScene, offset_dtype: Dtype) -> Vec<u8> {
     out.extend_from_slice(&data);
     let crc = crc32fast::hash(&out);
     out.extend_from_slice(&crc.to_le_bytes());
-    out
+    Ok(out)
 }
 
 /// Writes `scene` to `path` atomically. Refused, writing nothing, when the file would not read
 /// back: offsets beyond f16's range (±65504) stored as f16 would be infinite.
 pub fn write(scene: &InstancedScene, path: &Path, offset_dtype: Dtype) -> Result<()> {
+    write_with(scene, path, offset_dtype, Dtype::F32)
+}
+
+/// A compressed file: the Gaussian parameters of the background and of every template as SOG
+/// bundles (16-bit positions, 8-bit quaternions and opacities, codebooks for scales, colours and
+/// SH) and the offsets as f16 (pq8 offsets would make it smaller still, but cost cafe40's
+/// held-out views 1 dB where f16 costs nothing). Lossy; read back as any `.instgs`.
+pub fn write_compressed(scene: &InstancedScene, path: &Path) -> Result<()> {
+    write_with(scene, path, Dtype::F16, Dtype::Sog)
+}
+
+/// [`write`] with the Gaussian parameters stored as `params` (f32 or sog).
+pub fn write_with(scene: &InstancedScene, path: &Path, offset_dtype: Dtype, params: Dtype) -> Result<()> {
     let what = path.display().to_string();
     scene.validate(&what)?;
     if offset_dtype == Dtype::F16 {
@@ -221,7 +268,7 @@ pub fn write(scene: &InstancedScene, path: &Path, offset_dtype: Dtype) -> Result
             bail!("{what}: not written: an offset of magnitude {largest} does not fit f16 (±65504); store the offsets as f32");
         }
     }
-    let bytes = to_bytes(scene, offset_dtype);
+    let bytes = to_bytes_with(scene, offset_dtype, params).with_context(|| format!("{what}: not written"))?;
     from_bytes(&bytes, &what).context("not written: the file would not read back")?;
     crate::util::write_atomic(path, |f| f.write_all(&bytes))
 }
@@ -245,7 +292,7 @@ fn split(bytes: &[u8]) -> Result<(Header, &[u8], u64)> {
     }
     let end = match value.get("version").and_then(|v| v.as_u64()) {
         Some(1) => bytes.len(),
-        Some(v) if v == VERSION as u64 => {
+        Some(v) if v == VERSION as u64 || v == VERSION_SOG as u64 => {
             let body = bytes
                 .len()
                 .checked_sub(4)
@@ -257,7 +304,7 @@ fn split(bytes: &[u8]) -> Result<(Header, &[u8], u64)> {
             }
             body
         }
-        Some(v) => bail!("header: version {v} is not supported (this build reads versions 1 and {VERSION})"),
+        Some(v) => bail!("header: version {v} is not supported (this build reads versions 1 to {VERSION_SOG})"),
         None => bail!("header: no version"),
     };
     let header: Header = serde_json::from_value(value).map_err(|e| anyhow!("header: {e}"))?;
@@ -274,6 +321,16 @@ struct Sections<'a> {
 impl Sections<'_> {
     /// The values of section `name`, which must have `shape`.
     fn get(&self, name: &str, shape: &[usize], dtype: Dtype) -> Result<Vec<f32>> {
+        let raw = self.raw(name, shape, dtype)?;
+        Ok(match dtype {
+            Dtype::F32 => raw.chunks_exact(4).map(|c| f32::from_le_bytes(c.try_into().unwrap())).collect(),
+            Dtype::F16 => raw.chunks_exact(2).map(|c| f16::from_le_bytes(c.try_into().unwrap()).to_f32()).collect(),
+            Dtype::U8 | Dtype::Pq8 | Dtype::Sog => raw.iter().map(|&b| b as f32).collect(),
+        })
+    }
+
+    /// The bytes of section `name`, which must have `shape` and `dtype`.
+    fn raw(&self, name: &str, shape: &[usize], dtype: Dtype) -> Result<&[u8]> {
         let mut found = self.list.iter().filter(|s| s.name == name);
         let s = found.next().ok_or_else(|| anyhow!("section {name:?} is missing"))?;
         if found.next().is_some() {
@@ -300,15 +357,34 @@ impl Sections<'_> {
                 self.data.len()
             );
         };
-        let raw = &self.data[s.offset as usize..end as usize];
-        Ok(match dtype {
-            Dtype::F32 => raw.chunks_exact(4).map(|c| f32::from_le_bytes(c.try_into().unwrap())).collect(),
-            Dtype::F16 => raw.chunks_exact(2).map(|c| f16::from_le_bytes(c.try_into().unwrap()).to_f32()).collect(),
-            Dtype::U8 | Dtype::Pq8 => raw.iter().map(|&b| b as f32).collect(),
-        })
+        Ok(&self.data[s.offset as usize..end as usize])
     }
 
-    fn scene(&self, part: &str, n: usize, sh_degree: u32) -> Result<Scene> {
+    /// The `n` Gaussians of `part`, stored as `params`.
+    fn scene(&self, part: &str, n: usize, sh_degree: u32, params: Dtype) -> Result<Scene> {
+        if params == Dtype::Sog {
+            let name = format!("{part}/sog");
+            let s = self.list.iter().find(|s| s.name == name).ok_or_else(|| anyhow!("section {name:?} is missing"))?;
+            let raw = self.raw(&name, &[s.bytes as usize], Dtype::Sog)?;
+            if n == 0 {
+                if !raw.is_empty() {
+                    bail!("section {name:?} holds {} bytes for no Gaussians", raw.len());
+                }
+                return Ok(Scene { sh_degree, ..Scene::default() });
+            }
+            let scene = crate::formats::sog::sog_from_bundle(raw, &format!("section {name:?}"))?;
+            if scene.len() != n || scene.sh_degree != sh_degree {
+                bail!(
+                    "section {name:?} holds {} Gaussians of SH degree {}; the header says {n} of degree {sh_degree}",
+                    scene.len(),
+                    scene.sh_degree
+                );
+            }
+            return Ok(scene);
+        }
+        if params != Dtype::F32 {
+            bail!("header: param_dtype {params:?} is not a parameter storage (f32, sog)");
+        }
         let coeffs = ((sh_degree + 1) * (sh_degree + 1)) as usize;
         let mut arrays = Vec::new();
         for (suffix, tail) in gauss_sections(coeffs) {
@@ -354,14 +430,15 @@ pub fn from_bytes(bytes: &[u8], what: &str) -> Result<InstancedScene> {
             );
         }
         let secs = Sections { list: h.sections.clone(), data };
-        let known = 5 * (1 + h.groups.len()) + 3 * h.groups.len();
+        let per_part = if h.param_dtype == Dtype::Sog { 1 } else { 5 };
+        let known = per_part * (1 + h.groups.len()) + 3 * h.groups.len();
         if h.sections.len() != known {
             bail!("header lists {} sections; its groups need {known}", h.sections.len());
         }
-        let background = secs.scene("background", h.background_gaussians, h.sh_degree)?;
+        let background = secs.scene("background", h.background_gaussians, h.sh_degree, h.param_dtype)?;
         let mut groups = Vec::new();
         for (i, g) in h.groups.iter().enumerate() {
-            let template = secs.scene(&format!("group/{i}"), g.template_gaussians, h.sh_degree)?;
+            let template = secs.scene(&format!("group/{i}"), g.template_gaussians, h.sh_degree, h.param_dtype)?;
             let (k, t) = (g.instances.len(), g.template_gaussians);
             let v3 = |a: &[f32]| a.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect();
             let offsets = if h.offset_dtype == Dtype::Pq8 {

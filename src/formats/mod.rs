@@ -237,7 +237,7 @@ pub fn write_scene(scene: &Scene, out: &Path) -> Result<()> {
         write_splat(scene, out)
     } else {
         bail!(
-            "{}: cannot write this format; the output's name chooses: .ply (Inria), .compressed.ply (SuperSplat), .spz (version 4), meta.json (SOG version 2, its images beside it), .sog (the same in one zip), .glb or .gltf (glTF with KHR_gaussian_splatting), tileset.json (3D Tiles, SPZ-compressed glTF tiles beside it), .splat, or .json (an instanced scene's scene graph)",
+            "{}: cannot write this format; the output's name chooses: .ply (Inria), .compressed.ply (SuperSplat), .spz (version 4), meta.json (SOG version 2, its images beside it), .sog (the same in one zip), .glb or .gltf (glTF with KHR_gaussian_splatting), tileset.json (3D Tiles, SPZ-compressed glTF tiles beside it), .splat, .json (an instanced scene's scene graph) or .instgs (an instanced scene)",
             out.display()
         )
     }
@@ -289,14 +289,30 @@ impl AnyScene {
 /// `instgs-vk convert`: `path` (any readable scene) to `out`, the format chosen by `out`'s name
 /// ([`write_scene`]); an instanced scene to `.json` writes its scene graph, to `.glb`/`.gltf`
 /// an instanced glTF (templates shared) unless `expand`; glTF's attributes as `accessors` says
-/// (quantised only to .glb/.gltf, refused before reading otherwise).
-pub fn convert(path: &Path, out: &Path, expand: bool, accessors: gltf::Accessors) -> Result<()> {
+/// (quantised only to .glb/.gltf, refused before reading otherwise); an instanced scene to
+/// `.instgs` with f32 offsets and parameters, or with `compress` as
+/// [`instgs::write_compressed`] writes it (refused before reading for other outputs).
+pub fn convert(path: &Path, out: &Path, expand: bool, accessors: gltf::Accessors, compress: bool) -> Result<()> {
     let name = out.file_name().map(|n| n.to_string_lossy().to_ascii_lowercase()).unwrap_or_default();
     let gltf_out = name.ends_with(".glb") || name.ends_with(".gltf");
     if accessors == gltf::Accessors::Quantized && !gltf_out {
         bail!("{}: --quantize writes .glb or .gltf only", out.display());
     }
+    if compress && !name.ends_with(".instgs") {
+        bail!("{}: --compress writes .instgs only", out.display());
+    }
     let scene = AnyScene::read(path)?;
+    if name.ends_with(".instgs") {
+        let AnyScene::Instanced(s) = &scene else {
+            bail!("{}: an .instgs file holds an instanced scene; {} is plain", out.display(), path.display())
+        };
+        match compress {
+            true => instgs::write_compressed(s, out)?,
+            false => instgs::write(s, out, instgs::Dtype::F32)?,
+        }
+        eprintln!("wrote {} ({} bytes)", out.display(), file_bytes(out)?);
+        return Ok(());
+    }
     if name.ends_with("tileset.json") {
         match &scene {
             AnyScene::Plain(s) => gltf::write_tileset(s, out)?,

@@ -393,10 +393,26 @@ pub fn write_sog_bundle(scene: &Scene, out: &Path) -> Result<()> {
     let name = out.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
     let parent = out.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
     let tmp = parent.join(format!(".{name}.{}.files.tmp", std::process::id()));
+    let bytes = bundle_in(scene, &tmp).with_context(|| format!("{}: cannot write the bundle", out.display()))?;
+    crate::util::write_atomic(out, |f| std::io::Write::write_all(f, &bytes))
+}
+
+/// The bytes of [`write_sog_bundle`]'s file for `scene` (its images made in a scratch folder
+/// of the system's temporary directory, removed after).
+pub fn bundle_bytes(scene: &Scene) -> Result<Vec<u8>> {
+    scene.validate("the SOG bundle")?;
+    static NEXT: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+    let n = NEXT.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+    let tmp = std::env::temp_dir().join(format!("instgs-sog-{}-{n}.tmp", std::process::id()));
+    bundle_in(scene, &tmp).context("cannot make a SOG bundle")
+}
+
+/// The bundle's bytes, its files written into `tmp` first (removed after).
+fn bundle_in(scene: &Scene, tmp: &Path) -> Result<Vec<u8>> {
     let result = (|| -> Result<Vec<u8>> {
-        std::fs::create_dir_all(&tmp)?;
+        std::fs::create_dir_all(tmp)?;
         write_sog_files(scene, &tmp.join("meta.json"))?;
-        let mut names: Vec<String> = std::fs::read_dir(&tmp)?
+        let mut names: Vec<String> = std::fs::read_dir(tmp)?
             .map(|e| e.map(|e| e.file_name().to_string_lossy().into_owned()))
             .collect::<std::io::Result<_>>()?;
         // meta.json first, as splat-transform writes it; the images in name order.
@@ -409,9 +425,8 @@ pub fn write_sog_bundle(scene: &Scene, out: &Path) -> Result<()> {
         }
         Ok(zip.finish()?.into_inner())
     })();
-    let _ = std::fs::remove_dir_all(&tmp);
-    let bytes = result.with_context(|| format!("{}: cannot write the bundle", out.display()))?;
-    crate::util::write_atomic(out, |f| std::io::Write::write_all(f, &bytes))
+    let _ = std::fs::remove_dir_all(tmp);
+    result
 }
 
 /// [`write_sog`]'s files, written into `meta`'s folder.
