@@ -249,8 +249,8 @@ pub fn write(scene: &InstancedScene, path: &Path, offset_dtype: Dtype) -> Result
 
 /// A compressed file: the Gaussian parameters of the background and of every template as SOG
 /// bundles (16-bit positions, 8-bit quaternions and opacities, codebooks for scales, colours and
-/// SH) and the offsets as f16 (pq8 offsets would make it smaller still, but cost cafe40's
-/// held-out views 1 dB where f16 costs nothing). Lossy; read back as any `.instgs`.
+/// SH) and the offsets as f16, as the main job stores them (pq8 offsets would make it smaller
+/// still, but cost cafe40's held-out views 1 dB). Lossy; read back as any `.instgs`.
 pub fn write_compressed(scene: &InstancedScene, path: &Path) -> Result<()> {
     write_with(scene, path, Dtype::F16, Dtype::Sog)
 }
