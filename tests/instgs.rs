@@ -96,7 +96,7 @@ fn compressed_file_holds_each_part_as_its_sog_bundle() {
     instgs::write_compressed(&empty, &path).unwrap();
     assert!(instgs::read(&path).unwrap().background.is_empty());
     // pq8 offsets with SOG parameters.
-    let pq = instgs::to_bytes_with(&s, Dtype::Pq8, Dtype::Sog).unwrap();
+    let pq = instgs::to_bytes_stored(&s, instgs::Storage { offsets: Dtype::Pq8, params: Dtype::Sog }).unwrap();
     assert_eq!(instgs::from_bytes(&pq, "pq").unwrap().background, back.background);
     // A damaged bundle (re-sealed, so the checksum passes): its section is named.
     let (h, mut data) = split(&bytes_of(&s));
@@ -108,7 +108,7 @@ fn compressed_file_holds_each_part_as_its_sog_bundle() {
 }
 
 fn bytes_of(s: &InstancedScene) -> Vec<u8> {
-    instgs::to_bytes_with(s, Dtype::F16, Dtype::Sog).unwrap()
+    instgs::to_bytes_stored(s, instgs::Storage::COMPRESSED).unwrap()
 }
 
 /// (header JSON, data) of a version-2 file (its CRC-32 trailer left off).

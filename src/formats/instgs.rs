@@ -109,6 +109,26 @@ struct Section {
     bytes: u64,
 }
 
+/// How a file stores an instanced scene: its offsets (f32, f16, pq8) and its Gaussian
+/// parameters (f32, sog).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Storage {
+    pub offsets: Dtype,
+    pub params: Dtype,
+}
+
+impl Storage {
+    /// f32 throughout: lossless.
+    pub const F32: Storage = Storage { offsets: Dtype::F32, params: Dtype::F32 };
+    /// [`write_compressed`]'s.
+    pub const COMPRESSED: Storage = Storage { offsets: Dtype::F16, params: Dtype::Sog };
+
+    /// Offsets stored as `offsets`, parameters as f32.
+    pub fn offsets(offsets: Dtype) -> Storage {
+        Storage { offsets, params: Dtype::F32 }
+    }
+}
+
 fn f32_params() -> Dtype {
     Dtype::F32
 }
@@ -145,12 +165,13 @@ fn scene_arrays(s: &Scene) -> [Vec<f32>; 5] {
 
 /// Serialises `scene` (offsets stored as `offset_dtype`, parameters as f32).
 pub fn to_bytes(scene: &InstancedScene, offset_dtype: Dtype) -> Vec<u8> {
-    to_bytes_with(scene, offset_dtype, Dtype::F32).expect("f32 parameters serialise")
+    to_bytes_stored(scene, Storage::offsets(offset_dtype)).expect("f32 parameters serialise")
 }
 
-/// Serialises `scene` with its offsets stored as `offset_dtype` and its Gaussian parameters as
-/// `params` (f32, or sog: one SOG bundle per part, lossy as SOG is).
-pub fn to_bytes_with(scene: &InstancedScene, offset_dtype: Dtype, params: Dtype) -> Result<Vec<u8>> {
+/// Serialises `scene` as `storage` says (parameters f32, or sog: one SOG bundle per part,
+/// lossy as SOG is).
+pub fn to_bytes_stored(scene: &InstancedScene, storage: Storage) -> Result<Vec<u8>> {
+    let Storage { offsets: offset_dtype, params } = storage;
     if ![Dtype::F32, Dtype::Sog].contains(&params) {
         bail!("parameters are stored as f32 or sog, not {params:?}");
     }
@@ -244,7 +265,7 @@ pub fn to_bytes_with(scene: &InstancedScene, offset_dtype: Dtype, params: Dtype)
 /// Writes `scene` to `path` atomically. Refused, writing nothing, when the file would not read
 /// back: offsets beyond f16's range (±65504) stored as f16 would be infinite.
 pub fn write(scene: &InstancedScene, path: &Path, offset_dtype: Dtype) -> Result<()> {
-    write_with(scene, path, offset_dtype, Dtype::F32)
+    write_stored(scene, path, Storage::offsets(offset_dtype))
 }
 
 /// A compressed file: the Gaussian parameters of the background and of every template as SOG
@@ -252,11 +273,12 @@ pub fn write(scene: &InstancedScene, path: &Path, offset_dtype: Dtype) -> Result
 /// SH) and the offsets as f16, as the main job stores them (pq8 offsets would make it smaller
 /// still, but cost cafe40's held-out views 1 dB). Lossy; read back as any `.instgs`.
 pub fn write_compressed(scene: &InstancedScene, path: &Path) -> Result<()> {
-    write_with(scene, path, Dtype::F16, Dtype::Sog)
+    write_stored(scene, path, Storage::COMPRESSED)
 }
 
-/// [`write`] with the Gaussian parameters stored as `params` (f32 or sog).
-pub fn write_with(scene: &InstancedScene, path: &Path, offset_dtype: Dtype, params: Dtype) -> Result<()> {
+/// [`write`] as `storage` says.
+pub fn write_stored(scene: &InstancedScene, path: &Path, storage: Storage) -> Result<()> {
+    let offset_dtype = storage.offsets;
     let what = path.display().to_string();
     scene.validate(&what)?;
     if offset_dtype == Dtype::F16 {
@@ -268,7 +290,7 @@ pub fn write_with(scene: &InstancedScene, path: &Path, offset_dtype: Dtype, para
             bail!("{what}: not written: an offset of magnitude {largest} does not fit f16 (±65504); store the offsets as f32");
         }
     }
-    let bytes = to_bytes_with(scene, offset_dtype, params).with_context(|| format!("{what}: not written"))?;
+    let bytes = to_bytes_stored(scene, storage).with_context(|| format!("{what}: not written"))?;
     from_bytes(&bytes, &what).context("not written: the file would not read back")?;
     crate::util::write_atomic(path, |f| f.write_all(&bytes))
 }
@@ -487,16 +509,16 @@ pub fn from_bytes(bytes: &[u8], what: &str) -> Result<InstancedScene> {
 
 /// Reads an `.instgs` file.
 pub fn read(path: &Path) -> Result<InstancedScene> {
-    Ok(read_with_offset_dtype(path)?.0)
+    Ok(read_with_storage(path)?.0)
 }
 
-/// Reads an `.instgs` file and the storage of its offsets (the player's editor saves in it).
-pub fn read_with_offset_dtype(path: &Path) -> Result<(InstancedScene, Dtype)> {
+/// Reads an `.instgs` file and how it is stored (the player's editor saves the same way).
+pub fn read_with_storage(path: &Path) -> Result<(InstancedScene, Storage)> {
     let what = path.display().to_string();
     let bytes = std::fs::read(path).with_context(|| format!("{what}: cannot read"))?;
     let scene = from_bytes(&bytes, &what)?;
     let (header, _, _) = split(&bytes).with_context(|| what.clone())?;
-    Ok((scene, header.offset_dtype))
+    Ok((scene, Storage { offsets: header.offset_dtype, params: header.param_dtype }))
 }
 
 /// Bytes of every part of a file: header (with padding), background, each group's template and

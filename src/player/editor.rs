@@ -15,7 +15,7 @@ use std::path::{Path, PathBuf};
 use anyhow::{bail, Result};
 use glam::{Mat3, Quat, Vec3};
 
-use crate::formats::instgs::Dtype;
+use crate::formats::instgs::Storage;
 use crate::math::{quat_to_mat, sigmoid};
 use crate::model::instanced::{Instance, InstancedScene, Offsets, Similarity};
 
@@ -388,7 +388,7 @@ impl Editor {
     /// Writes the scene to `path` (atomically; `.glb`/`.gltf` as an instanced glTF, else
     /// `.instgs` with offsets stored as `dtype`; groups without instances left out); the first save of a session first keeps the file as it was as
     /// `PATH.bak`. Returns the backup's path when one was made.
-    pub fn save(&mut self, scene: &InstancedScene, path: &Path, dtype: Dtype) -> Result<Option<PathBuf>> {
+    pub fn save(&mut self, scene: &InstancedScene, path: &Path, storage: Storage) -> Result<Option<PathBuf>> {
         let scene = renderable(scene);
         scene.validate(&path.display().to_string())?;
         let mut backup = None;
@@ -403,7 +403,7 @@ impl Editor {
         if name.ends_with(".glb") || name.ends_with(".gltf") {
             crate::formats::gltf::write_instanced_gltf(&scene, path, crate::formats::gltf::Accessors::Float)?;
         } else {
-            crate::formats::instgs::write(&scene, path, dtype)?;
+            crate::formats::instgs::write_stored(&scene, path, storage)?;
         }
         self.backed_up = true;
         self.saved = Some(self.undo.len());
@@ -566,29 +566,41 @@ mod tests {
         std::fs::create_dir_all(&dir).unwrap();
         let path = dir.join("s.instgs");
         let mut s = scene(Vec3::new(0.0, 0.0, -50.0));
-        crate::formats::instgs::write(&s, &path, Dtype::F32).unwrap();
+        crate::formats::instgs::write(&s, &path, crate::formats::instgs::Dtype::F32).unwrap();
         let original = std::fs::read(&path).unwrap();
         let mut ed = Editor::new(&s);
         ed.selected = Some((0, 0));
         ed.turn(&mut s, 30.0, Vec3::Z).unwrap();
-        let bak = ed.save(&s, &path, Dtype::F32).unwrap().unwrap();
+        let bak = ed.save(&s, &path, Storage::F32).unwrap().unwrap();
         assert_eq!(bak, dir.join("s.instgs.bak"));
         assert_eq!(std::fs::read(&bak).unwrap(), original);
         assert!(!ed.unsaved());
         assert_eq!(crate::formats::instgs::read(&path).unwrap(), s);
         ed.scale(&mut s, 1.05).unwrap();
-        assert!(ed.save(&s, &path, Dtype::F32).unwrap().is_none(), "one backup per session");
+        assert!(ed.save(&s, &path, Storage::F32).unwrap().is_none(), "one backup per session");
         assert_eq!(std::fs::read(&bak).unwrap(), original);
         assert_eq!(crate::formats::instgs::read(&path).unwrap(), s);
         ed.undo(&mut s).unwrap();
         assert!(ed.unsaved());
+        // A compressed file is saved compressed again.
+        let small = dir.join("small.instgs");
+        crate::formats::instgs::write_compressed(&s, &small).unwrap();
+        let (mut c, storage) = crate::formats::instgs::read_with_storage(&small).unwrap();
+        assert_eq!(storage, Storage::COMPRESSED);
+        let mut ed = Editor::new(&c);
+        ed.selected = Some((0, 0));
+        ed.turn(&mut c, 10.0, Vec3::Z).unwrap();
+        ed.save(&c, &small, storage).unwrap();
+        let (back, again) = crate::formats::instgs::read_with_storage(&small).unwrap();
+        assert_eq!(again, Storage::COMPRESSED);
+        assert_eq!(back.groups[0].instances, c.groups[0].instances);
         // An instanced glTF opened in the player is saved as glTF again.
         let glb = dir.join("s.glb");
         crate::formats::gltf::write_instanced_gltf(&s, &glb, crate::formats::gltf::Accessors::Float).unwrap();
         let mut ed = Editor::new(&s);
         ed.selected = Some((0, 0));
         ed.turn(&mut s, 20.0, Vec3::Z).unwrap();
-        ed.save(&s, &glb, Dtype::F32).unwrap();
+        ed.save(&s, &glb, Storage::F32).unwrap();
         let crate::formats::AnyScene::Instanced(back) = crate::formats::AnyScene::read(&glb).unwrap() else {
             panic!("the saved .glb reads as a plain scene")
         };

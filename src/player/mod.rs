@@ -32,7 +32,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{anyhow, bail, Context, Result};
 
-use crate::formats::instgs::Dtype;
+use crate::formats::instgs::Storage;
 use crate::formats::AnyScene;
 use crate::gpu::kernels::Kernels;
 use crate::gpu::{Gpu, GpuOptions};
@@ -201,11 +201,11 @@ pub fn view(
     if opts.frames == Some(0) {
         bail!("--frames must be at least 1");
     }
-    let (scene, offset_dtype) = if crate::formats::detect(&opts.scene_path)? == crate::formats::Format::Instgs {
-        let (s, dtype) = crate::formats::instgs::read_with_offset_dtype(&opts.scene_path)?;
-        (AnyScene::Instanced(s), dtype)
+    let (scene, storage) = if crate::formats::detect(&opts.scene_path)? == crate::formats::Format::Instgs {
+        let (s, storage) = crate::formats::instgs::read_with_storage(&opts.scene_path)?;
+        (AnyScene::Instanced(s), storage)
     } else {
-        (AnyScene::read(&opts.scene_path)?, Dtype::F32)
+        (AnyScene::read(&opts.scene_path)?, Storage::F32)
     };
     let means = scene.means();
     let (lo, hi) = crate::model::scene::robust_bounds(&means, 0.02);
@@ -233,7 +233,7 @@ pub fn view(
     if headless {
         run_headless(&opts, &scene, start)
     } else {
-        run_window(opts, scene, offset_dtype, start)
+        run_window(opts, scene, storage, start)
     }
 }
 

@@ -15,7 +15,7 @@ use winit::event_loop::{ActiveEventLoop, ControlFlow, EventLoop};
 use winit::keyboard::{KeyCode, PhysicalKey};
 use winit::window::{Window, WindowId};
 
-use crate::formats::instgs::Dtype;
+use crate::formats::instgs::Storage;
 use crate::formats::AnyScene;
 use crate::gpu::kernels::Kernels;
 use crate::gpu::swapchain::Presenter;
@@ -29,8 +29,8 @@ use super::{
 };
 
 /// Opens the window and runs until it is closed (or `frames` frames were shown). An instanced
-/// scene can be edited and is saved with its offsets stored as `offset_dtype` (the file's).
-pub fn run_window(opts: PlayerOptions, scene: AnyScene, offset_dtype: Dtype, start: ViewCamera) -> Result<()> {
+/// scene can be edited and is saved as `storage` (the file's).
+pub fn run_window(opts: PlayerOptions, scene: AnyScene, storage: Storage, start: ViewCamera) -> Result<()> {
     let event_loop = EventLoop::new().map_err(|e| {
         anyhow!(
             "cannot open a window ({e}); without a display use --headless --frames N --out DIR, or run under xvfb-run"
@@ -47,7 +47,7 @@ pub fn run_window(opts: PlayerOptions, scene: AnyScene, offset_dtype: Dtype, sta
         opts,
         scene,
         editor,
-        offset_dtype,
+        storage,
         drag: None,
         press: None,
         help: false,
@@ -105,7 +105,7 @@ struct App {
     scene: AnyScene,
     /// Editing state (instanced scenes only).
     editor: Option<editor::Editor>,
-    offset_dtype: Dtype,
+    storage: Storage,
     drag: Option<Drag>,
     press: Option<Press>,
     /// F1: the overlay lists the keys.
@@ -318,12 +318,12 @@ impl App {
         let done: Option<(Option<editor::Change>, String)> = match code {
             KeyCode::KeyS => {
                 let path = self.opts.scene_path.clone();
-                let message = match ed.save(scene, &path, self.offset_dtype) {
+                let message = match ed.save(scene, &path, self.storage) {
                     Ok(backup) => {
                         let kept = backup.map_or(String::new(), |b| format!(" (the original kept as {})", b.display()));
-                        let lossy = match self.offset_dtype {
-                            Dtype::F32 => "",
-                            _ => "; offsets quantised as the file stores them (shown unquantised until reopened)",
+                        let lossy = match self.storage {
+                            Storage::F32 => "",
+                            _ => "; quantised as the file stores it (shown unquantised until reopened)",
                         };
                         format!("saved {}{kept}{lossy}", path.display())
                     }
