@@ -43,7 +43,7 @@ pub enum Dtype {
     Pq8,
     /// Parameter storage (header `param_dtype`) and section type: a part's Gaussians as one SOG
     /// bundle (`crate::formats::sog`: a zip of `meta.json` and WebP images), section `sog` of
-    /// shape [bytes]; empty for a part without Gaussians.
+    /// shape `[bytes]`; empty for a part without Gaussians.
     Sog,
 }
 
@@ -276,7 +276,7 @@ pub fn write_compressed(scene: &InstancedScene, path: &Path) -> Result<()> {
     write_stored(scene, path, Storage::COMPRESSED)
 }
 
-/// [`write`] as `storage` says.
+/// [`write()`] as `storage` says.
 pub fn write_stored(scene: &InstancedScene, path: &Path, storage: Storage) -> Result<()> {
     let offset_dtype = storage.offsets;
     let what = path.display().to_string();
