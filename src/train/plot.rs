@@ -246,8 +246,8 @@ fn short(v: f64) -> String {
 }
 
 /// `rate_distortion.png`: held-out PSNR against GPU memory for InstGS and the plain scene
-/// pruned to the same memory (one point per budget, each fine-tuned as long), and the plain
-/// scene whole.
+/// pruned (one point per budget at InstGS's memory, and those of the equal-quality search; each
+/// fine-tuned as long), and the plain scene whole.
 #[derive(Clone, Debug, Default)]
 pub struct RateDistortion {
     pub title: String,
@@ -309,7 +309,7 @@ pub fn render_rate_distortion(c: &RateDistortion) -> Result<Vec<u8>> {
             .map_err(|e| anyhow!("plot: {e}"))?;
         let blue = RGBColor(30, 90, 200);
         let grey = RGBColor(120, 120, 120);
-        for (pts, colour, name) in [(&c.instgs, blue, "InstGS"), (&c.pruned, grey, "plain, pruned to the same memory")]
+        for (pts, colour, name) in [(&c.instgs, blue, "InstGS"), (&c.pruned, grey, "plain, pruned and fine-tuned as long")]
         {
             chart.draw_series(LineSeries::new(pts.clone(), colour.stroke_width(2))).map_err(e)?;
             chart
