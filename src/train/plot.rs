@@ -309,7 +309,8 @@ pub fn render_rate_distortion(c: &RateDistortion) -> Result<Vec<u8>> {
             .map_err(|e| anyhow!("plot: {e}"))?;
         let blue = RGBColor(30, 90, 200);
         let grey = RGBColor(120, 120, 120);
-        for (pts, colour, name) in [(&c.instgs, blue, "InstGS"), (&c.pruned, grey, "plain, pruned and fine-tuned as long")]
+        for (pts, colour, name) in
+            [(&c.instgs, blue, "InstGS"), (&c.pruned, grey, "plain, pruned and fine-tuned as long")]
         {
             chart.draw_series(LineSeries::new(pts.clone(), colour.stroke_width(2))).map_err(e)?;
             chart
