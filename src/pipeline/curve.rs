@@ -114,8 +114,7 @@ pub const EQUAL_TRAININGS: usize = 3;
 pub fn bracket(by_bytes: &[(u64, f64)], target: f64) -> Option<(usize, f64)> {
     let i = by_bytes.windows(2).position(|w| w[0].1 < target && w[1].1 >= target)?;
     let ((b0, p0), (b1, p1)) = (by_bytes[i], by_bytes[i + 1]);
-    let t = (target - p0) / (p1 - p0);
-    Some((i, b0 as f64 + t * (b1 as f64 - b0 as f64)))
+    Some((i, at_psnr((p0, b0 as f64), (p1, b1 as f64), target)))
 }
 
 /// The equal-quality search's next step: the bytes to prune the plain scene to, or None once a
@@ -229,13 +228,8 @@ pub fn curve(c: CurveArgs) -> Result<()> {
         .map(|(p, g)| format!("{:.2} MB: {g:+.2} dB", p.instgs.gpu_bytes as f64 / 1e6))
         .collect();
     let equal_quality = ctx.equal_quality(&dir, &points, &plain_scene)?;
-    let mut pruned: Vec<(u64, f64)> = points
-        .iter()
-        .map(|p| &p.pruned)
-        .chain(equal_quality.iter().flat_map(|e| &e.trained))
-        .map(|s| (s.gpu_bytes, s.psnr))
-        .collect();
-    pruned.sort_by_key(|p| p.0);
+    let pruned: Vec<(u64, f64)> =
+        pruned_scenes(&points, equal_quality.as_ref()).iter().map(|s| (s.gpu_bytes, s.psnr)).collect();
     let pruning_needs = points
         .iter()
         .map(|p| bracket(&pruned, p.instgs.psnr).map(|(_, bytes)| bytes / p.instgs.gpu_bytes as f64))
@@ -265,20 +259,21 @@ pub fn curve(c: CurveArgs) -> Result<()> {
 pub const CURVE_FILE: &str = "rate_distortion.json";
 pub const CURVE_PLOT: &str = "rate_distortion.png";
 
+/// Every pruned scene measured — each point's and the equal-quality search's — by GPU bytes.
+fn pruned_scenes<'a>(points: &'a [Point], equal: Option<&'a EqualQuality>) -> Vec<&'a Scored> {
+    let mut v: Vec<&Scored> =
+        points.iter().map(|p| &p.pruned).chain(equal.into_iter().flat_map(|e| &e.trained)).collect();
+    v.sort_by_key(|s| s.gpu_bytes);
+    v
+}
+
 fn plot_of(c: &Curve, data: &Path) -> crate::train::plot::RateDistortion {
     let name = data.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
     let mb = |s: &Scored| s.gpu_bytes as f64 / 1e6;
     crate::train::plot::RateDistortion {
         title: format!("{name}: held-out PSNR against GPU memory ({} fine-tuning iterations per point)", c.iterations),
         instgs: c.points.iter().map(|p| (mb(&p.instgs), p.instgs.psnr)).collect(),
-        pruned: {
-            // The equal-quality search's pruned scenes are points of the pruned curve too.
-            let extra = c.equal_quality.iter().flat_map(|e| &e.trained);
-            let mut v: Vec<(f64, f64)> =
-                c.points.iter().map(|p| &p.pruned).chain(extra).map(|s| (mb(s), s.psnr)).collect();
-            v.sort_by(|a, b| a.0.total_cmp(&b.0));
-            v
-        },
+        pruned: pruned_scenes(&c.points, c.equal_quality.as_ref()).iter().map(|s| (mb(s), s.psnr)).collect(),
         plain: (mb(&c.plain), c.plain.psnr),
         default_mb: c.points.iter().find(|p| p.fraction.is_none()).map(|p| mb(&p.instgs)),
     }
@@ -360,11 +355,11 @@ impl Ctx<'_> {
         let target = own.instgs.psnr;
         let mut pruned: Vec<Scored> = points.iter().map(|p| p.pruned.clone()).collect();
         let mut trained = Vec::new();
-        loop {
+        let by_bytes = loop {
             pruned.sort_by_key(|s| s.gpu_bytes);
             let by_bytes: Vec<(u64, f64)> = pruned.iter().map(|s| (s.gpu_bytes, s.psnr)).collect();
             let next = next_equal_bytes(&by_bytes, target, EQUAL_TOLERANCE_DB);
-            let Some(bytes) = next.filter(|_| trained.len() < EQUAL_TRAININGS) else { break };
+            let Some(bytes) = next.filter(|_| trained.len() < EQUAL_TRAININGS) else { break by_bytes };
             let label = format!("equal quality ({:.2} MB)", bytes as f64 / 1e6);
             let Some(s) = self.pruned_point(&curve_dir.join(format!("equal-{bytes}")), bytes, plain, &label)? else {
                 bail!("interrupted; run the same command again to resume")
@@ -372,8 +367,7 @@ impl Ctx<'_> {
             eprintln!("[curve] {label}: pruned {:.2} dB against InstGS's {target:.2} dB", s.psnr);
             trained.push(s.clone());
             pruned.push(s);
-        }
-        let by_bytes: Vec<(u64, f64)> = pruned.iter().map(|s| (s.gpu_bytes, s.psnr)).collect();
+        };
         let (below, above, needed) = match bracket(&by_bytes, target) {
             Some((i, bytes)) => (Some(pruned[i].clone()), pruned[i + 1].clone(), bytes),
             None => {
