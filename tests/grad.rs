@@ -338,3 +338,87 @@ fn backward_with_a_lower_active_sh_degree() {
     assert!(nonzero_low);
     assert_clean(&gpu);
 }
+
+#[test]
+fn blend_backward_from_masked_counts_matches_the_twin() {
+    // `record_blend_backward_from` with the frame's `last` counts zeroed outside the pixels
+    // where v_image is non-zero (the segmentation's per-mask passes): the twin's gradients of
+    // that v_image over the whole frame, with both kernel policies; all counts zero: no
+    // gradient at all (the counts given are the ones walked).
+    let (gpu, _) = gpu();
+    let mut rng = Rng::new(21);
+    let scene = random_scene(&mut rng, 400, 1);
+    let cam = test_camera(83, 61);
+    let gs = GpuScene::new(&gpu, &scene).unwrap();
+    let n = scene.len();
+    for k in both_policies() {
+        let mut r = Rasterizer::new(&gpu, &k).unwrap();
+        r.render(&gs, &cam, [0.0; 3]).unwrap();
+        let st = r.read_state().unwrap();
+        let fp = r.last_frame_params().unwrap();
+        // A region across tile borders: columns 11..47, rows 5..29, and a lone pixel.
+        let inside = |p: usize| {
+            let (x, y) = (p % 83, p / 83);
+            (11..47).contains(&x) && (5..29).contains(&y) || (x, y) == (70, 50)
+        };
+        let v_image: Vec<[f32; 4]> = (0..83 * 61)
+            .map(|p| {
+                if inside(p) {
+                    [rng.range(-1.0, 1.0), rng.range(-1.0, 1.0), rng.range(-1.0, 1.0), 0.0]
+                } else {
+                    [0.0; 4]
+                }
+            })
+            .collect();
+        let last = r.read_last().unwrap();
+        let masked: Vec<u32> = last.iter().enumerate().map(|(p, &l)| if inside(p) { l } else { 0 }).collect();
+        let v_buf = gpu.upload("v_image", &v_image).unwrap();
+        let grads = Grads::new(&gpu, &gs).unwrap();
+        let run = |counts: &[u32]| -> Vec<Vec<f64>> {
+            let l = gpu.upload("last", counts).unwrap();
+            gpu.submit_and_wait(|rec| {
+                for b in [&grads.v_xys, &grads.v_conics, &grads.v_colours, &grads.v_splat_opacities] {
+                    rec.fill(b, instgs_vk::render::raster::POISON);
+                }
+                r.record_blend_backward_from(rec, &gs, &v_buf, &grads, &l)
+            })
+            .unwrap();
+            let read = |b: &instgs_vk::gpu::Buffer, len: usize| -> Vec<f64> {
+                gpu.read::<f32>(b, len).unwrap().into_iter().map(|v| v as f64).collect()
+            };
+            vec![
+                read(&grads.v_xys, 2 * n),
+                read(&grads.v_conics, 3 * n),
+                read(&grads.v_splat_opacities, n),
+                read(&grads.v_colours, 3 * n),
+            ]
+        };
+        let got = run(&masked);
+        let splats: Vec<Splat> = (0..n).map(|i| Splat::of_projected(&st.projected, i)).collect();
+        let v64: Vec<[f64; 3]> = v_image.iter().map(|v| [v[0] as f64, v[1] as f64, v[2] as f64]).collect();
+        let want = reference::backward::blend_backward(&fp, &st.ranges, &st.isect_ids, &splats, &v64);
+        let wanted: [Vec<f64>; 4] = [
+            want.iter().flat_map(|s| s.xy).collect(),
+            want.iter().flat_map(|s| s.conic).collect(),
+            want.iter().map(|s| s.opacity).collect(),
+            want.iter().flat_map(|s| s.colour).collect(),
+        ];
+        for (name, (g, w)) in
+            ["v_xys", "v_conics", "v_splat_opacities", "v_colours"].iter().zip(got.iter().zip(&wanted))
+        {
+            let e = rel_err(g, w);
+            assert!(e < 2e-3, "{name}: relative error {e:e} (policy {:?})", k.policy);
+            assert!(w.iter().any(|v| *v != 0.0), "{name}: all zero");
+        }
+        let none = run(&vec![0; 83 * 61]);
+        assert!(none.iter().flatten().all(|&v| v == 0.0), "zero counts still walked splats ({:?})", k.policy);
+        let short = gpu.upload("last", &[0u32; 16]).unwrap();
+        let e = gpu
+            .submit_and_wait(|rec| r.record_blend_backward_from(rec, &gs, &v_buf, &grads, &short))
+            .err()
+            .unwrap()
+            .to_string();
+        assert!(e.contains("the frame needs"), "{e}");
+    }
+    assert_clean(&gpu);
+}

@@ -4,7 +4,9 @@ mod common;
 
 use common::*;
 use glam::Vec3;
-use instgs_vk::segment::{associate, instance_iou, instance_iou_per_frame, segment, AssociateOptions};
+use instgs_vk::segment::{
+    associate, instance_iou, instance_iou_per_frame, instance_regions, segment, AssociateOptions,
+};
 use instgs_vk::util::ProgressMode;
 
 /// Three instances of a random template in front of a wall; ten views and their masks rendered
@@ -84,11 +86,16 @@ fn segmentation_recovers_known_instances() {
     let shown: Vec<usize> = (0..plain.len()).filter(|&i| s_all[i] > 1.0).collect();
     let right = shown.iter().filter(|&&i| seg.labels[i] == truth[i]).count();
     assert!(right as f64 >= 0.95 * shown.len() as f64, "{right} of {} labelled right", shown.len());
+    let regions = instance_regions(&gpu, &k, &plain, &seg.labels, &views, &[1, 2, 3]).unwrap();
     for id in 1..=3 {
-        let iou = instance_iou(&gpu, &k, &plain, &seg.labels, &views, &masks, id).unwrap();
+        let iou = instance_iou(&regions[id as usize - 1], &masks, id);
         let mean = iou.iter().sum::<f64>() / iou.len() as f64;
         assert!(mean >= 0.9, "instance {id}: IoU {mean:.3}");
     }
+    // Three instances share a render, a colour channel each: each region is the one rendered
+    // for its instance alone.
+    assert_eq!(instance_regions(&gpu, &k, &plain, &seg.labels, &views, &[2]).unwrap()[0], regions[1]);
+    assert_eq!(instance_regions(&gpu, &k, &plain, &seg.labels, &views, &[3]).unwrap()[0], regions[2]);
     // α = 0: no background removal; the wall Gaussians seen behind an instance's mask pixels
     // (none here: they are occluded) aside, labels barely change; α large: fewer positives.
     let strict = segment(&gpu, &k, &plain, &views, &masks, &[1, 2, 3], 4.0).unwrap();
@@ -234,10 +241,10 @@ fn association_recovers_instances_from_scrambled_per_frame_ids() {
     assert!(labelled > 300 && agree == labelled, "{agree} of {labelled}");
     // Held-out IoU against such masks: each view's mask of the instance's category that overlaps
     // it most, as the rewritten masks give it (the view that misses instance 3 is skipped).
-    for &id in &ids {
-        let per_frame =
-            instance_iou_per_frame(&gpu, &k, &plain, &seg.labels, &views, &scrambled, &cats, (id, "blob")).unwrap();
-        let global = instance_iou(&gpu, &k, &plain, &seg.labels, &views, &a.masks, id).unwrap();
+    let regions = instance_regions(&gpu, &k, &plain, &seg.labels, &views, &ids).unwrap();
+    for (&id, r) in ids.iter().zip(&regions) {
+        let per_frame = instance_iou_per_frame(r, &scrambled, &cats, "blob");
+        let global = instance_iou(r, &a.masks, id);
         let shown = a.members[&id].len();
         assert_eq!(per_frame.len(), shown, "instance {id}");
         let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len() as f64;

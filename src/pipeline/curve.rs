@@ -63,6 +63,12 @@ pub struct Curve {
     /// linear between the pruned scenes about it (every point's and the equal-quality
     /// search's); None outside them.
     pub pruning_needs: Vec<Option<f64>>,
+    /// The same two with the colour-compensated PSNR (the measure for a capture, whose photos
+    /// each have their own exposure and white balance).
+    #[serde(default)]
+    pub gain_db_compensated: Vec<f64>,
+    #[serde(default)]
+    pub pruning_needs_compensated: Vec<Option<f64>>,
     /// The run's own InstGS against pruning at the same quality (None without a pruned point
     /// at least as good as it).
     pub equal_quality: Option<EqualQuality>,
@@ -221,6 +227,8 @@ pub fn curve(c: CurveArgs) -> Result<()> {
     let mut points: Vec<Point> = done.into_values().chain([default]).collect();
     points.sort_by_key(|p| p.instgs.gpu_bytes);
     let gain_db: Vec<f64> = points.iter().map(|p| p.instgs.psnr - p.pruned.psnr).collect();
+    let gain_db_compensated: Vec<f64> =
+        points.iter().map(|p| p.instgs.psnr_compensated - p.pruned.psnr_compensated).collect();
     let instgs_loses_at = points
         .iter()
         .zip(&gain_db)
@@ -228,12 +236,16 @@ pub fn curve(c: CurveArgs) -> Result<()> {
         .map(|(p, g)| format!("{:.2} MB: {g:+.2} dB", p.instgs.gpu_bytes as f64 / 1e6))
         .collect();
     let equal_quality = ctx.equal_quality(&dir, &points, &plain_scene)?;
-    let pruned: Vec<(u64, f64)> =
-        pruned_scenes(&points, equal_quality.as_ref()).iter().map(|s| (s.gpu_bytes, s.psnr)).collect();
-    let pruning_needs = points
-        .iter()
-        .map(|p| bracket(&pruned, p.instgs.psnr).map(|(_, bytes)| bytes / p.instgs.gpu_bytes as f64))
-        .collect();
+    let pruned = pruned_scenes(&points, equal_quality.as_ref());
+    let needs = |psnr: fn(&Scored) -> f64| -> Vec<Option<f64>> {
+        let by_bytes: Vec<(u64, f64)> = pruned.iter().map(|s| (s.gpu_bytes, psnr(s))).collect();
+        points
+            .iter()
+            .map(|p| bracket(&by_bytes, psnr(&p.instgs)).map(|(_, bytes)| bytes / p.instgs.gpu_bytes as f64))
+            .collect()
+    };
+    let pruning_needs = needs(|s| s.psnr);
+    let pruning_needs_compensated = needs(|s| s.psnr_compensated);
     let curve = Curve {
         plain,
         iterations: cfg.joint.iterations,
@@ -241,6 +253,8 @@ pub fn curve(c: CurveArgs) -> Result<()> {
         gain_db,
         instgs_loses_at,
         pruning_needs,
+        gain_db_compensated,
+        pruning_needs_compensated,
         equal_quality,
     };
     crate::util::write_json(&run.join(CURVE_FILE), &serde_json::to_value(&curve)?, true)?;

@@ -407,7 +407,7 @@ fn curve_section(md: &mut String, run: &Path) {
         md,
         "## Memory and quality\n\nHeld-out PSNR against GPU memory (`instgs-vk curve`): InstGS at each memory budget \
          against the plain scene pruned to the same memory, both fine-tuned {} iterations; plain 3DGS {:.2} dB at {} MB. \
-         Numbers: `{}`.\n\n![memory and quality]({})\n\n| budget | InstGS MB | InstGS PSNR (dB) | pruned MB | pruned PSNR (dB) | InstGS − pruned (dB) | memory pruning needs for InstGS's PSNR | InstGS file MB | pruned file MB |\n|---|---|---|---|---|---|---|---|---|",
+         Numbers: `{}`.\n\n![memory and quality]({})\n\n| budget | InstGS MB | InstGS PSNR (dB) | pruned MB | pruned PSNR (dB) | InstGS − pruned (dB) | memory pruning needs for InstGS's PSNR | colour-compensated: InstGS − pruned, pruning needs | InstGS file MB | pruned file MB |\n|---|---|---|---|---|---|---|---|---|---|",
         c["iterations"],
         num(&c, "plain.psnr").unwrap_or(f64::NAN),
         mb(num(&c, "plain.gpu_bytes").unwrap_or(f64::NAN)),
@@ -415,9 +415,14 @@ fn curve_section(md: &mut String, run: &Path) {
         crate::pipeline::curve::CURVE_PLOT
     );
     for (i, p) in c["points"].as_array().into_iter().flatten().enumerate() {
-        let needs = match c["pruning_needs"][i].as_f64() {
+        let needs_of = |key: &str| match c[key][i].as_f64() {
             Some(r) => format!("{r:.2}×"),
             None => "outside the pruned scenes".into(),
+        };
+        let needs = needs_of("pruning_needs");
+        let compensated = match c["gain_db_compensated"][i].as_f64() {
+            Some(g) => format!("{g:+.2} dB, {}", needs_of("pruning_needs_compensated")),
+            None => "not measured".into(),
         };
         let budget = match num(p, "fraction") {
             Some(f) => format!("{:.0} % of plain", 100.0 * f),
@@ -426,7 +431,7 @@ fn curve_section(md: &mut String, run: &Path) {
         let v = |k: &str| num(p, k).unwrap_or(f64::NAN);
         let _ = writeln!(
             md,
-            "| {budget} | {} | {:.2} | {} | {:.2} | {:+.2} | {needs} | {} | {} |",
+            "| {budget} | {} | {:.2} | {} | {:.2} | {:+.2} | {needs} | {compensated} | {} | {} |",
             mb(v("instgs.gpu_bytes")),
             v("instgs.psnr"),
             mb(v("pruned.gpu_bytes")),

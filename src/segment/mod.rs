@@ -8,7 +8,8 @@
 //! L = Σ_pixels M·mean(rgb), i.e. the sum of its blending weights T·α over the mask's pixels
 //! (a masked loss with unit residual: what a Gaussian contributes there, whatever the colours).
 //! GSeg is linear in the mask, so GSeg(1 − M) = GSeg(1) − GSeg(M): per view one pass over all
-//! pixels plus one per visible instance. Views are streamed; the scores live on the GPU.
+//! pixels plus one per three visible instances (a colour channel each) that walks only their
+//! masks' pixels. Views are streamed; the scores live on the GPU.
 pub mod run;
 
 use std::collections::BTreeMap;
@@ -200,10 +201,23 @@ impl<'a> Scorer<'a> {
                 .collect();
             passes.push((v, three.iter().enumerate().map(|(c, &(j, _))| (j as u32, c as u32)).collect()));
         }
-        for (v_image, slots) in passes {
+        // A pass of instance masks walks only their pixels (the frame's `last` counts, 0
+        // elsewhere): the same scores, a fraction of the frame's work.
+        let last = if passes.len() > 1 { self.r.read_last()? } else { Vec::new() };
+        for (i, (v_image, slots)) in passes.into_iter().enumerate() {
             let v = gpu.upload("seg_v_image", &v_image)?;
+            let masked_last = if i == 0 {
+                None
+            } else {
+                let l: Vec<u32> =
+                    last.iter().zip(&v_image).map(|(&l, p)| if p[..3] == [0.0; 3] { 0 } else { l }).collect();
+                Some(gpu.upload("seg_last", &l)?)
+            };
             gpu.submit_and_wait(|rec| {
-                self.r.record_blend_backward(rec, &self.gs, &v, &self.grads)?;
+                match &masked_last {
+                    None => self.r.record_blend_backward(rec, &self.gs, &v, &self.grads)?,
+                    Some(l) => self.r.record_blend_backward_from(rec, &self.gs, &v, &self.grads, l)?,
+                }
                 for &(slot, channel) in &slots {
                     let args = SegArgs { count: n as u32, slot, weight: 1.0, channel };
                     rec.dispatch(
@@ -231,41 +245,24 @@ pub fn subset(scene: &Scene, labels: &[u32], id: u32) -> Scene {
     scene.select(&keep)
 }
 
-/// Per view, the IoU of instance `id`'s rendered visible region and its mask: the whole scene
-/// rendered with the instance's Gaussians white and every other Gaussian black (so occluders
-/// hide it as in the photos), thresholded at 0.5, against `mask == id`. Views where neither
-/// has a pixel are skipped.
-pub fn instance_iou(
-    gpu: &Arc<Gpu>,
-    k: &Arc<Kernels>,
-    scene: &Scene,
-    labels: &[u32],
-    views: &[View],
-    masks: &[Vec<u16>],
-    id: u32,
-) -> Result<Vec<f64>> {
-    let regions = instance_regions(gpu, k, scene, labels, views, id)?;
-    Ok(regions.iter().zip(masks).filter_map(|(r, m)| iou(r, m, |mid| mid as u32 == id)).collect())
+/// Per view, the IoU of an instance's rendered visible region ([`instance_regions`]) and its
+/// mask `mask == id`. Views where neither has a pixel are skipped.
+pub fn instance_iou(regions: &[Vec<bool>], masks: &[Vec<u16>], id: u32) -> Vec<f64> {
+    regions.iter().zip(masks).filter_map(|(r, m)| iou(r, m, |mid| mid as u32 == id)).collect()
 }
 
 /// [`instance_iou`] against masks whose ids mean nothing across frames (a 2D segmenter's): in
-/// each view the instance's region is associated with the mask of its own category that
+/// each view the instance's region is associated with the mask of its own `category` that
 /// overlaps it most (`categories[view]`: per-frame id → category); views where no mask of that
 /// category overlaps the region are skipped (the segmenter missed it, or the instance is out of
 /// sight).
-#[allow(clippy::too_many_arguments)]
 pub fn instance_iou_per_frame(
-    gpu: &Arc<Gpu>,
-    k: &Arc<Kernels>,
-    scene: &Scene,
-    labels: &[u32],
-    views: &[View],
+    regions: &[Vec<bool>],
     masks: &[Vec<u16>],
     categories: &[BTreeMap<u16, String>],
-    (id, category): (u32, &str),
-) -> Result<Vec<f64>> {
-    let regions = instance_regions(gpu, k, scene, labels, views, id)?;
-    Ok(regions
+    category: &str,
+) -> Vec<f64> {
+    regions
         .iter()
         .zip(masks)
         .zip(categories)
@@ -276,25 +273,49 @@ pub fn instance_iou_per_frame(
                 .filter(|&v| v > 0.0)
                 .max_by(f64::total_cmp)
         })
-        .collect())
+        .collect()
 }
 
-/// Per view, instance `id`'s rendered visible region (see [`instance_iou`]).
-fn instance_regions(
+/// Per instance of `ids`, per view: its rendered visible region — the whole scene rendered
+/// with the instance's Gaussians white and every other Gaussian black (so occluders hide it as
+/// in the photos), thresholded at 0.5. Three instances share a render, one per colour channel
+/// (the blending weights do not depend on the colours, so each channel is that instance's
+/// render exactly).
+pub fn instance_regions(
     gpu: &Arc<Gpu>,
     k: &Arc<Kernels>,
     scene: &Scene,
     labels: &[u32],
     views: &[View],
-    id: u32,
-) -> Result<Vec<Vec<bool>>> {
-    let mut s = scene.clone();
-    s.sh_degree = 0;
-    let c0 = crate::math::SH_C0_F32;
-    s.sh = (0..scene.len()).flat_map(|i| [if labels[i] == id { 0.5 / c0 } else { -0.5 / c0 }; 3]).collect();
-    let gs = GpuScene::new(gpu, &s)?;
+    ids: &[u32],
+) -> Result<Vec<Vec<Vec<bool>>>> {
+    let mut regions = vec![Vec::with_capacity(views.len()); ids.len()];
     let mut r = Rasterizer::new(gpu, k)?;
-    views.iter().map(|v| Ok(r.render(&gs, &v.camera, [0.0; 3])?.image.iter().map(|p| p[0] > 0.5).collect())).collect()
+    let c0 = crate::math::SH_C0_F32;
+    for (chunk, three) in ids.chunks(3).enumerate() {
+        let mut s = scene.clone();
+        s.sh_degree = 0;
+        s.sh = labels
+            .iter()
+            .flat_map(|&l| {
+                let mut rgb = [-0.5 / c0; 3];
+                for (c, &id) in three.iter().enumerate() {
+                    if l == id {
+                        rgb[c] = 0.5 / c0;
+                    }
+                }
+                rgb
+            })
+            .collect();
+        let gs = GpuScene::new(gpu, &s)?;
+        for v in views {
+            let image = r.render(&gs, &v.camera, [0.0; 3])?.image;
+            for c in 0..three.len() {
+                regions[3 * chunk + c].push(image.iter().map(|p| p[c] > 0.5).collect());
+            }
+        }
+    }
+    Ok(regions)
 }
 
 /// IoU of a region and the mask pixels `hit` selects; None when neither has a pixel.

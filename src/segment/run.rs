@@ -168,35 +168,28 @@ pub fn segment_scene(
         })
     };
     let mut rows = Vec::new();
-    for g in &groups {
-        for &id in &g.ids {
-            let n = seg.labels.iter().filter(|&&l| l == id).count();
-            let mut row = serde_json::json!({"group": g.name, "id": id, "gaussians": n});
-            let iou = match &test_masks {
-                Some((m, cats)) if !m.is_empty() => {
-                    let v = match cats {
-                        None => crate::segment::instance_iou(gpu, k, scene, &seg.labels, &ds.test, m, id)?,
-                        Some(c) => crate::segment::instance_iou_per_frame(
-                            gpu,
-                            k,
-                            scene,
-                            &seg.labels,
-                            &ds.test,
-                            m,
-                            c,
-                            (id, &g.name),
-                        )?,
-                    };
-                    let mean = v.iter().sum::<f64>() / v.len().max(1) as f64;
-                    row["test_iou"] = mean.into();
-                    row["test_views"] = v.len().into();
-                    format!("  test IoU {mean:.3} ({} views)", v.len())
-                }
-                _ => String::new(),
-            };
-            println!("{} {id}: {n} Gaussians{iou}", g.name);
-            rows.push(row);
-        }
+    let regions = match &test_masks {
+        Some((m, _)) if !m.is_empty() => crate::segment::instance_regions(gpu, k, scene, &seg.labels, &ds.test, &ids)?,
+        _ => Vec::new(),
+    };
+    for (j, (g, &id)) in groups.iter().flat_map(|g| g.ids.iter().map(move |id| (g, id))).enumerate() {
+        let n = seg.labels.iter().filter(|&&l| l == id).count();
+        let mut row = serde_json::json!({"group": g.name, "id": id, "gaussians": n});
+        let iou = match (&test_masks, regions.get(j)) {
+            (Some((m, cats)), Some(r)) => {
+                let v = match cats {
+                    None => crate::segment::instance_iou(r, m, id),
+                    Some(c) => crate::segment::instance_iou_per_frame(r, m, c, &g.name),
+                };
+                let mean = v.iter().sum::<f64>() / v.len().max(1) as f64;
+                row["test_iou"] = mean.into();
+                row["test_views"] = v.len().into();
+                format!("  test IoU {mean:.3} ({} views)", v.len())
+            }
+            _ => String::new(),
+        };
+        println!("{} {id}: {n} Gaussians{iou}", g.name);
+        rows.push(row);
     }
     let background = seg.labels.iter().filter(|&&l| l == 0).count();
     println!("background: {background} Gaussians");

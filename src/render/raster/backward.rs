@@ -126,10 +126,31 @@ impl Rasterizer {
         v_image: &Buffer,
         g: &Grads,
     ) -> Result<()> {
+        let im = self.image.as_ref().ok_or_else(|| anyhow::anyhow!("no frame rendered"))?;
+        self.record_blend_backward_from(rec, scene, v_image, g, &im.last)
+    }
+
+    /// [`Rasterizer::record_blend_backward`] with `last` (per pixel, u32) in place of the
+    /// frame's own counts ([`Rasterizer::read_last`]). A pixel whose count is 0 walks no splat:
+    /// where `v_image` is zero outside some pixels, the frame's counts with every other pixel
+    /// set to 0 give the same gradients and spare the rest of the frame (the segmentation's
+    /// per-mask passes).
+    pub fn record_blend_backward_from(
+        &self,
+        rec: &mut Recorder,
+        scene: &GpuScene,
+        v_image: &Buffer,
+        g: &Grads,
+        last: &Buffer,
+    ) -> Result<()> {
         let fp = self.last_params.as_ref().ok_or_else(|| anyhow::anyhow!("no frame rendered"))?;
         let gb = self.gauss.as_ref().unwrap();
         let is = self.isect.as_ref().unwrap();
         let im = self.image.as_ref().unwrap();
+        let pixels = (im.width * im.height) as u64 * 4;
+        if last.size < pixels {
+            bail!("the `last` counts hold {} bytes, the frame needs {pixels}", last.size);
+        }
         if g.rows != scene.rows || g.splats != scene.len {
             bail!(
                 "gradient buffers hold {} rows and {} splats, the scene {} and {}",
@@ -153,7 +174,7 @@ impl Rasterizer {
                     ("conics", &gb.conics),
                     ("colours", &gb.colours),
                     ("out_image", &im.out_image),
-                    ("last", &im.last),
+                    ("last", last),
                     ("v_image", v_image),
                     ("v_xys", &g.v_xys),
                     ("v_conics", &g.v_conics),
@@ -249,7 +270,8 @@ impl Rasterizer {
         self.image.as_ref().map(|im| &im.out_image)
     }
 
-    /// The last frame's per-pixel `last` counts (for tests).
+    /// The last frame's per-pixel `last` counts: the number of the tile's splats up to and
+    /// including the pixel's last blended one.
     pub fn read_last(&self) -> Result<Vec<u32>> {
         let im = self.image.as_ref().ok_or_else(|| anyhow::anyhow!("no frame rendered"))?;
         self.gpu.read(&im.last, (im.width * im.height) as usize)
