@@ -280,7 +280,8 @@ pub fn instance_iou_per_frame(
 /// with the instance's Gaussians white and every other Gaussian black (so occluders hide it as
 /// in the photos), thresholded at 0.5. Three instances share a render, one per colour channel
 /// (the blending weights do not depend on the colours, so each channel is that instance's
-/// render exactly).
+/// render exactly). Holds a region per instance, view and pixel: callers pass a few ids at a
+/// time.
 pub fn instance_regions(
     gpu: &Arc<Gpu>,
     k: &Arc<Kernels>,

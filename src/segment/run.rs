@@ -168,14 +168,22 @@ pub fn segment_scene(
         })
     };
     let mut rows = Vec::new();
-    let regions = match &test_masks {
-        Some((m, _)) if !m.is_empty() => crate::segment::instance_regions(gpu, k, scene, &seg.labels, &ds.test, &ids)?,
-        _ => Vec::new(),
-    };
+    // The held-out regions three instances at a time (one render each; a region per instance,
+    // view and pixel is held only for those three).
+    let mut regions = Vec::new();
     for (j, (g, &id)) in groups.iter().flat_map(|g| g.ids.iter().map(move |id| (g, id))).enumerate() {
+        if j % 3 == 0 {
+            regions = match &test_masks {
+                Some((m, _)) if !m.is_empty() => {
+                    let three = &ids[j..(j + 3).min(ids.len())];
+                    crate::segment::instance_regions(gpu, k, scene, &seg.labels, &ds.test, three)?
+                }
+                _ => Vec::new(),
+            };
+        }
         let n = seg.labels.iter().filter(|&&l| l == id).count();
         let mut row = serde_json::json!({"group": g.name, "id": id, "gaussians": n});
-        let iou = match (&test_masks, regions.get(j)) {
+        let iou = match (&test_masks, regions.get(j % 3)) {
             (Some((m, cats)), Some(r)) => {
                 let v = match cats {
                     None => crate::segment::instance_iou(r, m, id),
