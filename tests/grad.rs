@@ -157,6 +157,45 @@ fn rel_err(a: &[f64], b: &[f64]) -> f64 {
     a.iter().zip(b).fold(0.0f64, |m, (x, y)| m.max((x - y).abs())) / scale
 }
 
+/// blend_backward's outputs as f64: v_xys, v_conics, v_splat_opacities, v_colours.
+fn read_blend_grads(gpu: &Arc<instgs_vk::gpu::Gpu>, grads: &Grads, n: usize) -> [Vec<f64>; 4] {
+    let read = |b: &instgs_vk::gpu::Buffer, len: usize| -> Vec<f64> {
+        gpu.read::<f32>(b, len).unwrap().into_iter().map(|v| v as f64).collect()
+    };
+    [
+        read(&grads.v_xys, 2 * n),
+        read(&grads.v_conics, 3 * n),
+        read(&grads.v_splat_opacities, n),
+        read(&grads.v_colours, 3 * n),
+    ]
+}
+
+/// `got` ([`read_blend_grads`]) against the f64 twin fed with the GPU's splats, ranges and
+/// order for `v_image`; every output non-zero somewhere.
+fn assert_blend_grads_match_twin(
+    got: &[Vec<f64>; 4],
+    fp: &instgs_vk::shared::FrameParams,
+    st: &instgs_vk::render::raster::FrameState,
+    v_image: &[[f32; 4]],
+    k: &Kernels,
+) {
+    let n = got[2].len();
+    let splats: Vec<Splat> = (0..n).map(|i| Splat::of_projected(&st.projected, i)).collect();
+    let v64: Vec<[f64; 3]> = v_image.iter().map(|v| [v[0] as f64, v[1] as f64, v[2] as f64]).collect();
+    let want = reference::backward::blend_backward(fp, &st.ranges, &st.isect_ids, &splats, &v64);
+    let wanted: [Vec<f64>; 4] = [
+        want.iter().flat_map(|s| s.xy).collect(),
+        want.iter().flat_map(|s| s.conic).collect(),
+        want.iter().map(|s| s.opacity).collect(),
+        want.iter().flat_map(|s| s.colour).collect(),
+    ];
+    for (name, (g, w)) in ["v_xys", "v_conics", "v_splat_opacities", "v_colours"].iter().zip(got.iter().zip(&wanted)) {
+        let e = rel_err(g, w);
+        assert!(e < 2e-3, "{name}: relative error {e:e} (policy {:?})", k.policy);
+        assert!(w.iter().any(|v| *v != 0.0), "{name}: all zero");
+    }
+}
+
 fn check_backward(k: &Arc<Kernels>, scene: &Scene, cam: &instgs_vk::model::camera::Camera, seed: u64) {
     let (gpu, _) = gpu();
     let bg = [0.1, 0.3, 0.6];
@@ -185,32 +224,15 @@ fn check_backward(k: &Arc<Kernels>, scene: &Scene, cam: &instgs_vk::model::camer
 
     // blend_backward against the f64 twin fed with the GPU's splats, ranges and order.
     let splats: Vec<Splat> = (0..n).map(|i| Splat::of_projected(&st.projected, i)).collect();
-    let v64: Vec<[f64; 3]> = v_image.iter().map(|v| [v[0] as f64, v[1] as f64, v[2] as f64]).collect();
     let (_, _, lasts) = reference::backward::blend(&fp, &st.ranges, &st.isect_ids, &splats);
     let gpu_last = r.read_last().unwrap();
     let same = lasts.iter().zip(&gpu_last).filter(|(a, b)| a == b).count();
     assert!(same as f64 >= 0.999 * npx as f64, "last: {same} of {npx} pixels agree");
-    let want = reference::backward::blend_backward(&fp, &st.ranges, &st.isect_ids, &splats, &v64);
+    let got = read_blend_grads(&gpu, &grads, n);
+    assert_blend_grads_match_twin(&got, &fp, &st, &v_image, k);
     let read = |b: &instgs_vk::gpu::Buffer, len: usize| -> Vec<f64> {
         gpu.read::<f32>(b, len).unwrap().into_iter().map(|v| v as f64).collect()
     };
-    let got = [
-        read(&grads.v_xys, 2 * n),
-        read(&grads.v_conics, 3 * n),
-        read(&grads.v_splat_opacities, n),
-        read(&grads.v_colours, 3 * n),
-    ];
-    let wanted: [Vec<f64>; 4] = [
-        want.iter().flat_map(|s| s.xy).collect(),
-        want.iter().flat_map(|s| s.conic).collect(),
-        want.iter().map(|s| s.opacity).collect(),
-        want.iter().flat_map(|s| s.colour).collect(),
-    ];
-    for (name, (g, w)) in ["v_xys", "v_conics", "v_splat_opacities", "v_colours"].iter().zip(got.iter().zip(&wanted)) {
-        let e = rel_err(g, w);
-        assert!(e < 2e-3, "{name}: relative error {e:e} (policy {:?})", k.policy);
-        assert!(w.iter().any(|v| *v != 0.0), "{name}: all zero");
-    }
 
     // preprocess_backward against project_vjp fed with the GPU's splat gradients.
     let v_splat: Vec<Splat> = (0..n)
@@ -374,7 +396,7 @@ fn blend_backward_from_masked_counts_matches_the_twin() {
         let masked: Vec<u32> = last.iter().enumerate().map(|(p, &l)| if inside(p) { l } else { 0 }).collect();
         let v_buf = gpu.upload("v_image", &v_image).unwrap();
         let grads = Grads::new(&gpu, &gs).unwrap();
-        let run = |counts: &[u32]| -> Vec<Vec<f64>> {
+        let run = |counts: &[u32]| -> [Vec<f64>; 4] {
             let l = gpu.upload("last", counts).unwrap();
             gpu.submit_and_wait(|rec| {
                 for b in [&grads.v_xys, &grads.v_conics, &grads.v_colours, &grads.v_splat_opacities] {
@@ -383,33 +405,9 @@ fn blend_backward_from_masked_counts_matches_the_twin() {
                 r.record_blend_backward_from(rec, &gs, &v_buf, &grads, &l)
             })
             .unwrap();
-            let read = |b: &instgs_vk::gpu::Buffer, len: usize| -> Vec<f64> {
-                gpu.read::<f32>(b, len).unwrap().into_iter().map(|v| v as f64).collect()
-            };
-            vec![
-                read(&grads.v_xys, 2 * n),
-                read(&grads.v_conics, 3 * n),
-                read(&grads.v_splat_opacities, n),
-                read(&grads.v_colours, 3 * n),
-            ]
+            read_blend_grads(&gpu, &grads, n)
         };
-        let got = run(&masked);
-        let splats: Vec<Splat> = (0..n).map(|i| Splat::of_projected(&st.projected, i)).collect();
-        let v64: Vec<[f64; 3]> = v_image.iter().map(|v| [v[0] as f64, v[1] as f64, v[2] as f64]).collect();
-        let want = reference::backward::blend_backward(&fp, &st.ranges, &st.isect_ids, &splats, &v64);
-        let wanted: [Vec<f64>; 4] = [
-            want.iter().flat_map(|s| s.xy).collect(),
-            want.iter().flat_map(|s| s.conic).collect(),
-            want.iter().map(|s| s.opacity).collect(),
-            want.iter().flat_map(|s| s.colour).collect(),
-        ];
-        for (name, (g, w)) in
-            ["v_xys", "v_conics", "v_splat_opacities", "v_colours"].iter().zip(got.iter().zip(&wanted))
-        {
-            let e = rel_err(g, w);
-            assert!(e < 2e-3, "{name}: relative error {e:e} (policy {:?})", k.policy);
-            assert!(w.iter().any(|v| *v != 0.0), "{name}: all zero");
-        }
+        assert_blend_grads_match_twin(&run(&masked), &fp, &st, &v_image, &k);
         let none = run(&vec![0; 83 * 61]);
         assert!(none.iter().flatten().all(|&v| v == 0.0), "zero counts still walked splats ({:?})", k.policy);
         let short = gpu.upload("last", &[0u32; 16]).unwrap();
