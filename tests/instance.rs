@@ -637,7 +637,7 @@ fn rebalance_spends_the_bytes_where_they_show_and_refuses_what_renders_worse() {
     let mut inst = truth.clone();
     inst.background = truth.background.select(&(0..20).collect::<Vec<_>>());
     let dropped = truth.background.select(&(20..60).collect::<Vec<_>>());
-    let (out, r) = rebalance(&gpu, &k, &inst, &dropped, &views, [0.0; 3], 0.0, Dtype::F32, |_| {}).unwrap();
+    let (out, r) = rebalance(&gpu, &k, &inst, &dropped, &views, [0.0; 3], 0.0, 0.0, Dtype::F32, |_| {}).unwrap();
     assert!(r.accepted, "{r:?}");
     assert!(r.bytes_after <= r.bytes_before, "{r:?}");
     assert!(r.psnr_after > r.psnr_before + 1.0, "{r:?}");
@@ -660,13 +660,13 @@ fn rebalance_spends_the_bytes_where_they_show_and_refuses_what_renders_worse() {
     // Views that show the scene as instanced: bringing the dropped background back renders them
     // worse, so the check refuses and the scene stays as it was.
     let views = rendered_views(&inst, 8, 0.0);
-    let (same, r) = rebalance(&gpu, &k, &inst, &dropped, &views, [0.0; 3], 0.0, Dtype::F32, |_| {}).unwrap();
+    let (same, r) = rebalance(&gpu, &k, &inst, &dropped, &views, [0.0; 3], 0.0, 0.0, Dtype::F32, |_| {}).unwrap();
     assert!(!r.accepted && r.psnr_after < r.psnr_before, "{r:?}");
     assert!(same == inst);
     // Offsets stored as f16 take 14 bytes a row instead of 28: the budget and the result are
     // counted so, the budget below the f32 count of the same scene.
     let views = rendered_views(&truth, 8, 0.0);
-    let (out16, r16) = rebalance(&gpu, &k, &inst, &dropped, &views, [0.0; 3], 0.0, Dtype::F16, |_| {}).unwrap();
+    let (out16, r16) = rebalance(&gpu, &k, &inst, &dropped, &views, [0.0; 3], 0.0, 0.0, Dtype::F16, |_| {}).unwrap();
     assert!(r16.accepted && r16.bytes_after <= r16.bytes_before, "{r16:?}");
     assert_eq!(r16.bytes_before, GpuScene::stored_bytes(&gpu, &inst, Dtype::F16).unwrap());
     assert!(r16.bytes_before < r.bytes_before, "{r16:?} against {r:?}");
@@ -674,5 +674,32 @@ fn rebalance_spends_the_bytes_where_they_show_and_refuses_what_renders_worse() {
     // Filled to within one more Gaussian's bytes (a row and four offset rows), as counted.
     assert!(r16.bytes_before - r16.bytes_after < 512, "{r16:?}");
     out16.validate("rebalanced, f16").unwrap();
+    assert_clean(&gpu);
+}
+
+#[test]
+fn render_weight_spends_the_same_bytes_on_fewer_drawn_splats() {
+    use instgs_vk::instancing::compact::Spending;
+    let (gpu, k) = gpu();
+    let mut rng = Rng::new(92);
+    // One template drawn six times beside a background: a template Gaussian costs a row and six
+    // offset rows but draws six splats.
+    let truth = random_instanced(&mut rng, 1, 120, &[(60, 6)]);
+    let views = rendered_views(&truth, 8, 0.0);
+    let whole = GpuScene::stored_bytes(&gpu, &truth, Dtype::F32).unwrap();
+    let budget = whole / 2;
+    let mut drawn = Vec::new();
+    for w in [0.0, 1.0, 4.0] {
+        let s = Spending::new(&gpu, &k, truth.clone(), &views, 0.0, w, Dtype::F32, |_| {}).unwrap();
+        let out = s.at(&gpu, budget).unwrap();
+        assert!(GpuScene::stored_bytes(&gpu, &out, Dtype::F32).unwrap() <= budget, "weight {w}");
+        out.validate("spent").unwrap();
+        drawn.push((out.expand().len(), out.groups[0].template.len(), out.background.len()));
+    }
+    eprintln!("(drawn splats, template, background) at weights 0, 1, 4: {drawn:?}");
+    assert!(drawn[1].0 <= drawn[0].0 && drawn[2].0 <= drawn[1].0, "{drawn:?}");
+    assert!(drawn[2].0 < drawn[0].0 && drawn[2].2 > drawn[0].2, "{drawn:?}");
+    let bad = Spending::new(&gpu, &k, truth.clone(), &views, 0.0, -1.0, Dtype::F32, |_| {});
+    assert!(bad.err().unwrap().to_string().contains("render weight"));
     assert_clean(&gpu);
 }

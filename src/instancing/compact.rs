@@ -173,7 +173,10 @@ pub struct Rebalance {
 /// its significance summed over its instances per Gaussian's bytes plus one offset row per
 /// instance. Each template keeps at least its most significant Gaussian. [`Spending::at`] keeps
 /// the best that fit a budget. Bytes are counted with the offsets as the scene will be stored
-/// (`storage`, [`GpuScene::stored_bytes`]): an f16 pair costs half an f32 one.
+/// (`storage`, [`GpuScene::stored_bytes`]): an f16 pair costs half an f32 one. `render_weight`
+/// also charges every splat a Gaussian draws (one per instance for a template's) as that many
+/// Gaussian rows: 0 ranks by memory alone; 1 weighs a drawn splat as much as a stored row, as a
+/// pruned plain scene's ranking does (each of its rows draws one splat).
 pub struct Spending {
     cand: InstancedScene,
     /// (forced, value per byte, which), best first.
@@ -187,15 +190,20 @@ pub struct Spending {
 impl Spending {
     /// Ranks the Gaussians of `cand` (templates whole, every background Gaussian a budget
     /// might keep) over `views`.
+    #[allow(clippy::too_many_arguments)]
     pub fn new(
         gpu: &Arc<Gpu>,
         k: &Arc<Kernels>,
         cand: InstancedScene,
         views: &[View],
         outline_fraction: f64,
+        render_weight: f64,
         storage: Dtype,
         mut progress: impl FnMut(&str),
     ) -> Result<Spending> {
+        if !(render_weight.is_finite() && render_weight >= 0.0) {
+            bail!("the render weight must be a non-negative number, not {render_weight}");
+        }
         let nb = cand.background.len();
         let expanded = cand.expand();
         let sig = crate::segment::significance(gpu, k, &expanded, views, |d, all| {
@@ -221,7 +229,7 @@ impl Spending {
         // Items: (forced, value per byte, which). which: Err(i) background i, Ok((g, j)) template.
         let mut items: Vec<(bool, f64, Item)> = Vec::new();
         for (i, &r) in ranking.iter().enumerate().take(nb) {
-            items.push((r > top, sig[i] as f64 / row, Err(i)));
+            items.push((r > top, sig[i] as f64 / (row * (1.0 + render_weight)), Err(i)));
         }
         let mut first = nb;
         for (gi, g) in cand.groups.iter().enumerate() {
@@ -229,7 +237,8 @@ impl Spending {
             let value: Vec<f64> =
                 (0..t).map(|j| (0..g.instances.len()).map(|k| sig[first + k * t + j] as f64).sum()).collect();
             let best = (0..t).max_by(|&a, &b| value[a].total_cmp(&value[b]));
-            let cost = row + pair * g.instances.len() as f64;
+            let drawn = g.instances.len() as f64;
+            let cost = row + pair * drawn + render_weight * row * drawn;
             for (j, v) in value.iter().enumerate() {
                 items.push((Some(j) == best, v / cost, Ok((gi, j))));
             }
@@ -300,14 +309,16 @@ pub fn rebalance(
     views: &[View],
     background: [f32; 3],
     outline_fraction: f64,
+    render_weight: f64,
     storage: Dtype,
     mut progress: impl FnMut(&str),
 ) -> Result<(InstancedScene, Rebalance)> {
     let n = views.len().min(BUDGET_VIEWS);
     let mut cand = inst.clone();
     cand.background = inst.background.concat(dropped);
-    let spending =
-        Spending::new(gpu, k, cand, views, outline_fraction, storage, |l| progress(&format!("rebalance: {l}")))?;
+    let spending = Spending::new(gpu, k, cand, views, outline_fraction, render_weight, storage, |l| {
+        progress(&format!("rebalance: {l}"))
+    })?;
     let bytes_of = |s: &InstancedScene| GpuScene::stored_bytes(gpu, s, storage);
     let budget = bytes_of(inst)?;
     let out = spending.at(gpu, budget)?;

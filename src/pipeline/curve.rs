@@ -208,6 +208,7 @@ pub fn curve(c: CurveArgs) -> Result<()> {
                 whole,
                 &ds.train,
                 cfg.instance.outline_fraction,
+                cfg.instance.render_weight,
                 crate::formats::instgs::Dtype::offsets(&cfg.instance.offset_dtype)?,
                 |l| eprintln!("[curve] {l}"),
             )?);

@@ -218,6 +218,7 @@ impl Ctx<'_> {
                 views,
                 bg,
                 c.outline_fraction,
+                c.render_weight,
                 dtype,
                 |l| eprintln!("{l}"),
             )?;

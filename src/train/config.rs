@@ -255,6 +255,9 @@ pub struct InstanceStage {
     pub outline_fraction: f64,
     /// Templates and background under one memory budget (crate::instancing::compact::rebalance).
     pub rebalance: bool,
+    /// The rebalance also charges each drawn splat as this many Gaussian rows
+    /// (crate::instancing::compact::Spending).
+    pub render_weight: f64,
     /// Acceptance of registered poses (crate::instancing::options::Acceptance).
     pub min_fitness: f64,
     pub scale_tolerance: f64,
@@ -435,6 +438,7 @@ pub const PIPELINE_RANGES: &[(&str, Bound)] = &[
     ("instance.min_render_views", Bound::AtLeast(1.0)),
     ("instance.background_budget_db", Bound::In(0.0, 100.0)),
     ("instance.outline_fraction", Bound::In(0.0, 10.0)),
+    ("instance.render_weight", Bound::In(0.0, 100.0)),
     ("bench.frames", Bound::AtLeast(1.0)),
 ];
 
