@@ -179,7 +179,7 @@ pub struct Rebalance {
 /// pruned plain scene's ranking does (each of its rows draws one splat).
 pub struct Spending {
     cand: InstancedScene,
-    /// (forced, value per byte, which), best first.
+    /// (forced, value per cost, which), best first.
     items: Vec<(bool, f64, Item)>,
     /// Bytes of one Gaussian row and of one offset row (estimates from the device's layout).
     row: f64,
@@ -226,10 +226,12 @@ impl Spending {
         let row = GpuScene::new(gpu, &cand.background)?.gpu_bytes() as f64 / nb.max(1) as f64;
         let pairs: usize = cand.groups.iter().map(|g| g.template.len() * g.instances.len()).sum();
         let pair = ((whole - row * cand.rows() as f64) / pairs.max(1) as f64).max(0.0);
-        // Items: (forced, value per byte, which). which: Err(i) background i, Ok((g, j)) template.
+        // A Gaussian's cost: its bytes, plus `render_weight` rows per splat it draws.
+        let cost = |bytes: f64, drawn: f64| bytes + render_weight * row * drawn;
+        // Items: (forced, value per cost, which). which: Err(i) background i, Ok((g, j)) template.
         let mut items: Vec<(bool, f64, Item)> = Vec::new();
         for (i, &r) in ranking.iter().enumerate().take(nb) {
-            items.push((r > top, sig[i] as f64 / (row * (1.0 + render_weight)), Err(i)));
+            items.push((r > top, sig[i] as f64 / cost(row, 1.0), Err(i)));
         }
         let mut first = nb;
         for (gi, g) in cand.groups.iter().enumerate() {
@@ -238,7 +240,7 @@ impl Spending {
                 (0..t).map(|j| (0..g.instances.len()).map(|k| sig[first + k * t + j] as f64).sum()).collect();
             let best = (0..t).max_by(|&a, &b| value[a].total_cmp(&value[b]));
             let drawn = g.instances.len() as f64;
-            let cost = row + pair * drawn + render_weight * row * drawn;
+            let cost = cost(row + pair * drawn, drawn);
             for (j, v) in value.iter().enumerate() {
                 items.push((Some(j) == best, v / cost, Ok((gi, j))));
             }
