@@ -170,9 +170,10 @@ pub(crate) enum Cmd {
         /// (docs/formats.md).
         #[arg(long)]
         quantize: bool,
-        /// .instgs only: a compressed file, lossy — background and templates as SOG bundles
-        /// (16-bit positions, 8-bit rotations and opacities, codebooks for scales, colours and
-        /// SH), offsets as f16. Without it, f32 throughout.
+        /// .instgs only: a compressed file, lossy — background and templates as one SOG
+        /// bundle (16-bit positions, 8-bit rotations and opacities, codebooks for scales,
+        /// colours and SH), offsets as q8 (8-bit multiples of a step, zstd). Without it, f32
+        /// throughout.
         #[arg(long)]
         compress: bool,
     },

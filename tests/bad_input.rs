@@ -1001,11 +1001,11 @@ fn bad_input_table() {
     flipped[at] ^= 0x04;
     t.put("instgs_flipped_byte", "s.instgs", flipped);
     t.case("instgs_flipped_byte", &["info", "{d}/s.instgs"], &["s.instgs", "damaged", "checksum"]);
-    let mut v4 = v2.clone();
-    let at = v4.windows(12).position(|w| w == b"\"version\": 2").expect("the seed's version") + 11;
-    v4[at] = b'4';
-    t.put("instgs_version_4", "s.instgs", v4);
-    t.case("instgs_version_4", &["info", "{d}/s.instgs"], &["s.instgs", "version 4 is not supported"]);
+    let mut v5 = v2.clone();
+    let at = v5.windows(12).position(|w| w == b"\"version\": 2").expect("the seed's version") + 11;
+    v5[at] = b'5';
+    t.put("instgs_version_5", "s.instgs", v5);
+    t.case("instgs_version_5", &["info", "{d}/s.instgs"], &["s.instgs", "version 5 is not supported"]);
 
     // ---- Every readable file means one thing.
     {

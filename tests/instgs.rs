@@ -63,13 +63,15 @@ fn write_then_read_is_exact() {
     assert_eq!(instgs::from_bytes(&bytes, "mem").unwrap(), s);
 }
 
-/// The compressed file ([`instgs::write_compressed`]): each part's Gaussians read back as a SOG
-/// bundle of them decodes, the offsets f16-rounded, the instances exact; version 3, smaller than
-/// the f16 file; a part without Gaussians; pq8 offsets beside SOG parameters; a damaged bundle
-/// refused with its section named.
+/// The compressed file ([`instgs::write_compressed`]): the background's and the templates'
+/// Gaussians read back as the one SOG bundle of them decodes (its k-means weighing a template's
+/// Gaussian once per instance), the offsets within half a step of the source (q8), the
+/// instances exact; version 4, smaller than the f16 file; a scene without background Gaussians;
+/// pq8 offsets beside SOG parameters; a damaged bundle or damaged codes refused with their
+/// section named; a version-3 file (a bundle per part) still reads.
 #[test]
-fn compressed_file_holds_each_part_as_its_sog_bundle() {
-    use instgs_vk::formats::sog;
+fn compressed_file_holds_one_sog_bundle_and_q8_offsets() {
+    use instgs_vk::formats::{q8, sog};
     let mut rng = Rng::new(4);
     let mut s = scene(&mut rng, 3);
     s.background = random_scene(&mut rng, 2000, 3);
@@ -78,33 +80,80 @@ fn compressed_file_holds_each_part_as_its_sog_bundle() {
     instgs::write_compressed(&s, &path).unwrap();
     instgs::write(&s, &path16, Dtype::F16).unwrap();
     let back = instgs::read(&path).unwrap();
-    let via_sog =
-        |p: &instgs_vk::model::scene::Scene| sog::sog_from_bundle(&sog::bundle_bytes(p).unwrap(), "x").unwrap();
-    let mut want = instgs::read(&path16).unwrap();
-    want.background = via_sog(&s.background);
-    for (g, source) in want.groups.iter_mut().zip(&s.groups) {
-        g.template = via_sog(&source.template);
+    // The Gaussians: the bundle of all parts, cut at the parts' counts.
+    let mut all = s.background.clone();
+    let mut weights = vec![1.0f32; all.len()];
+    for g in &s.groups {
+        all.append(&g.template);
+        weights.resize(all.len(), g.instances.len() as f32);
     }
-    assert!(back == want, "each part is its SOG bundle's, the offsets f16, the instances exact");
+    let decoded = sog::sog_from_bundle(&sog::bundle_bytes(&all, Some(&weights)).unwrap(), "x").unwrap();
+    let mut start = 0;
+    let mut cut = |n: usize| {
+        start += n;
+        decoded.select(&(start - n..start).collect::<Vec<_>>())
+    };
+    assert!(back.background == cut(s.background.len()), "the background is the bundle's first Gaussians");
+    for (g, source) in back.groups.iter().zip(&s.groups) {
+        assert!(g.template == cut(source.template.len()), "each template is the bundle's next Gaussians");
+        assert_eq!(g.instances, source.instances);
+        // Offsets: a multiple of the kind's step, within half a step of the source.
+        let codes = q8::OffsetCodes::encode(&source.offsets).unwrap();
+        assert!(g.offsets == codes.decode(source.offsets.d_opacities.len(), "x").unwrap());
+        let kinds =
+            |o: &instgs_vk::model::instanced::Offsets| [o.d_means.concat(), o.d_sh0.concat(), o.d_opacities.clone()];
+        for ((got, want), step) in kinds(&g.offsets).iter().zip(kinds(&source.offsets)).zip(codes.steps) {
+            let rms = (want.iter().map(|x| x * x).sum::<f32>() / want.len() as f32).sqrt();
+            let largest = want.iter().fold(0.0f32, |m, x| m.max(x.abs()));
+            assert!((step - (q8::STEP_OF_RMS * rms).max(largest / 127.0)).abs() <= 1e-6 * step);
+            for (a, b) in got.iter().zip(&want) {
+                assert!((a - b).abs() <= 0.5 * step * (1.0 + 1e-5), "{a} against {b}, step {step}");
+                assert!((a / step - (a / step).round()).abs() < 1e-4, "{a} is not a multiple of {step}");
+            }
+        }
+    }
     let bytes = std::fs::read(&path).unwrap();
-    assert_eq!(split(&bytes).0["version"], 3);
+    assert_eq!(split(&bytes).0["version"], 4);
     let (size, size16) = (bytes.len(), std::fs::metadata(&path16).unwrap().len() as usize);
     assert!(size * 3 < size16, "{size} against {size16} bytes");
-    // No background Gaussians: an empty section.
+    // No background Gaussians.
     let mut empty = s.clone();
     empty.background = instgs_vk::model::scene::Scene { sh_degree: 3, ..Default::default() };
     instgs::write_compressed(&empty, &path).unwrap();
-    assert!(instgs::read(&path).unwrap().background.is_empty());
+    let read = instgs::read(&path).unwrap();
+    assert!(read.background.is_empty() && read.groups[0].template.len() == s.groups[0].template.len());
     // pq8 offsets with SOG parameters.
     let pq = instgs::to_bytes_stored(&s, instgs::Storage { offsets: Dtype::Pq8, params: Dtype::Sog }).unwrap();
     assert_eq!(instgs::from_bytes(&pq, "pq").unwrap().background, back.background);
-    // A damaged bundle (re-sealed, so the checksum passes): its section is named.
-    let (h, mut data) = split(&bytes_of(&s));
-    let sec = &h["sections"][0];
-    assert_eq!(sec["name"], "background/sog");
-    data[sec["offset"].as_u64().unwrap() as usize] ^= 0xff;
-    let e = format!("{:#}", instgs::from_bytes(&join(&h, &data), "bad.instgs").unwrap_err());
-    assert!(e.starts_with("bad.instgs") && e.contains("background/sog"), "{e}");
+    // A damaged bundle or damaged codes (re-sealed, so the checksum passes): the section is named.
+    let (h, data) = split(&bytes_of(&s));
+    for (index, name) in [(0, "gaussians/sog"), (2, "group/0/d_codes")] {
+        let sec = &h["sections"][index];
+        assert_eq!(sec["name"], name);
+        let mut data = data.clone();
+        let at = sec["offset"].as_u64().unwrap() as usize;
+        data[at..at + 4].iter_mut().for_each(|b| *b ^= 0xff);
+        let e = format!("{:#}", instgs::from_bytes(&join(&h, &data), "bad.instgs").unwrap_err());
+        assert!(e.starts_with("bad.instgs") && e.contains(name), "{e}");
+    }
+    // A step of zero: refused, the section named.
+    let sec = &h["sections"][1];
+    assert_eq!(sec["name"], "group/0/d_steps");
+    let mut zero = data.clone();
+    let at = sec["offset"].as_u64().unwrap() as usize;
+    zero[at..at + 4].copy_from_slice(&0.0f32.to_le_bytes());
+    let e = format!("{:#}", instgs::from_bytes(&join(&h, &zero), "bad.instgs").unwrap_err());
+    assert!(e.contains("group/0/d_codes") && e.contains("finite and positive"), "{e}");
+    // Version 3 (written by earlier builds: a SOG bundle per part, f16 offsets) still reads.
+    let seeds = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("fuzz/seeds/instgs_parse");
+    let (v3, f32v2) =
+        (instgs::read(&seeds.join("sog-v3.instgs")).unwrap(), instgs::read(&seeds.join("f32-v2.instgs")).unwrap());
+    assert_eq!(split(&std::fs::read(seeds.join("sog-v3.instgs")).unwrap()).0["version"], 3);
+    assert_eq!(v3.background.len(), f32v2.background.len());
+    assert_eq!(
+        v3.groups.iter().map(|g| g.template.len()).collect::<Vec<_>>(),
+        f32v2.groups.iter().map(|g| g.template.len()).collect::<Vec<_>>()
+    );
 }
 
 fn bytes_of(s: &InstancedScene) -> Vec<u8> {
@@ -160,7 +209,7 @@ fn malformed_files_are_refused_with_clear_errors() {
             },
             "malformed JSON",
         ),
-        (edit(&|h| h["version"] = 4.into()), "version 4 is not supported"),
+        (edit(&|h| h["version"] = 5.into()), "version 5 is not supported"),
         (edit(&|h| h["param_dtype"] = "f16".into()), "not a parameter storage"),
         (edit(&|h| h["format"] = "ply".into()), "format"),
         (edit(&|h| h["groups"][0]["template_gaussians"] = 8.into()), "shape"),

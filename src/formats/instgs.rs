@@ -11,7 +11,8 @@
 //! ```
 //! Version 1 files (no checksum) still read. Version 3 is version 2 with the Gaussian
 //! parameters of each part (background, templates) as one SOG bundle (header `param_dtype`
-//! "sog"; [`write_compressed`]).
+//! "sog"). Version 4 ([`write_compressed`]) holds the background's and every template's
+//! Gaussians as one SOG bundle, and may store the offsets as `q8` (`crate::formats::q8`).
 use std::io::Write;
 use std::path::Path;
 
@@ -24,13 +25,15 @@ use crate::model::scene::Scene;
 
 pub const MAGIC: &[u8; 8] = b"INSTGS\0\0";
 pub const VERSION: u32 = 2;
-/// The version of files whose Gaussian parameters are SOG bundles.
+/// The version of files whose Gaussian parameters are a SOG bundle per part (read only).
 pub const VERSION_SOG: u32 = 3;
+/// The version of files whose Gaussian parameters are one SOG bundle, or whose offsets are `q8`.
+pub const VERSION_PACKED: u32 = 4;
 /// Headers larger than this are refused (a corrupt length would otherwise allocate gigabytes).
 const MAX_HEADER: usize = 64 << 20;
 
-/// Storage of the offsets (header `offset_dtype`: f32, f16 or pq8) and type of a section
-/// (f32, f16 or u8).
+/// Storage of the offsets (header `offset_dtype`: f32, f16, pq8 or q8) and type of a section
+/// (f32, f16, u8, sog or zstd).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum Dtype {
@@ -41,14 +44,21 @@ pub enum Dtype {
     /// Offset storage: product-quantised (`crate::formats::pq8`): sections `d_codes` (u8, [K, T, 2]),
     /// `d_codebook_dp` (f32, [256, 3]) and `d_codebook_dc` (f32, [256, 4]).
     Pq8,
+    /// Offset storage: signed 8-bit multiples of a step per kind (`crate::formats::q8`):
+    /// sections `d_steps` (f32, [3]) and `d_codes` (zstd, [bytes]).
+    Q8,
+    /// Section type: a zstd frame's bytes, shape `[bytes]`.
+    Zstd,
     /// Parameter storage (header `param_dtype`) and section type: a part's Gaussians as one SOG
     /// bundle (`crate::formats::sog`: a zip of `meta.json` and WebP images), section `sog` of
-    /// shape `[bytes]`; empty for a part without Gaussians.
+    /// shape `[bytes]`; empty for a part without Gaussians. Version 4: one bundle, section
+    /// `gaussians/sog`, the background's Gaussians then each group's template's.
     Sog,
 }
 
 impl Dtype {
-    /// An offset storage by its configuration name ("f32", "f16" or "pq8").
+    /// An offset storage by its configuration name ("f32", "f16" or "pq8"; q8 is a file's
+    /// storage only, written by [`write_compressed`]).
     pub fn offsets(name: &str) -> Result<Dtype> {
         match name {
             "f32" => Ok(Dtype::F32),
@@ -62,7 +72,7 @@ impl Dtype {
         match self {
             Dtype::F32 => 4,
             Dtype::F16 => 2,
-            Dtype::U8 | Dtype::Pq8 | Dtype::Sog => 1,
+            Dtype::U8 | Dtype::Pq8 | Dtype::Q8 | Dtype::Zstd | Dtype::Sog => 1,
         }
     }
 }
@@ -78,7 +88,7 @@ struct Header {
     sh_degree: u32,
     background_gaussians: usize,
     offset_dtype: Dtype,
-    /// f32 (absent: five f32 sections per part) or sog.
+    /// f32 (absent: five f32 sections per part) or sog (version 3: a bundle per part; 4: one).
     #[serde(default = "f32_params", skip_serializing_if = "is_f32")]
     param_dtype: Dtype,
     groups: Vec<GroupHeader>,
@@ -121,7 +131,7 @@ impl Storage {
     /// f32 throughout: lossless.
     pub const F32: Storage = Storage { offsets: Dtype::F32, params: Dtype::F32 };
     /// [`write_compressed`]'s.
-    pub const COMPRESSED: Storage = Storage { offsets: Dtype::F16, params: Dtype::Sog };
+    pub const COMPRESSED: Storage = Storage { offsets: Dtype::Q8, params: Dtype::Sog };
 
     /// Offsets stored as `offsets`, parameters as f32.
     pub fn offsets(offsets: Dtype) -> Storage {
@@ -149,13 +159,16 @@ fn gauss_sections(sh_coeffs: usize) -> [(&'static str, Vec<usize>); 5] {
     [("means", vec![3]), ("scales", vec![3]), ("quats", vec![4]), ("opacities", vec![]), ("sh", vec![sh_coeffs, 3])]
 }
 
+/// Version 4's one SOG bundle of every part's Gaussians.
+const PACKED_SECTION: &str = "gaussians/sog";
+
 const OFFSET_SECTIONS: [(&str, usize); 3] = [("d_means", 3), ("d_sh0", 3), ("d_opacities", 1)];
 
 fn f32_bytes(v: &[f32], dtype: Dtype) -> Vec<u8> {
     match dtype {
         Dtype::F32 => v.iter().flat_map(|x| x.to_le_bytes()).collect(),
         Dtype::F16 => v.iter().flat_map(|x| f16::from_f32(*x).to_le_bytes()).collect(),
-        Dtype::U8 | Dtype::Pq8 | Dtype::Sog => v.iter().map(|&x| x as u8).collect(),
+        Dtype::U8 | Dtype::Pq8 | Dtype::Q8 | Dtype::Zstd | Dtype::Sog => v.iter().map(|&x| x as u8).collect(),
     }
 }
 
@@ -168,8 +181,8 @@ pub fn to_bytes(scene: &InstancedScene, offset_dtype: Dtype) -> Vec<u8> {
     to_bytes_stored(scene, Storage::offsets(offset_dtype)).expect("f32 parameters serialise")
 }
 
-/// Serialises `scene` as `storage` says (parameters f32, or sog: one SOG bundle per part,
-/// lossy as SOG is).
+/// Serialises `scene` as `storage` says (parameters f32, or sog: one SOG bundle of the
+/// background's and the templates' Gaussians, lossy as SOG is).
 pub fn to_bytes_stored(scene: &InstancedScene, storage: Storage) -> Result<Vec<u8>> {
     let Storage { offsets: offset_dtype, params } = storage;
     if ![Dtype::F32, Dtype::Sog].contains(&params) {
@@ -187,12 +200,21 @@ pub fn to_bytes_stored(scene: &InstancedScene, storage: Storage) -> Result<Vec<u
     };
     let mut parts: Vec<(String, &Scene)> = vec![("background".into(), &scene.background)];
     parts.extend(scene.groups.iter().enumerate().map(|(i, g)| (format!("group/{i}"), &g.template)));
-    for (part, s) in &parts {
-        if params == Dtype::Sog {
-            let bundle = if s.is_empty() { Vec::new() } else { crate::formats::sog::bundle_bytes(s)? };
-            push(format!("{part}/sog"), Dtype::Sog, vec![bundle.len()], bundle, &mut data);
-            continue;
+    if params == Dtype::Sog {
+        // One bundle: its codebooks, SH palette and images serve every part (a bundle per
+        // template paid a palette entry per Gaussian).
+        // Its k-means count a template's Gaussian once per instance, as it is drawn.
+        let mut all = scene.background.clone();
+        let mut weights = vec![1.0f32; all.len()];
+        for g in &scene.groups {
+            all.append(&g.template);
+            weights.resize(all.len(), g.instances.len().max(1) as f32);
         }
+        let bundle = if all.is_empty() { Vec::new() } else { crate::formats::sog::bundle_bytes(&all, Some(&weights))? };
+        push(PACKED_SECTION.into(), Dtype::Sog, vec![bundle.len()], bundle, &mut data);
+        parts.clear();
+    }
+    for (part, s) in &parts {
         for ((suffix, tail), arr) in gauss_sections(coeffs).into_iter().zip(scene_arrays(s)) {
             let shape = [vec![s.len()], tail].concat();
             push(format!("{part}/{suffix}"), Dtype::F32, shape, f32_bytes(&arr, Dtype::F32), &mut data);
@@ -220,6 +242,15 @@ pub fn to_bytes_stored(scene: &InstancedScene, storage: Storage) -> Result<Vec<u
             );
             continue;
         }
+        if offset_dtype == Dtype::Q8 {
+            let q = crate::formats::q8::OffsetCodes::encode(&g.offsets)?;
+            push(format!("group/{i}/d_steps"), Dtype::F32, vec![3], f32_bytes(&q.steps, Dtype::F32), &mut data);
+            push(format!("group/{i}/d_codes"), Dtype::Zstd, vec![q.codes.len()], q.codes, &mut data);
+            continue;
+        }
+        if ![Dtype::F32, Dtype::F16].contains(&offset_dtype) {
+            bail!("offsets are stored as f32, f16, pq8 or q8, not {offset_dtype:?}");
+        }
         let arrays = [g.offsets.d_means.concat(), g.offsets.d_sh0.concat(), g.offsets.d_opacities.clone()];
         for ((suffix, width), arr) in OFFSET_SECTIONS.into_iter().zip(arrays) {
             let shape = if width == 1 { vec![k, t] } else { vec![k, t, width] };
@@ -228,7 +259,7 @@ pub fn to_bytes_stored(scene: &InstancedScene, storage: Storage) -> Result<Vec<u
     }
     let header = Header {
         format: "instgs".into(),
-        version: if params == Dtype::Sog { VERSION_SOG } else { VERSION },
+        version: if params == Dtype::Sog || offset_dtype == Dtype::Q8 { VERSION_PACKED } else { VERSION },
         sh_degree: scene.sh_degree,
         background_gaussians: scene.background.len(),
         offset_dtype,
@@ -268,10 +299,11 @@ pub fn write(scene: &InstancedScene, path: &Path, offset_dtype: Dtype) -> Result
     write_stored(scene, path, Storage::offsets(offset_dtype))
 }
 
-/// A compressed file: the Gaussian parameters of the background and of every template as SOG
-/// bundles (16-bit positions, 8-bit quaternions and opacities, codebooks for scales, colours and
-/// SH) and the offsets as f16, as the main job stores them (pq8 offsets would make it smaller
-/// still, but cost cafe40's held-out views 1 dB). Lossy; read back as any `.instgs`.
+/// A compressed file: the Gaussian parameters of the background and of every template as one
+/// SOG bundle (16-bit positions, 8-bit quaternions and opacities, codebooks for scales, colours
+/// and SH) and the offsets as `q8` (each value an 8-bit multiple of its kind's step, the codes
+/// zstd-compressed; pq8's two codes per pair would be smaller still, but cost cafe40's held-out
+/// views 1 dB). Lossy; read back as any `.instgs`.
 pub fn write_compressed(scene: &InstancedScene, path: &Path) -> Result<()> {
     write_stored(scene, path, Storage::COMPRESSED)
 }
@@ -314,7 +346,7 @@ fn split(bytes: &[u8]) -> Result<(Header, &[u8], u64)> {
     }
     let end = match value.get("version").and_then(|v| v.as_u64()) {
         Some(1) => bytes.len(),
-        Some(v) if v == VERSION as u64 || v == VERSION_SOG as u64 => {
+        Some(v) if (VERSION as u64..=VERSION_PACKED as u64).contains(&v) => {
             let body = bytes
                 .len()
                 .checked_sub(4)
@@ -326,7 +358,7 @@ fn split(bytes: &[u8]) -> Result<(Header, &[u8], u64)> {
             }
             body
         }
-        Some(v) => bail!("header: version {v} is not supported (this build reads versions 1 to {VERSION_SOG})"),
+        Some(v) => bail!("header: version {v} is not supported (this build reads versions 1 to {VERSION_PACKED})"),
         None => bail!("header: no version"),
     };
     let header: Header = serde_json::from_value(value).map_err(|e| anyhow!("header: {e}"))?;
@@ -347,7 +379,7 @@ impl Sections<'_> {
         Ok(match dtype {
             Dtype::F32 => raw.chunks_exact(4).map(|c| f32::from_le_bytes(c.try_into().unwrap())).collect(),
             Dtype::F16 => raw.chunks_exact(2).map(|c| f16::from_le_bytes(c.try_into().unwrap()).to_f32()).collect(),
-            Dtype::U8 | Dtype::Pq8 | Dtype::Sog => raw.iter().map(|&b| b as f32).collect(),
+            Dtype::U8 | Dtype::Pq8 | Dtype::Q8 | Dtype::Zstd | Dtype::Sog => raw.iter().map(|&b| b as f32).collect(),
         })
     }
 
@@ -382,12 +414,17 @@ impl Sections<'_> {
         Ok(&self.data[s.offset as usize..end as usize])
     }
 
-    /// The `n` Gaussians of `part`, stored as `params`.
+    /// The bytes of section `name`, of shape `[bytes]` and type `dtype`.
+    fn blob(&self, name: &str, dtype: Dtype) -> Result<&[u8]> {
+        let s = self.list.iter().find(|s| s.name == name).ok_or_else(|| anyhow!("section {name:?} is missing"))?;
+        self.raw(name, &[s.bytes as usize], dtype)
+    }
+
+    /// The `n` Gaussians of `part` (`gaussians`: all of them, version 4), stored as `params`.
     fn scene(&self, part: &str, n: usize, sh_degree: u32, params: Dtype) -> Result<Scene> {
         if params == Dtype::Sog {
             let name = format!("{part}/sog");
-            let s = self.list.iter().find(|s| s.name == name).ok_or_else(|| anyhow!("section {name:?} is missing"))?;
-            let raw = self.raw(&name, &[s.bytes as usize], Dtype::Sog)?;
+            let raw = self.blob(&name, Dtype::Sog)?;
             if n == 0 {
                 if !raw.is_empty() {
                     bail!("section {name:?} holds {} bytes for no Gaussians", raw.len());
@@ -452,18 +489,53 @@ pub fn from_bytes(bytes: &[u8], what: &str) -> Result<InstancedScene> {
             );
         }
         let secs = Sections { list: h.sections.clone(), data };
-        let per_part = if h.param_dtype == Dtype::Sog { 1 } else { 5 };
-        let known = per_part * (1 + h.groups.len()) + 3 * h.groups.len();
+        let packed = h.param_dtype == Dtype::Sog && h.version >= VERSION_PACKED;
+        let param_sections = match h.param_dtype {
+            Dtype::Sog if packed => 1,
+            Dtype::Sog => 1 + h.groups.len(),
+            _ => 5 * (1 + h.groups.len()),
+        };
+        let per_group = if h.offset_dtype == Dtype::Q8 { 2 } else { 3 };
+        let known = param_sections + per_group * h.groups.len();
         if h.sections.len() != known {
             bail!("header lists {} sections; its groups need {known}", h.sections.len());
         }
-        let background = secs.scene("background", h.background_gaussians, h.sh_degree, h.param_dtype)?;
+        // Version 4's one bundle, cut into the background and each template by the header's counts.
+        let mut parts: Vec<Scene> = Vec::new();
+        if packed {
+            let counts: Vec<usize> =
+                std::iter::once(h.background_gaussians).chain(h.groups.iter().map(|g| g.template_gaussians)).collect();
+            let total = counts
+                .iter()
+                .try_fold(0usize, |a, &b| a.checked_add(b))
+                .ok_or_else(|| anyhow!("header: Gaussian counts overflow"))?;
+            let all = secs.scene("gaussians", total, h.sh_degree, Dtype::Sog)?;
+            let mut start = 0;
+            for n in counts {
+                parts.push(all.select(&(start..start + n).collect::<Vec<_>>()));
+                start += n;
+            }
+            parts.reverse();
+        }
+        let mut part = |name: &str, n: usize| match parts.pop() {
+            Some(s) => Ok(s),
+            None => secs.scene(name, n, h.sh_degree, h.param_dtype),
+        };
+        let background = part("background", h.background_gaussians)?;
         let mut groups = Vec::new();
         for (i, g) in h.groups.iter().enumerate() {
-            let template = secs.scene(&format!("group/{i}"), g.template_gaussians, h.sh_degree, h.param_dtype)?;
+            let template = part(&format!("group/{i}"), g.template_gaussians)?;
             let (k, t) = (g.instances.len(), g.template_gaussians);
             let v3 = |a: &[f32]| a.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect();
-            let offsets = if h.offset_dtype == Dtype::Pq8 {
+            let offsets = if h.offset_dtype == Dtype::Q8 {
+                let steps = secs.get(&format!("group/{i}/d_steps"), &[3], Dtype::F32)?;
+                let q = crate::formats::q8::OffsetCodes {
+                    steps: [steps[0], steps[1], steps[2]],
+                    codes: secs.blob(&format!("group/{i}/d_codes"), Dtype::Zstd)?.to_vec(),
+                };
+                let pairs = k.checked_mul(t).ok_or_else(|| anyhow!("group {:?}: too many pairs", g.name))?;
+                q.decode(pairs, &format!("section \"group/{i}/d_codes\""))?
+            } else if h.offset_dtype == Dtype::Pq8 {
                 let n = crate::formats::pq8::CODES;
                 let shapes = [vec![k, t, 2], vec![n, 3], vec![n, 4]];
                 let mut arrays = Vec::new();
@@ -478,7 +550,7 @@ pub fn from_bytes(bytes: &[u8], what: &str) -> Result<InstancedScene> {
                 .decode()
             } else {
                 if ![Dtype::F32, Dtype::F16].contains(&h.offset_dtype) {
-                    bail!("header: offset_dtype {:?} is not an offset storage (f32, f16, pq8)", h.offset_dtype);
+                    bail!("header: offset_dtype {:?} is not an offset storage (f32, f16, pq8, q8)", h.offset_dtype);
                 }
                 let mut off = Vec::new();
                 for (suffix, width) in OFFSET_SECTIONS {
@@ -522,7 +594,7 @@ pub fn read_with_storage(path: &Path) -> Result<(InstancedScene, Storage)> {
 }
 
 /// Bytes of every part of a file: header (with padding), background, each group's template and
-/// offsets.
+/// offsets (version 4's one bundle: "background and templates", the templates at 0 bytes).
 pub fn part_bytes(bytes: &[u8]) -> Result<Vec<PartBytes>> {
     let (h, _, start) = split(bytes)?;
     let mut parts = vec![PartBytes { name: "header".into(), bytes: start }];
@@ -535,7 +607,11 @@ pub fn part_bytes(bytes: &[u8]) -> Result<Vec<PartBytes>> {
             .map(|s| s.bytes.div_ceil(16) * 16)
             .sum()
     };
-    parts.push(PartBytes { name: "background".into(), bytes: sum("background", false) });
+    if h.sections.iter().any(|s| s.name == PACKED_SECTION) {
+        parts.push(PartBytes { name: "background and templates".into(), bytes: sum("gaussians", false) });
+    } else {
+        parts.push(PartBytes { name: "background".into(), bytes: sum("background", false) });
+    }
     for (i, g) in h.groups.iter().enumerate() {
         parts.push(PartBytes { name: format!("{}/template", g.name), bytes: sum(&format!("group/{i}"), false) });
         parts.push(PartBytes { name: format!("{}/offsets", g.name), bytes: sum(&format!("group/{i}"), true) });

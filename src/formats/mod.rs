@@ -25,6 +25,7 @@ pub mod info;
 pub mod instgs;
 pub mod ply;
 pub mod pq8;
+pub mod q8;
 pub mod quant;
 pub mod sog;
 pub mod splat;

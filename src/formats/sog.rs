@@ -3,7 +3,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{anyhow, bail, Context, Result};
 
-use crate::formats::quant::{largest_component, opacity_logit, unorm8};
+use crate::formats::quant::{codebook_1d, largest_component, nearest, opacity_logit, unorm8};
 use crate::math::sigmoid;
 use crate::model::scene::Scene;
 
@@ -87,22 +87,43 @@ impl Lookup {
 }
 
 /// An RGBA image decoded from a SOG WebP file `name` (bytes from `load`): (width, height, bytes).
-/// Its size is read from the header first and its RGBA texels checked against the memory
-/// budget ([`crate::limits`]) before anything is decoded.
 fn sog_image(load: &mut Loader, name: &str, count: usize) -> Result<(usize, usize, Vec<u8>)> {
     let (what, bytes) = load(name)?;
-    let (w, h) = image::ImageReader::with_format(std::io::Cursor::new(&bytes), image::ImageFormat::WebP)
+    decode_webp(&bytes, &what, count)
+}
+
+/// A WebP image's RGBA texels (`what` names it in errors): (width, height, bytes). Its size is
+/// read from the header first and its texels checked against the memory budget
+/// ([`crate::limits`]) before anything is decoded; refused unless it holds `count` texels.
+fn decode_webp(bytes: &[u8], what: &str, count: usize) -> Result<(usize, usize, Vec<u8>)> {
+    let (w, h) = image::ImageReader::with_format(std::io::Cursor::new(bytes), image::ImageFormat::WebP)
         .into_dimensions()
         .map_err(|e| anyhow!("{what}: not a WebP image: {e}"))?;
-    crate::limits::check_bytes(&what, &format!("its {w}×{h} texels"), 4 * w as u64 * h as u64)?;
-    let img = image::load_from_memory_with_format(&bytes, image::ImageFormat::WebP)
+    crate::limits::check_bytes(what, &format!("its {w}×{h} texels"), 4 * w as u64 * h as u64)?;
+    let img = image::load_from_memory_with_format(bytes, image::ImageFormat::WebP)
         .map_err(|e| anyhow!("{what}: not a WebP image: {e}"))?
         .to_rgba8();
     let (w, h) = (img.width() as usize, img.height() as usize);
     if w * h < count {
-        bail!("{what}: {w}×{h} texels cannot hold {count} Gaussians");
+        bail!("{what}: {w}×{h} texels cannot hold {count} values");
     }
     Ok((w, h, img.into_raw()))
+}
+
+/// `rgba` (`w`×`h` texels) as a lossless WebP image.
+fn webp_bytes(w: usize, h: usize, rgba: &[u8]) -> Result<Vec<u8>> {
+    let mut bytes = Vec::new();
+    image::codecs::webp::WebPEncoder::new_lossless(&mut bytes)
+        .encode(rgba, w as u32, h as u32, image::ExtendedColorType::Rgba8)
+        .map_err(|e| anyhow!("WebP: {e}"))?;
+    Ok(bytes)
+}
+
+/// Width and height of an image of at least `n` texels: about square, the width a multiple of
+/// 4 (SOG's layout).
+fn image_size(n: usize) -> (usize, usize) {
+    let w = ((n as f64).sqrt().ceil() as usize).div_ceil(4).max(1) * 4;
+    (w, n.div_ceil(w).max(1))
 }
 
 /// Reads the file a SOG's `meta.json` names: (its name for messages, its bytes).
@@ -299,76 +320,11 @@ pub fn sog_from_meta(text: &str, what: &str, load: &mut Loader) -> Result<Scene>
     Ok(s)
 }
 
-/// 1D k-means (Lloyd) of `values` into at most `k` centres, ascending.
-fn codebook_1d(values: &[f32], k: usize) -> Vec<f32> {
-    let mut v: Vec<f32> = values.to_vec();
-    v.sort_by(f32::total_cmp);
-    let n = v.len();
-    if n == 0 {
-        return vec![0.0; k];
-    }
-    // Half the starts at quantiles (where the values are), half evenly over the range (so
-    // the rare extremes — the largest splats, the brightest colours — keep entries of their own).
-    let (lo, hi) = (v[0], v[n - 1]);
-    let mut centres: Vec<f32> = (0..k)
-        .map(|i| {
-            let t = (i / 2) as f64 / (k / 2).max(1) as f64 + 0.5 / k as f64;
-            if i % 2 == 0 {
-                v[((t * n as f64) as usize).min(n - 1)]
-            } else {
-                lo + (hi - lo) * t as f32
-            }
-        })
-        .collect();
-    centres.sort_by(f32::total_cmp);
-    for _ in 0..10 {
-        centres.dedup();
-        // Sorted values: each centre's members are a run between the midpoints.
-        let mut sums = vec![(0.0f64, 0usize); centres.len()];
-        let mut c = 0;
-        for &x in &v {
-            while c + 1 < centres.len() && x > 0.5 * (centres[c] + centres[c + 1]) {
-                c += 1;
-            }
-            sums[c].0 += x as f64;
-            sums[c].1 += 1;
-        }
-        for (centre, (s, m)) in centres.iter_mut().zip(&sums) {
-            if *m > 0 {
-                *centre = (*s / *m as f64) as f32;
-            }
-        }
-        centres.sort_by(f32::total_cmp);
-    }
-    centres.resize(k, *centres.last().unwrap_or(&0.0));
-    centres
-}
-
-/// The index of the codebook entry nearest to `x` (the codebook ascending).
-fn nearest(codebook: &[f32], x: f32) -> u8 {
-    let i = codebook.partition_point(|&c| c < x);
-    let best = match i {
-        0 => 0,
-        i if i >= codebook.len() => codebook.len() - 1,
-        i => {
-            if (x - codebook[i - 1]).abs() <= (codebook[i] - x).abs() {
-                i - 1
-            } else {
-                i
-            }
-        }
-    };
-    best as u8
-}
-
 /// Entries of the SH palette (k-means centres of the Gaussians' shN vectors) at most.
 pub const SOG_PALETTE: usize = 1024;
 
 fn write_webp(path: &Path, w: usize, h: usize, rgba: &[u8]) -> Result<()> {
-    let mut bytes = Vec::new();
-    image::codecs::webp::WebPEncoder::new_lossless(&mut bytes)
-        .encode(rgba, w as u32, h as u32, image::ExtendedColorType::Rgba8)
-        .map_err(|e| anyhow!("{}: WebP: {e}", path.display()))?;
+    let bytes = webp_bytes(w, h, rgba).with_context(|| path.display().to_string())?;
     crate::util::write_atomic(path, |f| std::io::Write::write_all(f, &bytes))
 }
 
@@ -383,7 +339,7 @@ pub fn write_sog(scene: &Scene, meta: &Path) -> Result<()> {
     scene.validate(&format!("{}: not written", meta.display()))?;
     let dir = meta.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
     let name = meta.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_else(|| "meta.json".into());
-    crate::util::write_dir_atomic(dir, Some(&name), |tmp| write_sog_files(scene, &tmp.join(&name)))
+    crate::util::write_dir_atomic(dir, Some(&name), |tmp| write_sog_files(scene, &tmp.join(&name), None))
 }
 
 /// `scene` as one `.sog` file: [`write_sog`]'s `meta.json` and images in a zip archive (stored:
@@ -393,25 +349,32 @@ pub fn write_sog_bundle(scene: &Scene, out: &Path) -> Result<()> {
     let name = out.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
     let parent = out.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
     let tmp = parent.join(format!(".{name}.{}.files.tmp", std::process::id()));
-    let bytes = bundle_in(scene, &tmp).with_context(|| format!("{}: cannot write the bundle", out.display()))?;
+    let bytes = bundle_in(scene, &tmp, None).with_context(|| format!("{}: cannot write the bundle", out.display()))?;
     crate::util::write_atomic(out, |f| std::io::Write::write_all(f, &bytes))
 }
 
 /// The bytes of [`write_sog_bundle`]'s file for `scene` (its images made in a scratch folder
-/// of the system's temporary directory, removed after).
-pub fn bundle_bytes(scene: &Scene) -> Result<Vec<u8>> {
+/// of the system's temporary directory, removed after). `weights` (one per Gaussian, positive:
+/// how many times it is drawn, as a template's Gaussian is once per instance) weigh the
+/// codebooks' and the SH palette's k-means; none: each Gaussian once.
+pub fn bundle_bytes(scene: &Scene, weights: Option<&[f32]>) -> Result<Vec<u8>> {
     scene.validate("the SOG bundle")?;
+    if let Some(w) = weights {
+        if w.len() != scene.len() || w.iter().any(|w| !(w.is_finite() && *w > 0.0)) {
+            bail!("the SOG bundle: {} weights for {} Gaussians, each must be positive", w.len(), scene.len());
+        }
+    }
     static NEXT: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
     let n = NEXT.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
     let tmp = std::env::temp_dir().join(format!("instgs-sog-{}-{n}.tmp", std::process::id()));
-    bundle_in(scene, &tmp).context("cannot make a SOG bundle")
+    bundle_in(scene, &tmp, weights).context("cannot make a SOG bundle")
 }
 
 /// The bundle's bytes, its files written into `tmp` first (removed after).
-fn bundle_in(scene: &Scene, tmp: &Path) -> Result<Vec<u8>> {
+fn bundle_in(scene: &Scene, tmp: &Path, weights: Option<&[f32]>) -> Result<Vec<u8>> {
     let result = (|| -> Result<Vec<u8>> {
         std::fs::create_dir_all(tmp)?;
-        write_sog_files(scene, &tmp.join("meta.json"))?;
+        write_sog_files(scene, &tmp.join("meta.json"), weights)?;
         let mut names: Vec<String> = std::fs::read_dir(tmp)?
             .map(|e| e.map(|e| e.file_name().to_string_lossy().into_owned()))
             .collect::<std::io::Result<_>>()?;
@@ -429,13 +392,12 @@ fn bundle_in(scene: &Scene, tmp: &Path) -> Result<Vec<u8>> {
     result
 }
 
-/// [`write_sog`]'s files, written into `meta`'s folder.
-fn write_sog_files(scene: &Scene, meta: &Path) -> Result<()> {
+/// [`write_sog`]'s files, written into `meta`'s folder; `weights` as [`bundle_bytes`]'s.
+fn write_sog_files(scene: &Scene, meta: &Path, weights: Option<&[f32]>) -> Result<()> {
     let dir = meta.parent().expect("a folder");
     let n = scene.len();
     let coeffs = scene.sh_coeffs();
-    let w = ((n as f64).sqrt().ceil() as usize).div_ceil(4) * 4;
-    let h = n.div_ceil(w);
+    let (w, h) = image_size(n);
     let image = || vec![0u8; w * h * 4];
     let log = |x: f32| x.signum() * (x.abs() + 1.0).ln();
     let mut mins = [f32::MAX; 3];
@@ -447,9 +409,11 @@ fn write_sog_files(scene: &Scene, meta: &Path) -> Result<()> {
         }
     }
     let (mut lo, mut hi, mut quats, mut scales, mut sh0) = (image(), image(), image(), image(), image());
-    let scale_book = codebook_1d(&scene.scales.iter().flatten().copied().collect::<Vec<_>>(), 256);
+    // Three values a Gaussian: its weight three times.
+    let weights3: Option<Vec<f32>> = weights.map(|w| w.iter().flat_map(|&w| [w; 3]).collect());
+    let scale_book = codebook_1d(&scene.scales.iter().flatten().copied().collect::<Vec<_>>(), weights3.as_deref(), 256);
     let dc: Vec<f32> = (0..n).flat_map(|i| scene.sh[i * coeffs * 3..i * coeffs * 3 + 3].to_vec()).collect();
-    let sh0_book = codebook_1d(&dc, 256);
+    let sh0_book = codebook_1d(&dc, weights3.as_deref(), 256);
     for i in 0..n {
         let o = i * 4;
         for a in 0..3 {
@@ -490,8 +454,8 @@ fn write_sog_files(scene: &Scene, meta: &Path) -> Result<()> {
     if coeffs > 1 {
         let rest = (coeffs - 1) * 3;
         let vectors: Vec<&[f32]> = (0..n).map(|i| &scene.sh[i * coeffs * 3 + 3..(i + 1) * coeffs * 3]).collect();
-        let (centres, labels) = palette(&vectors, rest, SOG_PALETTE.min(n));
-        let book = codebook_1d(&centres, 256);
+        let (centres, labels) = palette(&vectors, weights, rest, SOG_PALETTE.min(n));
+        let book = codebook_1d(&centres, None, 256);
         let count = centres.len() / rest;
         let (cw, ch) = (64 * (coeffs - 1), count.div_ceil(64));
         let mut cimg = vec![0u8; cw * ch * 4];
@@ -522,11 +486,24 @@ fn write_sog_files(scene: &Scene, meta: &Path) -> Result<()> {
     crate::util::write_atomic(meta, |f| std::io::Write::write_all(f, text.as_bytes()))
 }
 
-/// k-means of `vectors` (each `dim` long) into `k` centres: evenly spaced starts, 10 Lloyd
-/// iterations, brute-force assignment. Returns the centres (flat) and each vector's label.
-fn palette(vectors: &[&[f32]], dim: usize, k: usize) -> (Vec<f32>, Vec<u32>) {
+/// k-means of `vectors` (each `dim` long) into `k` centres, each vector counted `weights[i]`
+/// times (none: once): starts evenly spaced in the cumulative weight, 10 Lloyd iterations,
+/// brute-force assignment. Returns the centres (flat) and each vector's label.
+fn palette(vectors: &[&[f32]], weights: Option<&[f32]>, dim: usize, k: usize) -> (Vec<f32>, Vec<u32>) {
     let n = vectors.len();
-    let mut centres: Vec<f32> = (0..k).flat_map(|c| vectors[c * n / k].to_vec()).collect();
+    let weight = |i: usize| weights.map_or(1.0, |w| w[i] as f64);
+    let mut cumulative = Vec::with_capacity(n);
+    let mut total = 0.0f64;
+    for i in 0..n {
+        total += weight(i);
+        cumulative.push(total);
+    }
+    let mut centres: Vec<f32> = (0..k)
+        .flat_map(|c| {
+            let i = cumulative.partition_point(|&w| w <= c as f64 * total / k as f64).min(n - 1);
+            vectors[i].to_vec()
+        })
+        .collect();
     let mut labels = vec![0u32; n];
     for _ in 0..10 {
         for (i, v) in vectors.iter().enumerate() {
@@ -540,17 +517,18 @@ fn palette(vectors: &[&[f32]], dim: usize, k: usize) -> (Vec<f32>, Vec<u32>) {
             labels[i] = best.1 as u32;
         }
         let mut sums = vec![0.0f64; k * dim];
-        let mut counts = vec![0usize; k];
-        for (v, &l) in vectors.iter().zip(&labels) {
-            counts[l as usize] += 1;
+        let mut counts = vec![0.0f64; k];
+        for (i, (v, &l)) in vectors.iter().zip(&labels).enumerate() {
+            let w = weight(i);
+            counts[l as usize] += w;
             for (s, x) in sums[l as usize * dim..(l as usize + 1) * dim].iter_mut().zip(*v) {
-                *s += *x as f64;
+                *s += w * *x as f64;
             }
         }
         for c in 0..k {
-            if counts[c] > 0 {
+            if counts[c] > 0.0 {
                 for d in 0..dim {
-                    centres[c * dim + d] = (sums[c * dim + d] / counts[c] as f64) as f32;
+                    centres[c * dim + d] = (sums[c * dim + d] / counts[c]) as f32;
                 }
             }
         }
