@@ -45,7 +45,7 @@ pub enum Dtype {
     /// `d_codebook_dp` (f32, [256, 3]) and `d_codebook_dc` (f32, [256, 4]).
     Pq8,
     /// Offset storage: signed 8-bit multiples of a step per kind (`crate::formats::q8`):
-    /// sections `d_steps` (f32, [3]) and `d_codes` (zstd, [bytes]).
+    /// sections `d_steps` (f32, shape `[3]`) and `d_codes` (zstd, shape `[bytes]`).
     Q8,
     /// Section type: a zstd frame's bytes, shape `[bytes]`.
     Zstd,

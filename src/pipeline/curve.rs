@@ -11,7 +11,10 @@
 //! about it and fine-tuned as long, again until one lands within 0.1 dB of InstGS (at most three
 //! times: a pruned scene's PSNR is not linear in its memory); the memory pruning needs is
 //! interpolated between the two that then straddle InstGS's PSNR, and both are benched against
-//! InstGS, their frame rates interpolated to its PSNR. Each point is resumable: its training
+//! InstGS, their frame rates interpolated to its PSNR. The files too: the run's InstGS as
+//! `convert --compress` writes it against every pruned scene as `.sog` (SOG, what a user would
+//! compress a plain scene to), the `.sog` bytes for InstGS's PSNR interpolated the same way.
+//! Each point is resumable: its training
 //! runs keep checkpoints under `RUN/curve/`, and a finished point is kept in
 //! `RUN/curve/points.json`.
 use std::path::{Path, PathBuf};
@@ -72,6 +75,26 @@ pub struct Curve {
     /// The run's own InstGS against pruning at the same quality (None without a pruned point
     /// at least as good as it).
     pub equal_quality: Option<EqualQuality>,
+    /// The run's own InstGS compressed against the pruned scenes as `.sog` (absent in curves
+    /// made before it was measured).
+    #[serde(default)]
+    pub compressed: Option<CompressedFiles>,
+}
+
+/// Compressed files at equal quality: the run's `scene.instgs` as `convert --compress` writes it
+/// (`RUN/curve/scene.compressed.instgs`) against every pruned scene as `.sog` (beside its PLY).
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct CompressedFiles {
+    pub instgs: Scored,
+    /// By file bytes.
+    pub pruned_sog: Vec<Scored>,
+    /// File bytes a pruned `.sog` needs for the compressed InstGS's PSNR (linear between the two
+    /// about it; None outside them), and InstGS's file bytes over that; the same two with the
+    /// colour-compensated PSNR.
+    pub sog_bytes_needed: Option<f64>,
+    pub file_ratio: Option<f64>,
+    pub sog_bytes_needed_compensated: Option<f64>,
+    pub file_ratio_compensated: Option<f64>,
 }
 
 /// The default InstGS scene against the plain scene pruned to the same held-out PSNR.
@@ -247,6 +270,8 @@ pub fn curve(c: CurveArgs) -> Result<()> {
     };
     let pruning_needs = needs(|s| s.psnr);
     let pruning_needs_compensated = needs(|s| s.psnr_compensated);
+    eprintln!("[curve] compressed files: InstGS as `convert --compress` writes it, the pruned scenes as .sog");
+    let compressed = Some(ctx.compressed_files(&dir, &pruned)?);
     let curve = Curve {
         plain,
         iterations: cfg.joint.iterations,
@@ -257,6 +282,7 @@ pub fn curve(c: CurveArgs) -> Result<()> {
         gain_db_compensated,
         pruning_needs_compensated,
         equal_quality,
+        compressed,
     };
     crate::util::write_json(&run.join(CURVE_FILE), &serde_json::to_value(&curve)?, true)?;
     crate::train::plot::write_rate_distortion(&plot_of(&curve, &a.data), &run.join(CURVE_PLOT))?;
@@ -442,6 +468,39 @@ impl Ctx<'_> {
             fps_pruned,
             fps_ratio,
         }))
+    }
+
+    /// The run's InstGS compressed against the `pruned` scenes as `.sog` (each written beside
+    /// its PLY), all scored on the held-out views.
+    fn compressed_files(&self, dir: &Path, pruned: &[&Scored]) -> Result<CompressedFiles> {
+        let path = dir.join("scene.compressed.instgs");
+        crate::formats::instgs::write_compressed(
+            &crate::formats::instgs::read(&self.a.out.join("scene.instgs"))?,
+            &path,
+        )?;
+        let instgs = self.score(&path)?;
+        let mut pruned_sog = Vec::new();
+        for s in pruned {
+            let ply = Path::new(&s.file);
+            let sog = ply.with_extension("sog");
+            crate::formats::sog::write_sog_bundle(&crate::formats::ply::read_ply(ply)?, &sog)?;
+            pruned_sog.push(self.score(&sog)?);
+        }
+        pruned_sog.sort_by_key(|s| s.file_bytes);
+        let needed = |psnr: fn(&Scored) -> f64| {
+            let by_bytes: Vec<(u64, f64)> = pruned_sog.iter().map(|s| (s.file_bytes, psnr(s))).collect();
+            bracket(&by_bytes, psnr(&instgs)).map(|(_, bytes)| bytes)
+        };
+        let (raw, compensated) = (needed(|s| s.psnr), needed(|s| s.psnr_compensated));
+        let ratio = |b: Option<f64>| b.map(|b| instgs.file_bytes as f64 / b);
+        Ok(CompressedFiles {
+            sog_bytes_needed: raw,
+            file_ratio: ratio(raw),
+            sog_bytes_needed_compensated: compensated,
+            file_ratio_compensated: ratio(compensated),
+            instgs,
+            pruned_sog,
+        })
     }
 
     /// Fine-tunes `init` in `dir` with the joint schedule (resumed from its checkpoint).

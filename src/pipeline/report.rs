@@ -467,6 +467,41 @@ fn curve_section(md: &mut String, run: &Path) {
             v("fps_pruned")
         );
     }
+    let f = &c["compressed"];
+    if f.is_object() {
+        let v = |k: &str| num(f, k).unwrap_or(f64::NAN);
+        let sogs: Vec<String> = f["pruned_sog"]
+            .as_array()
+            .into_iter()
+            .flatten()
+            .map(|s| {
+                format!(
+                    "{} MB at {:.2} dB",
+                    mb(num(s, "file_bytes").unwrap_or(f64::NAN)),
+                    num(s, "psnr").unwrap_or(f64::NAN)
+                )
+            })
+            .collect();
+        let needs = |bytes: &str, ratio: &str| match num(f, bytes) {
+            Some(b) => format!(
+                "a pruned `.sog` needs {} MB (linear between the two about it), InstGS's file {:.2}× it",
+                mb(b),
+                v(ratio)
+            ),
+            None => "no two of them straddle it".into(),
+        };
+        let _ = writeln!(
+            md,
+            "\nCompressed files: InstGS as `instgs-vk convert scene.instgs OUT.instgs --compress` writes it, {} MB at \
+             {:.2} dB ({:.2} compensated); the pruned scenes as `.sog`: {}. For InstGS's PSNR {}; for its compensated PSNR {}.",
+            mb(v("instgs.file_bytes")),
+            v("instgs.psnr"),
+            v("instgs.psnr_compensated"),
+            sogs.join(", "),
+            needs("sog_bytes_needed", "file_ratio"),
+            needs("sog_bytes_needed_compensated", "file_ratio_compensated")
+        );
+    }
     let loses: Vec<&str> = c["instgs_loses_at"].as_array().into_iter().flatten().filter_map(|v| v.as_str()).collect();
     let _ = writeln!(
         md,
