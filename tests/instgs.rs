@@ -112,6 +112,12 @@ fn compressed_file_holds_one_sog_bundle_and_q8_offsets() {
             }
         }
     }
+    // Coded again, a decoded scene's offsets are the same (the player saves a file as stored).
+    let again =
+        instgs::from_bytes(&instgs::to_bytes_stored(&back, instgs::Storage::COMPRESSED).unwrap(), "again").unwrap();
+    for (a, b) in again.groups.iter().zip(&back.groups) {
+        assert!(a.offsets == b.offsets, "q8 offsets are coded again exactly");
+    }
     let bytes = std::fs::read(&path).unwrap();
     assert_eq!(split(&bytes).0["version"], 4);
     let (size, size16) = (bytes.len(), std::fs::metadata(&path16).unwrap().len() as usize);

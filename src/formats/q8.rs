@@ -3,7 +3,8 @@
 //! in seven planes (Δmeans x y z, Δsh0 r g b, Δopacity; pair `p = instance · T + gaussian`)
 //! compressed as one zstd frame. Uniform steps entropy-code better than a codebook of the same
 //! error (most offsets are small): on cafe40 5.7 bits a value at 0.1 of each kind's rms.
-//! Lossy once: a decoded offset is its code times its step.
+//! Lossy once: a decoded offset is its code times its step, and decoded offsets (on that grid)
+//! are coded again to the same values (to a float's last bit).
 use anyhow::{anyhow, bail, Result};
 
 use crate::model::instanced::Offsets;
@@ -29,16 +30,7 @@ impl OffsetCodes {
     /// Codes `o` (any number of pairs).
     pub fn encode(o: &Offsets) -> Result<OffsetCodes> {
         let kinds = [o.d_means.concat(), o.d_sh0.concat(), o.d_opacities.clone()];
-        let steps = kinds.each_ref().map(|v| {
-            let rms = (v.iter().map(|x| (*x as f64) * (*x as f64)).sum::<f64>() / v.len().max(1) as f64).sqrt() as f32;
-            let largest = v.iter().fold(0.0f32, |m, x| m.max(x.abs()));
-            let step = (STEP_OF_RMS * rms).max(largest / 127.0);
-            if step > 0.0 {
-                step
-            } else {
-                1.0
-            }
-        });
+        let steps = kinds.each_ref().map(|v| grid_step(v).unwrap_or_else(|| step_for(v)));
         let n = o.d_opacities.len();
         let code = |x: f32, step: f32| (x / step).round().clamp(-127.0, 127.0) as i8 as u8;
         let mut planes = vec![0u8; PLANES * n];
@@ -73,4 +65,31 @@ impl OffsetCodes {
             d_opacities: (0..n).map(|p| value(6, p, so)).collect(),
         })
     }
+}
+
+/// The step of a kind's values `v`: [`STEP_OF_RMS`] of their root mean square, or more where
+/// the largest would not fit ±127 steps (1 for values all zero).
+fn step_for(v: &[f32]) -> f32 {
+    let rms = (v.iter().map(|x| (*x as f64) * (*x as f64)).sum::<f64>() / v.len().max(1) as f64).sqrt() as f32;
+    let largest = v.iter().fold(0.0f32, |m, x| m.max(x.abs()));
+    let step = (STEP_OF_RMS * rms).max(largest / 127.0);
+    if step > 0.0 {
+        step
+    } else {
+        1.0
+    }
+}
+
+/// The step of values already on a grid — each a multiple of the smallest nonzero magnitude
+/// over some whole number d ≤ 127, within ±127 steps, as decoded q8 offsets are — so that a
+/// decoded scene is coded again exactly (the player saves a file as it was stored). None for
+/// values off every such grid (any set of measured offsets but the smallest).
+fn grid_step(v: &[f32]) -> Option<f32> {
+    let smallest = v.iter().map(|x| x.abs()).filter(|x| *x > 0.0).min_by(f32::total_cmp)?;
+    (1..=127).map(|d| smallest / d as f32).find(|&step| {
+        v.iter().all(|x| {
+            let c = x / step;
+            c.abs() <= 127.5 && (c - c.round()).abs() < 1e-3
+        })
+    })
 }
