@@ -204,7 +204,7 @@ pub fn to_bytes_stored(scene: &InstancedScene, storage: Storage) -> Result<Vec<u
         // One bundle: its codebooks, SH palette and images serve every part (a bundle per
         // template paid a palette entry per Gaussian).
         // Its k-means count a template's Gaussian once per instance, as it is drawn.
-        let mut all = scene.background.clone();
+        let mut all = Scene { sh_degree: scene.sh_degree, ..scene.background.clone() };
         let mut weights = vec![1.0f32; all.len()];
         for g in &scene.groups {
             all.append(&g.template);
