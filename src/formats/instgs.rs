@@ -515,9 +515,9 @@ pub fn from_bytes(bytes: &[u8], what: &str) -> Result<InstancedScene> {
                 parts.push(all.select(&(start..start + n).collect::<Vec<_>>()));
                 start += n;
             }
-            parts.reverse();
         }
-        let mut part = |name: &str, n: usize| match parts.pop() {
+        let mut parts = parts.into_iter();
+        let mut part = |name: &str, n: usize| match parts.next() {
             Some(s) => Ok(s),
             None => secs.scene(name, n, h.sh_degree, h.param_dtype),
         };

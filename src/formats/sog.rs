@@ -3,7 +3,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{anyhow, bail, Context, Result};
 
-use crate::formats::quant::{codebook_1d, largest_component, nearest, opacity_logit, unorm8};
+use crate::formats::quant::{largest_component, opacity_logit, unorm8};
 use crate::math::sigmoid;
 use crate::model::scene::Scene;
 
@@ -87,43 +87,22 @@ impl Lookup {
 }
 
 /// An RGBA image decoded from a SOG WebP file `name` (bytes from `load`): (width, height, bytes).
+/// Its size is read from the header first and its RGBA texels checked against the memory
+/// budget ([`crate::limits`]) before anything is decoded.
 fn sog_image(load: &mut Loader, name: &str, count: usize) -> Result<(usize, usize, Vec<u8>)> {
     let (what, bytes) = load(name)?;
-    decode_webp(&bytes, &what, count)
-}
-
-/// A WebP image's RGBA texels (`what` names it in errors): (width, height, bytes). Its size is
-/// read from the header first and its texels checked against the memory budget
-/// ([`crate::limits`]) before anything is decoded; refused unless it holds `count` texels.
-fn decode_webp(bytes: &[u8], what: &str, count: usize) -> Result<(usize, usize, Vec<u8>)> {
-    let (w, h) = image::ImageReader::with_format(std::io::Cursor::new(bytes), image::ImageFormat::WebP)
+    let (w, h) = image::ImageReader::with_format(std::io::Cursor::new(&bytes), image::ImageFormat::WebP)
         .into_dimensions()
         .map_err(|e| anyhow!("{what}: not a WebP image: {e}"))?;
-    crate::limits::check_bytes(what, &format!("its {w}×{h} texels"), 4 * w as u64 * h as u64)?;
-    let img = image::load_from_memory_with_format(bytes, image::ImageFormat::WebP)
+    crate::limits::check_bytes(&what, &format!("its {w}×{h} texels"), 4 * w as u64 * h as u64)?;
+    let img = image::load_from_memory_with_format(&bytes, image::ImageFormat::WebP)
         .map_err(|e| anyhow!("{what}: not a WebP image: {e}"))?
         .to_rgba8();
     let (w, h) = (img.width() as usize, img.height() as usize);
     if w * h < count {
-        bail!("{what}: {w}×{h} texels cannot hold {count} values");
+        bail!("{what}: {w}×{h} texels cannot hold {count} Gaussians");
     }
     Ok((w, h, img.into_raw()))
-}
-
-/// `rgba` (`w`×`h` texels) as a lossless WebP image.
-fn webp_bytes(w: usize, h: usize, rgba: &[u8]) -> Result<Vec<u8>> {
-    let mut bytes = Vec::new();
-    image::codecs::webp::WebPEncoder::new_lossless(&mut bytes)
-        .encode(rgba, w as u32, h as u32, image::ExtendedColorType::Rgba8)
-        .map_err(|e| anyhow!("WebP: {e}"))?;
-    Ok(bytes)
-}
-
-/// Width and height of an image of at least `n` texels: about square, the width a multiple of
-/// 4 (SOG's layout).
-fn image_size(n: usize) -> (usize, usize) {
-    let w = ((n as f64).sqrt().ceil() as usize).div_ceil(4).max(1) * 4;
-    (w, n.div_ceil(w).max(1))
 }
 
 /// Reads the file a SOG's `meta.json` names: (its name for messages, its bytes).
@@ -320,11 +299,87 @@ pub fn sog_from_meta(text: &str, what: &str, load: &mut Loader) -> Result<Scene>
     Ok(s)
 }
 
+/// 1D k-means (Lloyd) of `values` into at most `k` centres, ascending; `weights` (one per
+/// value, positive) count a value that many times (none: each once).
+fn codebook_1d(values: &[f32], weights: Option<&[f32]>, k: usize) -> Vec<f32> {
+    let mut v: Vec<(f32, f64)> = match weights {
+        Some(w) => values.iter().zip(w).map(|(&x, &w)| (x, w as f64)).collect(),
+        None => values.iter().map(|&x| (x, 1.0)).collect(),
+    };
+    v.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let n = v.len();
+    if n == 0 {
+        return vec![0.0; k];
+    }
+    // Half the starts at quantiles of the weight (where the values are), half evenly over the
+    // range (so the rare extremes — the largest splats, the brightest colours — keep entries of
+    // their own).
+    let mut cumulative = Vec::with_capacity(n);
+    let mut total = 0.0f64;
+    for &(_, w) in &v {
+        total += w;
+        cumulative.push(total);
+    }
+    let (lo, hi) = (v[0].0, v[n - 1].0);
+    let mut centres: Vec<f32> = (0..k)
+        .map(|i| {
+            let t = (i / 2) as f64 / (k / 2).max(1) as f64 + 0.5 / k as f64;
+            if i % 2 == 0 {
+                v[cumulative.partition_point(|&c| c <= t * total).min(n - 1)].0
+            } else {
+                lo + (hi - lo) * t as f32
+            }
+        })
+        .collect();
+    centres.sort_by(f32::total_cmp);
+    for _ in 0..10 {
+        centres.dedup();
+        // Sorted values: each centre's members are a run between the midpoints.
+        let mut sums = vec![(0.0f64, 0.0f64); centres.len()];
+        let mut c = 0;
+        for &(x, w) in &v {
+            while c + 1 < centres.len() && x > 0.5 * (centres[c] + centres[c + 1]) {
+                c += 1;
+            }
+            sums[c].0 += w * x as f64;
+            sums[c].1 += w;
+        }
+        for (centre, (s, m)) in centres.iter_mut().zip(&sums) {
+            if *m > 0.0 {
+                *centre = (*s / *m) as f32;
+            }
+        }
+        centres.sort_by(f32::total_cmp);
+    }
+    centres.resize(k, *centres.last().unwrap_or(&0.0));
+    centres
+}
+
+/// The index of the codebook entry nearest to `x` (the codebook ascending).
+fn nearest(codebook: &[f32], x: f32) -> u8 {
+    let i = codebook.partition_point(|&c| c < x);
+    let best = match i {
+        0 => 0,
+        i if i >= codebook.len() => codebook.len() - 1,
+        i => {
+            if (x - codebook[i - 1]).abs() <= (codebook[i] - x).abs() {
+                i - 1
+            } else {
+                i
+            }
+        }
+    };
+    best as u8
+}
+
 /// Entries of the SH palette (k-means centres of the Gaussians' shN vectors) at most.
 pub const SOG_PALETTE: usize = 1024;
 
 fn write_webp(path: &Path, w: usize, h: usize, rgba: &[u8]) -> Result<()> {
-    let bytes = webp_bytes(w, h, rgba).with_context(|| path.display().to_string())?;
+    let mut bytes = Vec::new();
+    image::codecs::webp::WebPEncoder::new_lossless(&mut bytes)
+        .encode(rgba, w as u32, h as u32, image::ExtendedColorType::Rgba8)
+        .map_err(|e| anyhow!("{}: WebP: {e}", path.display()))?;
     crate::util::write_atomic(path, |f| std::io::Write::write_all(f, &bytes))
 }
 
@@ -397,7 +452,8 @@ fn write_sog_files(scene: &Scene, meta: &Path, weights: Option<&[f32]>) -> Resul
     let dir = meta.parent().expect("a folder");
     let n = scene.len();
     let coeffs = scene.sh_coeffs();
-    let (w, h) = image_size(n);
+    let w = ((n as f64).sqrt().ceil() as usize).div_ceil(4) * 4;
+    let h = n.div_ceil(w);
     let image = || vec![0u8; w * h * 4];
     let log = |x: f32| x.signum() * (x.abs() + 1.0).ln();
     let mut mins = [f32::MAX; 3];
