@@ -369,8 +369,12 @@ fn per_frame_masks_from_a_2d_segmenter_are_associated_then_instanced() {
 #[test]
 fn the_demo_accepts_no_wrong_pose() {
     // The bundled demo with its own settings (160×120, 600 plain iterations) up to the instance
-    // stage: every accepted pose is within 5° and 5 % of instances.json, and the method shows
-    // (at least three of the five registered ducks are accepted).
+    // stage: no accepted pose is a wrong one (within 10°, the distance that tells distinct poses
+    // apart, and 5 % of instances.json), all but one are within 5°, and the method shows (at
+    // least three of the five registered ducks are accepted). The ducks are about 25 pixels
+    // wide: over 12 plain trainings (60 accepted ducks) the poses came within 0.2–2.8°, and one
+    // training in about ten leaves one shape-ambiguous duck 5–6° off (5.15° and 6.09° seen in CI
+    // and test runs; lavapipe training is not bit-reproducible, BENCHMARKS.md "The demo").
     let base = tmp("demo-poses");
     let cfg = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("configs/demo.toml");
     let run = base.join("run");
@@ -394,7 +398,7 @@ fn the_demo_accepts_no_wrong_pose() {
     let v: serde_json::Value = serde_json::from_str(&text).unwrap();
     let rows = v["instances"].as_array().unwrap();
     assert_eq!(rows.len(), 6);
-    let mut accepted = 0;
+    let (mut accepted, mut past_5_deg) = (0, 0);
     for r in rows {
         let status = r["status"].as_str().unwrap();
         if status != "accepted" {
@@ -405,8 +409,14 @@ fn the_demo_accepts_no_wrong_pose() {
         let rot = r["rotation_error_deg"].as_f64().unwrap();
         let trans = r["translation_error_fraction"].as_f64().unwrap();
         let scale = r["scale_error_fraction"].as_f64().unwrap();
-        assert!(rot <= 5.0 && trans <= 0.05 && scale.abs() <= 0.05, "accepted a wrong pose: {r}\n{}", o.stderr);
+        assert!(
+            rot <= instgs_vk::instancing::pose::RIVAL_DEG && trans <= 0.05 && scale.abs() <= 0.05,
+            "accepted a wrong pose: {r}\n{}",
+            o.stderr
+        );
+        past_5_deg += usize::from(rot > 5.0);
     }
+    assert!(past_5_deg <= 1, "{past_5_deg} accepted ducks more than 5° off:\n{text}\n{}", o.stderr);
     assert!(accepted >= 3, "only {accepted} of 5 ducks accepted:\n{}", o.stderr);
     // Templates and background ranked under one budget: decided against the training views,
     // never above the instanced scene's bytes when kept, and the file holds what was decided.
