@@ -372,9 +372,9 @@ fn the_demo_accepts_no_wrong_pose() {
     // stage: no accepted pose is a wrong one (within 10°, the distance that tells distinct poses
     // apart, and 5 % of instances.json), all but one are within 5°, and the method shows (at
     // least three of the five registered ducks are accepted). The ducks are about 25 pixels
-    // wide: over 12 plain trainings (60 accepted ducks) the poses came within 0.2–2.8°, and one
-    // training in about ten leaves one shape-ambiguous duck 5–6° off (5.15° and 6.09° seen in CI
-    // and test runs; lavapipe training is not bit-reproducible, BENCHMARKS.md "The demo").
+    // wide: over 12 plain trainings (60 accepted ducks) the poses came within 0.2–2.8°, but a
+    // rare training leaves one shape-ambiguous duck 5–6° off (5.15° and 6.09° seen in a test run
+    // and in CI; lavapipe training is not bit-reproducible, BENCHMARKS.md "The demo").
     let base = tmp("demo-poses");
     let cfg = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("configs/demo.toml");
     let run = base.join("run");
@@ -414,7 +414,7 @@ fn the_demo_accepts_no_wrong_pose() {
             "accepted a wrong pose: {r}\n{}",
             o.stderr
         );
-        past_5_deg += usize::from(rot > 5.0);
+        past_5_deg += usize::from(rot > instgs_vk::instancing::synchronise::RESIDUAL_DEG);
     }
     assert!(past_5_deg <= 1, "{past_5_deg} accepted ducks more than 5° off:\n{text}\n{}", o.stderr);
     assert!(accepted >= 3, "only {accepted} of 5 ducks accepted:\n{}", o.stderr);
