@@ -1,0 +1,101 @@
+#!/usr/bin/env python3
+"""A scene of cafe40's kind with other objects (issue 53: "other scenes of this kind, with other
+objects, will be used to check the result"): cafe40's own trained background (the plain scene's
+Gaussians its segmentation left unlabelled: floor, walls, the objects' shadows) with 40 copies of
+three objects that are not mugs, bricks or ducks — 20 playbots (`playbot_lod6.ply`, on the mugs'
+spots), 12 bikers (`biker.ply`, on the bricks') and 8 guitars (`guitar.ply`, on the ducks') from
+`../shared/data/splats` — each copy turned about the up axis at random and scaled 0.96–1.05.
+
+Writes into OUT: background.ply, one template PLY per object (SH degree 3 like the background,
+bands the source lacks zero; biker and guitar cut to their 8 000 and 6 000 most opaque-and-large
+Gaussians, as a 0.5-unit figure needs no more at 480x360) and scene_graph.json (the prototype's
+convention: world -> template). `tools/other-objects.sh` composes, renders and trains it.
+
+usage: other_objects_scene.py PLAIN.ply LABELS.json INSTANCES.json SPLATS_DIR OUT_DIR
+       (PLAIN.ply, LABELS.json: a cafe40 run's point_cloud.ply and labels.json;
+        INSTANCES.json: cafe40's instances.json, for the spots)
+"""
+import json
+import math
+import random
+import sys
+
+import numpy as np
+
+NAMES = ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"] + [f"f_rest_{i}" for i in range(45)] + [
+    "opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+# name: (file, Gaussians kept or None for all, scale, the cafe40 group whose spots it takes)
+OBJECTS = {
+    "playbot": ("playbot_lod6.ply", None, 0.18, "mug"),
+    "biker": ("biker.ply", 8000, 0.17, "lego"),
+    "guitar": ("guitar.ply", 6000, 0.12, "duck"),
+}
+
+
+def read(path):
+    data = open(path, "rb").read()
+    end = data.index(b"end_header\n") + len(b"end_header\n")
+    lines = data[:end].decode().splitlines()
+    props = [l.split()[2] for l in lines if l.startswith("property")]
+    if any(l.startswith("property") and l.split()[1] != "float" for l in lines):
+        sys.exit(f"{path}: only float properties are read here")
+    n = int(next(l for l in lines if l.startswith("element vertex")).split()[2])
+    arr = np.frombuffer(data[end:], dtype="<f4", count=n * len(props)).reshape(n, len(props))
+    return {p: i for i, p in enumerate(props)}, arr
+
+
+def write_degree3(path, props, arr):
+    """The Inria layout at SH degree 3 (f_rest channel-major, missing bands zero)."""
+    out = np.zeros((len(arr), len(NAMES)), np.float32)
+    for q in NAMES:
+        if q in props and not q.startswith("f_rest_"):
+            out[:, NAMES.index(q)] = arr[:, props[q]]
+    bands = sum(q.startswith("f_rest_") for q in props) // 3
+    for ch in range(3):
+        for k in range(bands):
+            out[:, NAMES.index(f"f_rest_{ch * 15 + k}")] = arr[:, props[f"f_rest_{ch * bands + k}"]]
+    header = f"ply\nformat binary_little_endian 1.0\nelement vertex {len(out)}\n"
+    header += "".join(f"property float {q}\n" for q in NAMES) + "end_header\n"
+    open(path, "wb").write(header.encode() + out.astype("<f4").tobytes())
+
+
+def main():
+    if len(sys.argv) != 6:
+        sys.exit(__doc__.strip().splitlines()[-4])
+    plain, labels, instances, splats, out = sys.argv[1:]
+    props, arr = read(plain)
+    lab = np.array(json.load(open(labels))["labels"])
+    if len(lab) != len(arr):
+        sys.exit(f"{labels}: {len(lab)} labels for the {len(arr)} Gaussians of {plain}")
+    write_degree3(f"{out}/background.ply", props, arr[lab == 0])
+    spots = {g["name"]: [i["translation"] for i in g["instances"]] for g in json.load(open(instances))["groups"]}
+    rng = random.Random(7)
+    graph, next_id = [], 0
+    for name, (file, keep, scale, where) in OBJECTS.items():
+        props, arr = read(f"{splats}/{file}")
+        if keep:
+            opacity = 1.0 / (1.0 + np.exp(-arr[:, props["opacity"]]))
+            volume = np.exp(arr[:, props["scale_0"]] + arr[:, props["scale_1"]] + arr[:, props["scale_2"]])
+            arr = arr[np.argsort(-opacity * volume ** (2.0 / 3.0))[:keep]]
+        write_degree3(f"{out}/{name}.ply", props, arr)
+        # The sources' up is -y, their base at the 98th percentile of y: the base's centre goes
+        # onto the spot, up onto +z.
+        xyz = arr[:, [props["x"], props["y"], props["z"]]]
+        lo, hi = np.percentile(xyz, 2, axis=0), np.percentile(xyz, 98, axis=0)
+        base = np.array([(lo[0] + hi[0]) / 2, hi[1], (lo[2] + hi[2]) / 2])
+        up = np.array([[1.0, 0, 0], [0, 0, 1], [0, -1, 0]])
+        group = {"template_id": name, "instances": []}
+        for spot in spots[where]:
+            next_id += 1
+            yaw, s = rng.uniform(0.0, 2.0 * math.pi), scale * rng.uniform(0.96, 1.05)
+            turn = np.array([[math.cos(yaw), -math.sin(yaw), 0], [math.sin(yaw), math.cos(yaw), 0], [0, 0, 1]])
+            m = np.eye(4)
+            m[:3, :3] = s * turn @ up
+            m[:3, 3] = np.array([spot[0], spot[1], 0.0]) - m[:3, :3] @ base
+            group["instances"].append({"instance_id": str(next_id), "transform": np.linalg.inv(m).tolist()})
+        graph.append(group)
+    json.dump(graph, open(f"{out}/scene_graph.json", "w"), indent=1)
+
+
+if __name__ == "__main__":
+    main()
