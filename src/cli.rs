@@ -372,7 +372,7 @@ pub(crate) struct InstanceArgs {
     /// Acceptance: scale within this relative distance of the clouds' size ratio.
     #[arg(long, allow_negative_numbers = true, value_parser = non_negative_f64, default_value_t = instgs_vk::instancing::options::Acceptance::default().scale_tolerance)]
     pub(crate) scale_tolerance: f64,
-    /// Acceptance: the render check's median silhouette IoU at least this.
+    /// Acceptance: the render check's silhouette IoU with the masks at least this share of the instance's own silhouette's (median over views).
     #[arg(long, allow_negative_numbers = true, value_parser = unit_f64, default_value_t = instgs_vk::instancing::options::Acceptance::default().min_render_iou)]
     pub(crate) min_render_iou: f64,
     /// Acceptance: the render check's PSNR (dB) at least this.

@@ -265,6 +265,8 @@ fn a_cropped_render_check_scores_as_the_whole_images_do() {
             let got = check.score(&two, &one, 1, &x).unwrap().expect("visible");
             assert_eq!(got.views, expected.views);
             assert!((got.iou - expected.iou).abs() < 1e-3, "IoU {} cropped, {} whole", got.iou, expected.iou);
+            assert!((got.own_iou - expected.own_iou).abs() < 1e-3, "{got:?} {expected:?}");
+            assert!((got.relative_iou - expected.relative_iou).abs() < 1e-3, "{got:?} {expected:?}");
             assert!((got.psnr - expected.psnr).abs() < 0.01, "PSNR {} cropped, {} whole", got.psnr, expected.psnr);
             assert!((got.pose_psnr - expected.pose_psnr).abs() < 0.01, "{got:?} {expected:?}");
         }

@@ -181,9 +181,14 @@ fn report_rows(
         );
         if let Some(s) = &r.render {
             row["render_iou"] = s.iou.into();
+            row["render_own_iou"] = s.own_iou.into();
+            row["render_relative_iou"] = s.relative_iou.into();
             row["render_psnr"] = s.psnr.into();
             row["render_views"] = s.views.into();
-            line += &format!(", render IoU {:.2} PSNR {:.1} dB ({} views)", s.iou, s.psnr, s.views);
+            line += &format!(
+                ", render IoU {:.2} ({:.2} of its own {:.2}) PSNR {:.1} dB ({} views)",
+                s.iou, s.relative_iou, s.own_iou, s.psnr, s.views
+            );
         }
         if let Some(s) = &r.synchronised {
             row["synchronised_moved_deg"] = s.moved_deg.into();

@@ -136,7 +136,9 @@ pub struct Acceptance {
     pub min_fitness: f64,
     /// The pose's scale within this relative distance of the two clouds' size ratio.
     pub scale_tolerance: f64,
-    /// Render check ([`RenderCheck`](crate::instancing::pose::RenderCheck)): median silhouette IoU at least this.
+    /// Render check ([`RenderCheck`](crate::instancing::pose::RenderCheck)): the placed silhouette's IoU with the
+    /// mask at least this share of the instance's own silhouette's (median over views,
+    /// [`RenderScore::relative_iou`](crate::instancing::pose::RenderScore::relative_iou)).
     pub min_render_iou: f64,
     /// Render check: PSNR (dB, after a non-negative colour mix for the instance's tint) at least
     /// this.

@@ -291,7 +291,10 @@ fn pose_line(report: &InstanceReport, scale: f64) -> String {
         report.check.fitness,
         report.check.fitness_reverse,
         scale,
-        report.render.map(|s| format!(", render IoU {:.2} PSNR {:.1} dB", s.iou, s.psnr)).unwrap_or_default(),
+        report
+            .render
+            .map(|s| format!(", render IoU {:.2} ({:.2} of its own) PSNR {:.1} dB", s.iou, s.relative_iou, s.psnr))
+            .unwrap_or_default(),
         report.tried,
         if report.refined > 1 { format!(", {} distinct ones refined", report.refined) } else { String::new() },
         if report.shape_ambiguous { "; shape ambiguous" } else { "" }

@@ -30,7 +30,7 @@ use nalgebra::{DMatrix, DVector};
 
 use crate::gpu::kernels::Kernels;
 use crate::gpu::Gpu;
-use crate::instancing::pose::{sim3_to_similarity, Detail, RenderCheck, RenderScore, SEARCH_VIEWS};
+use crate::instancing::pose::{sim3_to_similarity, Detail, RenderCheck, RenderScore, MIN_OWN_IOU, SEARCH_VIEWS};
 use crate::model::camera::Camera;
 use crate::model::instanced::transform_gaussians;
 use crate::model::scene::Scene;
@@ -269,17 +269,19 @@ pub struct Compared<'a> {
 
 /// Scores a pose over the compared views. IoU: the placed reference's silhouette against the
 /// mask's pixels of `id` (pixels of other instances — occluders — left out), or against the
-/// instance's own silhouette without masks; the median over views. PSNR: the placed
+/// instance's own silhouette without masks; the median over views; the instance's own
+/// silhouette's IoU with the mask, and the placed one's relative to it, the same way. PSNR: the placed
 /// reference's colours mapped by the least-squares non-negative mix of its channels that best
 /// matches (a tint changes the diffuse colour, not the white highlights) against the instance's
 /// own, over the pixels either silhouette covers (so a slightly turned or shifted pose costs
 /// PSNR along the outline); the same after a gain per channel alone for choosing and refining
 /// poses (`pose_psnr`).
 pub fn compare(views: &[Compared], id: u32) -> RenderScore {
-    let mut ious = Vec::new();
+    let (mut ious, mut own_ious, mut relative) = (Vec::new(), Vec::new(), Vec::new());
     let mut fit = ColourMap::default();
     for v in views {
         let (mut inter, mut union) = (0usize, v.truth_outside);
+        let (mut own_inter, mut own_union) = (0usize, v.truth_outside);
         for (i, (p, q)) in v.own.iter().zip(v.placed).enumerate() {
             let (s, t) = (silhouette(p), silhouette(q));
             if s || t {
@@ -292,8 +294,14 @@ pub fn compare(views: &[Compared], id: u32) -> RenderScore {
             };
             inter += (truth && t) as usize;
             union += (truth || t) as usize;
+            own_inter += (truth && s) as usize;
+            own_union += (truth || s) as usize;
         }
-        ious.push(if union > 0 { inter as f64 / union as f64 } else { 0.0 });
+        let iou = if union > 0 { inter as f64 / union as f64 } else { 0.0 };
+        let own = if own_union > 0 { own_inter as f64 / own_union as f64 } else { 0.0 };
+        ious.push(iou);
+        own_ious.push(own);
+        relative.push(iou / own.max(MIN_OWN_IOU));
     }
     let db = |mse: Option<f64>| match mse {
         None => 0.0,
@@ -303,6 +311,8 @@ pub fn compare(views: &[Compared], id: u32) -> RenderScore {
     RenderScore {
         views: views.len(),
         iou: crate::math::median(&ious),
+        own_iou: crate::math::median(&own_ious),
+        relative_iou: crate::math::median(&relative),
         psnr: db(fit.mse()),
         pose_psnr: db(fit.gain_mse()),
     }
@@ -391,6 +401,7 @@ impl ColourMap {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::instancing::options::Acceptance;
 
     /// A shaded, highlighted object tinted two ways: diffuse d·tint plus a white highlight h.
     fn tinted(tint: [f32; 3], n: usize) -> Vec<Pixel> {
@@ -419,6 +430,38 @@ mod tests {
             let (mix_psnr, gain_psnr) = (score.psnr, score.pose_psnr);
             assert!(mix_psnr > at_least && mix_psnr > gain_psnr + 10.0, "mix {mix_psnr} dB, gain {gain_psnr} dB");
         }
+    }
+
+    #[test]
+    fn a_silhouette_is_judged_against_what_the_instance_itself_reaches() {
+        // A 10 × 10 view: the instance's own silhouette covers rows 0–5, its mask rows 0–7
+        // (a semi-transparent base its Gaussians render under alpha 0.5): own IoU 0.75.
+        let rows = |r: usize| -> Vec<Pixel> {
+            (0..100).map(|i| [0.5, 0.5, 0.5, if i < 10 * r { 0.0 } else { 1.0 }]).collect()
+        };
+        let (own, mask): (Vec<Pixel>, Vec<u16>) = (rows(6), (0..100).map(|i| (i < 80) as u16).collect());
+        let at = |placed: &[Pixel], mask: Option<&[u16]>| {
+            compare(&[Compared { own: &own, placed, mask, truth_outside: 0 }], 1)
+        };
+        // The same silhouette placed: IoU 0.75, all the instance itself reaches.
+        let s = at(&own, Some(&mask));
+        assert!((s.iou - 0.75).abs() < 1e-12 && (s.own_iou - 0.75).abs() < 1e-12, "{s:?}");
+        assert!((s.relative_iou - 1.0).abs() < 1e-12, "{s:?}");
+        assert!(s
+            .failure(&Acceptance { min_render_psnr: 0.0, min_render_views: 1, ..Acceptance::default() })
+            .is_none());
+        // Rows 0–3 only: IoU 0.5, two thirds of the own: refused.
+        let s = at(&rows(4), Some(&mask));
+        assert!((s.relative_iou - 0.5 / 0.75).abs() < 1e-12, "{s:?}");
+        let why = s.failure(&Acceptance { min_render_psnr: 0.0, min_render_views: 1, ..Acceptance::default() });
+        assert!(why.is_some_and(|w| w.contains("render IoU 0.50, 0.67 of the instance's own 0.75")));
+        // Without masks the own silhouette is the truth: own IoU 1.
+        let s = at(&rows(4), None);
+        assert!((s.own_iou - 1.0).abs() < 1e-12 && (s.relative_iou - s.iou).abs() < 1e-12, "{s:?}");
+        // An own silhouette that misses its mask counts as MIN_OWN_IOU.
+        let s = at(&rows(6), Some(&(0..100).map(|i| (i >= 90) as u16).collect::<Vec<_>>()));
+        assert_eq!(s.own_iou, 0.0);
+        assert_eq!(s.relative_iou, s.iou / MIN_OWN_IOU);
     }
 
     #[test]

@@ -287,7 +287,7 @@ fn registration_section(md: &mut String, run: &Path) {
             100.0 * limit("scale_tolerance"),
             if s["render_check"].as_bool() == Some(true) {
                 format!(
-                    ", and the render check: silhouette IoU ≥ {} and PSNR ≥ {} dB against the instance's own render",
+                    ", and the render check: silhouette IoU with the masks ≥ {} of the instance's own silhouette's (*render IoU* gives the IoU, then that share) and PSNR ≥ {} dB against the instance's own render",
                     limit("min_render_iou"),
                     limit("min_render_psnr")
                 )
@@ -317,7 +317,7 @@ fn registration_section(md: &mut String, run: &Path) {
             let borderline = status == "accepted"
                 && (near("fitness", "min_fitness", 0.05)
                     || near("fitness_reverse", "min_fitness", 0.05)
-                    || near("render_iou", "min_render_iou", 0.05)
+                    || near("render_relative_iou", "min_render_iou", 0.05)
                     || near("render_psnr", "min_render_psnr", 1.0));
             let shown = match status {
                 "refused" | "plain" => format!("**{status}**"),
@@ -336,7 +336,10 @@ fn registration_section(md: &mut String, run: &Path) {
                 f(r, "fitness", 1.0, 3),
                 f(r, "fitness_reverse", 1.0, 3),
                 f(r, "scale", 1.0, 4),
-                f(r, "render_iou", 1.0, 3),
+                match (num(r, "render_iou"), num(r, "render_relative_iou")) {
+                    (Some(iou), Some(share)) => format!("{iou:.3} ({share:.2})"),
+                    _ => f(r, "render_iou", 1.0, 3),
+                },
                 f(r, "render_psnr", 1.0, 1),
                 f(r, "synchronised_moved_deg", 1.0, 2),
                 f(r, "rotation_error_deg", 1.0, 2),

@@ -7,7 +7,7 @@ fn turn_z(deg: f64) -> Sim3 {
 }
 
 fn score(pose_psnr: f64) -> RenderScore {
-    RenderScore { views: 12, iou: 1.0, psnr: pose_psnr, pose_psnr }
+    RenderScore { views: 12, iou: 1.0, own_iou: 1.0, relative_iou: 1.0, psnr: pose_psnr, pose_psnr }
 }
 
 /// A symmetric object's render check: peaks of `peaks[i]` dB at turns of `modes[i]`° about
