@@ -61,7 +61,7 @@ def write_degree3(path, props, arr):
 
 def main():
     if len(sys.argv) != 6:
-        sys.exit(__doc__.strip().splitlines()[-4])
+        sys.exit("\n".join(__doc__.strip().splitlines()[-3:]))
     plain, labels, instances, splats, out = sys.argv[1:]
     props, arr = read(plain)
     lab = np.array(json.load(open(labels))["labels"])

@@ -200,9 +200,9 @@ impl RenderScore {
     }
 }
 
-/// The instance's own silhouette IoU with its masks that [`RenderScore::relative_iou`] divides
-/// by at least: below it the masks hardly describe the instance, and the placed reference must
-/// reach half of [`Acceptance::min_render_iou`]'s share of a perfect IoU.
+/// The least own IoU [`RenderScore::relative_iou`] divides by: where the instance's own
+/// silhouette agrees with its masks less than this, the masks hardly describe it, and the placed
+/// reference must still reach an IoU of [`Acceptance::min_render_iou`] × this.
 pub const MIN_OWN_IOU: f64 = 0.5;
 
 /// Renders a pose check ([`crate::instancing::verify::ImageCheck`] on the GPU; tests may bring their own).
