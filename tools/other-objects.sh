@@ -6,7 +6,7 @@
 # (tools/instance_dataset.rs), in cafe40's layout; then train it as cafe40:
 #   instgs-vk train --data OUT/data --out RUN --config configs/lavapipe-walkthrough.toml
 # usage: bash tools/other-objects.sh CAFE40_RUN OUT   (CAFE40_RUN: a finished `train` run on
-#        ../shared/data/scenes/cafe40, for its plain scene and labels; about 25 minutes here)
+#        ../shared/data/scenes/cafe40, for its plain scene and labels; 17 minutes here)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 [[ $# -eq 2 ]] || { echo "usage: bash tools/other-objects.sh CAFE40_RUN OUT" >&2; exit 2; }
