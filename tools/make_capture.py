@@ -153,7 +153,9 @@ def write_truth(scene_dir, outs, rec, record, global_masks):
         size = float(np.linalg.norm(np.subtract(*g["canonical_bbox"][::-1])))
         for i in g["instances"]:
             x = np.array(i["object_to_world"])
-            centre, placement = np.append(i["center_world"], 1.0), np.append(i["translation"], 1.0)
+            # Points of the object in the scene's world: its centre, and where it stands (the
+            # shared scenes' "translation"; a scene may leave it out).
+            points = {k: np.append(i[k], 1.0) for k in ("center_world", "translation") if k in i}
             seen = [(m, int(px[i["id"]])) for m, px in through if i["id"] < len(px) and px[i["id"]] >= MIN_VIEW_PIXELS]
             if seen:
                 ms, ws = [m for m, _ in seen], np.array([w for _, w in seen], float)
@@ -162,14 +164,14 @@ def write_truth(scene_dir, outs, rec, record, global_masks):
                 o2w = np.eye(4)
                 o2w[:3, :3] = linear * chordal_mean([p[:3, :3] / linear for p in placed], ws)
                 o2w[:3, 3] = sum(w * p[:3, 3] for w, p in zip(ws, placed)) / ws.sum()
-                c, p = (sum(w * (m @ v)[:3] for w, m in zip(ws, ms)) / ws.sum() for v in (centre, placement))
+                placed_points = {k: sum(w * (m @ v)[:3] for w, m in zip(ws, ms)) / ws.sum() for k, v in points.items()}
             else:  # no photo shows it: the one similarity
-                o2w, c, p = inv @ x, (inv @ centre)[:3], (inv @ placement)[:3]
-            one = (inv @ centre)[:3]
-            moved.append(float(np.linalg.norm(c - one) * s / (size * i.get("scale", 1.0))))
+                o2w, placed_points = inv @ x, {k: (inv @ v)[:3] for k, v in points.items()}
+            one = (inv @ points["center_world"])[:3]
+            moved.append(float(np.linalg.norm(placed_points["center_world"] - one) * s / (size * i.get("scale", 1.0))))
             i["object_to_world"] = o2w.tolist()
-            i["center_world"] = c.tolist()
-            i["translation"] = p.tolist()
+            for k, v in placed_points.items():
+                i[k] = v.tolist()
             i["scale"] = i.get("scale", 1.0) / s
             i["views"] = len(seen)
     gt["frame"] = ("COLMAP's (sparse/0): each object through the cameras that see it, at the scale "
