@@ -194,6 +194,9 @@ def main():
     if a.truth_only:
         if a.clean:
             sys.exit("--truth-only writes one capture's truth; run it on the --clean folder too")
+        for need in ("capture.json", os.path.join("sparse", "0")):
+            if not os.path.exists(os.path.join(a.out, need)):
+                sys.exit(f"{a.out}: no {need}; --truth-only needs a capture this script made")
         record = json.load(open(os.path.join(a.out, "capture.json")))
         write_truth(a.scene, [a.out], pycolmap.Reconstruction(os.path.join(a.out, "sparse", "0")), record, a.global_masks)
         json.dump(record, open(os.path.join(a.out, "capture.json"), "w"), indent=1)
