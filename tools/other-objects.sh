@@ -12,9 +12,9 @@ cd "$(dirname "$0")/.."
 [[ $# -eq 2 ]] || { echo "usage: bash tools/other-objects.sh CAFE40_RUN OUT" >&2; exit 2; }
 run=$1 out=$2 cafe40=../shared/data/scenes/cafe40
 venv=out/capture-venv
-if [ ! -x "$venv/bin/python" ] || ! "$venv/bin/python" -c "import numpy" 2>/dev/null; then
+if [ ! -x "$venv/bin/python" ] || ! "$venv/bin/python" -c "import numpy, plyfile" 2>/dev/null; then
     python3 -m venv "$venv"
-    "$venv/bin/pip" install --quiet numpy==2.4.6 >&2
+    "$venv/bin/pip" install --quiet numpy==2.4.6 plyfile==1.1.5 >&2
 fi
 cargo build --release --quiet --bin instgs-vk --example instance_dataset
 bin=./target/release/instgs-vk

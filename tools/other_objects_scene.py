@@ -21,6 +21,7 @@ import random
 import sys
 
 import numpy as np
+from plyfile import PlyData, PlyParseError
 
 NAMES = ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"] + [f"f_rest_{i}" for i in range(45)] + [
     "opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
@@ -33,14 +34,15 @@ OBJECTS = {
 
 
 def read(path):
-    data = open(path, "rb").read()
-    end = data.index(b"end_header\n") + len(b"end_header\n")
-    lines = data[:end].decode().splitlines()
-    props = [l.split()[2] for l in lines if l.startswith("property")]
-    if any(l.startswith("property") and l.split()[1] != "float" for l in lines):
+    """The vertex element's properties (all float32, as the Inria layout's) by name, and rows."""
+    try:
+        vertex = PlyData.read(path)["vertex"]
+    except (OSError, KeyError, PlyParseError) as e:
+        sys.exit(f"{path}: not a PLY with a vertex element ({e})")
+    props = [p.name for p in vertex.properties]
+    if any(vertex.data.dtype[p] != np.dtype("<f4") and vertex.data.dtype[p] != np.dtype(">f4") for p in props):
         sys.exit(f"{path}: only float properties are read here")
-    n = int(next(l for l in lines if l.startswith("element vertex")).split()[2])
-    arr = np.frombuffer(data[end:], dtype="<f4", count=n * len(props)).reshape(n, len(props))
+    arr = np.stack([vertex.data[p].astype("<f4") for p in props], axis=1)
     return {p: i for i, p in enumerate(props)}, arr
 
 
