@@ -130,6 +130,15 @@ fn camera_models_and_distortion() {
     assert_eq!(cams[0].lens, Lens::Fisheye { k: [0.0, 0.02, 0.0, 0.0] });
     let e = load(file(r#", "camera_model": "EQUIRECTANGULAR""#, &[frame("", eye)])).unwrap_err().to_string();
     assert!(e.contains("t.json") && e.contains("frame 0") && e.contains("EQUIRECTANGULAR"), "{e}");
+    // Intrinsics: a frame's keys over the file's, the file's (or the image centre) elsewhere.
+    let cams = load(file(
+        r#", "cy": 20"#,
+        &[frame("", eye), frame(r#", "fl_x": 60, "fl_y": 61, "cx": 30, "w": 80, "h": 40"#, eye)],
+    ))
+    .unwrap();
+    let k = |c: &instgs_vk::model::camera::Camera| (c.fx, c.fy, c.cx, c.cy, c.width, c.height);
+    assert_eq!(k(&cams[0]), (50.0, 50.0, 32.0, 20.0, 64, 48));
+    assert_eq!(k(&cams[1]), (60.0, 61.0, 30.0, 20.0, 80, 40));
     // Camera-to-world matrices: a reflection, a shear, a bad last row are refused; a uniform
     // scale is taken out.
     for (m, needle) in [

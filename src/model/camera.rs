@@ -161,16 +161,38 @@ impl Camera {
 #[derive(serde::Deserialize)]
 struct TransformsFile {
     camera_angle_x: Option<f32>,
+    #[serde(flatten)]
+    intrinsics: IntrinsicKeys,
+    #[serde(flatten)]
+    lens: LensKeys,
+    #[serde(default)]
+    frames: Vec<Frame>,
+}
+
+/// The intrinsics keys (top level, or per frame overriding them): focal lengths and principal
+/// point in pixels, image size.
+#[derive(serde::Deserialize, Default, Clone, Copy)]
+struct IntrinsicKeys {
     fl_x: Option<f32>,
     fl_y: Option<f32>,
     cx: Option<f32>,
     cy: Option<f32>,
     w: Option<f32>,
     h: Option<f32>,
-    #[serde(flatten)]
-    lens: LensKeys,
-    #[serde(default)]
-    frames: Vec<Frame>,
+}
+
+impl IntrinsicKeys {
+    /// These keys with `frame`'s where it has them.
+    fn over(&self, frame: &IntrinsicKeys) -> IntrinsicKeys {
+        IntrinsicKeys {
+            fl_x: frame.fl_x.or(self.fl_x),
+            fl_y: frame.fl_y.or(self.fl_y),
+            cx: frame.cx.or(self.cx),
+            cy: frame.cy.or(self.cy),
+            w: frame.w.or(self.w),
+            h: frame.h.or(self.h),
+        }
+    }
 }
 
 /// nerfstudio's lens keys (top level, or per frame overriding them).
@@ -225,12 +247,8 @@ impl LensKeys {
 struct Frame {
     file_path: String,
     transform_matrix: [[f32; 4]; 4],
-    fl_x: Option<f32>,
-    fl_y: Option<f32>,
-    cx: Option<f32>,
-    cy: Option<f32>,
-    w: Option<f32>,
-    h: Option<f32>,
+    #[serde(flatten)]
+    intrinsics: IntrinsicKeys,
     #[serde(flatten)]
     lens: LensKeys,
 }
@@ -295,7 +313,8 @@ pub fn transforms_from_str(text: &str, dir: &Path, what: &str) -> Result<Vec<(Ca
     if tf.frames.is_empty() {
         bail!("{what}: no frames");
     }
-    let (w, h) = match (tf.w.or(tf.frames[0].w), tf.h.or(tf.frames[0].h)) {
+    let (top, first) = (&tf.intrinsics, &tf.frames[0].intrinsics);
+    let (w, h) = match (top.w.or(first.w), top.h.or(first.h)) {
         (Some(w), Some(h)) => (w, h),
         _ => {
             // The one image this reader opens: confined to the file's folder.
@@ -312,7 +331,8 @@ pub fn transforms_from_str(text: &str, dir: &Path, what: &str) -> Result<Vec<(Ca
     let mut cams = Vec::new();
     let mut scaled = false;
     for (k, f) in tf.frames.iter().enumerate() {
-        let (w, h) = (f.w.unwrap_or(w), f.h.unwrap_or(h));
+        let i = tf.intrinsics.over(&f.intrinsics);
+        let (w, h) = (i.w.unwrap_or(w), i.h.unwrap_or(h));
         if !(w >= 1.0 && h >= 1.0) {
             bail!("{what}: frame {k}: image size {w}x{h} is empty");
         }
@@ -321,14 +341,14 @@ pub fn transforms_from_str(text: &str, dir: &Path, what: &str) -> Result<Vec<(Ca
                 bail!("{what}: frame {k}: {key} {v} is not an image side (a whole number of pixels, at most {MAX_IMAGE_SIDE})");
             }
         }
-        let fx = match (f.fl_x.or(tf.fl_x), tf.camera_angle_x) {
+        let fx = match (i.fl_x, tf.camera_angle_x) {
             (Some(f), _) => f,
             (None, Some(a)) if a > 0.0 && a < std::f32::consts::PI => 0.5 * w / (0.5 * a).tan(),
             (None, Some(a)) => bail!("{what}: camera_angle_x {a} is not a field of view in (0, π) radians"),
             (None, None) => bail!("{what}: neither fl_x nor camera_angle_x is given"),
         };
-        let fy = f.fl_y.or(tf.fl_y).unwrap_or(fx);
-        let intr = [fx, fy, f.cx.or(tf.cx).unwrap_or(0.5 * w), f.cy.or(tf.cy).unwrap_or(0.5 * h)];
+        let fy = i.fl_y.unwrap_or(fx);
+        let intr = [fx, fy, i.cx.unwrap_or(0.5 * w), i.cy.unwrap_or(0.5 * h)];
         // transform_matrix is row-major.
         let frame = format!("{what}: frame {k} ({})", f.file_path);
         let c2w = rigid_c2w(Mat4::from_cols_array_2d(&f.transform_matrix).transpose(), &frame, &mut scaled)?;
