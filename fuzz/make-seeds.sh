@@ -19,6 +19,9 @@ python3 tools/fuzz_seeds.py ascii-scene "$seeds/ply_parse/tiny_ascii.ply"
 "$bin" convert "$tmp/tiny.ply" "$seeds/gltf_parse/tiny.glb" 2>/dev/null
 "$bin" convert "$tmp/tiny.ply" "$seeds/gltf_parse/tiny.gltf" 2>/dev/null
 "$bin" convert "$seeds/instgs_parse/f32.instgs" "$seeds/gltf_parse/instanced.glb" 2>/dev/null
+# Quantised (KHR_mesh_quantization: 16-bit positions dequantised by the node, snorm16 rotations).
+"$bin" convert "$tmp/tiny.ply" "$seeds/gltf_parse/tiny-quantized.glb" --quantize 2>/dev/null
+"$bin" convert "$seeds/instgs_parse/f32.instgs" "$seeds/gltf_parse/instanced-quantized.glb" --quantize 2>/dev/null
 "$bin" convert "$tmp/tiny.ply" "$tmp/sog/meta.json" 2>/dev/null
 python3 tools/fuzz_seeds.py sog "$tmp/sog/meta.json" "$seeds/sog_parse/tiny.sog-fuzz"
 # The *_files targets read from a folder (fuzz/inputs.rs): its real files go to fuzz/files/, the
