@@ -7,7 +7,7 @@ use anyhow::{anyhow, Result};
 
 /// Every target: (name, what it reads).
 #[allow(dead_code)] // read by tests/fuzz_inputs.rs, not by the targets
-pub const TARGETS: [(&str, &str); 15] = [
+pub const TARGETS: [(&str, &str); 16] = [
     ("instgs_parse", ".instgs scene"),
     ("ply_parse", "3DGS PLY, plain and SuperSplat compressed"),
     ("points_ply", "a dataset's points3d.ply"),
@@ -23,6 +23,7 @@ pub const TARGETS: [(&str, &str); 15] = [
     ("config_toml", "training, instanced, pipeline and render configurations"),
     ("checkpoint_parse", "training checkpoint"),
     ("mask_png", "instance mask PNG"),
+    ("convert_any", "a 3DGS PLY that reads, written to every format `convert` writes and read back"),
 ];
 
 pub fn run(target: &str, data: &[u8]) -> Result<()> {
@@ -41,6 +42,16 @@ pub fn run(target: &str, data: &[u8]) -> Result<()> {
             // What parses writes back and reads again to the same scene.
             let bytes = formats::instgs::to_bytes(&scene, formats::instgs::Dtype::F32);
             assert_eq!(formats::instgs::from_bytes(&bytes, what).unwrap(), scene);
+            // The compressed writer (`convert --compress`, the player's save of a compressed
+            // scene) on any scene that reads: what it writes reads back, with the same structure.
+            if let Ok(packed) = formats::instgs::to_bytes_stored(&scene, formats::instgs::Storage::COMPRESSED) {
+                let back = formats::instgs::from_bytes(&packed, what).expect("a compressed scene reads back");
+                let shape = |s: &model::instanced::InstancedScene| {
+                    let groups: Vec<_> = s.groups.iter().map(|g| (g.template.len(), g.instances.len())).collect();
+                    (s.sh_degree, s.background.len(), groups)
+                };
+                assert_eq!(shape(&back), shape(&scene));
+            }
         }
         "ply_parse" => formats::ply::from_bytes(data, what)?.validate(what).expect("the reader validates"),
         "points_ply" => {
@@ -142,6 +153,33 @@ pub fn run(target: &str, data: &[u8]) -> Result<()> {
             state.scene.validate(what).expect("the reader validates");
         }
         "mask_png" => assert_eq!(dataset::masks::mask_from_bytes(data, what, 4, 4)?.len(), 16),
+        "convert_any" => {
+            // What reads converts: a writer may refuse a scene it cannot hold (a position past
+            // .spz's fixed point), leaving no file; what it writes reads back, every Gaussian.
+            let scene = formats::ply::from_bytes(data, what)?;
+            scene.validate(what).expect("the reader validates");
+            let stem = folder().join(format!("{}-convert", thread_name()));
+            std::fs::create_dir_all(stem.join("sog")).unwrap();
+            let outputs = ["s.ply", "s.compressed.ply", "s.spz", "s.sog", "s.glb", "s.gltf", "s.splat", "q.glb"];
+            for name in outputs.iter().copied().chain(["sog/meta.json"]) {
+                let out = stem.join(name);
+                let _ = std::fs::remove_file(&out);
+                let written = if name == "q.glb" {
+                    formats::gltf::write_gltf(&scene, &out, formats::gltf::Accessors::Quantized)
+                } else {
+                    formats::write_scene(&scene, &out)
+                };
+                match written {
+                    Ok(()) => {
+                        let back =
+                            formats::read_scene(&out).unwrap_or_else(|e| panic!("{name} written, not read: {e:#}"));
+                        assert_eq!(back.len(), scene.len(), "{name}");
+                    }
+                    Err(_) if name != "sog/meta.json" => assert!(!out.exists(), "{name}: refused, a file left"),
+                    Err(_) => {}
+                }
+            }
+        }
         other => panic!("no fuzz target {other}"),
     }
     Ok(())
@@ -189,10 +227,14 @@ fn folder() -> &'static std::path::Path {
     })
 }
 
+/// This thread's name for its files in [`folder`].
+fn thread_name() -> String {
+    format!("{:?}", std::thread::current().id()).replace(|c: char| !c.is_ascii_alphanumeric(), "")
+}
+
 /// Writes `data` as the file `name` (one per thread) in [`folder`] and returns its path.
 fn in_folder(name: &str, data: &[u8]) -> Result<std::path::PathBuf> {
-    let thread = format!("{:?}", std::thread::current().id()).replace(|c: char| !c.is_ascii_alphanumeric(), "");
-    let path = folder().join(format!("{thread}-{name}"));
+    let path = folder().join(format!("{}-{name}", thread_name()));
     std::fs::write(&path, data)?;
     Ok(path)
 }

@@ -14,6 +14,9 @@ python3 tools/fuzz_seeds.py scene "$tmp/tiny.ply"
 cp "$tmp/tiny.ply" "$seeds/ply_parse/tiny.ply"
 python3 tools/fuzz_seeds.py ascii-scene "$seeds/ply_parse/tiny_ascii.ply"
 "$bin" convert "$tmp/tiny.ply" "$seeds/ply_parse/tiny.compressed.ply" 2>/dev/null
+# convert_any reads the PLY seeds and writes every format.
+mkdir -p "$seeds/convert_any"
+cp "$seeds"/ply_parse/*.ply "$seeds/convert_any/"
 "$bin" convert "$tmp/tiny.ply" "$seeds/spz_parse/tiny.spz" 2>/dev/null
 "$bin" convert "$tmp/tiny.ply" "$seeds/splat_parse/tiny.splat" 2>/dev/null
 "$bin" convert "$tmp/tiny.ply" "$seeds/gltf_parse/tiny.glb" 2>/dev/null

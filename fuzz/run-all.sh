@@ -13,7 +13,7 @@ shift || true
 targets=("$@")
 if [ ${#targets[@]} -eq 0 ]; then
     targets=(instgs_parse ply_parse points_ply spz_parse splat_parse sog_parse sog_bundle gltf_parse gltf_files sog_files colmap_parse json_inputs
-             config_toml checkpoint_parse mask_png)
+             config_toml checkpoint_parse mask_png convert_any)
 fi
 cargo +nightly fuzz build -O
 for t in "${targets[@]}"; do

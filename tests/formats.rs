@@ -727,6 +727,18 @@ fn quantised_gltf_round_trips_within_16_bits_and_is_smaller() {
     eprintln!("an instanced scene through a quantised .glb: {db:.1} dB (read plainly {plain_db:.1} dB), {ratio:.3}x");
     assert!(db >= 45.0 && plain_db >= 45.0, "{db:.1} / {plain_db:.1} dB");
     assert!(ratio < 1.0, "{ratio}");
+    // Positions spanning more than a node's scale may hold (1e-6..1e6, as the readers check
+    // every node): refused in one line naming the file, none written; floats still write
+    // (found by the convert_any fuzz target, 2026-11-28).
+    let mut far = source.clone();
+    far.means[0] = [3e7, 0.0, 0.0];
+    let out = tmp("far-quantised.glb");
+    let e = formats::gltf::write_gltf(&far, &out, Accessors::Quantized).unwrap_err();
+    let e = format!("{e:#}");
+    assert!(e.contains("far-quantised.glb") && e.contains("without --quantize") && !e.contains('\n'), "{e}");
+    assert!(!out.exists());
+    formats::gltf::write_gltf(&far, &tmp("far-float.glb"), Accessors::Float).unwrap();
+    assert_eq!(formats::read_scene(&tmp("far-float.glb")).unwrap().len(), far.len());
 }
 
 #[test]

@@ -1,7 +1,7 @@
 //! Writing glTF: plain scenes (one splat primitive) and instanced scenes (templates shared).
 use std::path::Path;
 
-use anyhow::{anyhow, bail, Result};
+use anyhow::{anyhow, bail, Context, Result};
 use serde_json::{json, Map, Value};
 
 use super::{
@@ -147,18 +147,28 @@ fn primitive(b: &mut Builder, s: &Scene, shared: &Shared, d: Option<&Dequantise>
 }
 
 /// A whole plain scene's primitive (in our frame; turned here) and its node (a dequantising
-/// translation and scale with quantised positions).
-fn plain_primitive(b: &mut Builder, scene: &Scene, accessors: Accessors) -> (Value, Map<String, Value>) {
+/// translation and scale with quantised positions; refused where that node's scale is past what
+/// the readers take of a node, as an instance's node is).
+fn plain_primitive(b: &mut Builder, scene: &Scene, accessors: Accessors) -> Result<(Value, Map<String, Value>)> {
     let mut s = scene.clone();
     half_turn_z(&mut s);
     let d = (accessors == Accessors::Quantized).then(|| Dequantise::of(&s.means));
+    if let Some(d) = &d {
+        if Similarity::from_mat4(d.mat4(), "").is_err() {
+            bail!(
+                "quantised positions: their node's scale (half the positions' largest side, {:e}) is outside 1e-6..1e6, \
+                 which no reader of ours takes; write float positions (without --quantize)",
+                d.scale
+            );
+        }
+    }
     let shared = shared_accessors(b, &s, d.as_ref());
     let mut node = Map::new();
     if let Some(d) = &d {
         node.insert("translation".into(), json!(d.translation));
         node.insert("scale".into(), json!([d.scale, d.scale, d.scale]));
     }
-    (primitive(b, &s, &shared, d.as_ref()), node)
+    Ok((primitive(b, &s, &shared, d.as_ref()), node))
 }
 
 /// The document around `nodes` (all roots of scene 0) and `meshes`.
@@ -214,7 +224,7 @@ pub(super) fn glb_bytes(doc: &Value, bin: Vec<u8>, what: &str) -> Result<Vec<u8>
 pub fn write_gltf(scene: &Scene, out: &Path, accessors: Accessors) -> Result<()> {
     scene.validate(&out.display().to_string())?;
     let mut b = Builder::default();
-    let (prim, mut node) = plain_primitive(&mut b, scene, accessors);
+    let (prim, mut node) = plain_primitive(&mut b, scene, accessors).with_context(|| out.display().to_string())?;
     node.insert("mesh".into(), json!(0));
     let doc = document(&b, vec![Value::Object(node)], vec![json!({"primitives": [prim]})], None, accessors);
     write_document(doc, b.bin, out)
@@ -229,7 +239,8 @@ pub fn write_instanced_gltf(scene: &InstancedScene, out: &Path, accessors: Acces
     let (mut nodes, mut meshes) = (Vec::new(), Vec::new());
     let mut extras = InstgsExtras { version: EXTRAS_VERSION, background: Vec::new(), groups: Vec::new() };
     if !scene.background.is_empty() {
-        let (prim, mut node) = plain_primitive(&mut b, &scene.background, accessors);
+        let (prim, mut node) =
+            plain_primitive(&mut b, &scene.background, accessors).with_context(|| out.display().to_string())?;
         meshes.push(json!({"name": "background", "primitives": [prim]}));
         node.insert("name".into(), json!("background"));
         node.insert("mesh".into(), json!(0));
