@@ -538,6 +538,19 @@ fn write_sog_files(scene: &Scene, meta: &Path, weights: Option<&[f32]>) -> Resul
             "files": ["shN_centroids.webp", "shN_labels.webp"],
         });
     }
+    // A codebook or range of values past f32 (k-means over coefficients near f32::MAX) would
+    // serialise as null, which no reader takes: refused instead.
+    fn non_finite(v: &serde_json::Value) -> bool {
+        match v {
+            serde_json::Value::Null => true,
+            serde_json::Value::Array(a) => a.iter().any(non_finite),
+            serde_json::Value::Object(o) => o.values().any(non_finite),
+            _ => false,
+        }
+    }
+    if non_finite(&doc) {
+        bail!("{}: the scene's values overflow SOG's codebooks (a centre or range is not finite)", meta.display());
+    }
     let text = serde_json::to_string(&doc)?;
     crate::util::write_atomic(meta, |f| std::io::Write::write_all(f, text.as_bytes()))
 }
