@@ -154,13 +154,8 @@ fn plain_primitive(b: &mut Builder, scene: &Scene, accessors: Accessors) -> Resu
     half_turn_z(&mut s);
     let d = (accessors == Accessors::Quantized).then(|| Dequantise::of(&s.means));
     if let Some(d) = &d {
-        if Similarity::from_mat4(d.mat4(), "").is_err() {
-            bail!(
-                "quantised positions: their node's scale (half the positions' largest side, {:e}) is outside 1e-6..1e6, \
-                 which no reader of ours takes; write float positions (without --quantize)",
-                d.scale
-            );
-        }
+        Similarity::from_mat4(d.mat4(), "quantised positions: their node (half their largest side)")
+            .map_err(|e| anyhow!("{e}; write float positions (without --quantize)"))?;
     }
     let shared = shared_accessors(b, &s, d.as_ref());
     let mut node = Map::new();
