@@ -279,6 +279,25 @@ fn sog_writer_round_trips_within_its_quantisation() {
 }
 
 #[test]
+fn sog_codebooks_hold_colours_near_f32_max() {
+    // The codebooks' k-means once started from the values' span in f32, which overflows to
+    // infinity for values near ±f32::MAX (found by fuzzing instgs_parse); such a scene is
+    // written now, its extremes kept.
+    let mut source = read_ply(&shared_data("splats/fruit_drops_minimal.ply")).unwrap();
+    let row = source.sh_coeffs() * 3;
+    source.sh[0] = 3.0e38;
+    source.sh[row] = -3.0e38;
+    source.sh[3] = 3.0e38; // a coefficient of the SH bands (the palette's codebook)
+    let out = tmp("sog-extremes/meta.json");
+    formats::sog::write_sog(&source, &out).unwrap();
+    let back = formats::read_scene(&out).unwrap();
+    assert!(back.sh.iter().all(|v| v.is_finite()));
+    for (i, want) in [(0, 3.0e38f32), (row, -3.0e38)] {
+        assert!((back.sh[i] / want - 1.0).abs() < 0.01, "sh[{i}] {} for {want}", back.sh[i]);
+    }
+}
+
+#[test]
 fn a_sog_bundle_reads_like_its_folder() {
     // One zip file (splat-transform 3.x's default SOG output) holds the folder's files.
     let source = read_ply(&shared_data("splats/fruit_drops_minimal.ply")).unwrap();

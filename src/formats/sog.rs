@@ -327,7 +327,8 @@ fn codebook_1d(values: &[f32], weights: Option<&[f32]>, k: usize) -> Vec<f32> {
             if i % 2 == 0 {
                 v[cumulative.partition_point(|&c| c <= t * total).min(n - 1)].0
             } else {
-                lo + (hi - lo) * t as f32
+                // In f64: the span of values near ±f32::MAX overflows f32.
+                (lo as f64 + (hi as f64 - lo as f64) * t) as f32
             }
         })
         .collect();
@@ -338,7 +339,7 @@ fn codebook_1d(values: &[f32], weights: Option<&[f32]>, k: usize) -> Vec<f32> {
         let mut sums = vec![(0.0f64, 0.0f64); centres.len()];
         let mut c = 0;
         for &(x, w) in &v {
-            while c + 1 < centres.len() && x > 0.5 * (centres[c] + centres[c + 1]) {
+            while c + 1 < centres.len() && x > 0.5 * centres[c] + 0.5 * centres[c + 1] {
                 c += 1;
             }
             sums[c].0 += w * x as f64;
@@ -538,8 +539,9 @@ fn write_sog_files(scene: &Scene, meta: &Path, weights: Option<&[f32]>) -> Resul
             "files": ["shN_centroids.webp", "shN_labels.webp"],
         });
     }
-    // A codebook or range of values past f32 (k-means over coefficients near f32::MAX) would
-    // serialise as null, which no reader takes: refused instead.
+    // serde_json writes a value that is not finite as null, which no reader takes. The codebooks
+    // keep values near f32::MAX finite (their span taken in f64, midpoints halved before the
+    // sum); should any entry still not be finite, the file is refused rather than written.
     fn non_finite(v: &serde_json::Value) -> bool {
         match v {
             serde_json::Value::Null => true,
