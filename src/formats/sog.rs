@@ -396,6 +396,7 @@ pub fn write_sog(scene: &Scene, meta: &Path) -> Result<()> {
     let dir = meta.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
     let name = meta.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_else(|| "meta.json".into());
     crate::util::write_dir_atomic(dir, Some(&name), |tmp| write_sog_files(scene, &tmp.join(&name), None))
+        .with_context(|| format!("{}: not written", meta.display()))
 }
 
 /// `scene` as one `.sog` file: [`write_sog`]'s `meta.json` and images in a zip archive (stored:
@@ -457,6 +458,11 @@ fn write_sog_files(scene: &Scene, meta: &Path, weights: Option<&[f32]>) -> Resul
     let h = n.div_ceil(w);
     let image = || vec![0u8; w * h * 4];
     let log = |x: f32| x.signum() * (x.abs() + 1.0).ln();
+    // Past this the reader's exp of the lerped log (within its rounding of the bounds) overflows.
+    const MAX_POSITION: f32 = 1e38;
+    if let Some((i, m)) = scene.means.iter().enumerate().find(|(_, m)| m.iter().any(|v| v.abs() > MAX_POSITION)) {
+        bail!("Gaussian {i}'s position {m:?} is past ±{MAX_POSITION:e}, which SOG's log-space positions cannot hold");
+    }
     let mut mins = [f32::MAX; 3];
     let mut maxs = [f32::MIN; 3];
     for m in &scene.means {
@@ -551,7 +557,7 @@ fn write_sog_files(scene: &Scene, meta: &Path, weights: Option<&[f32]>) -> Resul
         }
     }
     if non_finite(&doc) {
-        bail!("{}: the scene's values overflow SOG's codebooks (a centre or range is not finite)", meta.display());
+        bail!("the scene's values overflow SOG's codebooks (a centre or range is not finite)");
     }
     let text = serde_json::to_string(&doc)?;
     crate::util::write_atomic(meta, |f| std::io::Write::write_all(f, text.as_bytes()))
