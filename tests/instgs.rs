@@ -67,7 +67,7 @@ fn write_then_read_is_exact() {
 /// Gaussians read back as the one SOG bundle of them decodes (its k-means weighing a template's
 /// Gaussian once per instance), the offsets within half a step of the source (q8), the
 /// instances exact; version 4, smaller than the f16 file; a scene without background Gaussians;
-/// pq8 offsets beside SOG parameters; a damaged bundle or damaged codes refused with their
+/// pq8 offsets beside SOG parameters; offsets q8 cannot hold refused; a damaged bundle or damaged codes refused with their
 /// section named; a version-3 file (a bundle per part) still reads.
 #[test]
 fn compressed_file_holds_one_sog_bundle_and_q8_offsets() {
@@ -131,6 +131,14 @@ fn compressed_file_holds_one_sog_bundle_and_q8_offsets() {
     // pq8 offsets with SOG parameters.
     let pq = instgs::to_bytes_stored(&s, instgs::Storage { offsets: Dtype::Pq8, params: Dtype::Sog }).unwrap();
     assert_eq!(instgs::from_bytes(&pq, "pq").unwrap().background, back.background);
+    // An offset near ±f32::MAX: q8's ±127 steps would decode past f32, so the file is refused,
+    // named, and not written (found by fuzzing instgs_parse).
+    let mut far = s.clone();
+    far.groups[0].offsets.d_sh0[0][0] = f32::MAX;
+    let far_path = dir.join("far.instgs");
+    let e = format!("{:#}", instgs::write_compressed(&far, &far_path).unwrap_err());
+    assert!(e.contains("far.instgs") && e.contains("q8") && !e.contains('\n'), "{e}");
+    assert!(!far_path.exists());
     // A damaged bundle or damaged codes (re-sealed, so the checksum passes): the section is named.
     let (h, data) = split(&bytes_of(&s));
     for (index, name) in [(0, "gaussians/sog"), (2, "group/0/d_codes")] {

@@ -31,6 +31,10 @@ impl OffsetCodes {
     pub fn encode(o: &Offsets) -> Result<OffsetCodes> {
         let kinds = [o.d_means.concat(), o.d_sh0.concat(), o.d_opacities.clone()];
         let steps = kinds.each_ref().map(|v| grid_step(v).unwrap_or_else(|| step_for(v)));
+        // A code decodes as code × step in f32: at ±127 steps it must stay finite.
+        if let Some(s) = steps.iter().find(|s| !(127.0 * **s).is_finite()) {
+            bail!("offsets near ±f32::MAX: their step {s:e} decodes past f32 at ±127 (q8 offsets)");
+        }
         let n = o.d_opacities.len();
         let code = |x: f32, step: f32| (x / step).round().clamp(-127.0, 127.0) as i8 as u8;
         let mut planes = vec![0u8; PLANES * n];
