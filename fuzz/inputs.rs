@@ -52,6 +52,11 @@ pub fn run(target: &str, data: &[u8]) -> Result<()> {
                 };
                 assert_eq!(shape(&back), shape(&scene));
             }
+            // pq8 offsets (`--offset-dtype pq8`): k-means codebooks, which must read back too.
+            let pq8 = formats::instgs::Storage::offsets(formats::instgs::Dtype::Pq8);
+            if let Ok(packed) = formats::instgs::to_bytes_stored(&scene, pq8) {
+                formats::instgs::from_bytes(&packed, what).expect("a pq8 scene reads back");
+            }
         }
         "ply_parse" => formats::ply::from_bytes(data, what)?.validate(what).expect("the reader validates"),
         "points_ply" => {
