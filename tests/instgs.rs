@@ -67,8 +67,9 @@ fn write_then_read_is_exact() {
 /// Gaussians read back as the one SOG bundle of them decodes (its k-means weighing a template's
 /// Gaussian once per instance), the offsets within half a step of the source (q8), the
 /// instances exact; version 4, smaller than the f16 file; a scene without background Gaussians;
-/// pq8 offsets beside SOG parameters; offsets q8 cannot hold refused; a damaged bundle or damaged codes refused with their
-/// section named; a version-3 file (a bundle per part) still reads.
+/// pq8 offsets beside SOG parameters; offsets q8 cannot hold refused; a damaged bundle or
+/// damaged codes refused with their section named; a version-3 file (a bundle per part) still
+/// reads.
 #[test]
 fn compressed_file_holds_one_sog_bundle_and_q8_offsets() {
     use instgs_vk::formats::{q8, sog};
