@@ -50,7 +50,7 @@ const browser = await puppeteer.launch({
   protocolTimeout: 2 * timeout,
   args: ['--no-sandbox', '--enable-unsafe-swiftshader', '--use-angle=swiftshader', '--ignore-gpu-blocklist',
     '--disable-background-networking', '--disable-component-update', '--disable-sync', '--disable-quic',
-    '--no-first-run'],
+    '--no-first-run', '--disable-dev-shm-usage'],  // /tmp, not /dev/shm (64 MB in a default container)
 });
 const summary = [];
 for (const viewer of viewers) {
