@@ -637,7 +637,7 @@ fn rebalance_spends_the_bytes_where_they_show_and_refuses_what_renders_worse() {
     let mut inst = truth.clone();
     inst.background = truth.background.select(&(0..20).collect::<Vec<_>>());
     let dropped = truth.background.select(&(20..60).collect::<Vec<_>>());
-    let (out, r) = rebalance(&gpu, &k, &inst, &dropped, &views, [0.0; 3], 0.0, 0.0, Dtype::F32, |_| {}).unwrap();
+    let (out, r) = rebalance(&gpu, &k, &inst, &dropped, &views, None, [0.0; 3], 0.0, 0.0, Dtype::F32, |_| {}).unwrap();
     assert!(r.accepted, "{r:?}");
     assert!(r.bytes_after <= r.bytes_before, "{r:?}");
     assert!(r.psnr_after > r.psnr_before + 1.0, "{r:?}");
@@ -660,13 +660,14 @@ fn rebalance_spends_the_bytes_where_they_show_and_refuses_what_renders_worse() {
     // Views that show the scene as instanced: bringing the dropped background back renders them
     // worse, so the check refuses and the scene stays as it was.
     let views = rendered_views(&inst, 8, 0.0);
-    let (same, r) = rebalance(&gpu, &k, &inst, &dropped, &views, [0.0; 3], 0.0, 0.0, Dtype::F32, |_| {}).unwrap();
+    let (same, r) = rebalance(&gpu, &k, &inst, &dropped, &views, None, [0.0; 3], 0.0, 0.0, Dtype::F32, |_| {}).unwrap();
     assert!(!r.accepted && r.psnr_after < r.psnr_before, "{r:?}");
     assert!(same == inst);
     // Offsets stored as f16 take 14 bytes a row instead of 28: the budget and the result are
     // counted so, the budget below the f32 count of the same scene.
     let views = rendered_views(&truth, 8, 0.0);
-    let (out16, r16) = rebalance(&gpu, &k, &inst, &dropped, &views, [0.0; 3], 0.0, 0.0, Dtype::F16, |_| {}).unwrap();
+    let (out16, r16) =
+        rebalance(&gpu, &k, &inst, &dropped, &views, None, [0.0; 3], 0.0, 0.0, Dtype::F16, |_| {}).unwrap();
     assert!(r16.accepted && r16.bytes_after <= r16.bytes_before, "{r16:?}");
     assert_eq!(r16.bytes_before, GpuScene::stored_bytes(&gpu, &inst, Dtype::F16).unwrap());
     assert!(r16.bytes_before < r.bytes_before, "{r16:?} against {r:?}");
@@ -674,6 +675,28 @@ fn rebalance_spends_the_bytes_where_they_show_and_refuses_what_renders_worse() {
     // Filled to within one more Gaussian's bytes (a row and four offset rows), as counted.
     assert!(r16.bytes_before - r16.bytes_after < 512, "{r16:?}");
     out16.validate("rebalanced, f16").unwrap();
+    // Photos with their own exposure and white balance (a captured scene's): scored as trained,
+    // each render through its photo's colour transform, the scene that holds everything renders
+    // them exactly; without the transforms their mismatch hides most of the scene's own error.
+    let t: instgs_vk::render::appearance::ColourTransform =
+        [0.7, 0.0, 0.0, 0.05, 0.0, 0.8, 0.0, 0.03, 0.0, 0.05, 0.9, 0.0];
+    let photos: Vec<_> = rendered_views(&truth, 8, 0.0)
+        .into_iter()
+        .map(|mut v| {
+            v.image = instgs_vk::render::appearance::apply(&t, &v.image);
+            v
+        })
+        .collect();
+    let colours = vec![t; photos.len()];
+    let (_, exposed) =
+        rebalance(&gpu, &k, &inst, &dropped, &photos, None, [0.0; 3], 0.0, 0.0, Dtype::F32, |_| {}).unwrap();
+    let (_, scored) =
+        rebalance(&gpu, &k, &inst, &dropped, &photos, Some(&colours), [0.0; 3], 0.0, 0.0, Dtype::F32, |_| {}).unwrap();
+    assert!(scored.accepted && scored.psnr_after > 60.0, "{scored:?}");
+    assert!(exposed.psnr_after < 40.0, "{exposed:?}");
+    assert!(scored.psnr_after - scored.psnr_before > exposed.psnr_after - exposed.psnr_before + 1.0, "{exposed:?}");
+    let e = rebalance(&gpu, &k, &inst, &dropped, &photos, Some(&colours[1..]), [0.0; 3], 0.0, 0.0, Dtype::F32, |_| {});
+    assert!(e.unwrap_err().to_string().contains("7 colour transforms for 8 training views"));
     assert_clean(&gpu);
 }
 

@@ -5,9 +5,10 @@
 //! significance without the volume term, from the segmentation pass); those near an instance
 //! rank first (the instance's outline: the template cannot stand in for them). The kept fraction
 //! is the smallest whose pruned plain scene (instances whole, the most significant background)
-//! renders the training views within `budget_db` of the whole plain scene's PSNR — measured
-//! before the joint optimisation, which then fine-tunes what is kept (LightGaussian's
-//! prune-then-fine-tune; InstGS Eq. 6–8 for what is trained).
+//! renders the training views (photos through their learned colour transforms, as in training)
+//! within `budget_db` of the whole plain scene's PSNR — measured before the joint optimisation,
+//! which then fine-tunes what is kept (LightGaussian's prune-then-fine-tune; InstGS Eq. 6–8 for
+//! what is trained).
 use std::sync::Arc;
 
 use anyhow::{bail, Result};
@@ -22,6 +23,7 @@ use crate::math::tree;
 use crate::model::instanced::{Group, InstancedScene, Offsets};
 use crate::model::scene::Scene;
 use crate::register::object_size;
+use crate::render::appearance::ColourTransform;
 use crate::render::raster::Rasterizer;
 use crate::render::upload::GpuScene;
 
@@ -83,6 +85,8 @@ pub fn protect_outlines(scene: &Scene, labels: &[u32], significance: &[f32], fra
 /// The smallest kept background fraction (to 1/128) whose pruned scene's mean PSNR over up to
 /// [`BUDGET_VIEWS`] of `views` is within `budget_db` of the whole scene's; 1 when even that
 /// fraction misses it. `ranking`: per Gaussian, higher stays first ([`protect_outlines`]).
+/// `colours`: one per view, the photos' colour transforms the training learned (captures), applied
+/// to each render before it is scored, as in training; None for renders.
 #[allow(clippy::too_many_arguments)]
 pub fn background_budget(
     gpu: &Arc<Gpu>,
@@ -92,6 +96,7 @@ pub fn background_budget(
     ranking: &[f32],
     protected: usize,
     views: &[View],
+    colours: Option<&[ColourTransform]>,
     background: [f32; 3],
     budget_db: f64,
     mut progress: impl FnMut(&str),
@@ -99,7 +104,7 @@ pub fn background_budget(
     if !(budget_db.is_finite() && budget_db >= 0.0) {
         bail!("the background budget must be a non-negative number of dB, not {budget_db}");
     }
-    let mut check = ViewCheck::new(gpu, k, views, background, "measure the background budget on")?;
+    let mut check = ViewCheck::new(gpu, k, views, colours, background, "measure the background budget on")?;
     let n = check.pick.len();
     let mut psnr = |s: &Scene| check.psnr(&GpuScene::new(gpu, s)?);
     let whole = psnr(scene)?;
@@ -300,8 +305,8 @@ impl Spending {
 /// (`inst.background`) or dropped (`dropped`), and every template Gaussian compete for the
 /// instanced scene's own GPU bytes with its offsets stored as `storage` ([`Spending`]). Checked
 /// before it is trusted: the result is kept only when it renders up to [`BUDGET_VIEWS`] of the
-/// views at least as well as `inst` (mean PSNR) within `inst`'s bytes; otherwise `inst` is
-/// returned unchanged, and the report says so.
+/// views at least as well as `inst` (mean PSNR; `colours` as for [`background_budget`]) within
+/// `inst`'s bytes; otherwise `inst` is returned unchanged, and the report says so.
 #[allow(clippy::too_many_arguments)]
 pub fn rebalance(
     gpu: &Arc<Gpu>,
@@ -309,6 +314,7 @@ pub fn rebalance(
     inst: &InstancedScene,
     dropped: &Scene,
     views: &[View],
+    colours: Option<&[ColourTransform]>,
     background: [f32; 3],
     outline_fraction: f64,
     render_weight: f64,
@@ -324,7 +330,7 @@ pub fn rebalance(
     let bytes_of = |s: &InstancedScene| GpuScene::stored_bytes(gpu, s, storage);
     let budget = bytes_of(inst)?;
     let out = spending.at(gpu, budget)?;
-    let mut check = ViewCheck::new(gpu, k, views, background, "rebalance the scene's memory on")?;
+    let mut check = ViewCheck::new(gpu, k, views, colours, background, "rebalance the scene's memory on")?;
     let (psnr_before, psnr_after) =
         (check.psnr(&GpuScene::instanced(gpu, inst)?)?, check.psnr(&GpuScene::instanced(gpu, &out)?)?);
     let bytes_after = bytes_of(&out)?;
@@ -394,9 +400,9 @@ fn keep_items(cand: &InstancedScene, items: &[(bool, f64, Item)]) -> InstancedSc
 }
 
 /// The decisions' check: up to [`BUDGET_VIEWS`] of the training views, evenly spread, rendered
-/// and scored.
+/// (through each photo's colour transform when there are some) and scored.
 struct ViewCheck<'a> {
-    pick: Vec<&'a View>,
+    pick: Vec<(&'a View, Option<&'a ColourTransform>)>,
     r: Rasterizer,
     background: [f32; 3],
 }
@@ -407,6 +413,7 @@ impl<'a> ViewCheck<'a> {
         gpu: &Arc<Gpu>,
         k: &Arc<Kernels>,
         views: &'a [View],
+        colours: Option<&'a [ColourTransform]>,
         background: [f32; 3],
         purpose: &str,
     ) -> Result<ViewCheck<'a>> {
@@ -414,15 +421,23 @@ impl<'a> ViewCheck<'a> {
         if n == 0 {
             bail!("no training views to {purpose}");
         }
-        let pick = (0..n).map(|i| &views[i * views.len() / n]).collect();
+        if let Some(c) = colours.filter(|c| c.len() != views.len()) {
+            bail!("{} colour transforms for {} training views (to {purpose})", c.len(), views.len());
+        }
+        let pick = (0..n).map(|i| i * views.len() / n).map(|j| (&views[j], colours.map(|c| &c[j]))).collect();
         Ok(ViewCheck { pick, r: Rasterizer::new(gpu, k)?, background })
     }
 
     /// Mean PSNR (dB) of `gs` over the picked views.
     fn psnr(&mut self, gs: &GpuScene) -> Result<f64> {
         let mut sum = 0.0;
-        for v in &self.pick {
-            sum += crate::util::psnr(&self.r.render(gs, &v.camera, self.background)?.image, &v.image);
+        for (v, colour) in &self.pick {
+            let image = self.r.render(gs, &v.camera, self.background)?.image;
+            let image = match colour {
+                Some(t) => crate::render::appearance::apply(t, &image),
+                None => image,
+            };
+            sum += crate::util::psnr(&image, &v.image);
         }
         Ok(sum / self.pick.len() as f64)
     }

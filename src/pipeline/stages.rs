@@ -179,6 +179,9 @@ impl Ctx<'_> {
             None
         };
         let views = &self.ds.train;
+        // Scored as trained: each render through its photo's colour transform (captures).
+        let colours = self.photo_colours(&self.cfg.plain)?;
+        let colours = colours.as_deref();
         let bg = self.cfg.plain.background;
         let (gpu, k) = (self.gpu, self.k);
         let mut rule = |scene: &crate::model::scene::Scene, labels: &[u32], sig: &[f32]| {
@@ -199,6 +202,7 @@ impl Ctx<'_> {
                         &ranking,
                         protected,
                         views,
+                        colours,
                         bg,
                         c.background_budget_db,
                         |l| eprintln!("{l}"),
@@ -216,6 +220,7 @@ impl Ctx<'_> {
                 inst,
                 dropped,
                 views,
+                colours,
                 bg,
                 c.outline_fraction,
                 c.render_weight,
@@ -301,6 +306,20 @@ impl Ctx<'_> {
         }
     }
 
+    /// The training photos' colour transforms the plain stage learned (RUN/appearance.json), one
+    /// per training view, when `cfg` models them (captures); None otherwise.
+    fn photo_colours(
+        &self,
+        cfg: &crate::train::config::Config,
+    ) -> Result<Option<Vec<crate::render::appearance::ColourTransform>>> {
+        let path = self.run_dir().join(train::APPEARANCE_FILE);
+        if path.exists() && cfg.appearance.enabled(self.ds.kind) {
+            Ok(Some(train::read_appearance(&path, self.ds)?))
+        } else {
+            Ok(None)
+        }
+    }
+
     pub(super) fn train(
         &self,
         out: &Path,
@@ -311,13 +330,9 @@ impl Ctx<'_> {
     ) -> Result<bool> {
         let resume = train::checkpoint_path(out).exists();
         // The later stages start from the photos' colour transforms the plain stage learned.
-        let colours = self.run_dir().join(train::APPEARANCE_FILE);
         let appearance = match init {
             Init::Dataset => None,
-            _ if colours.exists() && cfg.appearance.enabled(self.ds.kind) => {
-                Some(train::read_appearance(&colours, self.ds)?)
-            }
-            _ => None,
+            _ => self.photo_colours(cfg)?,
         };
         let (init, init_scene) = match init {
             Init::Dataset => (None, None),
