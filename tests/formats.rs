@@ -29,10 +29,11 @@ fn render_agreement(a: &Scene, b: &Scene) -> f64 {
     worst
 }
 
+/// A path in this run's folder under cargo's temporary directory (target/tmp/formats, emptied
+/// once per run).
 fn tmp(name: &str) -> std::path::PathBuf {
-    let d = std::env::temp_dir().join(format!("instgs-formats-{}", std::process::id()));
-    std::fs::create_dir_all(&d).unwrap();
-    d.join(name)
+    static DIR: std::sync::OnceLock<std::path::PathBuf> = std::sync::OnceLock::new();
+    DIR.get_or_init(|| common::tempdir("formats")).join(name)
 }
 
 /// Largest absolute difference per attribute: (means, log-scales, quats up to sign, opacity

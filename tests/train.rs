@@ -15,11 +15,10 @@ use instgs_vk::train::{read_checkpoint, TrainState};
 
 const OPTS: LoadOptions = LoadOptions { downscale: 1, background: [0.0; 3] };
 
+/// A fresh folder under cargo's temporary directory (target/tmp/train/NAME): a run's files
+/// replace the last run's instead of piling up in the system's temporary directory.
 fn tmp(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("instgs-train-{}-{name}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).unwrap();
-    d
+    tempdir(&format!("train/{name}"))
 }
 
 fn config_file(dir: &Path, text: &str) -> PathBuf {

@@ -342,6 +342,7 @@ mod tests {
         assert!(e.contains("r.toml") && e.contains("decrease"), "{e}");
         std::fs::write(&p, "[lod]\nsplats_per_pixel = 2.5\n").unwrap();
         assert_eq!(RenderConfig::load(Some(&p)).unwrap().lod.splats_per_pixel, 2.5);
+        std::fs::remove_dir_all(&dir).unwrap();
     }
 
     #[test]
