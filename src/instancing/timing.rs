@@ -96,10 +96,6 @@ impl<'a> Timed<'a> {
 }
 
 impl RenderCheck for Timed<'_> {
-    fn score(&mut self, reference: &Scene, instance: &Scene, id: u32, x: &Sim3) -> Result<Option<RenderScore>> {
-        self.score_at(reference, instance, id, x, Detail::Full)
-    }
-
     fn score_at(
         &mut self,
         reference: &Scene,

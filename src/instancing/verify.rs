@@ -210,10 +210,6 @@ fn half_resolution(camera: &Camera, mask: Option<&[u16]>) -> (Camera, Option<Vec
 }
 
 impl RenderCheck for ImageCheck {
-    fn score(&mut self, reference: &Scene, instance: &Scene, id: u32, x: &Sim3) -> Result<Option<RenderScore>> {
-        self.score_at(reference, instance, id, x, Detail::Full)
-    }
-
     fn score_at(
         &mut self,
         reference: &Scene,

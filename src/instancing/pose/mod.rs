@@ -207,13 +207,11 @@ pub const MIN_OWN_IOU: f64 = 0.5;
 
 /// Renders a pose check ([`crate::instancing::verify::ImageCheck`] on the GPU; tests may bring their own).
 pub trait RenderCheck {
+    /// The check at `detail`: [`Detail::Full`] is the whole check, which accepts or refuses;
+    /// [`Detail::Coarse`] and [`Detail::Fine`] are cheaper scores for the steps of a search,
+    /// each comparable only with scores at the same detail (a check may ignore `detail`).
     /// `reference` and `instance`: the two instances' Gaussians in world space; `x`: instance
     /// world → reference world. None when the instance shows in no view.
-    fn score(&mut self, reference: &Scene, instance: &Scene, id: u32, x: &Sim3) -> Result<Option<RenderScore>>;
-
-    /// The check at `detail`: [`Detail::Coarse`] and [`Detail::Fine`] are cheaper scores for
-    /// the steps of a search, each comparable only with scores at the same detail. By default
-    /// the whole check.
     fn score_at(
         &mut self,
         reference: &Scene,
@@ -221,9 +219,11 @@ pub trait RenderCheck {
         id: u32,
         x: &Sim3,
         detail: Detail,
-    ) -> Result<Option<RenderScore>> {
-        let _ = detail;
-        self.score(reference, instance, id, x)
+    ) -> Result<Option<RenderScore>>;
+
+    /// The whole check ([`Detail::Full`]).
+    fn score(&mut self, reference: &Scene, instance: &Scene, id: u32, x: &Sim3) -> Result<Option<RenderScore>> {
+        self.score_at(reference, instance, id, x, Detail::Full)
     }
 }
 

@@ -18,7 +18,7 @@ struct TwoModes {
 }
 
 impl RenderCheck for TwoModes {
-    fn score(&mut self, _: &Scene, _: &Scene, _: u32, x: &Sim3) -> Result<Option<RenderScore>> {
+    fn score_at(&mut self, _: &Scene, _: &Scene, _: u32, x: &Sim3, _: Detail) -> Result<Option<RenderScore>> {
         let best =
             (0..2).map(|i| self.peaks[i] - 0.5 * x.rotation_error_deg(&turn_z(self.modes[i]))).fold(f64::MIN, f64::max);
         Ok(Some(score(best)))
@@ -57,7 +57,7 @@ fn the_pose_that_renders_best_after_refinement_is_kept() {
 struct Peak;
 
 impl RenderCheck for Peak {
-    fn score(&mut self, _: &Scene, _: &Scene, _: u32, x: &Sim3) -> Result<Option<RenderScore>> {
+    fn score_at(&mut self, _: &Scene, _: &Scene, _: u32, x: &Sim3, _: Detail) -> Result<Option<RenderScore>> {
         Ok(Some(score(30.0 - 0.5 * x.rotation_error_deg(&Sim3::identity()))))
     }
 }
