@@ -190,7 +190,7 @@ pub fn run(target: &str, data: &[u8]) -> Result<()> {
     Ok(())
 }
 
-/// The *_files targets' folder, made once per process in the temporary directory: the files
+/// The *_files targets' folder, made once per process: the files
 /// their seeds name (`fuzz/files/`: a glTF buffer, a SOG's images, also in `sub/`), and beside
 /// them what a hostile file may name instead (`fuzz/regressions/*_files/`): a link to /dev/zero,
 /// a FIFO (opening it would block), a folder, a link out of the folder to `../outside.bin`.
@@ -201,7 +201,12 @@ fn folder() -> &'static std::path::Path {
     static FOLDER: std::sync::OnceLock<std::path::PathBuf> = std::sync::OnceLock::new();
     FOLDER.get_or_init(|| {
         instgs_vk::limits::set(instgs_vk::limits::Limits { allow_outside: false, max_memory: 256 << 20 });
-        let root = std::env::temp_dir().join(format!("instgs-fuzz-files-{}", std::process::id()));
+        // Under `cargo test`, cargo's temporary directory (the same folder every run); in a
+        // fuzzing process, a folder of its own in the system's.
+        let root = match option_env!("CARGO_TARGET_TMPDIR") {
+            Some(dir) => std::path::Path::new(dir).join("fuzz-files"),
+            None => std::env::temp_dir().join(format!("instgs-fuzz-files-{}", std::process::id())),
+        };
         let dir = root.join("files");
         std::fs::create_dir_all(dir.join("sub")).unwrap();
         std::fs::create_dir_all(dir.join("dir.bin")).unwrap();
