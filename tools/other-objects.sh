@@ -5,12 +5,15 @@
 # cameras (`instgs-vk render`) and given instance masks, instances.json and points3d.ply
 # (tools/instance_dataset.rs), in cafe40's layout; then train it as cafe40:
 #   instgs-vk train --data OUT/data --out RUN --config configs/lavapipe-walkthrough.toml
-# usage: bash tools/other-objects.sh CAFE40_RUN OUT   (CAFE40_RUN: a finished `train` run on
-#        ../shared/data/scenes/cafe40, for its plain scene and labels; 17 minutes here)
+# With `rows` the 48 copies stand in rows, all facing one way, and a drone's 96 + 12 cameras see
+# them from above (other_objects_scene.py says how); trained the same way.
+# usage: bash tools/other-objects.sh CAFE40_RUN OUT [rows]   (CAFE40_RUN: a `train` run on
+#        ../shared/data/scenes/cafe40 through its segment stage, for its plain scene and labels;
+#        17 minutes here)
 set -euo pipefail
 cd "$(dirname "$0")/.."
-[[ $# -eq 2 ]] || { echo "usage: bash tools/other-objects.sh CAFE40_RUN OUT" >&2; exit 2; }
-run=$1 out=$2 cafe40=../shared/data/scenes/cafe40
+[[ $# -eq 2 || ( $# -eq 3 && $3 == rows ) ]] || { echo "usage: bash tools/other-objects.sh CAFE40_RUN OUT [rows]" >&2; exit 2; }
+run=$1 out=$2 layout=${3:-spots} cafe40=../shared/data/scenes/cafe40
 venv=out/capture-venv
 if [ ! -x "$venv/bin/python" ] || ! "$venv/bin/python" -c "import numpy, plyfile" 2>/dev/null; then
     python3 -m venv "$venv"
@@ -20,12 +23,12 @@ cargo build --release --quiet --bin instgs-vk --example instance_dataset
 bin=./target/release/instgs-vk
 rm -rf "$out"; mkdir -p "$out/parts" "$out/data/train" "$out/data/test"
 "$venv/bin/python" tools/other_objects_scene.py "$run/point_cloud.ply" "$run/labels.json" \
-    "$cafe40/instances.json" ../shared/data/splats "$out/parts"
+    "$cafe40/instances.json" ../shared/data/splats "$out/parts" "$layout"
 "$bin" compose --template playbot="$out/parts/playbot.ply" --template biker="$out/parts/biker.ply" \
     --template guitar="$out/parts/guitar.ply" --scene-graph "$out/parts/scene_graph.json" \
     --background "$out/parts/background.ply" --random-offsets 0.002 --seed 1 --out "$out/truth.instgs"
 for split in train test; do
-    cp "$cafe40/transforms_$split.json" "$out/data/"
+    if [[ $layout == rows ]]; then cp "$out/parts/transforms_$split.json" "$out/data/"; else cp "$cafe40/transforms_$split.json" "$out/data/"; fi
     "$bin" render --scene "$out/truth.instgs" --cameras "$out/data/transforms_$split.json" --out "$out/data/$split" > /dev/null
 done
 ./target/release/examples/instance_dataset "$out/truth.instgs" "$out/data"

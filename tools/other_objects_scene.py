@@ -6,12 +6,19 @@ three objects that are not mugs, bricks or ducks — 20 playbots (`playbot_lod6.
 spots), 12 bikers (`biker.ply`, on the bricks') and 8 guitars (`guitar.ply`, on the ducks') from
 `../shared/data/splats` — each copy turned about the up axis at random and scaled 0.96–1.05.
 
+With LAYOUT `rows` (a car park or a hall of chairs seen by a drone) the copies stand instead
+in six rows of eight, all facing one way (±4° each): three rows of playbots, two of bikers, one
+of guitars, 48 in all, 0.55 units apart along a row and 0.6 between rows; OUT also gets the
+cameras, 96 training and 12 test views (`transforms_{train,test}.json`, NeRF-synthetic: OpenGL
+camera-to-world, world up +z, 480x360 at 45° across like cafe40's) 4.5-6.5 units from points
+near the centre at elevations 35-65°, so most views see most copies, each a few dozen pixels.
+
 Writes into OUT: background.ply, one template PLY per object (SH degree 3 like the background,
 bands the source lacks zero; biker and guitar cut to their 8 000 and 6 000 most opaque-and-large
 Gaussians, as a 0.5-unit figure needs no more at 480x360) and scene_graph.json (the prototype's
 convention: world -> template). `tools/other-objects.sh` composes, renders and trains it.
 
-usage: other_objects_scene.py PLAIN.ply LABELS.json INSTANCES.json SPLATS_DIR OUT_DIR
+usage: other_objects_scene.py PLAIN.ply LABELS.json INSTANCES.json SPLATS_DIR OUT_DIR [spots|rows]
        (PLAIN.ply, LABELS.json: a cafe40 run's point_cloud.ply and labels.json;
         INSTANCES.json: cafe40's instances.json, for the spots)
 """
@@ -31,6 +38,9 @@ OBJECTS = {
     "biker": ("biker.ply", 8000, 0.17, "lego"),
     "guitar": ("guitar.ply", 6000, 0.12, "duck"),
 }
+# The rows layout: (object, rows of it), front to back.
+ROWS = [("playbot", 3), ("biker", 2), ("guitar", 1)]
+PER_ROW, ALONG, ACROSS = 8, 0.55, 0.6
 
 
 def read(path):
@@ -61,19 +71,60 @@ def write_degree3(path, props, arr):
     open(path, "wb").write(header.encode() + out.astype("<f4").tobytes())
 
 
+def row_spots():
+    """Object name -> its spots in the rows layout (x along a row, y across, on the floor z = 0)."""
+    spots, row, rows = {}, 0, sum(n for _, n in ROWS)
+    for name, n in ROWS:
+        for _ in range(n):
+            y = (row - (rows - 1) / 2) * ACROSS
+            spots.setdefault(name, []).extend([[(c - (PER_ROW - 1) / 2) * ALONG, y, 0.0] for c in range(PER_ROW)])
+            row += 1
+    return spots
+
+
+def drone_cameras(out):
+    """transforms_train.json (96 views) and transforms_test.json (12) for the rows layout."""
+    width, height, fov = 480, 360, math.pi / 4
+    focal = width / 2 / math.tan(fov / 2)
+    for split, count, seed in (("train", 96, 11), ("test", 12, 12)):
+        rng, frames = random.Random(seed), []
+        for k in range(count):
+            azimuth = k * math.pi * (3.0 - math.sqrt(5.0)) + rng.uniform(0.0, 0.3)
+            elevation = math.radians(35.0 + 30.0 * rng.random())
+            distance, r, a = rng.uniform(4.5, 6.5), 1.0 * math.sqrt(rng.random()), rng.uniform(0.0, 2.0 * math.pi)
+            target = np.array([r * math.cos(a), r * math.sin(a), 0.1])
+            eye = target + distance * np.array([math.cos(elevation) * math.cos(azimuth),
+                                                math.cos(elevation) * math.sin(azimuth), math.sin(elevation)])
+            back = (eye - target) / np.linalg.norm(eye - target)
+            right = np.cross([0.0, 0.0, 1.0], back)
+            right /= np.linalg.norm(right)
+            m = np.eye(4)
+            m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = right, np.cross(back, right), back, eye
+            frames.append({"file_path": f"{split}/r_{k:03d}", "transform_matrix": m.tolist()})
+        json.dump({"camera_angle_x": fov, "w": width, "h": height, "fl_x": focal, "fl_y": focal,
+                   "cx": width / 2, "cy": height / 2, "frames": frames},
+                  open(f"{out}/transforms_{split}.json", "w"), indent=1)
+
+
 def main():
-    if len(sys.argv) != 6:
+    if len(sys.argv) not in (6, 7) or sys.argv[6:] not in ([], ["spots"], ["rows"]):
         sys.exit("\n".join(__doc__.strip().splitlines()[-3:]))
-    plain, labels, instances, splats, out = sys.argv[1:]
+    plain, labels, instances, splats, out = sys.argv[1:6]
+    rows = sys.argv[6:] == ["rows"]
     props, arr = read(plain)
     lab = np.array(json.load(open(labels))["labels"])
     if len(lab) != len(arr):
         sys.exit(f"{labels}: {len(lab)} labels for the {len(arr)} Gaussians of {plain}")
     write_degree3(f"{out}/background.ply", props, arr[lab == 0])
-    spots = {g["name"]: [i["translation"] for i in g["instances"]] for g in json.load(open(instances))["groups"]}
+    if rows:
+        spots = row_spots()
+        drone_cameras(out)
+    else:
+        cafe40 = {g["name"]: [i["translation"] for i in g["instances"]] for g in json.load(open(instances))["groups"]}
+        spots = {name: cafe40[where] for name, (_, _, _, where) in OBJECTS.items()}
     rng = random.Random(7)
     graph, next_id = [], 0
-    for name, (file, keep, scale, where) in OBJECTS.items():
+    for name, (file, keep, scale, _) in OBJECTS.items():
         props, arr = read(f"{splats}/{file}")
         if keep:
             opacity = 1.0 / (1.0 + np.exp(-arr[:, props["opacity"]]))
@@ -87,9 +138,10 @@ def main():
         base = np.array([(lo[0] + hi[0]) / 2, hi[1], (lo[2] + hi[2]) / 2])
         up = np.array([[1.0, 0, 0], [0, 0, 1], [0, -1, 0]])
         group = {"template_id": name, "instances": []}
-        for spot in spots[where]:
+        for spot in spots[name]:
             next_id += 1
-            yaw, s = rng.uniform(0.0, 2.0 * math.pi), scale * rng.uniform(0.96, 1.05)
+            yaw = math.radians(rng.uniform(-4.0, 4.0)) if rows else rng.uniform(0.0, 2.0 * math.pi)
+            s = scale * rng.uniform(0.96, 1.05)
             turn = np.array([[math.cos(yaw), -math.sin(yaw), 0], [math.sin(yaw), math.cos(yaw), 0], [0, 0, 1]])
             m = np.eye(4)
             m[:3, :3] = s * turn @ up
