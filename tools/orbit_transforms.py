@@ -20,6 +20,14 @@ def cross(a, b):
     return [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
 
 
+def look_at(eye, target, up):
+    """Row-major OpenGL camera-to-world (x right, y up, z back) at `eye` looking at `target`."""
+    f = norm([target[q] - eye[q] for q in range(3)])
+    r = norm(cross(f, up))
+    u = cross(r, f)
+    return [[r[q], u[q], -f[q], eye[q]] for q in range(3)] + [[0.0, 0.0, 0.0, 1.0]]
+
+
 def frames(split, n, phase, center, dist, elev, elev_step):
     out = []
     for i in range(n):
@@ -28,10 +36,7 @@ def frames(split, n, phase, center, dist, elev, elev_step):
         # World up is -Y: the camera rises towards -Y.
         eye = [center[0] + dist * math.cos(el) * math.cos(az), center[1] - dist * math.sin(el),
                center[2] + dist * math.cos(el) * math.sin(az)]
-        f = norm([center[q] - eye[q] for q in range(3)])
-        r = norm(cross(f, [0.0, -1.0, 0.0]))
-        u = cross(r, f)
-        m = [[r[q], u[q], -f[q], eye[q]] for q in range(3)] + [[0.0, 0.0, 0.0, 1.0]]
+        m = look_at(eye, center, [0.0, -1.0, 0.0])
         out.append({"file_path": f"{split}/r_{i:03d}", "transform_matrix": m})
     return out
 

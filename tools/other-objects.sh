@@ -27,8 +27,9 @@ rm -rf "$out"; mkdir -p "$out/parts" "$out/data/train" "$out/data/test"
 "$bin" compose --template playbot="$out/parts/playbot.ply" --template biker="$out/parts/biker.ply" \
     --template guitar="$out/parts/guitar.ply" --scene-graph "$out/parts/scene_graph.json" \
     --background "$out/parts/background.ply" --random-offsets 0.002 --seed 1 --out "$out/truth.instgs"
+cameras=$cafe40; [[ $layout == rows ]] && cameras=$out/parts
 for split in train test; do
-    if [[ $layout == rows ]]; then cp "$out/parts/transforms_$split.json" "$out/data/"; else cp "$cafe40/transforms_$split.json" "$out/data/"; fi
+    cp "$cameras/transforms_$split.json" "$out/data/"
     "$bin" render --scene "$out/truth.instgs" --cameras "$out/data/transforms_$split.json" --out "$out/data/$split" > /dev/null
 done
 ./target/release/examples/instance_dataset "$out/truth.instgs" "$out/data"

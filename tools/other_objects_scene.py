@@ -28,6 +28,7 @@ import random
 import sys
 
 import numpy as np
+from orbit_transforms import look_at
 from plyfile import PlyData, PlyParseError
 
 NAMES = ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"] + [f"f_rest_{i}" for i in range(45)] + [
@@ -95,12 +96,8 @@ def drone_cameras(out):
             target = np.array([r * math.cos(a), r * math.sin(a), 0.1])
             eye = target + distance * np.array([math.cos(elevation) * math.cos(azimuth),
                                                 math.cos(elevation) * math.sin(azimuth), math.sin(elevation)])
-            back = (eye - target) / np.linalg.norm(eye - target)
-            right = np.cross([0.0, 0.0, 1.0], back)
-            right /= np.linalg.norm(right)
-            m = np.eye(4)
-            m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = right, np.cross(back, right), back, eye
-            frames.append({"file_path": f"{split}/r_{k:03d}", "transform_matrix": m.tolist()})
+            m = look_at(eye.tolist(), target.tolist(), [0.0, 0.0, 1.0])
+            frames.append({"file_path": f"{split}/r_{k:03d}", "transform_matrix": m})
         json.dump({"camera_angle_x": fov, "w": width, "h": height, "fl_x": focal, "fl_y": focal,
                    "cx": width / 2, "cy": height / 2, "frames": frames},
                   open(f"{out}/transforms_{split}.json", "w"), indent=1)
