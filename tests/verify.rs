@@ -263,6 +263,10 @@ fn a_cropped_render_check_scores_as_the_whole_images_do() {
             let expected = compare(&views, 1);
             let mut check = ImageCheck::new(&gpu, &k, cams.clone(), with_masks.then(|| masks.clone())).unwrap();
             let got = check.score(&two, &one, 1, &x).unwrap().expect("visible");
+            // Without a render, the same as the instance checked against itself.
+            let own_iou = check.own_iou(&one, 1).unwrap().expect("visible");
+            assert_eq!(own_iou, got.own_iou);
+            assert_eq!(own_iou, check.score(&one, &one, 1, &Sim3::identity()).unwrap().unwrap().own_iou);
             assert_eq!(got.views, expected.views);
             assert!((got.iou - expected.iou).abs() < 1e-3, "IoU {} cropped, {} whole", got.iou, expected.iou);
             assert!((got.own_iou - expected.own_iou).abs() < 1e-3, "{got:?} {expected:?}");

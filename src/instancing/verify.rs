@@ -230,6 +230,23 @@ impl RenderCheck for ImageCheck {
         self.own.insert(key, own);
         score
     }
+
+    /// From the instance's own renders alone (no render: placed where it is, the instance
+    /// renders as its own).
+    fn own_iou(&mut self, instance: &Scene, id: u32) -> Result<Option<f64>> {
+        self.own_views(instance, id, Detail::Full)?;
+        let own = &self.own[&(id, Detail::Full)];
+        let compared: Vec<Compared> = own
+            .iter()
+            .map(|o| Compared {
+                own: &o.image,
+                placed: &o.image,
+                mask: o.mask.as_deref(),
+                truth_outside: o.truth_outside,
+            })
+            .collect();
+        Ok((!compared.is_empty()).then(|| compare(&compared, id).own_iou))
+    }
 }
 
 impl ImageCheck {
