@@ -70,7 +70,7 @@ pub fn load(group: &serde_json::Value, meshes: &Path) -> Result<Surface> {
     let mut triangles = Vec::new();
     let mut textures: Vec<image::RgbImage> = Vec::new();
     for part in parts {
-        let mesh = part["mesh"].as_str().with_context(|| format!("group {name:?}: a part without a mesh"))?;
+        let mesh = part["mesh"].as_str().with_context(|| format!("group {name:?}: a part without a mesh (--meshes needs mesh objects; judge objects made of splats, as tools/other-objects.sh makes, without it)"))?;
         let path = meshes.join(mesh);
         let (models, _) = tobj::load_obj(&path, &tobj::GPU_LOAD_OPTIONS)
             .with_context(|| format!("{}: cannot read the mesh", path.display()))?;
