@@ -239,8 +239,8 @@ pub trait RenderCheck {
 /// gives to no copy where it holds under half the blending weight), and the pictures climb
 /// towards a placed reference shrunk into them. On the rows scene of
 /// `tools/other-objects.sh` the refinement left the two playbots of own IoU 0.61 and 0.64
-/// 5.1 % and 5.7 % too small, where their registrations had been within 0.8 %; the others
-/// (own IoU 0.70–0.89) it kept within 3.3 %, and it brought the bikers' and guitars' scales
+/// 5.1 % and 5.7 % too small, where their registrations had been within 0.9 %; the other
+/// accepted playbots (own IoU 0.70–0.89) it kept within 3.3 %, and it brought the bikers' and guitars' scales
 /// from 0.72 % and 1.24 % to 0.31 % and 0.13 % (BENCHMARKS.md, "Forty-eight copies in
 /// rows"). Cafe40's own IoUs are 0.87 and more, the demo's 0.92, a capture's 1.
 pub const MIN_OWN_IOU_FOR_SCALE: f64 = 0.7;
