@@ -104,7 +104,9 @@ struct FrameParams {
     uint offset_storage; // OFFSETS_F32, OFFSETS_PQ8 or OFFSETS_F16 (instance.glsl)
     uint num_visible; // visible Gaussians: copied on the GPU from counts before the backward
                       // pass of a plain scene (preprocess_backward's VISIBLE_ROWS); 0 otherwise
-    uint _pad1;
+    float tile_cost_weight; // training's frame-cost regulariser (preprocess_backward): each
+                            // visible splat's three log-scales get this times its tiles touched
+                            // added to their gradient; 0: off (and never read when rendering)
     uint _pad2;
 };
 

@@ -17,6 +17,11 @@
 // (XFORM_GRAD_TERMS; summed per instance by xform_grad_reduce): dL/dt = g_mean, dL/d ln s =
 // g_mean . (s R mean_t) + sum g_logscale, dL/dR = s g_mean mean_t^T + d g_dir_t^T (mean and the
 // template-space SH direction d_t = R^T d), dL/dq_R = g_quat * conj(q_t) (composition).
+// With frame.p.tile_cost_weight = w > 0 (training's frame-cost regulariser), every visible splat
+// adds w x its tiles touched to the gradient of each of its three log-scales: the gradient of
+// R = w sum_splats sg(tiles_touched) (ln s_x + ln s_y + ln s_z), the tile count held constant
+// (sg). It shrinks the splats that touch many tiles, whose blend work is the frame's largest
+// share on lavapipe. A template Gaussian sums it over its drawn copies, as every other term.
 // Densification statistics of visible splats: grad2d_accum += |v_xy| in Inria's NDC units
 // (pixels scaled by width/2, height/2), grad2d_count += 1, max_radii = max(max_radii, radius).
 // VISIBLE_ROWS (specialization constant 1, plain scenes only): one invocation per visible
@@ -181,7 +186,9 @@ bool splat_backward(uint i, uint row, Expanded e, out vec3 v_p, out vec3 v_ls, o
     }
     vec3 v_dir = e.rot * v_dir_t;
     v_p = transpose(W) * v_t + (v_dir - dir * dot(dir, v_dir)) / dv_len;
-    v_ls = v_s * s;
+    // The frame-cost regulariser R = w sum_splats sg(tiles_touched) (ln s_x + ln s_y + ln s_z)
+    // (sg: held constant): a splat's blend work grows with the tiles it touches.
+    v_ls = v_s * s + vec3(frame.p.tile_cost_weight * float(tiles_touched.v[i]));
     v_dc = basis[0] * v_rgb;
     float o = 1.0 / (1.0 + exp(-e.logit));
     v_logit = v_splat_opacities.v[i] * o * (1.0 - o);

@@ -36,6 +36,8 @@ fn projection_vjp_matches_finite_differences() {
         let scene = random_scene(&mut rng, 40, deg);
         let mut fp = frame_params(scene.len(), deg, &cam, [0.0; 3], 0);
         fp.sh_degree = deg;
+        // The frame-cost regulariser w T (ln s_x + ln s_y + ln s_z), T held constant, on odd degrees.
+        fp.tile_cost_weight = if deg % 2 == 1 { 0.3 } else { 0.0 };
         let mut checked = 0;
         for i in 0..scene.len() {
             let g = Gaussian::of_scene(&scene, i);
@@ -49,12 +51,14 @@ fn projection_vjp_matches_finite_differences() {
                 g.mean[0] += 6.0;
             }
             let v = Splat::from_flat(&(0..9).map(|_| rng.range(-1.0, 1.0) as f64).collect::<Vec<_>>());
-            let analytic = reference::backward::project_vjp(&fp, &g, &v).flat();
+            let tiles = 1 + i as u32 % 7;
+            let analytic = reference::backward::project_vjp(&fp, &g, &v, tiles).flat();
             let x = g.flat();
             let f = |x: &[f64]| {
                 let s = reference::backward::project(&fp, &Gaussian::from_flat(x));
                 // The colour clamp at 0 is a kink; keep away from it in this test.
-                s.flat().iter().zip(v.flat()).map(|(a, b)| a * b).sum::<f64>()
+                let data = s.flat().iter().zip(v.flat()).map(|(a, b)| a * b).sum::<f64>();
+                data + fp.tile_cost_weight as f64 * tiles as f64 * (x[3] + x[4] + x[5])
             };
             let raw = reference::backward::project(&fp, &g);
             if raw.colour.iter().any(|&c| c.abs() < 1e-3) {
@@ -196,15 +200,25 @@ fn assert_blend_grads_match_twin(
     }
 }
 
-fn check_backward(k: &Arc<Kernels>, scene: &Scene, cam: &instgs_vk::model::camera::Camera, seed: u64) {
+/// The backward kernels against their CPU twins, with the frame-cost regulariser at
+/// `tile_cost_weight`.
+fn check_backward(
+    k: &Arc<Kernels>,
+    scene: &Scene,
+    cam: &instgs_vk::model::camera::Camera,
+    seed: u64,
+    tile_cost_weight: f32,
+) {
     let (gpu, _) = gpu();
     let bg = [0.1, 0.3, 0.6];
     let gs = GpuScene::new(&gpu, scene).unwrap();
     let mut r = Rasterizer::new(&gpu, k).unwrap();
     r.poison = true;
+    r.tile_cost_weight = tile_cost_weight;
     r.render(&gs, cam, bg).unwrap();
     let st = r.read_state().unwrap();
     let fp = r.last_frame_params().unwrap();
+    assert_eq!(fp.tile_cost_weight, tile_cost_weight);
     let n = scene.len();
     let npx = (cam.width * cam.height) as usize;
     let mut rng = Rng::new(seed);
@@ -267,7 +281,8 @@ fn check_backward(k: &Arc<Kernels>, scene: &Scene, cam: &instgs_vk::model::camer
             assert!(got_i.iter().all(|&v| v == 0.0), "culled Gaussian {i} has gradients");
             continue;
         }
-        let want_i = reference::backward::project_vjp(&fp, &Gaussian::of_scene(scene, i), &v_splat[i]).flat();
+        let tiles = st.projected.tiles_touched[i];
+        let want_i = reference::backward::project_vjp(&fp, &Gaussian::of_scene(scene, i), &v_splat[i], tiles).flat();
         // Per Gaussian: relative to the largest gradient of that Gaussian.
         let e = rel_err(&got_i, &want_i);
         let scale = want_i.iter().fold(0.0f64, |m, v| m.max(v.abs()));
@@ -292,7 +307,7 @@ fn crowded_tiles_match_cpu_twins() {
         assert_eq!(over, crowded, "{policy:?}: a tile's loop cost is {most}");
     }
     for k in both_policies() {
-        check_backward(&k, &scene, &cam, 3);
+        check_backward(&k, &scene, &cam, 3, 0.0);
     }
 }
 
@@ -301,7 +316,7 @@ fn a_tile_past_lavapipes_loop_limit_matches_cpu_twins() {
     // 72 000 splats in one tile: blend_backward's CROWDED_TILES pipeline past 65 535 splats.
     let (scene, cam) = overfull_tile_scene(&mut Rng::new(6), 70000);
     for k in both_policies() {
-        check_backward(&k, &scene, &cam, 4);
+        check_backward(&k, &scene, &cam, 4, 0.0);
     }
 }
 
@@ -325,8 +340,10 @@ fn backward_kernels_match_cpu_twins() {
             scene.scales[i] = [rng.range(0.0, 0.5), rng.range(-0.5, 0.3), rng.range(-0.5, 0.3)];
             scene.opacities[i] = rng.range(0.0, 3.0);
         }
+        // The frame-cost regulariser on odd degrees (on the order of the data gradients here).
+        let tile_cost_weight = if deg % 2 == 1 { 0.5 } else { 0.0 };
         for k in &policies {
-            check_backward(k, &scene, &cam, 7 + deg as u64);
+            check_backward(k, &scene, &cam, 7 + deg as u64, tile_cost_weight);
         }
     }
 }

@@ -118,13 +118,19 @@ fn a_rasterizer_never_replays_a_dropped_scenes_recording() {
     assert_clean(&gpu);
 }
 
-/// The instanced scene's GPU gradients for `v_image`: (rows as a gradient scene, offsets,
-/// per-instance transform-gradient terms).
-fn gpu_grads(scene: &InstancedScene, cam: &Camera, v_image: &[[f32; 4]]) -> (Scene, Vec<Offsets>, Vec<f32>) {
+/// The instanced scene's GPU gradients for `v_image`, with the frame-cost regulariser at
+/// `tile_cost_weight`: (rows as a gradient scene, offsets, per-instance transform-gradient terms).
+fn gpu_grads(
+    scene: &InstancedScene,
+    cam: &Camera,
+    v_image: &[[f32; 4]],
+    tile_cost_weight: f32,
+) -> (Scene, Vec<Offsets>, Vec<f32>) {
     let (gpu, k) = gpu();
     let mut gs = GpuScene::instanced(&gpu, scene).unwrap();
     gs.inst.xform_grads = true;
     let mut r = Rasterizer::new(&gpu, &k).unwrap();
+    r.tile_cost_weight = tile_cost_weight;
     r.render(&gs, cam, [0.0; 3]).unwrap();
     let v = gpu.upload("v_image", v_image).unwrap();
     let g = Grads::new(&gpu, &gs).unwrap();
@@ -214,12 +220,15 @@ fn instanced_gradients_equal_expanded_gradients_mapped_back() {
         let npx = (cam.width * cam.height) as usize;
         let v_image: Vec<[f32; 4]> =
             (0..npx).map(|_| [rng.range(-1.0, 1.0), rng.range(-1.0, 1.0), rng.range(-1.0, 1.0), 0.0]).collect();
-        let (rows, offsets, terms) = gpu_grads(&scene, &cam, &v_image);
+        // The frame-cost regulariser on odd degrees: a template sums it over its copies.
+        let tile_cost_weight = if deg % 2 == 1 { 0.5 } else { 0.0 };
+        let (rows, offsets, terms) = gpu_grads(&scene, &cam, &v_image, tile_cost_weight);
 
         // The expanded plain scene's gradients, mapped back on the CPU.
         let expanded = scene.expand();
         let ge = GpuScene::new(&gpu, &expanded).unwrap();
         let mut r = Rasterizer::new(&gpu, &k).unwrap();
+        r.tile_cost_weight = tile_cost_weight;
         r.render(&ge, &cam, [0.0; 3]).unwrap();
         let v = gpu.upload("v_image", &v_image).unwrap();
         let g = Grads::new(&gpu, &ge).unwrap();
@@ -325,7 +334,7 @@ fn instanced_gradients_match_finite_differences() {
     let npx = (cam.width * cam.height) as usize;
     let v_image: Vec<[f32; 4]> =
         (0..npx).map(|_| [rng.range(-1.0, 1.0), rng.range(-1.0, 1.0), rng.range(-1.0, 1.0), 0.0]).collect();
-    let (rows, offsets, terms) = gpu_grads(&scene, &cam, &v_image);
+    let (rows, offsets, terms) = gpu_grads(&scene, &cam, &v_image, 0.0);
 
     // The f64 twin: L = Σ v · image, with the tile lists of the GPU frame held fixed.
     let gi = GpuScene::instanced(&gpu, &scene).unwrap();

@@ -106,6 +106,12 @@ fn comparison_section(
                 "*plain, pruned*: the plain scene pruned to InstGS's GPU memory by significance and fine-tuned as \
                  long as the joint stage (`pruned.json`) — what instancing adds over pruning alone."
             );
+            if let Some(w) = read(run, "pruned.json").and_then(|p| num(&p, "tile_cost_weight")).filter(|w| *w > 0.0) {
+                let _ = writeln!(
+                    md,
+                    "Both were trained with the frame-cost regulariser (`tile_cost_weight = {w:e}`, docs/pipeline.md)."
+                );
+            }
             let _ = writeln!(
                 md,
                 "\n| | plain 3DGS | plain, pruned | InstGS | InstGS vs plain | InstGS vs plain, pruned |\n|---|---|---|---|---|---|"

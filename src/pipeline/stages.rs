@@ -400,6 +400,7 @@ impl Ctx<'_> {
                 "gaussians": plain.len(), "kept": keep.len(), "target_gpu_bytes": target,
                 "ranking": "significance (blending weight summed over the training views)",
                 "fine_tune_iterations": self.cfg.joint.iterations,
+                "tile_cost_weight": self.cfg.joint.tile_cost_weight,
             });
             eprintln!(
                 "{}kept {} of {} Gaussians ({:.1} %) to fit InstGS's {:.2} MB; fine-tuning {} iterations",

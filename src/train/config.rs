@@ -19,6 +19,8 @@ pub struct Config {
     pub sh_increase_interval: u64,
     pub background: [f32; 3],
     pub ssim_weight: f32,
+    /// The frame-cost regulariser's weight (`tile_cost_weight`, configs/default.toml); 0: off.
+    pub tile_cost_weight: f32,
     pub test_interval: u64,
     pub checkpoint_interval: u64,
     /// Instanced runs: optimise the instance transforms too (rates `lr.transform_*`).
@@ -404,6 +406,7 @@ pub const TRAINING_RANGES: &[(&str, Bound)] = &[
     ("sh_increase_interval", Bound::AtLeast(1.0)),
     ("background", Bound::In(0.0, 1.0)),
     ("ssim_weight", Bound::In(0.0, 1.0)),
+    ("tile_cost_weight", Bound::In(0.0, 1.0)),
     ("lr.position_init", Bound::Above(0.0)),
     ("lr.position_final", Bound::Above(0.0)),
     ("lr.position_max_steps", Bound::AtLeast(1.0)),

@@ -192,6 +192,7 @@ impl Trainer {
         step: u64,
     ) -> Result<StepStats> {
         let cam = &view.camera;
+        self.raster.tile_cost_weight = cfg.tile_cost_weight;
         let frame = self.raster.render(&self.scene, cam, cfg.background)?;
         let colour = self.appearance.params.get(index).copied();
         let li = match self.losses.iter().position(|l| l.0.width == cam.width && l.0.height == cam.height) {

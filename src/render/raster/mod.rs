@@ -63,7 +63,7 @@ pub fn frame_params(
         num_instances: 0,
         offset_storage: OFFSETS_F32,
         num_visible: 0,
-        _pad1: 0,
+        tile_cost_weight: 0.0,
         _pad2: 0,
     }
 }
@@ -221,6 +221,9 @@ pub struct Rasterizer {
     /// Tests: fill every output buffer with [`POISON`] before the kernels run, so elements a
     /// kernel fails to write show up.
     pub poison: bool,
+    /// Training's frame-cost regulariser, written into every frame's parameters
+    /// (`FrameParams::tile_cost_weight`, read by the backward pass only); 0: off.
+    pub tile_cost_weight: f32,
 }
 
 /// What a recorded frame depends on: scene id, per-splat capacity, width, height,
@@ -267,6 +270,7 @@ impl Rasterizer {
             isect_result: 0,
             last_params: None,
             poison: false,
+            tile_cost_weight: 0.0,
         })
     }
 
@@ -463,7 +467,8 @@ impl Rasterizer {
             self.ensure_buffers(n, scene.inst.instances, cam.width, cam.height, cap, readback)?;
             n = self.gauss.as_ref().unwrap().n;
             cap = self.isect.as_ref().unwrap().cap;
-            let fp = scene.frame_params(cam, background, cap as u32);
+            let mut fp = scene.frame_params(cam, background, cap as u32);
+            fp.tile_cost_weight = self.tile_cost_weight;
             self.frame_ub.write_mapped(&[fp])?;
             let select = scene.inst.select.map(|a| [a.max_level, a.splats_per_pixel.to_bits(), a.margin_px.to_bits()]);
             let key = (scene.id, n, cam.width, cam.height, cap, readback, select, self.forward);

@@ -197,8 +197,10 @@ pub fn project(fp: &FrameParams, g: &Gaussian) -> Splat {
 }
 
 /// The vector-Jacobian product of [`project`]: gradients of the parameters given `v`, the
-/// gradient with respect to the splat. Mirrors `preprocess_backward.comp`.
-pub fn project_vjp(fp: &FrameParams, g: &Gaussian, v: &Splat) -> Gaussian {
+/// gradient with respect to the splat, plus the frame-cost regulariser's
+/// `fp.tile_cost_weight × tiles_touched` on each log-scale (the splat's tile count, held
+/// constant). Mirrors `preprocess_backward.comp`.
+pub fn project_vjp(fp: &FrameParams, g: &Gaussian, v: &Splat, tiles_touched: u32) -> Gaussian {
     let pr = proj(fp);
     let f = forward(&pr, g, fp.sh_degree);
     let [a, b, c] = f.cov;
@@ -253,7 +255,7 @@ pub fn project_vjp(fp: &FrameParams, g: &Gaussian, v: &Splat) -> Gaussian {
     let o = 1.0 / (1.0 + (-g.opacity).exp());
     Gaussian {
         mean: v_p.to_array(),
-        scale: (v_s * f.s).to_array(),
+        scale: (v_s * f.s + DVec3::splat(fp.tile_cost_weight as f64 * tiles_touched as f64)).to_array(),
         quat: v_q.to_array(),
         opacity: v.opacity * o * (1.0 - o),
         sh: v_sh,
