@@ -557,3 +557,25 @@ fn curves_section(md: &mut String, run: &Path) {
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_comparison_says_when_both_scenes_were_regularised() {
+        let run = std::env::temp_dir().join(format!("instgs-report-{}", std::process::id()));
+        std::fs::create_dir_all(&run).unwrap();
+        let eval = serde_json::json!({ "split": "test", "pruned": {}, "plain": {} });
+        let section = |weight: f64| {
+            std::fs::write(run.join("pruned.json"), serde_json::json!({ "tile_cost_weight": weight }).to_string())
+                .unwrap();
+            let mut md = String::new();
+            comparison_section(&mut md, &run, Some(&eval), None);
+            md
+        };
+        assert!(section(3e-8).contains("frame-cost regulariser (`tile_cost_weight = 3e-8`"));
+        assert!(!section(0.0).contains("regulariser"));
+        std::fs::remove_dir_all(&run).unwrap();
+    }
+}
