@@ -1,7 +1,8 @@
 //! Datasets, configuration and training through the binary: a short run on a small version of
 //! ducks6 whose loss falls and test PSNR rises, checkpoint / Ctrl-C / resume reaching the same
 //! parameters as an uninterrupted run, divergence that keeps the last good checkpoint, and bad
-//! datasets that end in one clear error. Validation layers on in every run.
+//! datasets that end in one clear error; the frame-cost regulariser shrinks the splats.
+//! Validation layers on in every run.
 mod common;
 use std::io::Write;
 use std::path::{Path, PathBuf};
@@ -290,6 +291,33 @@ fn short_training_run_learns() {
     assert!((v["psnr_mean"].as_f64().unwrap() - test[7]).abs() < 0.05, "{v} vs {}", test[7]);
     assert_eq!(v["views"].as_array().unwrap().len(), 4);
     assert!(out.join("eval/r_000_compare.png").exists());
+}
+
+#[test]
+fn the_frame_cost_regulariser_shrinks_the_splats() {
+    // The same short run (no densification) without and with `tile_cost_weight`: the weight
+    // reaches the backward pass from the configuration and the scales come out smaller.
+    let data = small_nerf("tile-cost", 8, |_| {});
+    let mean_log_scale = |weight: f64| -> f64 {
+        let out = tmp(&format!("tile-cost-{weight}"));
+        let cfg = config_file(
+            &out,
+            &format!("iterations = 60\ntest_interval = 0\ntile_cost_weight = {weight}\n[densify]\nfrom_iter = 1000\n"),
+        );
+        let run = out.join("run");
+        let o = run_bin(
+            &["train", "--data", data.to_str().unwrap(), "--downscale", "8", "--out", run.to_str().unwrap()]
+                .into_iter()
+                .chain(["--config", cfg.to_str().unwrap(), "--quiet"])
+                .collect::<Vec<_>>(),
+            &[],
+        );
+        assert!(o.ok, "{}", o.stderr);
+        let scene = instgs_vk::formats::ply::read_ply(&run.join("point_cloud.ply")).unwrap();
+        scene.scales.iter().flatten().map(|&v| v as f64).sum::<f64>() / (3 * scene.len()) as f64
+    };
+    let (plain, regularised) = (mean_log_scale(0.0), mean_log_scale(1e-3));
+    assert!(regularised < plain - 0.05, "mean log-scale {plain} -> {regularised}");
 }
 
 fn train_args<'a>(data: &'a str, out: &'a str, cfg: &'a str, its: &'a str) -> Vec<&'a str> {
