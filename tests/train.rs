@@ -302,16 +302,10 @@ fn the_frame_cost_regulariser_shrinks_the_splats() {
         let out = tmp(&format!("tile-cost-{weight}"));
         let cfg = config_file(
             &out,
-            &format!("iterations = 60\ntest_interval = 0\ntile_cost_weight = {weight}\n[densify]\nfrom_iter = 1000\n"),
+            &format!("test_interval = 0\ntile_cost_weight = {weight}\n[densify]\nfrom_iter = 1000\n"),
         );
         let run = out.join("run");
-        let o = run_bin(
-            &["train", "--data", data.to_str().unwrap(), "--downscale", "8", "--out", run.to_str().unwrap()]
-                .into_iter()
-                .chain(["--config", cfg.to_str().unwrap(), "--quiet"])
-                .collect::<Vec<_>>(),
-            &[],
-        );
+        let o = run_bin(&train_args(data.to_str().unwrap(), run.to_str().unwrap(), cfg.to_str().unwrap(), "60"), &[]);
         assert!(o.ok, "{}", o.stderr);
         let scene = instgs_vk::formats::ply::read_ply(&run.join("point_cloud.ply")).unwrap();
         scene.scales.iter().flatten().map(|&v| v as f64).sum::<f64>() / (3 * scene.len()) as f64
