@@ -186,8 +186,7 @@ bool splat_backward(uint i, uint row, Expanded e, out vec3 v_p, out vec3 v_ls, o
     }
     vec3 v_dir = e.rot * v_dir_t;
     v_p = transpose(W) * v_t + (v_dir - dir * dot(dir, v_dir)) / dv_len;
-    // The frame-cost regulariser R = w sum_splats sg(tiles_touched) (ln s_x + ln s_y + ln s_z)
-    // (sg: held constant): a splat's blend work grows with the tiles it touches.
+    // Plus the frame-cost regulariser's w x tiles touched (see the header).
     v_ls = v_s * s + vec3(frame.p.tile_cost_weight * float(tiles_touched.v[i]));
     v_dc = basis[0] * v_rgb;
     float o = 1.0 / (1.0 + exp(-e.logit));
