@@ -26,11 +26,16 @@ a capture as a user's phone or drone would give it, for measuring the pipeline o
 
 The split follows what `instgs-vk` holds out of a COLMAP dataset: every 8th image by name.
 With --clean DIR, the same capture without the photo effects (same COLMAP model, same masks) is
-written to DIR too: the reference for what the effects cost.
+written to DIR too: the reference for what the effects cost. With --true-cameras DIR, an
+existing capture is copied to DIR with COLMAP's cameras replaced by the true ones (poses mapped
+into COLMAP's frame by the camera-centre similarity, the scene's focal length) and its ground
+truth written through them: the reference for what COLMAP's camera errors cost.
 
 usage: make_capture.py SCENE_DIR OUT_DIR [--seed N] [--global-masks] [--clean DIR]
        make_capture.py SCENE_DIR OUT_DIR --truth-only [--global-masks]
          (an existing capture of SCENE_DIR: writes its ground truth again from its COLMAP model)
+       make_capture.py SCENE_DIR OUT_DIR --true-cameras DIR [--global-masks]
+         (an existing capture of SCENE_DIR, copied to DIR with the true cameras)
        (tools/make-capture.sh runs it with pinned pycolmap, numpy and pillow)
 """
 import argparse, json, os, shutil, sys
@@ -182,6 +187,45 @@ def write_truth(scene_dir, outs, rec, record, global_masks):
         json.dump(gt, open(os.path.join(o, "instances.json" if global_masks else "ground_truth.json"), "w"), indent=1)
 
 
+def true_cameras(scene_dir, cap, out, global_masks):
+    """A copy of the capture `cap` in `out` whose cameras are the scene's true ones, in COLMAP's
+    frame (module docstring)."""
+    if os.path.exists(out):
+        sys.exit(f"{out}: exists; choose another folder")
+    rec = pycolmap.Reconstruction(os.path.join(cap, "sparse", "0"))
+    record = json.load(open(os.path.join(cap, "capture.json")))
+    c2w, fov = {}, {}
+    for split in ("train", "test"):
+        t = json.load(open(os.path.join(scene_dir, f"transforms_{split}.json")))
+        for f in t["frames"]:
+            c2w[f["file_path"]] = np.array(f["transform_matrix"]) @ np.diag([1.0, -1.0, -1.0, 1.0])  # OpenCV axes
+            fov[f["file_path"]] = f.get("camera_angle_x", t.get("camera_angle_x"))
+    images = sorted(rec.images.values(), key=lambda i: i.name)
+    sources = [record["photos"][i.name[:-4]]["source"] for i in images]
+    before = record["alignment"]["rms_camera_centre_error"]
+    est = np.array([i.projection_center() for i in images])
+    s, r, t = umeyama(est, np.array([c2w[src][:3, 3] for src in sources]))
+    for img, src in zip(images, sources):
+        cam = rec.cameras[img.camera_id]
+        if cam.model.name != "PINHOLE":
+            sys.exit(f"{cap}: camera {img.camera_id} is {cam.model.name}; --true-cameras writes PINHOLE cameras only")
+        # COLMAP's frame from the scene's: x_colmap = R^T (x_world - t) / s.
+        centre = r.T @ (c2w[src][:3, 3] - t) / s
+        world_from_cam = r.T @ c2w[src][:3, :3]
+        rec.frames[img.frame_id].rig_from_world = pycolmap.Rigid3d(pycolmap.Rotation3d(world_from_cam.T), -world_from_cam.T @ centre)
+        f = 0.5 * cam.width / np.tan(0.5 * fov[src])
+        cam.params = [f, f, cam.width / 2, cam.height / 2]
+    os.makedirs(os.path.join(out, "sparse", "0"))
+    rec.write(os.path.join(out, "sparse", "0"))
+    for d in ("images", "masks"):
+        shutil.copytree(os.path.join(cap, d), os.path.join(out, d))
+    record["true_cameras_from"] = cap
+    write_truth(scene_dir, [out], rec, record, global_masks)
+    json.dump(record, open(os.path.join(out, "capture.json"), "w"), indent=1)
+    print(f"{out}: {cap} with the true cameras; camera centres {before:.4f} units rms from the truth before, "
+          f"{record['alignment']['rms_camera_centre_error']:.1e} now")
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("scene")
@@ -190,7 +234,13 @@ def main():
     ap.add_argument("--global-masks", action="store_true")
     ap.add_argument("--clean")
     ap.add_argument("--truth-only", action="store_true")
+    ap.add_argument("--true-cameras")
     a = ap.parse_args()
+    if a.true_cameras:
+        if a.clean or a.truth_only:
+            sys.exit("--true-cameras copies one existing capture; it takes neither --clean nor --truth-only")
+        true_cameras(a.scene, a.out, a.true_cameras, a.global_masks)
+        return
     if a.truth_only:
         if a.clean:
             sys.exit("--truth-only writes one capture's truth; run it on the --clean folder too")
