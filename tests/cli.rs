@@ -196,11 +196,20 @@ fn compose_info_convert_and_render_an_instanced_scene() {
     };
     let (_, b) = bench(&[], "1");
     assert_eq!(b["splats"], 950);
+    // Its intersections by part (one frame: the parts add up); a plain scene has no parts.
+    let part = |b: &serde_json::Value, k: &str| b[k].as_f64().unwrap_or_else(|| panic!("{k}: {b}"));
+    assert!(part(&b, "instanced_intersections") > 0.0, "{b}");
+    assert_eq!(
+        part(&b, "background_intersections") + part(&b, "instanced_intersections"),
+        part(&b, "intersections"),
+        "{b}"
+    );
     // --compare: the expanded PLY interleaved with the instanced scene, ratios A over B.
     let (o, b) = bench(&["--compare", s(&ply)], "2");
     assert!(o.stdout.contains("A over B"), "{}", o.stdout);
     assert_eq!(b["compare"]["splats"], 950);
     assert_eq!(b["compare"]["intersections"], b["intersections"], "same picture, same work");
+    assert!(b["compare"]["background_intersections"].is_null(), "{b}");
     let fb = b["file_bytes"].as_f64().unwrap() / b["compare"]["file_bytes"].as_f64().unwrap();
     assert_eq!(b["ratios"]["file_bytes"].as_f64().unwrap(), fb);
     assert!(b["ratios"]["scene_gpu_bytes"].as_f64().unwrap() < 1.0, "{b}");

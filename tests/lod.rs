@@ -110,6 +110,13 @@ fn selection_matches_cpu_twin_and_renders_the_chosen_levels() {
     assert_eq!(f.visible, plain.visible);
     let db = psnr(&f.image, &plain.image);
     assert!(db >= 60.0, "selected vs expanded: {db:.1} dB");
+    // `bench`'s split: the background's intersections are its splats' tile counts, and all the
+    // splats' counts are the frame's intersections.
+    let nb = scene.background.len();
+    let background: u64 = plain_st.projected.tiles_touched[..nb].iter().map(|&t| t as u64).sum();
+    assert!(background > 0 && background < f.intersections as u64, "{background} of {}", f.intersections);
+    assert_eq!(r.intersections_of_first(nb).unwrap(), background);
+    assert_eq!(r.intersections_of_first(usize::MAX).unwrap(), f.intersections as u64);
     assert_clean(&gpu);
 }
 

@@ -115,6 +115,8 @@ fn a_run_interrupted_in_every_stage_resumes_and_finishes() {
         "PSNR, colour-compensated",
         "PSNR on instance pixels",
         "FPS (median)",
+        "tile intersections, median",
+        "Where InstGS's frame goes: ",
         "held-out IoU",
         "rotation error",
     ] {

@@ -43,6 +43,8 @@ struct BenchScene {
     /// of the timestamps: lavapipe's can shift between passes once a context has drawn).
     wall_ms: Vec<f64>,
     isects: Vec<f64>,
+    /// An instanced scene's intersections from its background splats (empty for a plain one).
+    background_isects: Vec<f64>,
     visible: Vec<f64>,
 }
 
@@ -61,6 +63,7 @@ impl BenchScene {
             frame_ms: Vec::new(),
             wall_ms: Vec::new(),
             isects: Vec::new(),
+            background_isects: Vec::new(),
             visible: Vec::new(),
         })
     }
@@ -74,6 +77,9 @@ impl BenchScene {
             self.wall_ms.push(wall);
             collect(&mut self.per_pass, &f.passes);
             self.isects.push(f.intersections as f64);
+            if self.gs.num_background < self.gs.len {
+                self.background_isects.push(self.r.intersections_of_first(self.gs.num_background)? as f64);
+            }
             self.visible.push(f.visible as f64);
         }
         Ok(())
@@ -89,6 +95,11 @@ impl BenchScene {
         println!("splats           {}", self.scene.splats());
         println!("visible (median) {}", median(&self.visible));
         println!("intersections    {}", median(&self.isects));
+        let parts = self.intersection_parts();
+        if let Some((background, instanced)) = parts {
+            println!("  background     {background}");
+            println!("  instanced      {instanced}");
+        }
         println!("frame (median)   {fm:.3} ms  ({:.1} FPS); p90 {p90:.3} ms", 1000.0 / fm);
         println!("wall (median)    {:.3} ms  (submission to fence, host clock)", median(&self.wall_ms));
         println!("scene GPU bytes  {}", self.gs.gpu_bytes());
@@ -108,7 +119,7 @@ impl BenchScene {
         }
         let passes: serde_json::Map<String, serde_json::Value> =
             self.per_pass.iter().map(|(n, v)| (n.clone(), serde_json::json!(median(v)))).collect();
-        Ok(serde_json::json!({
+        let mut json = serde_json::json!({
             "scene": self.path.display().to_string(),
             "forward": self.r.forward(),
             "splats": self.scene.splats(),
@@ -126,7 +137,22 @@ impl BenchScene {
                 "name": c.name, "keys": c.keys, "gpu_ms": c.gpu_ms, "sort_unstable_ms": c.cpu_ms,
                 "ratio": c.gpu_ms / c.cpu_ms,
             })).collect::<Vec<_>>(),
-        }))
+        });
+        if let Some((background, instanced)) = parts {
+            json["background_intersections"] = background.into();
+            json["instanced_intersections"] = instanced.into();
+        }
+        Ok(json)
+    }
+
+    /// An instanced scene's intersections by part, medians over the timed frames: (background,
+    /// instanced splats).
+    fn intersection_parts(&self) -> Option<(f64, f64)> {
+        if self.background_isects.is_empty() {
+            return None;
+        }
+        let instanced: Vec<f64> = self.isects.iter().zip(&self.background_isects).map(|(t, b)| t - b).collect();
+        Some((median(&self.background_isects), median(&instanced)))
     }
 }
 

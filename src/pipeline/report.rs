@@ -158,6 +158,7 @@ fn comparison_section(
             // bench.json: InstGS's numbers, plain's under `compare`, pruned's under `compare_more`.
             let three = |key: &str| [num(b, &format!("compare.{key}")), num(&b["compare_more"][0], key), num(b, key)];
             row(md, "splats rendered", three("splats"), &|v| format!("{v:.0}"), &times);
+            row(md, "tile intersections, median", three("intersections"), &|v| format!("{v:.0}"), &times);
             row(md, "scene memory on the GPU (MB)", three("scene_gpu_bytes"), &mb, &times);
             row(md, "file size (MB)", three("file_bytes"), &mb, &times);
             row(md, "frame time, median (ms)", three("frame_ms_median"), &|v| format!("{v:.2}"), &times);
@@ -170,6 +171,15 @@ fn comparison_section(
                 e["compensated"]
                     .as_str()
                     .unwrap_or("the photo's colour transform fitted on its left half, scored on its right half")
+            );
+        }
+        if let Some((bg, inst)) =
+            bench.as_ref().and_then(|b| num(b, "background_intersections").zip(num(b, "instanced_intersections")))
+        {
+            let _ = writeln!(
+                md,
+                "\nWhere InstGS's frame goes: {bg:.0} tile intersections from its background, {inst:.0} from its \
+                 instances' splats (medians over the frames; a frame's time follows its intersections on a CPU device)."
             );
         }
         md.push('\n');

@@ -502,6 +502,17 @@ impl Rasterizer {
         }
     }
 
+    /// The last frame's intersections from its first `splats` splats (at most the frame's splat
+    /// count, which instance selection makes GPU-written): an instanced scene's background is
+    /// splats 0 .. num_background with or without selection.
+    pub fn intersections_of_first(&self, splats: usize) -> Result<u64> {
+        let g = self.gauss.as_ref().ok_or_else(|| anyhow::anyhow!("no frame rendered"))?;
+        let counts: Vec<u32> = self.gpu.read(&self.counts.counts, COUNT_SLOTS as usize)?;
+        let n = (counts[COUNT_GAUSSIANS as usize] as usize).min(splats);
+        let touched: Vec<u32> = self.gpu.read(&g.tiles_touched, n)?;
+        Ok(touched.iter().map(|&t| t as u64).sum())
+    }
+
     /// Reads every intermediate buffer of the last frame (for tests).
     pub fn read_state(&self) -> Result<FrameState> {
         let gpu = &self.gpu;
