@@ -29,13 +29,15 @@ With --clean DIR, the same capture without the photo effects (same COLMAP model,
 written to DIR too: the reference for what the effects cost. With --true-cameras DIR, an
 existing capture is copied to DIR with COLMAP's cameras replaced by the true ones (poses mapped
 into COLMAP's frame by the camera-centre similarity, the scene's focal length) and its ground
-truth written through them: the reference for what COLMAP's camera errors cost.
+truth written through them: the reference for what COLMAP's camera errors cost; with --clean
+DIR2 as well, a second such copy without the photo effects.
 
 usage: make_capture.py SCENE_DIR OUT_DIR [--seed N] [--global-masks] [--clean DIR]
        make_capture.py SCENE_DIR OUT_DIR --truth-only [--global-masks]
          (an existing capture of SCENE_DIR: writes its ground truth again from its COLMAP model)
-       make_capture.py SCENE_DIR OUT_DIR --true-cameras DIR [--global-masks]
-         (an existing capture of SCENE_DIR, copied to DIR with the true cameras)
+       make_capture.py SCENE_DIR OUT_DIR --true-cameras DIR [--clean DIR2] [--global-masks]
+         (an existing capture of SCENE_DIR, copied to DIR with the true cameras; to DIR2 also
+         without the photo effects)
        (tools/make-capture.sh runs it with pinned pycolmap, numpy and pillow)
 """
 import argparse, json, os, shutil, sys
@@ -187,11 +189,13 @@ def write_truth(scene_dir, outs, rec, record, global_masks):
         json.dump(gt, open(os.path.join(o, "instances.json" if global_masks else "ground_truth.json"), "w"), indent=1)
 
 
-def true_cameras(scene_dir, cap, out, global_masks):
+def true_cameras(scene_dir, cap, out, global_masks, clean=None):
     """A copy of the capture `cap` in `out` whose cameras are the scene's true ones, in COLMAP's
-    frame (module docstring)."""
-    if os.path.exists(out):
-        sys.exit(f"{out}: exists; choose another folder")
+    frame (module docstring); with `clean`, a second copy there whose photos are the scene's
+    renders without the photo effects (JPEG as the capture's)."""
+    for o in [out] + ([clean] if clean else []):
+        if os.path.exists(o):
+            sys.exit(f"{o}: exists; choose another folder")
     rec = pycolmap.Reconstruction(os.path.join(cap, "sparse", "0"))
     record = json.load(open(os.path.join(cap, "capture.json")))
     c2w, fov = {}, {}
@@ -224,6 +228,14 @@ def true_cameras(scene_dir, cap, out, global_masks):
     json.dump(record, open(os.path.join(out, "capture.json"), "w"), indent=1)
     print(f"{out}: {cap} with the true cameras; camera centres {before:.4f} units rms from the truth before, "
           f"{record['alignment']['rms_camera_centre_error']:.1e} now")
+    if clean:
+        shutil.copytree(out, clean)
+        for name, photo in record["photos"].items():
+            path = os.path.join(clean, "images", name + ".jpg")
+            if os.path.exists(path):
+                rgb = np.array(Image.open(os.path.join(scene_dir, photo["source"] + ".png")).convert("RGB"))
+                Image.fromarray(rgb).save(path, quality=JPEG_QUALITY)
+        print(f"{clean}: the same without the photo effects")
 
 
 def main():
@@ -237,9 +249,9 @@ def main():
     ap.add_argument("--true-cameras")
     a = ap.parse_args()
     if a.true_cameras:
-        if a.clean or a.truth_only:
-            sys.exit("--true-cameras copies one existing capture; it takes neither --clean nor --truth-only")
-        true_cameras(a.scene, a.out, a.true_cameras, a.global_masks)
+        if a.truth_only:
+            sys.exit("--true-cameras copies one existing capture; it does not take --truth-only")
+        true_cameras(a.scene, a.out, a.true_cameras, a.global_masks, a.clean)
         return
     if a.truth_only:
         if a.clean:
