@@ -125,20 +125,34 @@ def chordal_mean(rotations, weights):
     return u @ d @ vt
 
 
+def scene_cameras(scene_dir):
+    """The scene's true cameras by image path: camera-to-world (OpenCV axes) and horizontal field
+    of view."""
+    c2w, fov = {}, {}
+    for split in ("train", "test"):
+        t = json.load(open(os.path.join(scene_dir, f"transforms_{split}.json")))
+        for f in t["frames"]:
+            c2w[f["file_path"]] = np.array(f["transform_matrix"]) @ np.diag([1.0, -1.0, -1.0, 1.0])
+            fov[f["file_path"]] = f.get("camera_angle_x", t.get("camera_angle_x"))
+    return c2w, fov
+
+
+def colmap_to_scene(rec, record, c2w):
+    """The registered images by name, their source paths and the similarity (s, R, t) that maps
+    COLMAP's frame onto the scene's (camera centres, least squares)."""
+    images = sorted(rec.images.values(), key=lambda i: i.name)
+    sources = [record["photos"][i.name[:-4]]["source"] for i in images]
+    est = np.array([i.projection_center() for i in images])
+    return images, sources, est, umeyama(est, np.array([c2w[src][:3, 3] for src in sources]))
+
+
 def write_truth(scene_dir, outs, rec, record, global_masks):
     """Ground truth in COLMAP's frame (module docstring): each object through the cameras that
     see it; records the camera-centre alignment and how far that moved the objects."""
     scene = json.load(open(os.path.join(scene_dir, "instances.json")))
-    c2w_true = {}
-    for split in ("train", "test"):
-        for f in json.load(open(os.path.join(scene_dir, f"transforms_{split}.json")))["frames"]:
-            c2w_true[f["file_path"]] = np.array(f["transform_matrix"]) @ np.diag([1.0, -1.0, -1.0, 1.0])  # OpenCV axes
-    images = sorted(rec.images.values(), key=lambda i: i.name)
-    sources = [record["photos"][i.name[:-4]]["source"] for i in images]
-    # The similarity that maps COLMAP's frame onto the scene's (camera centres, least squares).
-    est = np.array([i.projection_center() for i in images])
+    c2w_true, _ = scene_cameras(scene_dir)
+    images, sources, est, (s, r, t) = colmap_to_scene(rec, record, c2w_true)
     true = np.array([c2w_true[src][:3, 3] for src in sources])
-    s, r, t = umeyama(est, true)
     residual = np.linalg.norm((s * (r @ est.T)).T + t - true, axis=1)
     record["alignment"] = {"scale": s, "rms_camera_centre_error": float(np.sqrt((residual ** 2).mean())),
                            "max_camera_centre_error": float(residual.max())}
@@ -198,17 +212,9 @@ def true_cameras(scene_dir, cap, out, global_masks, clean=None):
             sys.exit(f"{o}: exists; choose another folder")
     rec = pycolmap.Reconstruction(os.path.join(cap, "sparse", "0"))
     record = json.load(open(os.path.join(cap, "capture.json")))
-    c2w, fov = {}, {}
-    for split in ("train", "test"):
-        t = json.load(open(os.path.join(scene_dir, f"transforms_{split}.json")))
-        for f in t["frames"]:
-            c2w[f["file_path"]] = np.array(f["transform_matrix"]) @ np.diag([1.0, -1.0, -1.0, 1.0])  # OpenCV axes
-            fov[f["file_path"]] = f.get("camera_angle_x", t.get("camera_angle_x"))
-    images = sorted(rec.images.values(), key=lambda i: i.name)
-    sources = [record["photos"][i.name[:-4]]["source"] for i in images]
     before = record["alignment"]["rms_camera_centre_error"]
-    est = np.array([i.projection_center() for i in images])
-    s, r, t = umeyama(est, np.array([c2w[src][:3, 3] for src in sources]))
+    c2w, fov = scene_cameras(scene_dir)
+    images, sources, _, (s, r, t) = colmap_to_scene(rec, record, c2w)
     for img, src in zip(images, sources):
         cam = rec.cameras[img.camera_id]
         if cam.model.name != "PINHOLE":
