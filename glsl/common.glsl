@@ -248,8 +248,13 @@ struct AppearanceArgs {
     vec4 row0;
     vec4 row1;
     vec4 row2;
+    // The lens's vignetting, a falloff v = 1 + k1 r^2 + k2 r^4 that multiplies the transformed
+    // colour, r^2 = ((x + 0.5 - cx) / fx)^2 + ((y + 0.5 - cy) / fy)^2 at pixel (x, y):
+    // (k1, k2, 0, 0) and (cx, cy, 1 / fx, 1 / fy) in pixels.
+    vec4 vignetting;
+    vec4 pinhole;
     uint pixels; // width * height
-    uint _pad0;
+    uint width;
     uint _pad1;
     uint _pad2;
 };
@@ -258,6 +263,9 @@ struct AppearanceArgs {
 // The backward's gradient sums: dL/dM row-major then dL/db (APPEARANCE_PARAMS floats), the same
 // order as the parameters (row c: M[c][0..2], b[c]).
 #define APPEARANCE_PARAMS 12
+// ... followed by dL/dk1 and dL/dk2 of the vignetting: APPEARANCE_GRADS floats in all.
+#define APPEARANCE_VIGNETTING 2
+#define APPEARANCE_GRADS 14
 
 // SSIM window: 11 x 11 Gaussian, sigma 1.5 (Wang et al. 2004; Inria's loss_utils.ssim), zero
 // padding at the image border as torch's conv2d with padding 5.

@@ -831,6 +831,14 @@ fn bad_input_table() {
     let instance = |labels: &str| {
         ["instance", "--scene", tiny, "--labels", labels, "--data", demo, "--out", "{d}/s.instgs"].map(String::from)
     };
+    // A run's learned lens beside its scene (`eval` scores through it): a falloff no lens has.
+    t.put("appearance_vignetting", "s.ply", &good);
+    t.put("appearance_vignetting", "appearance.json", r#"{"views": [], "vignetting": {"k1": 50.0, "k2": 0.0}}"#);
+    t.case(
+        "appearance_vignetting",
+        &["eval", "--scene", "{d}/s.ply", "--data", demo],
+        &["appearance.json", "vignetting k1 = 50, k2 = 0 is not a lens's falloff"],
+    );
     for (name, file, bytes, needle) in [
         ("labels_odd_bytes", "l.bin", vec![0u8; 6], "6 bytes is not a whole number of u32 labels"),
         ("labels_count", "l.bin", vec![0u8; 8], "2 labels for a scene of 3 Gaussians"),

@@ -536,11 +536,15 @@ fn joint_optimisation_learns_templates_offsets_and_background() {
     assert_eq!(result.groups[0].instances, init.groups[0].instances);
     // Held-out views improve.
     let mut ras = Rasterizer::new(&gpu, &k).unwrap();
-    let before =
-        instgs_vk::train::evaluate(&mut ras, &GpuScene::instanced(&gpu, &init).unwrap(), &ds.test, [0.0; 3], |_, _| {
-            Ok(())
-        })
-        .unwrap();
+    let before = instgs_vk::train::evaluate(
+        &mut ras,
+        &GpuScene::instanced(&gpu, &init).unwrap(),
+        &ds.test,
+        [0.0; 3],
+        &instgs_vk::render::appearance::NO_VIGNETTING,
+        |_, _| Ok(()),
+    )
+    .unwrap();
     let after = r.test_psnr.unwrap();
     eprintln!("test PSNR {:.2} -> {after:.2}", before.psnr);
     assert!(after > before.psnr + 3.0, "test PSNR {:.2} -> {after:.2}", before.psnr);
@@ -552,6 +556,7 @@ fn joint_optimisation_learns_templates_offsets_and_background() {
         &GpuScene::instanced(&gpu, &result).unwrap(),
         &ds.test,
         [0.0; 3],
+        &instgs_vk::render::appearance::NO_VIGNETTING,
         |_, _| Ok(()),
     )
     .unwrap();
@@ -684,19 +689,21 @@ fn rebalance_spends_the_bytes_where_they_show_and_refuses_what_renders_worse() {
     // Filled to within one more Gaussian's bytes (a row and four offset rows), as counted.
     assert!(r16.bytes_before - r16.bytes_after < 512, "{r16:?}");
     out16.validate("rebalanced, f16").unwrap();
-    // Photos with their own exposure and white balance (a captured scene's): scored as trained,
-    // each render through its photo's colour transform, the scene that holds everything renders
-    // them exactly; without the transforms their mismatch hides most of the scene's own error.
+    // Photos with their own exposure and white balance, through a vignetting lens (a captured
+    // scene's): scored as trained, each render through its photo's colour transform and the
+    // lens, the scene that holds everything renders them exactly; without them their mismatch
+    // hides most of the scene's own error.
     let t: instgs_vk::render::appearance::ColourTransform =
         [0.7, 0.0, 0.0, 0.05, 0.0, 0.8, 0.0, 0.03, 0.0, 0.05, 0.9, 0.0];
+    let vignetting = [-0.3, 0.05];
     let photos: Vec<_> = rendered_views(&truth, 8, 0.0)
         .into_iter()
         .map(|mut v| {
-            v.image = instgs_vk::render::appearance::apply(&t, &v.image);
+            v.image = instgs_vk::render::appearance::apply_photo(&t, &vignetting, &v.camera, &v.image);
             v
         })
         .collect();
-    let colours = vec![t; photos.len()];
+    let mut colours = instgs_vk::render::appearance::PhotoAppearance { colours: vec![t; photos.len()], vignetting };
     let (_, exposed) =
         rebalance(&gpu, &k, &inst, &dropped, &photos, None, [0.0; 3], 0.0, 0.0, Dtype::F32, |_| {}).unwrap();
     let (_, scored) =
@@ -704,7 +711,16 @@ fn rebalance_spends_the_bytes_where_they_show_and_refuses_what_renders_worse() {
     assert!(scored.accepted && scored.psnr_after > 60.0, "{scored:?}");
     assert!(exposed.psnr_after < 40.0, "{exposed:?}");
     assert!(scored.psnr_after - scored.psnr_before > exposed.psnr_after - exposed.psnr_before + 1.0, "{exposed:?}");
-    let e = rebalance(&gpu, &k, &inst, &dropped, &photos, Some(&colours[1..]), [0.0; 3], 0.0, 0.0, Dtype::F32, |_| {});
+    // Without the lens, the corners' mismatch remains.
+    let lensless = instgs_vk::render::appearance::PhotoAppearance {
+        vignetting: instgs_vk::render::appearance::NO_VIGNETTING,
+        ..colours.clone()
+    };
+    let (_, unlensed) =
+        rebalance(&gpu, &k, &inst, &dropped, &photos, Some(&lensless), [0.0; 3], 0.0, 0.0, Dtype::F32, |_| {}).unwrap();
+    assert!(unlensed.psnr_after < scored.psnr_after - 10.0, "{unlensed:?}");
+    colours.colours.pop();
+    let e = rebalance(&gpu, &k, &inst, &dropped, &photos, Some(&colours), [0.0; 3], 0.0, 0.0, Dtype::F32, |_| {});
     assert!(e.unwrap_err().to_string().contains("7 colour transforms for 8 training views"));
     assert_clean(&gpu);
 }

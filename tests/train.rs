@@ -347,6 +347,8 @@ fn interrupted_and_resumed_runs_match_an_uninterrupted_one() {
     assert_eq!(want.iteration, 90);
     assert_eq!(want.appearance.params.len(), 8);
     assert!(want.appearance.steps.iter().all(|&s| s > 0));
+    // The lens's vignetting learns (and resumes) with them.
+    assert!(want.appearance.vignetting_steps > 0 && want.appearance.vignetting != [0.0; 2]);
 
     // Stopped by --iterations, then resumed.
     let split = base.join("split");

@@ -23,7 +23,7 @@ use crate::math::tree;
 use crate::model::instanced::{Group, InstancedScene, Offsets};
 use crate::model::scene::Scene;
 use crate::register::object_size;
-use crate::render::appearance::ColourTransform;
+use crate::render::appearance::{ColourTransform, PhotoAppearance, Vignetting, NO_VIGNETTING};
 use crate::render::raster::Rasterizer;
 use crate::render::upload::GpuScene;
 
@@ -85,8 +85,9 @@ pub fn protect_outlines(scene: &Scene, labels: &[u32], significance: &[f32], fra
 /// The smallest kept background fraction (to 1/128) whose pruned scene's mean PSNR over up to
 /// [`BUDGET_VIEWS`] of `views` is within `budget_db` of the whole scene's; 1 when even that
 /// fraction misses it. `ranking`: per Gaussian, higher stays first ([`protect_outlines`]).
-/// `colours`: one per view, the photos' colour transforms the training learned (captures), applied
-/// to each render before it is scored, as in training; None for renders.
+/// `colours`: the photos' colour transforms (one per view) and the lens's vignetting the training
+/// learned (captures), applied to each render before it is scored, as in training; None for
+/// renders.
 #[allow(clippy::too_many_arguments)]
 pub fn background_budget(
     gpu: &Arc<Gpu>,
@@ -96,7 +97,7 @@ pub fn background_budget(
     ranking: &[f32],
     protected: usize,
     views: &[View],
-    colours: Option<&[ColourTransform]>,
+    colours: Option<&PhotoAppearance>,
     background: [f32; 3],
     budget_db: f64,
     mut progress: impl FnMut(&str),
@@ -314,7 +315,7 @@ pub fn rebalance(
     inst: &InstancedScene,
     dropped: &Scene,
     views: &[View],
-    colours: Option<&[ColourTransform]>,
+    colours: Option<&PhotoAppearance>,
     background: [f32; 3],
     outline_fraction: f64,
     render_weight: f64,
@@ -403,6 +404,7 @@ fn keep_items(cand: &InstancedScene, items: &[(bool, f64, Item)]) -> InstancedSc
 /// (through each photo's colour transform when there are some) and scored.
 struct ViewCheck<'a> {
     pick: Vec<(&'a View, Option<&'a ColourTransform>)>,
+    vignetting: Vignetting,
     r: Rasterizer,
     background: [f32; 3],
 }
@@ -413,7 +415,7 @@ impl<'a> ViewCheck<'a> {
         gpu: &Arc<Gpu>,
         k: &Arc<Kernels>,
         views: &'a [View],
-        colours: Option<&'a [ColourTransform]>,
+        colours: Option<&'a PhotoAppearance>,
         background: [f32; 3],
         purpose: &str,
     ) -> Result<ViewCheck<'a>> {
@@ -421,11 +423,12 @@ impl<'a> ViewCheck<'a> {
         if n == 0 {
             bail!("no training views to {purpose}");
         }
-        if let Some(c) = colours.filter(|c| c.len() != views.len()) {
-            bail!("{} colour transforms for {} training views (to {purpose})", c.len(), views.len());
+        if let Some(c) = colours.filter(|c| c.colours.len() != views.len()) {
+            bail!("{} colour transforms for {} training views (to {purpose})", c.colours.len(), views.len());
         }
-        let pick = (0..n).map(|i| i * views.len() / n).map(|j| (&views[j], colours.map(|c| &c[j]))).collect();
-        Ok(ViewCheck { pick, r: Rasterizer::new(gpu, k)?, background })
+        let pick = (0..n).map(|i| i * views.len() / n).map(|j| (&views[j], colours.map(|c| &c.colours[j]))).collect();
+        let vignetting = colours.map_or(NO_VIGNETTING, |c| c.vignetting);
+        Ok(ViewCheck { pick, vignetting, r: Rasterizer::new(gpu, k)?, background })
     }
 
     /// Mean PSNR (dB) of `gs` over the picked views.
@@ -434,7 +437,7 @@ impl<'a> ViewCheck<'a> {
         for (v, colour) in &self.pick {
             let image = self.r.render(gs, &v.camera, self.background)?.image;
             let image = match colour {
-                Some(t) => crate::render::appearance::apply(t, &image),
+                Some(t) => crate::render::appearance::apply_photo(t, &self.vignetting, &v.camera, &image),
                 None => image,
             };
             sum += crate::util::psnr(&image, &v.image);

@@ -172,6 +172,15 @@ fn comparison_section(
                     .as_str()
                     .unwrap_or("the photo's colour transform fitted on its left half, scored on its right half")
             );
+            let k = |key: &str| e["vignetting"][key].as_f64().unwrap_or(0.0);
+            let (k1, k2) = (k("k1"), k("k2"));
+            if k1 != 0.0 || k2 != 0.0 {
+                let _ = writeln!(
+                    md,
+                    "\nEvery render scored through the lens's vignetting the plain stage learned: \
+                     1 + k1 r² + k2 r⁴ with k1 = {k1:.4}, k2 = {k2:.4} (r: distance from the principal point in focal lengths)."
+                );
+            }
         }
         if let Some((bg, inst)) =
             bench.as_ref().and_then(|b| num(b, "background_intersections").zip(num(b, "instanced_intersections")))

@@ -180,8 +180,8 @@ impl Ctx<'_> {
         };
         let views = &self.ds.train;
         // Scored as trained: each render through its photo's colour transform (captures).
-        let colours = self.photo_colours(&self.cfg.plain)?;
-        let colours = colours.as_deref();
+        let colours = self.photo_appearance(&self.cfg.plain)?;
+        let colours = colours.as_ref();
         let bg = self.cfg.plain.background;
         let (gpu, k) = (self.gpu, self.k);
         let mut rule = |scene: &crate::model::scene::Scene, labels: &[u32], sig: &[f32]| {
@@ -306,12 +306,13 @@ impl Ctx<'_> {
         }
     }
 
-    /// The training photos' colour transforms the plain stage learned (RUN/appearance.json), one
-    /// per training view, when `cfg` models them (captures); None otherwise.
-    fn photo_colours(
+    /// The training photos' colour transforms and the lens's vignetting the plain stage learned
+    /// (RUN/appearance.json), one transform per training view, when `cfg` models them
+    /// (captures); None otherwise.
+    pub(super) fn photo_appearance(
         &self,
         cfg: &crate::train::config::Config,
-    ) -> Result<Option<Vec<crate::render::appearance::ColourTransform>>> {
+    ) -> Result<Option<crate::render::appearance::PhotoAppearance>> {
         let path = self.run_dir().join(train::APPEARANCE_FILE);
         if path.exists() && cfg.appearance.enabled(self.ds.kind) {
             Ok(Some(train::read_appearance(&path, self.ds)?))
@@ -332,7 +333,7 @@ impl Ctx<'_> {
         // The later stages start from the photos' colour transforms the plain stage learned.
         let appearance = match init {
             Init::Dataset => None,
-            _ => self.photo_colours(cfg)?,
+            _ => self.photo_appearance(cfg)?,
         };
         let (init, init_scene) = match init {
             Init::Dataset => (None, None),
@@ -491,6 +492,9 @@ impl Ctx<'_> {
         let bg = self.cfg.plain.background;
         let views = self.views();
         let split = if self.ds.test.is_empty() { "train" } else { "test" };
+        // Every scene scored through the lens the plain stage learned (captures).
+        let vignetting =
+            self.photo_appearance(&self.cfg.plain)?.map_or(crate::render::appearance::NO_VIGNETTING, |a| a.vignetting);
         let mut r = crate::render::raster::Rasterizer::new(self.gpu, self.k)?;
         let n_images = self.cfg.eval.images.min(views.len());
         // Evenly spread views for the pictures.
@@ -518,15 +522,16 @@ impl Ctx<'_> {
             let mut regions = [(0.0, 0usize), (0.0, 0usize)];
             let label = format!("{}{name}: ", Stage::Eval.label());
             let mut progress = Progress::new(&label, "view", "views/s", views.len() as u64, 0, self.progress_mode());
-            let e = train::evaluate(&mut r, &gs, views, bg, |v, f| {
+            let e = train::evaluate(&mut r, &gs, views, bg, &vignetting, |v, f| {
                 if interrupted() {
                     bail!("interrupted");
                 }
                 progress.set(index as u64 + 1, "");
                 if let Some(m) = &masks {
                     let m = &m[index];
+                    let photo = crate::render::appearance::vignette(&vignetting, &v.camera, &f.image);
                     for (k, object) in [true, false].into_iter().enumerate() {
-                        if let Some(db) = crate::util::psnr_where(&f.image, &v.image, |i| (m[i] != 0) == object) {
+                        if let Some(db) = crate::util::psnr_where(&photo, &v.image, |i| (m[i] != 0) == object) {
                             regions[k].0 += db;
                             regions[k].1 += 1;
                         }
@@ -588,6 +593,7 @@ impl Ctx<'_> {
         let mut v = serde_json::json!({
             "split": split, "width": views[0].camera.width, "height": views[0].camera.height,
             "compensated": train::eval::COMPENSATED_NOTE,
+            "vignetting": {"k1": vignetting[0], "k2": vignetting[1]},
         });
         for (name, r) in results {
             v[name] = r;

@@ -33,6 +33,19 @@ struct CheckpointHeader {
     /// step counts follow the transforms.
     #[serde(default)]
     appearance_views: usize,
+    /// The lens's vignetting (k1, k2), its Adam moments and step count (checkpoints written
+    /// before it was learned have none: no vignetting).
+    #[serde(default)]
+    vignetting: Option<VignettingState>,
+}
+
+/// A checkpoint's vignetting state (crate::train::state::AppearanceState).
+#[derive(serde::Serialize, serde::Deserialize)]
+struct VignettingState {
+    k: [f32; 2],
+    exp_avg: [f32; 2],
+    exp_avg_sq: [f32; 2],
+    steps: u32,
 }
 
 /// Writes `st` atomically (temporary file + rename) after checking it is finite, so a bad state
@@ -48,6 +61,15 @@ pub fn write_checkpoint(path: &Path, st: &TrainState, cfg: &Config, dataset: Opt
         layout: st.layout.clone(),
         dataset: dataset.cloned(),
         appearance_views: st.appearance.params.len(),
+        vignetting: (!st.appearance.is_empty()).then(|| {
+            let a = &st.appearance;
+            VignettingState {
+                k: a.vignetting,
+                exp_avg: a.vignetting_exp_avg,
+                exp_avg_sq: a.vignetting_exp_avg_sq,
+                steps: a.vignetting_steps,
+            }
+        }),
     })?;
     crate::util::write_atomic(path, |f| {
         let mut w = CrcWriter { inner: std::io::BufWriter::new(f), crc: crc32fast::Hasher::new() };
@@ -211,6 +233,8 @@ pub fn checkpoint_from_bytes(data: &[u8], what: &str) -> Result<(TrainState, Con
         bail!("{what}: checkpoint has {} trailing bytes", data.len() - pos);
     }
     let to5 = |v: Vec<Vec<f32>>| -> [Vec<f32>; 5] { v.try_into().unwrap() };
+    let none = VignettingState { k: [0.0; 2], exp_avg: [0.0; 2], exp_avg_sq: [0.0; 2], steps: 0 };
+    let vig = header.vignetting.unwrap_or(none);
     let state = TrainState {
         iteration: header.iteration,
         active_sh_degree: header.active_sh_degree,
@@ -237,6 +261,11 @@ pub fn checkpoint_from_bytes(data: &[u8], what: &str) -> Result<(TrainState, Con
             exp_avg_sq: ap[2].clone(),
             steps,
             free: [true; 12],
+            vignetting: vig.k,
+            vignetting_exp_avg: vig.exp_avg,
+            vignetting_exp_avg_sq: vig.exp_avg_sq,
+            vignetting_steps: vig.steps,
+            vignetting_free: true,
         },
     };
     // Values checked at the door: a checkpoint with a NaN or infinity in its parameters, Adam

@@ -38,6 +38,9 @@ pub struct AppearanceConfig {
     /// "auto" (COLMAP datasets: [`AppearanceConfig::AUTO`]; others none), "affine", "gain" or
     /// "none".
     pub model: String,
+    /// Also learn the lens's vignetting (crate::render::appearance::Vignetting) where the run
+    /// learns colour transforms.
+    pub vignetting: bool,
     pub lr_init: f64,
     pub lr_final: f64,
     pub from_iter: u64,

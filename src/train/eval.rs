@@ -26,6 +26,8 @@ pub fn eval(
     render: Option<&crate::render::lod::RenderConfig>,
 ) -> Result<()> {
     let scene = AnyScene::read(scene_path)?;
+    // A run's scene renders the light at the lens's centre; its photos went through the lens.
+    let vignetting = crate::train::vignetting_beside(scene_path)?;
     let opts = crate::dataset::LoadOptions { downscale, background };
     let ds = crate::dataset::load(data, &opts)?;
     let views = ds.split(split)?;
@@ -45,7 +47,7 @@ pub fn eval(
     let mut bar = Progress::new("eval: ", "view", "views/s", views.len() as u64, 0, ProgressMode::Auto);
     let mut done = 0;
     let mut score = |dir: Option<&Path>| {
-        evaluate(&mut r, &gs, views, background, |v, f| {
+        evaluate(&mut r, &gs, views, background, &vignetting, |v, f| {
             done += 1;
             bar.set(done, "");
             let Some(dir) = dir else { return Ok(()) };
@@ -79,10 +81,19 @@ pub fn eval(
             "psnr_compensated_mean": e.psnr_compensated,
             "ssim_compensated_mean": e.ssim_compensated,
             "compensated": COMPENSATED_NOTE,
+            "vignetting": {"k1": vignetting[0], "k2": vignetting[1]},
             "views": views,
         });
         println!("{}", serde_json::to_string_pretty(&v)?);
     } else {
+        if vignetting != crate::render::appearance::NO_VIGNETTING {
+            println!(
+                "renders seen through the lens's vignetting the run learned (k1 = {:.4}, k2 = {:.4}; {} beside the scene)",
+                vignetting[0],
+                vignetting[1],
+                crate::train::APPEARANCE_FILE
+            );
+        }
         println!("{:<24} {:>22}  {:>22}", "", "raw (whole image)", "compensated (right half)");
         for v in &e.views {
             println!(
@@ -139,26 +150,29 @@ impl ViewScore {
     }
 }
 
-/// Renders `views` from `scene` and scores them against their images; `each` sees every
-/// rendered frame (for writing pictures).
+/// Renders `views` from `scene` and scores them against their images, each render seen through
+/// the lens's `vignetting` (crate::render::appearance; none for renders); `each` sees every
+/// rendered frame as rendered (for writing pictures).
 pub fn evaluate(
     raster: &mut Rasterizer,
     scene: &GpuScene,
     views: &[View],
     background: [f32; 3],
+    vignetting: &crate::render::appearance::Vignetting,
     mut each: impl FnMut(&View, &crate::render::raster::Frame) -> Result<()>,
 ) -> Result<Evaluation> {
     let mut per = Vec::new();
     for v in views {
         let f = raster.render(scene, &v.camera, background)?;
         let (w, h) = (v.camera.width as usize, v.camera.height as usize);
-        let a: Vec<[f64; 3]> = f.image.iter().map(|p| [0, 1, 2].map(|c| p[c].clamp(0.0, 1.0) as f64)).collect();
+        let photo = crate::render::appearance::vignette(vignetting, &v.camera, &f.image);
+        let a: Vec<[f64; 3]> = photo.iter().map(|p| [0, 1, 2].map(|c| p[c].clamp(0.0, 1.0) as f64)).collect();
         let b: Vec<[f64; 3]> = v.image.iter().map(|p| [p[0] as f64, p[1] as f64, p[2] as f64]).collect();
         let (psnr_compensated, ssim_compensated) =
-            crate::render::appearance::compensated_scores(&f.image, &v.image, w, h);
+            crate::render::appearance::compensated_scores(&photo, &v.image, w, h);
         per.push(ViewScore {
             name: v.camera.name.clone(),
-            psnr: crate::util::psnr(&f.image, &v.image),
+            psnr: crate::util::psnr(&photo, &v.image),
             ssim: crate::render::reference::backward::ssim(&a, &b, w, h),
             psnr_compensated,
             ssim_compensated,

@@ -83,9 +83,10 @@ pub struct RunOptions {
     /// Stop as Ctrl-C would once this many iterations of this session are done (tests of
     /// interrupting and resuming).
     pub stop_after: Option<u64>,
-    /// A fresh run that learns colour transforms starts from these (one per training view: the
-    /// joint stage from the plain stage's); else from the identity.
-    pub appearance: Option<Vec<crate::render::appearance::ColourTransform>>,
+    /// A fresh run that learns colour transforms starts from these (one per training view, and
+    /// the lens's vignetting: the joint stage from the plain stage's); else from the identity
+    /// and no vignetting.
+    pub appearance: Option<crate::render::appearance::PhotoAppearance>,
     /// How an instanced result stores its offsets (`scene.instgs`).
     pub offset_dtype: crate::formats::instgs::Dtype,
 }
@@ -264,10 +265,12 @@ fn start_state(
         };
         if cfg.appearance.enabled(ds.kind) {
             st.appearance = match &opts.appearance {
-                Some(p) if p.len() == ds.train.len() => AppearanceState::from_params(p.clone()),
+                Some(p) if p.colours.len() == ds.train.len() => {
+                    AppearanceState::from_params(p.colours.clone(), p.vignetting)
+                }
                 Some(p) => bail!(
                     "{} colour transforms for {} training views: they belong to another dataset",
-                    p.len(),
+                    p.colours.len(),
                     ds.train.len()
                 ),
                 None => AppearanceState::identity(ds.train.len()),
@@ -277,6 +280,10 @@ fn start_state(
     };
     if let Some(model) = cfg.appearance.model_for(ds.kind) {
         state.appearance.free = crate::train::config::AppearanceConfig::free_params(model);
+        // One lens per capture: learned by the run that starts from the dataset; a run that
+        // starts from another's appearance (the pruned and joint stages) keeps its vignetting,
+        // so every scene of a capture is scored through the same lens.
+        state.appearance.vignetting_free = cfg.appearance.vignetting && opts.appearance.is_none();
     }
     if state.appearance.params.len() != if cfg.appearance.enabled(ds.kind) { ds.train.len() } else { 0 } {
         bail!(
@@ -401,7 +408,9 @@ pub fn run(gpu: &Arc<Gpu>, k: &Arc<Kernels>, ds: &Dataset, cfg: &Config, opts: &
         let final_it = it == cfg.iterations;
         let mut tested = None;
         if !ds.test.is_empty() && ((cfg.test_interval > 0 && it % cfg.test_interval == 0) || final_it) {
-            let e = evaluate(&mut trainer.raster, &trainer.scene, &ds.test, cfg.background, |_, _| Ok(()))?;
+            let vignetting = trainer.vignetting();
+            let e =
+                evaluate(&mut trainer.raster, &trainer.scene, &ds.test, cfg.background, &vignetting, |_, _| Ok(()))?;
             tested = Some((e.psnr, e.ssim));
         }
         if let Some(adapted) = adapt(&mut trainer, &state, cfg, it, extent, final_it)? {
@@ -450,7 +459,10 @@ pub fn run(gpu: &Arc<Gpu>, k: &Arc<Kernels>, ds: &Dataset, cfg: &Config, opts: &
         write_metrics(&rows)?;
     }
     if !state.appearance.is_empty() {
-        write_appearance(&opts.out.join(APPEARANCE_FILE), ds, &state.appearance.params)?;
+        let a = &state.appearance;
+        let learned =
+            crate::render::appearance::PhotoAppearance { colours: a.params.clone(), vignetting: a.vignetting };
+        write_appearance(&opts.out.join(APPEARANCE_FILE), ds, &learned)?;
     }
     match state.to_instanced()? {
         Some(inst) => crate::formats::instgs::write(&inst, &opts.out.join("scene.instgs"), opts.offset_dtype)?,
@@ -480,30 +492,66 @@ pub fn run(gpu: &Arc<Gpu>, k: &Arc<Kernels>, ds: &Dataset, cfg: &Config, opts: &
 /// The file a run that learns colour transforms writes them to, beside its scene.
 pub const APPEARANCE_FILE: &str = "appearance.json";
 
-/// Writes the training views' colour transforms: `{"views": [{"name",
-/// "transform": [[M00, M01, M02, b0], [..], [..]]}]}` in the dataset's training order.
+/// Writes what a run learned of its photos: `{"views": [{"name", "transform": [[M00, M01, M02,
+/// b0], [..], [..]]}], "vignetting": {"k1", "k2"}}`, the views in the dataset's training order.
 pub fn write_appearance(
     path: &std::path::Path,
     ds: &Dataset,
-    params: &[crate::render::appearance::ColourTransform],
+    learned: &crate::render::appearance::PhotoAppearance,
 ) -> Result<()> {
     let views: Vec<serde_json::Value> = ds
         .train
         .iter()
-        .zip(params)
+        .zip(&learned.colours)
         .map(|(v, t)| serde_json::json!({"name": v.camera.name, "transform": [&t[0..4], &t[4..8], &t[8..12]]}))
         .collect();
-    crate::util::write_json(path, &serde_json::json!({"views": views}), true)
+    let [k1, k2] = learned.vignetting;
+    crate::util::write_json(path, &serde_json::json!({"views": views, "vignetting": {"k1": k1, "k2": k2}}), true)
 }
 
-/// Reads [`write_appearance`]'s file for `ds`: one transform per training view, by name.
-pub fn read_appearance(
-    path: &std::path::Path,
-    ds: &Dataset,
-) -> Result<Vec<crate::render::appearance::ColourTransform>> {
+/// The lens's vignetting of [`write_appearance`]'s file (none when the file predates it).
+fn parse_vignetting(v: Option<VignettingEntry>, what: &str) -> Result<crate::render::appearance::Vignetting> {
+    let Some(v) = v else { return Ok(crate::render::appearance::NO_VIGNETTING) };
+    let k = [v.k1, v.k2];
+    // Finite and of a lens's size (a strong one loses ~0.5 at r² ≈ 0.5): a damaged file otherwise.
+    if !k.iter().all(|x| x.is_finite() && x.abs() <= 4.0) {
+        bail!("{what}: vignetting k1 = {}, k2 = {} is not a lens's falloff (|k| ≤ 4)", v.k1, v.k2);
+    }
+    Ok(k)
+}
+
+#[derive(serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+struct VignettingEntry {
+    k1: f32,
+    k2: f32,
+}
+
+/// The lens's vignetting a run learned (RUN/appearance.json beside `scene`, a scene file of
+/// the run), or none when there is no such file: the held-out metrics of `eval` render
+/// through it.
+pub fn vignetting_beside(scene: &std::path::Path) -> Result<crate::render::appearance::Vignetting> {
+    #[derive(serde::Deserialize)]
+    struct File {
+        vignetting: Option<VignettingEntry>,
+    }
+    let path = scene.parent().unwrap_or(std::path::Path::new(".")).join(APPEARANCE_FILE);
+    if !path.is_file() {
+        return Ok(crate::render::appearance::NO_VIGNETTING);
+    }
+    let what = path.display().to_string();
+    let text = std::fs::read_to_string(&path).with_context(|| format!("{what}: cannot read"))?;
+    let f: File = serde_json::from_str(&text).with_context(|| format!("{what}: not a colour-transform file"))?;
+    parse_vignetting(f.vignetting, &what)
+}
+
+/// Reads [`write_appearance`]'s file for `ds`: one transform per training view, by name, and the
+/// vignetting (none in files written before it was learned).
+pub fn read_appearance(path: &std::path::Path, ds: &Dataset) -> Result<crate::render::appearance::PhotoAppearance> {
     #[derive(serde::Deserialize)]
     struct File {
         views: Vec<Entry>,
+        vignetting: Option<VignettingEntry>,
     }
     #[derive(serde::Deserialize)]
     struct Entry {
@@ -515,7 +563,8 @@ pub fn read_appearance(
     let f: File = serde_json::from_str(&text).with_context(|| format!("{what}: not a colour-transform file"))?;
     let by_name: std::collections::BTreeMap<&str, &[[f32; 4]; 3]> =
         f.views.iter().map(|e| (e.name.as_str(), &e.transform)).collect();
-    ds.train
+    let colours = ds
+        .train
         .iter()
         .map(|v| {
             let t = by_name
@@ -527,5 +576,9 @@ pub fn read_appearance(
             }
             Ok(flat.try_into().expect("12 values"))
         })
-        .collect()
+        .collect::<Result<_>>()?;
+    Ok(crate::render::appearance::PhotoAppearance {
+        colours,
+        vignetting: parse_vignetting(f.vignetting, &what.to_string())?,
+    })
 }

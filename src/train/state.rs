@@ -5,7 +5,8 @@ use anyhow::{bail, Result};
 
 use crate::model::instanced::{xform_params, Group, Instance, InstancedScene, Offsets, Similarity};
 use crate::model::scene::Scene;
-use crate::render::appearance::{ColourTransform, IDENTITY};
+use crate::render::appearance::{ColourTransform, Vignetting, IDENTITY, NO_VIGNETTING};
+use crate::render::reference::backward::AdamStep;
 
 /// Parameters per Gaussian of the five parameter groups (means, scales, quats, opacities, sh).
 pub(crate) fn strides(sh_degree: u32) -> [usize; 5] {
@@ -93,16 +94,25 @@ pub struct AppearanceState {
     /// Which parameters learn (the model's: `AppearanceConfig::free_params`; set by the run
     /// from its configuration, not stored in checkpoints).
     pub free: [bool; 12],
+    /// The lens's vignetting (crate::render::appearance::Vignetting), shared by every photo, with
+    /// its Adam moments and step count (it steps with every photo).
+    pub vignetting: Vignetting,
+    pub vignetting_exp_avg: Vignetting,
+    pub vignetting_exp_avg_sq: Vignetting,
+    pub vignetting_steps: u32,
+    /// Whether the vignetting learns (`appearance.vignetting`; set by the run, not stored).
+    pub vignetting_free: bool,
 }
 
 impl AppearanceState {
     /// `n` identity transforms with zero moments.
     pub fn identity(n: usize) -> AppearanceState {
-        AppearanceState::from_params(vec![IDENTITY; n])
+        AppearanceState::from_params(vec![IDENTITY; n], NO_VIGNETTING)
     }
 
-    /// These transforms with zero moments (a new run that starts from another's transforms).
-    pub fn from_params(params: Vec<ColourTransform>) -> AppearanceState {
+    /// These transforms and this vignetting with zero moments (a new run that starts from
+    /// another's).
+    pub fn from_params(params: Vec<ColourTransform>, vignetting: Vignetting) -> AppearanceState {
         let n = params.len();
         AppearanceState {
             params,
@@ -110,6 +120,11 @@ impl AppearanceState {
             exp_avg_sq: vec![[0.0; 12]; n],
             steps: vec![0; n],
             free: [true; 12],
+            vignetting,
+            vignetting_exp_avg: NO_VIGNETTING,
+            vignetting_exp_avg_sq: NO_VIGNETTING,
+            vignetting_steps: 0,
+            vignetting_free: true,
         }
     }
 
@@ -121,8 +136,9 @@ impl AppearanceState {
     /// `adam.comp`, in f64). The change is then spread back over all transforms so that their
     /// mean stays the identity: the scene keeps the photos' average appearance (without it,
     /// every transform could drift one way and the scene the other, and renders without a
-    /// transform — held-out views — would drift too).
-    pub fn step(&mut self, i: usize, grad: &[f32; 12], lr: f64) {
+    /// transform — held-out views — would drift too). `grad`'s last two entries are the
+    /// vignetting's, which steps too when it learns.
+    pub fn step(&mut self, i: usize, grad: &[f32; crate::shared::APPEARANCE_GRADS as usize], lr: f64) {
         if lr <= 0.0 {
             return;
         }
@@ -130,7 +146,7 @@ impl AppearanceState {
         let f = |a: &[f32; 12]| a.map(f64::from);
         let (mut p, mut m, mut v) = (f(&self.params[i]), f(&self.exp_avg[i]), f(&self.exp_avg_sq[i]));
         let before = p;
-        let a = crate::render::reference::backward::AdamStep {
+        let a = AdamStep {
             lr,
             beta1: crate::train::optim::BETA1,
             beta2: crate::train::optim::BETA2,
@@ -147,6 +163,23 @@ impl AppearanceState {
             for k in 0..12 {
                 t[k] -= ((p[k] - before[k]) / n) as f32;
             }
+        }
+        if self.vignetting_free {
+            self.vignetting_steps += 1;
+            let f = |a: &Vignetting| a.map(f64::from);
+            let (mut p, mut m, mut v) =
+                (f(&self.vignetting), f(&self.vignetting_exp_avg), f(&self.vignetting_exp_avg_sq));
+            let g = [grad[12] as f64, grad[13] as f64];
+            crate::render::reference::backward::adam(
+                &mut p,
+                &g,
+                &mut m,
+                &mut v,
+                AdamStep { step: self.vignetting_steps as u64, ..a },
+            );
+            self.vignetting = p.map(|x| x as f32);
+            self.vignetting_exp_avg = m.map(|x| x as f32);
+            self.vignetting_exp_avg_sq = v.map(|x| x as f32);
         }
     }
 }
@@ -317,6 +350,9 @@ impl TrainState {
             if let Some(k) = arr.iter().position(|p| !p.iter().all(|v| v.is_finite())) {
                 bail!("non-finite colour transform of training view {k} at iteration {}", self.iteration);
             }
+        }
+        if ![a.vignetting, a.vignetting_exp_avg, a.vignetting_exp_avg_sq].iter().flatten().all(|v| v.is_finite()) {
+            bail!("non-finite vignetting at iteration {}", self.iteration);
         }
         Ok(())
     }

@@ -181,6 +181,11 @@ impl Trainer {
         })
     }
 
+    /// The lens's vignetting as learned so far (none when the run learns no appearance).
+    pub fn vignetting(&self) -> crate::render::appearance::Vignetting {
+        self.appearance.vignetting
+    }
+
     /// One iteration on training view `index` (`view`): forward, the view's colour transform
     /// when the run learns them, loss, backward and the Adam steps (`step` from 1).
     pub fn step(
@@ -195,6 +200,7 @@ impl Trainer {
         self.raster.tile_cost_weight = cfg.tile_cost_weight;
         let frame = self.raster.render(&self.scene, cam, cfg.background)?;
         let colour = self.appearance.params.get(index).copied();
+        let vignetting = self.appearance.vignetting;
         let li = match self.losses.iter().position(|l| l.0.width == cam.width && l.0.height == cam.height) {
             Some(i) => i,
             None => {
@@ -213,9 +219,9 @@ impl Trainer {
             lb.record_target_upload(rec)?;
             match (ab, &colour) {
                 (Some(ab), Some(t)) => {
-                    ab.record_apply(rec, k, image, t)?;
+                    ab.record_apply(rec, k, image, t, &vignetting, cam)?;
                     record_loss(rec, k, &ab.adjusted, lb, cfg.ssim_weight)?;
-                    ab.record_backward(rec, k, image, &lb.v_image, t)?;
+                    ab.record_backward(rec, k, image, &lb.v_image, t, &vignetting, cam)?;
                     raster.record_backward(rec, scene, &ab.v_render, grads)?;
                 }
                 _ => {
@@ -233,7 +239,8 @@ impl Trainer {
             (Some(ab), Some(t)) => {
                 let g = ab.read_grads()?;
                 self.appearance.step(index, &g, cfg.appearance.lr(step, cfg.lr.position_max_steps));
-                crate::util::psnr(&crate::render::appearance::apply(t, &frame.image), &view.image)
+                let photo = crate::render::appearance::apply_photo(t, &vignetting, cam, &frame.image);
+                crate::util::psnr(&photo, &view.image)
             }
             _ => crate::util::psnr(&frame.image, &view.image),
         };
