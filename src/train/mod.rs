@@ -459,10 +459,7 @@ pub fn run(gpu: &Arc<Gpu>, k: &Arc<Kernels>, ds: &Dataset, cfg: &Config, opts: &
         write_metrics(&rows)?;
     }
     if !state.appearance.is_empty() {
-        let a = &state.appearance;
-        let learned =
-            crate::render::appearance::PhotoAppearance { colours: a.params.clone(), vignetting: a.vignetting };
-        write_appearance(&opts.out.join(APPEARANCE_FILE), ds, &learned)?;
+        write_appearance(&opts.out.join(APPEARANCE_FILE), ds, &state.appearance.learned())?;
     }
     match state.to_instanced()? {
         Some(inst) => crate::formats::instgs::write(&inst, &opts.out.join("scene.instgs"), opts.offset_dtype)?,

@@ -132,6 +132,11 @@ impl AppearanceState {
         self.params.is_empty()
     }
 
+    /// What the run has learned of its photos (what RUN/appearance.json holds).
+    pub fn learned(&self) -> crate::render::appearance::PhotoAppearance {
+        crate::render::appearance::PhotoAppearance { colours: self.params.clone(), vignetting: self.vignetting }
+    }
+
     /// One Adam step of photo `i`'s transform on its gradient `grad` at rate `lr` (the twin of
     /// `adam.comp`, in f64). The change is then spread back over all transforms so that their
     /// mean stays the identity: the scene keeps the photos' average appearance (without it,
