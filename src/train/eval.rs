@@ -27,7 +27,7 @@ pub fn eval(
 ) -> Result<()> {
     let scene = AnyScene::read(scene_path)?;
     // A run's scene renders the light at the lens's centre; its photos went through the lens.
-    let vignetting = crate::train::vignetting_beside(scene_path)?;
+    let vignetting = crate::train::appearance::vignetting_beside(scene_path)?;
     let opts = crate::dataset::LoadOptions { downscale, background };
     let ds = crate::dataset::load(data, &opts)?;
     let views = ds.split(split)?;
@@ -91,7 +91,7 @@ pub fn eval(
                 "renders seen through the lens's vignetting the run learned (k1 = {:.4}, k2 = {:.4}; {} beside the scene)",
                 vignetting[0],
                 vignetting[1],
-                crate::train::APPEARANCE_FILE
+                crate::train::appearance::APPEARANCE_FILE
             );
         }
         println!("{:<24} {:>22}  {:>22}", "", "raw (whole image)", "compensated (right half)");
