@@ -536,30 +536,19 @@ fn joint_optimisation_learns_templates_offsets_and_background() {
     assert_eq!(result.groups[0].instances, init.groups[0].instances);
     // Held-out views improve.
     let mut ras = Rasterizer::new(&gpu, &k).unwrap();
-    let before = instgs_vk::train::evaluate(
-        &mut ras,
-        &GpuScene::instanced(&gpu, &init).unwrap(),
-        &ds.test,
-        [0.0; 3],
-        &instgs_vk::render::appearance::NO_VIGNETTING,
-        |_, _| Ok(()),
-    )
-    .unwrap();
+    let mut held_out = |scene: &instgs_vk::model::instanced::InstancedScene| {
+        let gs = GpuScene::instanced(&gpu, scene).unwrap();
+        let none = instgs_vk::render::appearance::NO_VIGNETTING;
+        instgs_vk::train::evaluate(&mut ras, &gs, &ds.test, [0.0; 3], &none, |_, _| Ok(())).unwrap()
+    };
+    let before = held_out(&init);
     let after = r.test_psnr.unwrap();
     eprintln!("test PSNR {:.2} -> {after:.2}", before.psnr);
     assert!(after > before.psnr + 3.0, "test PSNR {:.2} -> {after:.2}", before.psnr);
     // Trained at the scene's full SH degree from the start (as Inria fine-tunes a loaded
     // scene): the written scene renders what the run measured. (Found by the pipeline: runs
     // that began at degree 0 reported 34.2 dB and their scene.instgs evaluated to 33.0.)
-    let written = instgs_vk::train::evaluate(
-        &mut ras,
-        &GpuScene::instanced(&gpu, &result).unwrap(),
-        &ds.test,
-        [0.0; 3],
-        &instgs_vk::render::appearance::NO_VIGNETTING,
-        |_, _| Ok(()),
-    )
-    .unwrap();
+    let written = held_out(&result);
     assert!((written.psnr - after).abs() < 0.01, "run reported {after:.3} dB, its scene renders {:.3}", written.psnr);
     // The checkpoint resumes an instanced run.
     let (st, saved) = instgs_vk::train::read_checkpoint(&instgs_vk::train::checkpoint_path(&out)).unwrap();
