@@ -539,7 +539,7 @@ fn joint_optimisation_learns_templates_offsets_and_background() {
     let mut held_out = |scene: &instgs_vk::model::instanced::InstancedScene| {
         let gs = GpuScene::instanced(&gpu, scene).unwrap();
         let none = instgs_vk::render::appearance::NO_VIGNETTING;
-        instgs_vk::train::evaluate(&mut ras, &gs, &ds.test, [0.0; 3], &none, |_, _| Ok(())).unwrap()
+        instgs_vk::train::evaluate(&mut ras, &gs, &ds.test, [0.0; 3], &none, |_, _, _| Ok(())).unwrap()
     };
     let before = held_out(&init);
     let after = r.test_psnr.unwrap();

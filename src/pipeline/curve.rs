@@ -514,10 +514,8 @@ impl Ctx<'_> {
         let scene = AnyScene::read(path)?;
         let gs = scene.upload(self.gpu).with_context(|| path.display().to_string())?;
         let mut r = crate::render::raster::Rasterizer::new(self.gpu, self.k)?;
-        let vignetting =
-            self.photo_appearance(&self.cfg.plain)?.map_or(crate::render::appearance::NO_VIGNETTING, |a| a.vignetting);
-        let e =
-            crate::train::evaluate(&mut r, &gs, self.views(), self.cfg.plain.background, &vignetting, |_, _| Ok(()))?;
+        let lens = self.photo_lens()?;
+        let e = crate::train::evaluate(&mut r, &gs, self.views(), self.cfg.plain.background, &lens, |_, _, _| Ok(()))?;
         let render = crate::render::lod::RenderConfig::load(None)?;
         Ok(Scored {
             file: path.display().to_string(),

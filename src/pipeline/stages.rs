@@ -321,6 +321,12 @@ impl Ctx<'_> {
         }
     }
 
+    /// The lens's vignetting the plain stage learned (captures; none otherwise): every scene of
+    /// a run is scored through it.
+    pub(super) fn photo_lens(&self) -> Result<crate::render::appearance::Vignetting> {
+        Ok(self.photo_appearance(&self.cfg.plain)?.map_or(crate::render::appearance::NO_VIGNETTING, |a| a.vignetting))
+    }
+
     pub(super) fn train(
         &self,
         out: &Path,
@@ -492,9 +498,7 @@ impl Ctx<'_> {
         let bg = self.cfg.plain.background;
         let views = self.views();
         let split = if self.ds.test.is_empty() { "train" } else { "test" };
-        // Every scene scored through the lens the plain stage learned (captures).
-        let vignetting =
-            self.photo_appearance(&self.cfg.plain)?.map_or(crate::render::appearance::NO_VIGNETTING, |a| a.vignetting);
+        let vignetting = self.photo_lens()?;
         let mut r = crate::render::raster::Rasterizer::new(self.gpu, self.k)?;
         let n_images = self.cfg.eval.images.min(views.len());
         // Evenly spread views for the pictures.
@@ -522,16 +526,15 @@ impl Ctx<'_> {
             let mut regions = [(0.0, 0usize), (0.0, 0usize)];
             let label = format!("{}{name}: ", Stage::Eval.label());
             let mut progress = Progress::new(&label, "view", "views/s", views.len() as u64, 0, self.progress_mode());
-            let e = train::evaluate(&mut r, &gs, views, bg, &vignetting, |v, f| {
+            let e = train::evaluate(&mut r, &gs, views, bg, &vignetting, |v, f, photo| {
                 if interrupted() {
                     bail!("interrupted");
                 }
                 progress.set(index as u64 + 1, "");
                 if let Some(m) = &masks {
                     let m = &m[index];
-                    let photo = crate::render::appearance::vignette(&vignetting, &v.camera, &f.image);
                     for (k, object) in [true, false].into_iter().enumerate() {
-                        if let Some(db) = crate::util::psnr_where(&photo, &v.image, |i| (m[i] != 0) == object) {
+                        if let Some(db) = crate::util::psnr_where(photo, &v.image, |i| (m[i] != 0) == object) {
                             regions[k].0 += db;
                             regions[k].1 += 1;
                         }

@@ -42,40 +42,42 @@ struct VignettingEntry {
     k2: f32,
 }
 
+/// The file as written: the views' transforms by name and the lens, if any.
+#[derive(serde::Deserialize)]
+struct File {
+    views: Vec<Entry>,
+    vignetting: Option<VignettingEntry>,
+}
+
+#[derive(serde::Deserialize)]
+struct Entry {
+    name: String,
+    transform: [[f32; 4]; 3],
+}
+
+/// Reads and parses `path` (its name and what is wrong in every error).
+fn read_file(path: &std::path::Path) -> Result<File> {
+    let what = path.display();
+    let text = std::fs::read_to_string(path).with_context(|| format!("{what}: cannot read"))?;
+    serde_json::from_str(&text).with_context(|| format!("{what}: not a colour-transform file"))
+}
+
 /// The lens's vignetting a run learned (RUN/appearance.json beside `scene`, a scene file of
 /// the run), or none when there is no such file: the held-out metrics of `eval` render
 /// through it.
 pub fn vignetting_beside(scene: &std::path::Path) -> Result<crate::render::appearance::Vignetting> {
-    #[derive(serde::Deserialize)]
-    struct File {
-        vignetting: Option<VignettingEntry>,
-    }
     let path = scene.parent().unwrap_or(std::path::Path::new(".")).join(APPEARANCE_FILE);
     if !path.is_file() {
         return Ok(crate::render::appearance::NO_VIGNETTING);
     }
-    let what = path.display().to_string();
-    let text = std::fs::read_to_string(&path).with_context(|| format!("{what}: cannot read"))?;
-    let f: File = serde_json::from_str(&text).with_context(|| format!("{what}: not a colour-transform file"))?;
-    parse_vignetting(f.vignetting, &what)
+    parse_vignetting(read_file(&path)?.vignetting, &path.display().to_string())
 }
 
 /// Reads [`write_appearance`]'s file for `ds`: one transform per training view, by name, and the
 /// vignetting (none in files written before it was learned).
 pub fn read_appearance(path: &std::path::Path, ds: &Dataset) -> Result<crate::render::appearance::PhotoAppearance> {
-    #[derive(serde::Deserialize)]
-    struct File {
-        views: Vec<Entry>,
-        vignetting: Option<VignettingEntry>,
-    }
-    #[derive(serde::Deserialize)]
-    struct Entry {
-        name: String,
-        transform: [[f32; 4]; 3],
-    }
+    let f = read_file(path)?;
     let what = path.display();
-    let text = std::fs::read_to_string(path).with_context(|| format!("{what}: cannot read"))?;
-    let f: File = serde_json::from_str(&text).with_context(|| format!("{what}: not a colour-transform file"))?;
     let by_name: std::collections::BTreeMap<&str, &[[f32; 4]; 3]> =
         f.views.iter().map(|e| (e.name.as_str(), &e.transform)).collect();
     let colours = ds

@@ -47,7 +47,7 @@ pub fn eval(
     let mut bar = Progress::new("eval: ", "view", "views/s", views.len() as u64, 0, ProgressMode::Auto);
     let mut done = 0;
     let mut score = |dir: Option<&Path>| {
-        evaluate(&mut r, &gs, views, background, &vignetting, |v, f| {
+        evaluate(&mut r, &gs, views, background, &vignetting, |v, f, _| {
             done += 1;
             bar.set(done, "");
             let Some(dir) = dir else { return Ok(()) };
@@ -152,14 +152,14 @@ impl ViewScore {
 
 /// Renders `views` from `scene` and scores them against their images, each render seen through
 /// the lens's `vignetting` (crate::render::appearance; none for renders); `each` sees every
-/// rendered frame as rendered (for writing pictures).
+/// rendered frame as rendered (for writing pictures) and the image scored (through the lens).
 pub fn evaluate(
     raster: &mut Rasterizer,
     scene: &GpuScene,
     views: &[View],
     background: [f32; 3],
     vignetting: &crate::render::appearance::Vignetting,
-    mut each: impl FnMut(&View, &crate::render::raster::Frame) -> Result<()>,
+    mut each: impl FnMut(&View, &crate::render::raster::Frame, &[[f32; 4]]) -> Result<()>,
 ) -> Result<Evaluation> {
     let mut per = Vec::new();
     for v in views {
@@ -177,7 +177,7 @@ pub fn evaluate(
             psnr_compensated,
             ssim_compensated,
         });
-        each(v, &f)?;
+        each(v, &f, &photo)?;
     }
     let n = per.len().max(1) as f64;
     let mean = |f: fn(&ViewScore) -> f64| per.iter().map(f).sum::<f64>() / n;

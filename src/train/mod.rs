@@ -412,7 +412,7 @@ pub fn run(gpu: &Arc<Gpu>, k: &Arc<Kernels>, ds: &Dataset, cfg: &Config, opts: &
         if !ds.test.is_empty() && ((cfg.test_interval > 0 && it % cfg.test_interval == 0) || final_it) {
             let vignetting = trainer.vignetting();
             let e =
-                evaluate(&mut trainer.raster, &trainer.scene, &ds.test, cfg.background, &vignetting, |_, _| Ok(()))?;
+                evaluate(&mut trainer.raster, &trainer.scene, &ds.test, cfg.background, &vignetting, |_, _, _| Ok(()))?;
             tested = Some((e.psnr, e.ssim));
         }
         if let Some(adapted) = adapt(&mut trainer, &state, cfg, it, extent, final_it)? {
