@@ -264,7 +264,6 @@ struct AppearanceArgs {
 // order as the parameters (row c: M[c][0..2], b[c]).
 #define APPEARANCE_PARAMS 12
 // ... followed by dL/dk1 and dL/dk2 of the vignetting: APPEARANCE_GRADS floats in all.
-#define APPEARANCE_VIGNETTING 2
 #define APPEARANCE_GRADS 14
 
 // SSIM window: 11 x 11 Gaussian, sigma 1.5 (Wang et al. 2004; Inria's loss_utils.ssim), zero
