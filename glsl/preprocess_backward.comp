@@ -22,6 +22,10 @@
 // R = w sum_splats sg(tiles_touched) (ln s_x + ln s_y + ln s_z), the tile count held constant
 // (sg). It shrinks the splats that touch many tiles, whose blend work is the frame's largest
 // share on lavapipe. A template Gaussian sums it over its drawn copies, as every other term.
+// With frame.p.camera_grads (plain scenes, training's camera refinement), invocation j also writes
+// the camera-gradient terms of its visible splat at terms[j * CAMERA_GRAD_TERMS..]
+// (summed by camera_grad_reduce): dL/dW = v_t p^T + 2 v_V W Sigma and dL/dt = v_t for viewmat
+// = [W | t] (t_cam = W p + t, V = W Sigma W^T), and dL/dcampos = -(v_dir - dir (dir . v_dir)) / |p - campos|.
 // Densification statistics of visible splats: grad2d_accum += |v_xy| in Inria's NDC units
 // (pixels scaled by width/2, height/2), grad2d_count += 1, max_radii = max(max_radii, radius).
 // VISIBLE_ROWS (specialization constant 1, plain scenes only): one invocation per visible
@@ -56,7 +60,8 @@ layout(std430, binding = 19) buffer MaxRadiiBuf { uint v[]; } max_radii;
 layout(std430, binding = 20) writeonly buffer GradDMeansBuf { float v[]; } v_d_means;
 layout(std430, binding = 21) writeonly buffer GradDSh0Buf { float v[]; } v_d_sh0;
 layout(std430, binding = 22) writeonly buffer GradDOpacitiesBuf { float v[]; } v_d_opacities;
-layout(std430, binding = 30) writeonly buffer XformTermsBuf { float v[]; } xform_terms;
+// The per-pair transform terms (instanced scenes) or the per-visible-splat camera terms (plain).
+layout(std430, binding = 30) writeonly buffer TermsBuf { float v[]; } terms;
 layout(std430, binding = 31) readonly buffer VisibleIdsBuf { uint v[]; } visible_ids;
 layout(constant_id = 1) const uint VISIBLE_ROWS = 0;
 #define INSTANCE_BINDING 23
@@ -68,7 +73,8 @@ float acc_sh[48];
 
 // Gradient of one expanded splat i (row, expansion e) with respect to its expanded parameters;
 // dL/dSH (every evaluated coefficient) is added to acc_sh. Returns false when culled.
-bool splat_backward(uint i, uint row, Expanded e, out vec3 v_p, out vec3 v_ls, out vec4 v_q, out float v_logit,
+// `slot` != NO_SLOT: the camera-gradient terms go to terms[slot * CAMERA_GRAD_TERMS..].
+bool splat_backward(uint i, uint row, uint slot, Expanded e, out vec3 v_p, out vec3 v_ls, out vec4 v_q, out float v_logit,
                     out vec3 v_dc, out vec3 dir, out vec3 v_dir_t) {
     if (tiles_touched.v[i] == 0) return false;
     vec3 p = e.mean;
@@ -185,7 +191,19 @@ bool splat_backward(uint i, uint row, Expanded e, out vec3 v_p, out vec3 v_ls, o
         v_dir_t += dot(coef[k], v_rgb) * dbasis[k];
     }
     vec3 v_dir = e.rot * v_dir_t;
-    v_p = transpose(W) * v_t + (v_dir - dir * dot(dir, v_dir)) / dv_len;
+    vec3 v_dir_p = (v_dir - dir * dot(dir, v_dir)) / dv_len;
+    v_p = transpose(W) * v_t + v_dir_p;
+    if (slot != NO_SLOT) {
+        mat3 v_W = outerProduct(v_t, p) + 2.0 * v_V * W * (M * transpose(M));
+        uint o = slot * CAMERA_GRAD_TERMS;
+        for (uint c = 0; c < 3; c++) {
+            terms.v[o + 3 * c] = v_W[c].x;
+            terms.v[o + 3 * c + 1] = v_W[c].y;
+            terms.v[o + 3 * c + 2] = v_W[c].z;
+            terms.v[o + 9 + c] = v_t[c];
+            terms.v[o + 12 + c] = -v_dir_p[c];
+        }
+    }
     // Plus the frame-cost regulariser's w x tiles touched (see the header).
     v_ls = v_s * s + vec3(frame.p.tile_cost_weight * float(tiles_touched.v[i]));
     v_dc = basis[0] * v_rgb;
@@ -199,8 +217,9 @@ bool splat_backward(uint i, uint row, Expanded e, out vec3 v_p, out vec3 v_ls, o
     return true;
 }
 
-// Row r: a background Gaussian (one splat) or a template Gaussian (K splats).
-void backward(uint r) {
+// Row r: a background Gaussian (one splat) or a template Gaussian (K splats). `slot`: where a
+// plain row's camera-gradient terms go (NO_SLOT: none).
+void backward(uint r, uint slot) {
     for (uint k = 0; k < 48; k++) acc_sh[k] = 0.0;
     vec3 gm = vec3(0.0), gs = vec3(0.0);
     vec4 gq = vec4(0.0);
@@ -221,8 +240,11 @@ void backward(uint r) {
         vec3 v_p, v_ls, v_dc, dir, v_dir_t;
         vec4 v_q;
         float v_logit;
-        bool seen = splat_backward(i, r, e, v_p, v_ls, v_q, v_logit, v_dc, dir, v_dir_t);
+        bool seen = splat_backward(i, r, slot, e, v_p, v_ls, v_q, v_logit, v_dc, dir, v_dir_t);
         if (!seen) {
+            if (slot != NO_SLOT) {
+                for (uint c = 0; c < CAMERA_GRAD_TERMS; c++) terms.v[slot * CAMERA_GRAD_TERMS + c] = 0.0;
+            }
             v_p = vec3(0.0);
             v_ls = vec3(0.0);
             v_q = vec4(0.0);
@@ -251,19 +273,19 @@ void backward(uint r) {
                 vec4 q_t = texelFetch(quats, int(r));
                 vec4 v_qr = quat_mul(v_q, q_t * vec4(1.0, -1.0, -1.0, -1.0));
                 uint o = p * XFORM_GRAD_TERMS;
-                xform_terms.v[o] = v_p.x;
-                xform_terms.v[o + 1] = v_p.y;
-                xform_terms.v[o + 2] = v_p.z;
-                xform_terms.v[o + 3] = dot(v_p, mat3(x.transform) * m_t) + v_ls.x + v_ls.y + v_ls.z;
+                terms.v[o] = v_p.x;
+                terms.v[o + 1] = v_p.y;
+                terms.v[o + 2] = v_p.z;
+                terms.v[o + 3] = dot(v_p, mat3(x.transform) * m_t) + v_ls.x + v_ls.y + v_ls.z;
                 for (uint c = 0; c < 3; c++) {
-                    xform_terms.v[o + 4 + 3 * c] = v_R[c].x;
-                    xform_terms.v[o + 5 + 3 * c] = v_R[c].y;
-                    xform_terms.v[o + 6 + 3 * c] = v_R[c].z;
+                    terms.v[o + 4 + 3 * c] = v_R[c].x;
+                    terms.v[o + 5 + 3 * c] = v_R[c].y;
+                    terms.v[o + 6 + 3 * c] = v_R[c].z;
                 }
-                xform_terms.v[o + 13] = v_qr.x;
-                xform_terms.v[o + 14] = v_qr.y;
-                xform_terms.v[o + 15] = v_qr.z;
-                xform_terms.v[o + 16] = v_qr.w;
+                terms.v[o + 13] = v_qr.x;
+                terms.v[o + 14] = v_qr.y;
+                terms.v[o + 15] = v_qr.z;
+                terms.v[o + 16] = v_qr.w;
             }
             gm += transpose(mat3(x.transform)) * v_p;
             gs += v_ls;
@@ -297,6 +319,8 @@ void main() {
     load_frame();
     uint rows = VISIBLE_ROWS != 0 ? frame.p.num_visible : frame.p.num_rows;
     for (uint j = gl_GlobalInvocationID.x; j < rows; j += gl_NumWorkGroups.x * WG_SIZE) {
-        backward(VISIBLE_ROWS != 0 ? visible_ids.v[j] : j);
+        uint r = VISIBLE_ROWS != 0 ? visible_ids.v[j] : j;
+        bool camera = frame.p.camera_grads != 0 && frame.p.num_groups == 0;
+        backward(r, camera ? j : NO_SLOT);
     }
 }

@@ -7,7 +7,7 @@ layout(local_size_x = WG_SIZE) in;
 #define FRAME_BINDING 0
 #include "frame.glsl"
 layout(std430, binding = 1) readonly buffer GroupsBuf { GroupInfo v[]; } groups;
-layout(std430, binding = 2) readonly buffer XformTermsBuf { float v[]; } xform_terms;
+layout(std430, binding = 2) readonly buffer TermsBuf { float v[]; } terms;
 layout(std430, binding = 3) writeonly buffer GradXformsBuf { float v[]; } v_xforms;
 
 shared float partial[WG_SIZE];
@@ -22,7 +22,7 @@ void main() {
     uint first = groups.v[g].splat_first - frame.p.num_background + (inst - groups.v[g].instance_first) * rows;
     for (uint c = 0; c < XFORM_GRAD_TERMS; c++) {
         float sum = 0.0;
-        for (uint j = lid; j < rows; j += WG_SIZE) sum += xform_terms.v[(first + j) * XFORM_GRAD_TERMS + c];
+        for (uint j = lid; j < rows; j += WG_SIZE) sum += terms.v[(first + j) * XFORM_GRAD_TERMS + c];
         partial[lid] = sum;
         barrier();
         for (uint w = WG_SIZE / 2; w > 0; w /= 2) {

@@ -79,6 +79,89 @@ fn projection_vjp_matches_finite_differences() {
     }
 }
 
+#[test]
+fn camera_vjp_matches_finite_differences() {
+    // dL/dW and dL/dt of viewmat = [W | t] with the centre held, and dL/dcampos, of one
+    // projected splat (preprocess_backward's camera terms).
+    let mut rng = Rng::new(12);
+    let cam = test_camera(64, 48);
+    let mut checked = 0;
+    for deg in [1u32, 3] {
+        let scene = random_scene(&mut rng, 30, deg);
+        let mut fp = frame_params(scene.len(), deg, &cam, [0.0; 3], 0);
+        fp.sh_degree = deg;
+        for i in 0..scene.len() {
+            let mut g = Gaussian::of_scene(&scene, i);
+            if i % 5 == 0 {
+                g.mean[0] += 6.0; // the Jacobian clamp
+            }
+            let t = glam::Mat4::from_cols_array_2d(&fp.viewmat).transform_point3(Vec3::from(scene.means[i]));
+            let raw = reference::backward::project(&fp, &g);
+            if t.z < 0.5 || raw.colour.iter().any(|&c| c.abs() < 1e-3) {
+                continue;
+            }
+            let v = Splat::from_flat(&(0..9).map(|_| rng.range(-1.0, 1.0) as f64).collect::<Vec<_>>());
+            let analytic = reference::backward::project_camera_vjp(&fp, &g, &v);
+            // The frame parameters as f64: the 12 viewmat entries of [W | t], then campos.
+            let mut x: Vec<f64> =
+                (0..4).flat_map(|c| (0..3).map(move |r| (c, r))).map(|(c, r)| fp.viewmat[c][r] as f64).collect();
+            x.extend(fp.campos[..3].iter().map(|&v| v as f64));
+            let f = |x: &[f64]| {
+                let mut q = fp;
+                for c in 0..4 {
+                    for r in 0..3 {
+                        q.viewmat[c][r] = x[3 * c + r] as f32;
+                    }
+                }
+                for r in 0..3 {
+                    q.campos[r] = x[12 + r] as f32;
+                }
+                reference::backward::project(&q, &g).flat().iter().zip(v.flat()).map(|(a, b)| a * b).sum::<f64>()
+            };
+            for p in 0..15 {
+                let h = 1e-3;
+                let (mut xp, mut xm) = (x.clone(), x.clone());
+                xp[p] += h;
+                xm[p] -= h;
+                let numeric = (f(&xp) - f(&xm)) / (2.0 * h);
+                assert_close(&format!("deg {deg} Gaussian {i} camera term {p}"), analytic[p], numeric, 2e-3, 1e-3);
+            }
+            checked += 1;
+        }
+    }
+    assert!(checked > 10, "only {checked} Gaussians checked");
+}
+
+#[test]
+fn camera_correction_gradient_matches_finite_differences() {
+    // train::cameras::delta_grad: from the camera terms to dL/d(ω, τ) of viewmat = [exp(ω) | τ]
+    // viewmat₀, through the centre campos = −Wᵀt, at a correction far from zero.
+    use instgs_vk::train::cameras::{corrected, delta_grad};
+    let mut rng = Rng::new(21);
+    let cam = test_camera(64, 48);
+    for _ in 0..5 {
+        let terms: Vec<f32> = (0..15).map(|_| rng.range(-1.0, 1.0)).collect();
+        let d: [f32; 6] = std::array::from_fn(|_| rng.range(-0.3, 0.3));
+        let analytic = delta_grad(&cam, &d, &terms);
+        let f = |d: &[f64; 6]| {
+            let c = corrected(&cam, &d.map(|v| v as f32));
+            let v = glam::DMat4::from_cols_array_2d(&c.viewmat.to_cols_array_2d().map(|c| c.map(f64::from)));
+            let (w, t) = (glam::DMat3::from_mat4(v), v.w_axis.truncate());
+            let centre = -(w.transpose() * t);
+            let x: Vec<f64> = w.to_cols_array().into_iter().chain(t.to_array()).chain(centre.to_array()).collect();
+            x.iter().zip(&terms).map(|(a, &b)| a * b as f64).sum::<f64>()
+        };
+        for p in 0..6 {
+            let h = 1e-3;
+            let (mut dp, mut dm) = (d.map(f64::from), d.map(f64::from));
+            dp[p] += h;
+            dm[p] -= h;
+            let numeric = (f(&dp) - f(&dm)) / (2.0 * h);
+            assert_close(&format!("correction parameter {p}"), analytic[p], numeric, 2e-3, 2e-3);
+        }
+    }
+}
+
 /// Random splats over a small image, every splat listed in every tile (blend skips the ones
 /// that do not reach a pixel), front to back in index order.
 fn random_splats(rng: &mut Rng, n: usize, w: u32, h: u32, opaque: bool) -> Vec<Splat> {
@@ -211,7 +294,9 @@ fn check_backward(
 ) {
     let (gpu, _) = gpu();
     let bg = [0.1, 0.3, 0.6];
-    let gs = GpuScene::new(&gpu, scene).unwrap();
+    let mut gs = GpuScene::new(&gpu, scene).unwrap();
+    // The camera gradients too (training's camera refinement): they change nothing else.
+    gs.camera_grads = true;
     let mut r = Rasterizer::new(&gpu, k).unwrap();
     r.poison = true;
     r.tile_cost_weight = tile_cost_weight;
@@ -228,7 +313,15 @@ fn check_backward(
     let grads = Grads::new(&gpu, &gs).unwrap();
     gpu.submit_and_wait(|rec| {
         grads.record_reset_stats(rec);
-        for b in [&grads.v_means, &grads.v_scales, &grads.v_quats, &grads.v_opacities, &grads.v_sh] {
+        for b in [
+            &grads.v_means,
+            &grads.v_scales,
+            &grads.v_quats,
+            &grads.v_opacities,
+            &grads.v_sh,
+            &grads.terms,
+            &grads.v_camera,
+        ] {
             rec.fill(b, instgs_vk::render::raster::POISON);
         }
         r.record_backward(rec, &gs, &v_buf, &grads)
@@ -266,6 +359,8 @@ fn check_backward(
     let counts: Vec<u32> = gpu.read(&grads.grad2d_count, n).unwrap();
     let mut want_flat = Vec::new();
     let mut got_flat = Vec::new();
+    let terms = instgs_vk::shared::CAMERA_GRAD_TERMS as usize;
+    let (mut want_camera, mut camera_scale) = (vec![0.0f64; terms], vec![0.0f64; terms]);
     for i in 0..n {
         let visible = st.projected.tiles_touched[i] > 0;
         assert_eq!(counts[i], visible as u32, "grad2d_count of Gaussian {i}");
@@ -283,6 +378,11 @@ fn check_backward(
         }
         let tiles = st.projected.tiles_touched[i];
         let want_i = reference::backward::project_vjp(&fp, &Gaussian::of_scene(scene, i), &v_splat[i], tiles).flat();
+        let camera_i = reference::backward::project_camera_vjp(&fp, &Gaussian::of_scene(scene, i), &v_splat[i]);
+        for c in 0..terms {
+            want_camera[c] += camera_i[c];
+            camera_scale[c] += camera_i[c].abs();
+        }
         // Per Gaussian: relative to the largest gradient of that Gaussian.
         let e = rel_err(&got_i, &want_i);
         let scale = want_i.iter().fold(0.0f64, |m, v| m.max(v.abs()));
@@ -291,6 +391,17 @@ fn check_backward(
         got_flat.extend(got_i);
     }
     assert!(rel_err(&got_flat, &want_flat) < 1e-3);
+    // camera_grad_reduce: the frame's camera gradient, the sum of the visible splats' terms.
+    let got_camera = read(&grads.v_camera, terms);
+    for c in 0..terms {
+        assert!(
+            (got_camera[c] - want_camera[c]).abs() <= 1e-4 * camera_scale[c] + 1e-9,
+            "camera term {c}: gpu {} cpu {} (sum of |terms| {})",
+            got_camera[c],
+            want_camera[c],
+            camera_scale[c]
+        );
+    }
 }
 
 #[test]

@@ -177,8 +177,15 @@ fn adam_case(gpu: &Arc<Gpu>, k: &Kernels, rng: &mut Rng, n: usize, degree: u32) 
     let gs = GpuScene::new(gpu, &scene).unwrap();
     let grads = Grads::new(gpu, &gs).unwrap();
     let st = AdamState::new(gpu, &gs).unwrap();
-    let lr =
-        LearningRates { means: 1.6e-4, scales: 5e-3, quats: 1e-3, opacities: 0.025, sh0: 2.5e-3, sh_rest: 1.25e-4 };
+    let lr = LearningRates {
+        means: 1.6e-4,
+        scales: 5e-3,
+        quats: 1e-3,
+        opacities: 0.025,
+        sh0: 2.5e-3,
+        sh_rest: 1.25e-4,
+        cameras: [0.0; 2],
+    };
     assert_eq!(scene.len(), n);
     let flat = |v: &[f32]| v.iter().map(|&x| x as f64).collect::<Vec<f64>>();
     let mut params: Vec<Vec<f64>> = vec![

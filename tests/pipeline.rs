@@ -61,7 +61,10 @@ fn stage_done(run: &Path, stage: &str) -> bool {
 fn a_run_interrupted_in_every_stage_resumes_and_finishes() {
     let base = tmp("resume");
     let cfg = base.join("tiny.toml");
-    std::fs::write(&cfg, TINY).unwrap();
+    // With the training cameras refined (as for a capture): the stages after the plain one train
+    // on the corrected cameras, and their checkpoints resume on them.
+    let tiny = format!("{TINY}[cameras]\nrefine = true\nfrom_iter = 10\n");
+    std::fs::write(&cfg, &tiny).unwrap();
     let data = demo();
     let (d, c) = (data.to_str().unwrap(), cfg.to_str().unwrap());
 
@@ -87,6 +90,10 @@ fn a_run_interrupted_in_every_stage_resumes_and_finishes() {
     // The training stages stopped half-way with a checkpoint and went on from it.
     let o = run_bin(&args(d, p, c), &[]);
     assert!(o.ok, "{}", o.stderr);
+    assert!(
+        parts.join("cameras.json").is_file()
+            && o.stderr.contains("the training cameras as the plain stage corrected them")
+    );
     for s in STAGES.map(|s| s.name()) {
         assert!(stage_done(&parts, s), "{s}");
     }
@@ -119,6 +126,7 @@ fn a_run_interrupted_in_every_stage_resumes_and_finishes() {
         "Where InstGS's frame goes: ",
         "held-out IoU",
         "rotation error",
+        "The plain stage refined the 24 training cameras",
     ] {
         assert!(report.contains(needle), "report lacks {needle}:\n{report}");
     }
@@ -137,7 +145,7 @@ fn a_run_interrupted_in_every_stage_resumes_and_finishes() {
     assert!(o.ok && o.stderr.contains("[6/7 eval] finished"), "{}", o.stderr);
     assert!(!stage_done(&parts, "bench"));
     // Changed settings are not silently mixed with earlier results.
-    std::fs::write(&cfg, format!("{TINY}\n[segment]\nalpha = 0.5\n")).unwrap();
+    std::fs::write(&cfg, format!("{tiny}\n[segment]\nalpha = 0.5\n")).unwrap();
     let o = run_bin(&args(d, p, c), &[]);
     assert!(!o.ok && o.stderr.contains("stage segment was run with other settings"), "{}", o.stderr);
     assert!(o.stderr.contains("--from segment"), "{}", o.stderr);

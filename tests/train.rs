@@ -324,8 +324,9 @@ fn interrupted_and_resumed_runs_match_an_uninterrupted_one() {
     let base = tmp("resume-out");
     let cfg = config_file(
         &base,
-        // With colour transforms per photo: they, their moments and step counts resume too.
-        "checkpoint_interval = 25\ntest_interval = 0\nsh_increase_interval = 20\n[densify]\nfrom_iter = 10\ninterval = 15\nopacity_reset_interval = 45\n[appearance]\nmodel = \"affine\"\nfrom_iter = 10\n",
+        // With colour transforms per photo and the cameras' refinement: they, their moments and
+        // step counts resume too.
+        "checkpoint_interval = 25\ntest_interval = 0\nsh_increase_interval = 20\n[densify]\nfrom_iter = 10\ninterval = 15\nopacity_reset_interval = 45\n[appearance]\nmodel = \"affine\"\nfrom_iter = 10\n[cameras]\nrefine = true\nfrom_iter = 10\n",
     );
     let (d, c) = (data.to_str().unwrap(), cfg.to_str().unwrap());
     // Bit-exact where runs repeat bit for bit (lavapipe, one thread); elsewhere the resumed run
@@ -349,6 +350,10 @@ fn interrupted_and_resumed_runs_match_an_uninterrupted_one() {
     assert!(want.appearance.steps.iter().all(|&s| s > 0));
     // The lens's vignetting learns (and resumes) with them.
     assert!(want.appearance.vignetting_steps > 0 && want.appearance.vignetting != [0.0; 2]);
+    // The training cameras' corrections learn, and are written beside the scene.
+    assert_eq!(want.cameras.deltas.len(), 8);
+    assert!(want.cameras.steps.iter().all(|&s| s > 0) && want.cameras.deltas.iter().all(|d| *d != [0.0; 6]));
+    assert!(straight.join("cameras.json").is_file());
 
     // Stopped by --iterations, then resumed.
     let split = base.join("split");
@@ -437,6 +442,7 @@ fn configurations_saved_before_new_keys_take_their_defaults() {
     saved.as_object_mut().unwrap().remove("refine_transforms");
     saved["lr"].as_object_mut().unwrap().remove("transform_rotation");
     saved["lr"].as_object_mut().unwrap().remove("spatial_scale");
+    saved.as_object_mut().unwrap().remove("cameras");
     saved["iterations"] = 1234.into();
     let back = instgs_vk::train::config::Config::from_saved(saved).unwrap();
     assert_eq!(back.iterations, 1234);

@@ -30,6 +30,8 @@ pub struct Kernels {
     /// (specialization constant VISIBLE_ROWS 0 and 1).
     pub preprocess_backward: [Kernel; 2],
     pub xform_grad_reduce: Kernel,
+    /// A plain frame's camera gradients (training's camera refinement).
+    pub camera_grad_reduce: Kernel,
     pub loss_moments_h: Kernel,
     pub loss_ssim_v: Kernel,
     pub loss_cotangents_h: Kernel,
@@ -199,6 +201,7 @@ impl Kernels {
                 Kernel::with_spec(gpu, "preprocess_backward (visible rows)", spirv::PREPROCESS_BACKWARD, &[1])?,
             ],
             xform_grad_reduce: k("xform_grad_reduce", spirv::XFORM_GRAD_REDUCE)?,
+            camera_grad_reduce: k("camera_grad_reduce", spirv::CAMERA_GRAD_REDUCE)?,
             loss_moments_h: k("loss_moments_h", spirv::LOSS_MOMENTS_H)?,
             loss_ssim_v: k("loss_ssim_v", atomics(spirv::LOSS_SSIM_V, spirv::LOSS_SSIM_V_CAS))?,
             loss_cotangents_h: k("loss_cotangents_h", spirv::LOSS_COTANGENTS_H)?,

@@ -215,7 +215,7 @@ pub fn run(a: PipelineArgs) -> Result<()> {
     }
     let until = a.until.unwrap_or(Stage::Bench);
     let load = crate::dataset::LoadOptions { downscale: a.downscale, background: cfg.plain.background };
-    let ds = crate::dataset::load(&a.data, &load)?;
+    let mut ds = crate::dataset::load(&a.data, &load)?;
     let what = ds.describe(&a.data)?;
     let mask_ids = match &a.discover {
         Some(_) => MaskIds::Discovered,
@@ -236,6 +236,9 @@ pub fn run(a: PipelineArgs) -> Result<()> {
     if let Some(from) = from {
         forget_from(&mut state, run, from)?;
     }
+    if state.done(Stage::Plain) {
+        correct_cameras(run, &mut ds)?;
+    }
     check_checkpoints(&state, run, until, &ds)?;
     let (gpu, k) = crate::gpu::kernels::open_device(a.device.clone())?;
     scan.save()?;
@@ -251,8 +254,8 @@ pub fn run(a: PipelineArgs) -> Result<()> {
     );
     ctrlc::set_handler(|| INTERRUPTED.store(true, Ordering::SeqCst)).context("cannot install the Ctrl-C handler")?;
     let hook = interrupt_hook();
-    let ctx = Ctx { a: &a, cfg: &cfg, ds: &ds, gpu: &gpu, k: &k, mask_ids };
-    run_stages(&ctx, &mut state, &mut fresh, &content, until, hook.as_deref())?;
+    let env = StageEnv { a: &a, cfg: &cfg, gpu: &gpu, k: &k, mask_ids };
+    run_stages(&env, &mut ds, &mut state, &mut fresh, &content, until, hook.as_deref())?;
     let m = gpu.take_validation_messages();
     if !m.is_empty() {
         bail!("{} Vulkan validation message(s), first: {}", m.len(), m[0]);
@@ -326,6 +329,10 @@ fn check_settings(
 fn forget_from(state: &mut State, run: &Path, from: Stage) -> Result<()> {
     for s in STAGES.iter().copied().filter(|&s| s >= from) {
         state.stages.remove(s.name());
+        let cameras = run.join(train::CAMERAS_FILE);
+        if s == Stage::Plain && cameras.exists() {
+            std::fs::remove_file(&cameras).with_context(|| format!("{}: cannot remove", cameras.display()))?;
+        }
         if let Some(c) = stage_checkpoint(run, s) {
             if c.exists() {
                 std::fs::remove_file(&c).with_context(|| format!("{}: cannot remove", c.display()))?;
@@ -333,6 +340,17 @@ fn forget_from(state: &mut State, run: &Path, from: Stage) -> Result<()> {
         }
     }
     state.write(run)?;
+    Ok(())
+}
+
+/// Corrects `ds`'s training cameras as the plain stage of `run` did (RUN/cameras.json, when it
+/// refined them).
+fn correct_cameras(run: &Path, ds: &mut Dataset) -> Result<()> {
+    let path = run.join(train::CAMERAS_FILE);
+    if path.exists() {
+        train::apply_cameras(&path, ds)?;
+        eprintln!("{}: the training cameras as the plain stage corrected them", path.display());
+    }
     Ok(())
 }
 
@@ -364,16 +382,29 @@ fn check_checkpoints(state: &State, run: &Path, until: Stage, ds: &Dataset) -> R
 
 /// Runs the unfinished stages up to `until`, recording each in `RUN/pipeline.json` and
 /// rewriting the report after each; an interrupted stage stops the run (resumable).
+/// What every stage reads besides the dataset (which the plain stage's camera corrections change).
+struct StageEnv<'a> {
+    a: &'a PipelineArgs,
+    cfg: &'a PipelineConfig,
+    gpu: &'a std::sync::Arc<crate::gpu::Gpu>,
+    k: &'a std::sync::Arc<crate::gpu::kernels::Kernels>,
+    mask_ids: MaskIds,
+}
+
 fn run_stages(
-    ctx: &Ctx,
+    env: &StageEnv,
+    ds: &mut Dataset,
     state: &mut State,
     fresh: &mut Option<crate::util::NewFolder>,
     content: &crate::dataset::content::ContentIdentity,
     until: Stage,
     hook: Option<&str>,
 ) -> Result<()> {
-    let (a, run) = (ctx.a, ctx.a.out.as_path());
+    let (a, run) = (env.a, env.a.out.as_path());
+    let (cfg, gpu, k, mask_ids) = (env.cfg, env.gpu, env.k, env.mask_ids);
     for s in STAGES.iter().copied().filter(|&s| s <= until) {
+        // The stages after the plain one see the training cameras as it corrected them.
+        let ctx = Ctx { a, cfg, ds: &*ds, gpu, k, mask_ids };
         if state.done(s) {
             eprintln!("{}done earlier", s.label());
             continue;
@@ -397,6 +428,9 @@ fn run_stages(
                 }
                 state.write(run)?;
                 eprintln!("{}finished in {:.1} s", s.label(), t0.elapsed().as_secs_f64());
+                if s == Stage::Plain {
+                    correct_cameras(run, ds)?;
+                }
                 report::write(run, a, &State::read(run)?.summary())?;
             }
             Ok(false) => {

@@ -192,11 +192,33 @@ fn comparison_section(
             );
         }
         md.push('\n');
+        cameras_paragraph(md, run);
         compaction_paragraph(md, run);
     }
 }
 
 /// How the instanced scene was made compact: the background's pruning and the rebalance.
+/// How far the plain stage moved the training cameras (RUN/cameras.json), when it refined them.
+fn cameras_paragraph(md: &mut String, run: &Path) {
+    let Some(v) = read(run, crate::train::CAMERAS_FILE) else { return };
+    let Some(views) = v["views"].as_array() else { return };
+    let norm = |e: &serde_json::Value, key: &str| {
+        (0..3).map(|k| e[key][k].as_f64().unwrap_or(0.0).powi(2)).sum::<f64>().sqrt()
+    };
+    let stats = |key: &str, scale: f64| {
+        let x: Vec<f64> = views.iter().map(|e| norm(e, key) * scale).collect();
+        let rms = (x.iter().map(|v| v * v).sum::<f64>() / x.len().max(1) as f64).sqrt();
+        (rms, x.iter().copied().fold(0.0, f64::max))
+    };
+    let (rot, rot_max) = stats("rotation", 180.0 / std::f64::consts::PI);
+    let (tr, tr_max) = stats("translation", 1.0);
+    let _ = writeln!(
+        md,
+        "The plain stage refined the {} training cameras (`cameras.json`): corrections {rot:.3}° rms (largest          {rot_max:.3}°) and {tr:.4} units rms (largest {tr_max:.4}) in the cameras' frames; the later stages used          them, the held-out cameras are the dataset's.\n",
+        views.len()
+    );
+}
+
 fn compaction_paragraph(md: &mut String, run: &Path) {
     if let Some(seg) = read(run, "segment.json") {
         let bg = num(&seg, "background").unwrap_or(0.0);

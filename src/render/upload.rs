@@ -67,6 +67,9 @@ pub struct GpuScene {
     pub sh_degree: u32,
     /// SH degree evaluated (≤ sh_degree; training raises it step by step).
     pub active_sh_degree: u32,
+    /// Backward also computes the camera gradients (`Grads::v_camera`; plain scenes only:
+    /// training's camera refinement).
+    pub camera_grads: bool,
 }
 
 /// Refuses a scene whose largest buffer (SH coefficients of its rows, or 16 bytes per splat for
@@ -351,6 +354,7 @@ impl GpuScene {
             },
             sh_degree: rows.sh_degree,
             active_sh_degree: rows.sh_degree,
+            camera_grads: false,
         })
     }
 

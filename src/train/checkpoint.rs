@@ -37,6 +37,10 @@ struct CheckpointHeader {
     /// before it was learned have none: no vignetting).
     #[serde(default)]
     vignetting: Option<VignettingState>,
+    /// The training cameras' corrections with their Adam moments and step counts (runs that
+    /// refine none, and checkpoints written before cameras were refined, have none).
+    #[serde(default)]
+    cameras: Option<crate::train::cameras::CameraState>,
 }
 
 /// A checkpoint's vignetting state (crate::train::state::AppearanceState).
@@ -70,6 +74,7 @@ pub fn write_checkpoint(path: &Path, st: &TrainState, cfg: &Config, dataset: Opt
                 steps: a.vignetting_steps,
             }
         }),
+        cameras: (!st.cameras.is_empty()).then(|| st.cameras.clone()),
     })?;
     crate::util::write_atomic(path, |f| {
         let mut w = CrcWriter { inner: std::io::BufWriter::new(f), crc: crc32fast::Hasher::new() };
@@ -267,6 +272,7 @@ pub fn checkpoint_from_bytes(data: &[u8], what: &str) -> Result<(TrainState, Con
             vignetting_steps: vig.steps,
             vignetting_free: true,
         },
+        cameras: header.cameras.unwrap_or_default(),
     };
     // Values checked at the door: a checkpoint with a NaN or infinity in its parameters, Adam
     // moments, offsets or transforms is damaged (training on it would only spread them).
@@ -277,6 +283,16 @@ pub fn checkpoint_from_bytes(data: &[u8], what: &str) -> Result<(TrainState, Con
     let xforms = state.xform_params.iter().chain(&state.xform_exp_avg).chain(&state.xform_exp_avg_sq).flatten();
     let a = &state.appearance;
     let colour = a.params.iter().chain(&a.exp_avg).chain(&a.exp_avg_sq).flatten();
+    let c = &state.cameras;
+    let n = c.deltas.len();
+    if c.exp_avg.len() != n || c.exp_avg_sq.len() != n || c.steps.len() != n {
+        bail!(
+            "{what}: damaged checkpoint: {n} camera corrections with moments for {} and {}",
+            c.exp_avg.len(),
+            c.exp_avg_sq.len()
+        );
+    }
+    let colour = colour.chain(c.deltas.iter().chain(&c.exp_avg).chain(&c.exp_avg_sq).flatten());
     if !moments
         .chain(offsets)
         .chain(deltas)
@@ -287,7 +303,7 @@ pub fn checkpoint_from_bytes(data: &[u8], what: &str) -> Result<(TrainState, Con
         .all(|v| v.is_finite())
     {
         bail!(
-            "{what}: damaged checkpoint: a non-finite value in its optimiser state, offsets, transforms or colour transforms"
+            "{what}: damaged checkpoint: a non-finite value in its optimiser state, offsets, transforms, colour transforms or camera corrections"
         );
     }
     state.to_instanced().with_context(|| format!("{what}: damaged instanced checkpoint"))?;

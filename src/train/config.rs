@@ -26,6 +26,7 @@ pub struct Config {
     /// Instanced runs: optimise the instance transforms too (rates `lr.transform_*`).
     pub refine_transforms: bool,
     pub appearance: AppearanceConfig,
+    pub cameras: CamerasConfig,
     pub lr: LrConfig,
     pub densify: DensifyConfig,
     pub init: InitConfig,
@@ -83,6 +84,38 @@ impl AppearanceConfig {
         }
         let t = (it as f64 / max_steps.max(1) as f64).clamp(0.0, 1.0);
         (self.lr_init.ln() * (1.0 - t) + self.lr_final.ln() * t).exp()
+    }
+}
+
+/// `[cameras]`: the training cameras' refinement (crate::train::cameras).
+#[derive(Clone, Debug, Deserialize, Serialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct CamerasConfig {
+    /// Whether the plain training refines its training cameras.
+    pub refine: bool,
+    /// Adam rates of the rotation (radians) and of the translation (× the cameras' extent),
+    /// decaying exponentially from `_init` to `_final` over `lr.position_max_steps`.
+    pub lr_rotation_init: f64,
+    pub lr_rotation_final: f64,
+    pub lr_translation_init: f64,
+    pub lr_translation_final: f64,
+    /// Iterations before the cameras start to learn (the scene takes shape first).
+    pub from_iter: u64,
+}
+
+impl CamerasConfig {
+    /// The rates [rotation, translation] at iteration `it` (0 until `from_iter`), the
+    /// translation's times `extent`.
+    pub fn lr(&self, it: u64, max_steps: u64, extent: f32) -> [f64; 2] {
+        if it <= self.from_iter {
+            return [0.0; 2];
+        }
+        let t = (it as f64 / max_steps.max(1) as f64).clamp(0.0, 1.0);
+        let decay = |a: f64, b: f64| (a.ln() * (1.0 - t) + b.ln() * t).exp();
+        [
+            decay(self.lr_rotation_init, self.lr_rotation_final),
+            decay(self.lr_translation_init, self.lr_translation_final) * extent as f64,
+        ]
     }
 }
 
@@ -221,6 +254,7 @@ impl Config {
             opacities: self.lr.opacity,
             sh0: self.lr.sh0,
             sh_rest: self.lr.sh_rest,
+            cameras: self.cameras.lr(step, self.lr.position_max_steps, extent),
         }
     }
 
@@ -431,6 +465,10 @@ pub const TRAINING_RANGES: &[(&str, Bound)] = &[
     ("init.opacity", Bound::Inside(0.0, 1.0)),
     ("appearance.lr_init", Bound::Above(0.0)),
     ("appearance.lr_final", Bound::Above(0.0)),
+    ("cameras.lr_rotation_init", Bound::Above(0.0)),
+    ("cameras.lr_rotation_final", Bound::Above(0.0)),
+    ("cameras.lr_translation_init", Bound::Above(0.0)),
+    ("cameras.lr_translation_final", Bound::Above(0.0)),
 ];
 
 /// The ranges of the pipeline's own tables (`[segment]`, `[instance]`, `[eval]`, `[bench]`).

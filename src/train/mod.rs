@@ -16,6 +16,7 @@
 //! (`max_screen_size > 0`) it uses the radii seen since the last densification.
 
 pub mod appearance;
+pub mod cameras;
 pub mod checkpoint;
 pub mod config;
 pub mod densify;
@@ -27,6 +28,7 @@ pub mod state;
 pub mod trainer;
 
 pub use appearance::{read_appearance, vignetting_beside, write_appearance, APPEARANCE_FILE};
+pub use cameras::{apply_cameras, write_cameras, CameraState, CAMERAS_FILE};
 pub use checkpoint::{
     checkpoint_dataset, checkpoint_from_bytes, checkpoint_is_whole, checkpoint_path, read_checkpoint, write_checkpoint,
 };
@@ -278,8 +280,23 @@ fn start_state(
                 None => AppearanceState::identity(ds.train.len()),
             };
         }
+        if cfg.cameras.refine && opts.init.is_none() && opts.init_scene.is_none() {
+            st.cameras = CameraState::identity(ds.train.iter().map(|v| v.camera.clone()).collect());
+        }
         (st, Vec::new())
     };
+    // The cameras a checkpoint's corrections apply to are the dataset's (not stored).
+    if !state.cameras.is_empty() {
+        if state.cameras.deltas.len() != ds.train.len() {
+            bail!(
+                "{}: the checkpoint holds {} camera corrections for {} training views; resume it on its own data",
+                ckpt.display(),
+                state.cameras.deltas.len(),
+                ds.train.len()
+            );
+        }
+        state.cameras.original = ds.train.iter().map(|v| v.camera.clone()).collect();
+    }
     if let Some(model) = cfg.appearance.model_for(ds.kind) {
         state.appearance.free = crate::train::config::AppearanceConfig::free_params(model);
         // One lens per capture: learned by the run that starts from the dataset; a run that
@@ -336,8 +353,25 @@ fn adapt(
     Ok(Some(state))
 }
 
+/// A run's results beside its checkpoint: what it learned of the photos and cameras, the scene,
+/// and the curves.
+fn write_results(ds: &Dataset, cfg: &Config, opts: &RunOptions, state: &TrainState, rows: &[MetricsRow]) -> Result<()> {
+    if !state.appearance.is_empty() {
+        write_appearance(&opts.out.join(APPEARANCE_FILE), ds, &state.appearance.learned())?;
+    }
+    if !state.cameras.is_empty() {
+        write_cameras(&opts.out.join(CAMERAS_FILE), ds, &state.cameras)?;
+    }
+    match state.to_instanced()? {
+        Some(inst) => crate::formats::instgs::write(&inst, &opts.out.join("scene.instgs"), opts.offset_dtype)?,
+        None => crate::formats::ply::write_ply(&state.scene, &opts.out.join("point_cloud.ply"))?,
+    }
+    crate::train::plot::write(&curves(rows, cfg, state.layout.is_none(), ds), &opts.out.join("curves.png"))
+}
+
 /// Trains `cfg.iterations` iterations on `ds`, writing into `opts.out`: `checkpoint.bin`,
-/// `metrics.csv`, `point_cloud.ply` and `curves.png`. With `opts.resume` it continues from the
+/// `metrics.csv`, `point_cloud.ply` (or `scene.instgs`), `curves.png` and what it learned of the
+/// photos and cameras (`appearance.json`, `cameras.json`). With `opts.resume` it continues from the
 /// checkpoint (the configuration must match the one it was written with, iterations aside).
 pub fn run(gpu: &Arc<Gpu>, k: &Arc<Kernels>, ds: &Dataset, cfg: &Config, opts: &RunOptions) -> Result<RunSummary> {
     let mut fresh = crate::util::NewFolder::create(&opts.out)?;
@@ -460,14 +494,7 @@ pub fn run(gpu: &Arc<Gpu>, k: &Arc<Kernels>, ds: &Dataset, cfg: &Config, opts: &
         write_checkpoint(&ckpt, &state, cfg, Some(&dataset))?;
         write_metrics(&rows)?;
     }
-    if !state.appearance.is_empty() {
-        write_appearance(&opts.out.join(APPEARANCE_FILE), ds, &state.appearance.learned())?;
-    }
-    match state.to_instanced()? {
-        Some(inst) => crate::formats::instgs::write(&inst, &opts.out.join("scene.instgs"), opts.offset_dtype)?,
-        None => crate::formats::ply::write_ply(&state.scene, &opts.out.join("point_cloud.ply"))?,
-    }
-    crate::train::plot::write(&curves(&rows, cfg, state.layout.is_none(), ds), &opts.out.join("curves.png"))?;
+    write_results(ds, cfg, opts, &state, &rows)?;
     let secs = t0.elapsed().as_secs_f64();
     Ok(RunSummary {
         iterations: done,

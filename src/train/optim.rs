@@ -145,6 +145,9 @@ pub struct LearningRates {
     pub opacities: f32,
     pub sh0: f32,
     pub sh_rest: f32,
+    /// The training cameras' corrections (crate::train::cameras): rotation (radians),
+    /// translation (world units); 0 until `cameras.from_iter`.
+    pub cameras: [f64; 2],
 }
 
 /// Adam's first and second moments of every parameter buffer (layouts as [`GpuScene`]) and of

@@ -80,6 +80,8 @@ pub struct TrainState {
     pub xform_exp_avg_sq: Vec<[f32; 8]>,
     /// The training photos' colour transforms (empty when the run learns none).
     pub appearance: AppearanceState,
+    /// The training cameras' corrections (empty when the run refines none).
+    pub cameras: crate::train::cameras::CameraState,
 }
 
 /// The per-photo colour transforms of a run (crate::render::appearance), one per training view
@@ -212,6 +214,7 @@ impl TrainState {
             xform_exp_avg: Vec::new(),
             xform_exp_avg_sq: Vec::new(),
             appearance: AppearanceState::default(),
+            cameras: Default::default(),
         }
     }
 
@@ -259,6 +262,7 @@ impl TrainState {
             xform_exp_avg: vec![[0.0; 8]; instances],
             xform_exp_avg_sq: vec![[0.0; 8]; instances],
             appearance: AppearanceState::default(),
+            cameras: Default::default(),
         }
     }
 
@@ -359,6 +363,13 @@ impl TrainState {
         if ![a.vignetting, a.vignetting_exp_avg, a.vignetting_exp_avg_sq].iter().flatten().all(|v| v.is_finite()) {
             bail!("non-finite vignetting at iteration {}", self.iteration);
         }
+        let c = &self.cameras;
+        if let Some(k) = [&c.deltas, &c.exp_avg, &c.exp_avg_sq]
+            .iter()
+            .find_map(|arr| arr.iter().position(|d| !d.iter().all(|v| v.is_finite())))
+        {
+            bail!("non-finite camera correction of training view {k} at iteration {}", self.iteration);
+        }
         Ok(())
     }
 
@@ -392,6 +403,7 @@ impl TrainState {
             grad2d_count: rows.iter().map(|&(i, _)| self.grad2d_count[i]).collect(),
             max_radii: rows.iter().map(|&(i, keep)| if keep { self.max_radii[i] } else { 0 }).collect(),
             appearance: self.appearance.clone(),
+            cameras: self.cameras.clone(),
             // Densification is for plain runs only: no instancing parts.
             ..TrainState::new(Scene::default())
         }

@@ -45,6 +45,8 @@ pub struct Trainer {
     losses: Vec<(LossBufs, Option<AppearanceBufs>)>,
     /// The training photos' colour transforms (host side; empty: none learned).
     appearance: AppearanceState,
+    /// The training cameras' corrections (host side; empty: none refined).
+    cameras: crate::train::cameras::CameraState,
     cmd: CommandBuffer,
     timer: Option<crate::gpu::Timer>,
     /// GPU milliseconds per pass of the last iteration (forward passes, loss, backward, Adam).
@@ -67,6 +69,7 @@ impl Trainer {
             raster: Rasterizer::new(gpu, k)?,
             losses: Vec::new(),
             appearance: st.appearance.clone(),
+            cameras: st.cameras.clone(),
             cmd: CommandBuffer::new(gpu)?,
             timer: crate::gpu::Timer::new(gpu, 32)?,
             passes: Vec::new(),
@@ -86,6 +89,7 @@ impl Trainer {
             None => GpuScene::new(gpu, &st.scene)?,
         };
         scene.active_sh_degree = st.active_sh_degree;
+        scene.camera_grads = !st.cameras.is_empty();
         let grads = Grads::new(gpu, &scene)?;
         let adam = AdamState::new(gpu, &scene)?;
         for k in 0..5 {
@@ -116,6 +120,7 @@ impl Trainer {
         self.layout = st.layout.clone();
         self.xforms = [st.xform_params.clone(), st.xform_exp_avg.clone(), st.xform_exp_avg_sq.clone()];
         self.appearance = st.appearance.clone();
+        self.cameras = st.cameras.clone();
         self.grads = grads;
         self.adam = adam;
         Ok(())
@@ -178,6 +183,7 @@ impl Trainer {
             offset_exp_avg: to3(om),
             offset_exp_avg_sq: to3(ov),
             appearance: self.appearance.clone(),
+            cameras: self.cameras.clone(),
         })
     }
 
@@ -196,7 +202,8 @@ impl Trainer {
         lr: &LearningRates,
         step: u64,
     ) -> Result<StepStats> {
-        let cam = &view.camera;
+        let corrected = (!self.cameras.is_empty()).then(|| self.cameras.camera(index));
+        let cam = corrected.as_ref().unwrap_or(&view.camera);
         self.raster.tile_cost_weight = cfg.tile_cost_weight;
         let frame = self.raster.render(&self.scene, cam, cfg.background)?;
         let colour = self.appearance.params.get(index).copied();
@@ -246,6 +253,10 @@ impl Trainer {
         };
         if self.refine && self.layout.is_some() {
             self.step_transforms(&cfg.lr, step)?;
+        }
+        if !self.cameras.is_empty() && lr.cameras.iter().any(|&r| r > 0.0) {
+            let terms: Vec<f32> = self.gpu.read(&self.grads.v_camera, crate::shared::CAMERA_GRAD_TERMS as usize)?;
+            self.cameras.step(index, &terms, lr.cameras);
         }
         self.passes = frame.passes.clone();
         if let Some(t) = &self.timer {

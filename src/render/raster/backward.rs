@@ -28,10 +28,13 @@ pub struct Grads {
     pub v_d_means: Buffer,
     pub v_d_sh0: Buffer,
     pub v_d_opacities: Buffer,
-    /// Per-pair transform-gradient terms and their per-instance sums (XFORM_GRAD_TERMS floats
-    /// each; placeholders unless the scene computes transform gradients).
-    pub xform_terms: Buffer,
+    /// Per-splat gradient terms: an instanced scene's per-pair transform terms
+    /// (XFORM_GRAD_TERMS floats each), summed per instance into `v_xforms`, or a plain scene's
+    /// per-visible-splat camera terms (CAMERA_GRAD_TERMS), summed into `v_camera`; a placeholder
+    /// when the scene computes neither.
+    pub terms: Buffer,
     pub v_xforms: Buffer,
+    pub v_camera: Buffer,
     pub v_xys: Buffer,
     pub v_conics: Buffer,
     pub v_colours: Buffer,
@@ -61,9 +64,16 @@ impl Grads {
             v_d_means: gpu.storage("v_d_means", pairs * 12)?,
             v_d_sh0: gpu.storage("v_d_sh0", pairs * 12)?,
             v_d_opacities: gpu.storage("v_d_opacities", pairs * 4)?,
-            xform_terms: gpu
-                .storage("xform_terms", if scene.inst.xform_grads { pairs } else { 1 } * XFORM_GRAD_TERMS as u64 * 4)?,
+            terms: gpu.storage(
+                "terms",
+                if scene.inst.xform_grads { pairs * XFORM_GRAD_TERMS as u64 } else { 1 }.max(if scene.camera_grads {
+                    n * CAMERA_GRAD_TERMS as u64
+                } else {
+                    1
+                }) * 4,
+            )?,
             v_xforms: gpu.storage("v_xforms", scene.inst.instances.max(1) as u64 * XFORM_GRAD_TERMS as u64 * 4)?,
+            v_camera: gpu.storage("v_camera", CAMERA_GRAD_TERMS as u64 * 4)?,
             v_xys: gpu.storage("v_xys", n * 8)?,
             v_conics: gpu.storage("v_conics", n * 12)?,
             v_colours: gpu.storage("v_colours", n * 12)?,
@@ -91,8 +101,9 @@ impl Grads {
             &self.v_d_means,
             &self.v_d_sh0,
             &self.v_d_opacities,
-            &self.xform_terms,
+            &self.terms,
             &self.v_xforms,
+            &self.v_camera,
             &self.v_xys,
             &self.v_conics,
             &self.v_colours,
@@ -110,7 +121,8 @@ impl Grads {
 impl Rasterizer {
     /// Records the backward passes of the last rendered frame: `blend_backward` from `v_image`
     /// (dL/d rgb per pixel, RGBA f32) into the projected-splat gradients, then
-    /// `preprocess_backward` into the parameter gradients and the densification statistics.
+    /// `preprocess_backward` into the parameter gradients and the densification statistics (and,
+    /// when the scene asks, `camera_grad_reduce` into the frame's camera gradients).
     /// The caller submits; the frame's buffers must not be re-rendered in between.
     pub fn record_backward(&self, rec: &mut Recorder, scene: &GpuScene, v_image: &Buffer, g: &Grads) -> Result<()> {
         self.record_blend_backward(rec, scene, v_image, g)?;
@@ -215,12 +227,17 @@ impl Rasterizer {
             ("v_d_means", &g.v_d_means),
             ("v_d_sh0", &g.v_d_sh0),
             ("v_d_opacities", &g.v_d_opacities),
-            ("xform_terms", &g.xform_terms),
+            ("terms", &g.terms),
             ("visible_ids", &gb.depth_ids[self.depth_result]),
         ]
         .into_iter()
         .chain(scene.instancing_bindings())
         .collect();
+        if scene.camera_grads
+            && (scene.inst.instances > 0 || g.terms.size < (scene.len * CAMERA_GRAD_TERMS as usize * 4) as u64)
+        {
+            bail!("camera gradients need a plain scene and gradient buffers made for them");
+        }
         if scene.inst.instances == 0 {
             // Plain: only the visible Gaussians' rows; the culled ones' gradients are zero.
             for b in [&g.v_means, &g.v_scales, &g.v_quats, &g.v_opacities, &g.v_sh] {
@@ -244,8 +261,17 @@ impl Rasterizer {
             )?;
         }
         rec.end_pass("preprocess_backward")?;
+        if scene.camera_grads {
+            rec.dispatch(
+                &self.k.camera_grad_reduce,
+                &[("frame_texels", &self.frame_ub), ("terms", &g.terms), ("v_camera", &g.v_camera)],
+                &(),
+                [1, 1, 1],
+            )?;
+            rec.end_pass("camera_grad_reduce")?;
+        }
         if scene.inst.xform_grads && scene.inst.instances > 0 {
-            if g.xform_terms.size < (scene.inst.pairs * XFORM_GRAD_TERMS as usize * 4) as u64 {
+            if g.terms.size < (scene.inst.pairs * XFORM_GRAD_TERMS as usize * 4) as u64 {
                 bail!("gradient buffers were made without transform gradients");
             }
             rec.dispatch(
@@ -253,7 +279,7 @@ impl Rasterizer {
                 &[
                     ("frame_texels", &self.frame_ub),
                     ("groups", &scene.inst.groups),
-                    ("xform_terms", &g.xform_terms),
+                    ("terms", &g.terms),
                     ("v_xforms", &g.v_xforms),
                 ],
                 &(),

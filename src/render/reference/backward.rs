@@ -201,6 +201,18 @@ pub fn project(fp: &FrameParams, g: &Gaussian) -> Splat {
 /// `fp.tile_cost_weight × tiles_touched` on each log-scale (the splat's tile count, held
 /// constant). Mirrors `preprocess_backward.comp`.
 pub fn project_vjp(fp: &FrameParams, g: &Gaussian, v: &Splat, tiles_touched: u32) -> Gaussian {
+    vjp(fp, g, v, tiles_touched).0
+}
+
+/// The camera-gradient terms of [`project`] given `v` (`preprocess_backward`'s with
+/// `camera_grads`): dL/dW (column-major) and dL/dt of viewmat = [W | t] with the camera centre
+/// held, then dL/dcampos through the SH view direction (`CAMERA_GRAD_TERMS` values).
+pub fn project_camera_vjp(fp: &FrameParams, g: &Gaussian, v: &Splat) -> [f64; 15] {
+    vjp(fp, g, v, 0).1
+}
+
+/// [`project_vjp`] and [`project_camera_vjp`] in one pass.
+fn vjp(fp: &FrameParams, g: &Gaussian, v: &Splat, tiles_touched: u32) -> (Gaussian, [f64; 15]) {
     let pr = proj(fp);
     let f = forward(&pr, g, fp.sh_degree);
     let [a, b, c] = f.cov;
@@ -251,15 +263,22 @@ pub fn project_vjp(fp: &FrameParams, g: &Gaussian, v: &Splat, tiles_touched: u32
         let ck = DVec3::new(g.sh[3 * k], g.sh[3 * k + 1], g.sh[3 * k + 2]);
         v_dir += f.dbasis[k] * ck.dot(v_rgb);
     }
-    let v_p = pr.w.transpose() * v_t + (v_dir - f.dir * f.dir.dot(v_dir)) / f.dir_len;
+    let v_dir_p = (v_dir - f.dir * f.dir.dot(v_dir)) / f.dir_len;
+    let v_p = pr.w.transpose() * v_t + v_dir_p;
+    let v_w = outer(v_t, DVec3::from(g.mean)) + v_v * pr.w * (f.m * f.m.transpose()) * 2.0;
+    let mut camera = [0.0; 15];
+    camera[..9].copy_from_slice(&v_w.to_cols_array());
+    camera[9..12].copy_from_slice(&v_t.to_array());
+    camera[12..].copy_from_slice(&(-v_dir_p).to_array());
     let o = 1.0 / (1.0 + (-g.opacity).exp());
-    Gaussian {
+    let grads = Gaussian {
         mean: v_p.to_array(),
         scale: (v_s * f.s + DVec3::splat(fp.tile_cost_weight as f64 * tiles_touched as f64)).to_array(),
         quat: v_q.to_array(),
         opacity: v.opacity * o * (1.0 - o),
         sh: v_sh,
-    }
+    };
+    (grads, camera)
 }
 
 /// Forward compositing of every pixel in f64 with the forward's rules (skip power > 0 and
