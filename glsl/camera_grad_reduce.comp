@@ -1,7 +1,8 @@
 #version 450
 // Camera gradients of a plain scene's frame: one workgroup sums the CAMERA_GRAD_TERMS terms that
-// preprocess_backward wrote for each of the frame's num_visible visible splats, per-thread
-// partial sums then a shared-memory tree: no atomics, a fixed order (deterministic).
+// each workgroup of preprocess_backward's visible-rows dispatch wrote (one per WG_SIZE visible
+// splats, at most MAX_GROUPS, as dispatch_args sizes it), per-thread partial sums then a
+// shared-memory tree: no atomics, a fixed order (deterministic).
 #include "common.glsl"
 layout(local_size_x = WG_SIZE) in;
 #define FRAME_BINDING 0
@@ -16,7 +17,8 @@ void main() {
     uint lid = gl_LocalInvocationID.x;
     float sum[CAMERA_GRAD_TERMS];
     for (uint c = 0; c < CAMERA_GRAD_TERMS; c++) sum[c] = 0.0;
-    for (uint j = lid; j < frame.p.num_visible; j += WG_SIZE) {
+    uint groups = min((frame.p.num_visible + WG_SIZE - 1) / WG_SIZE, MAX_GROUPS);
+    for (uint j = lid; j < groups; j += WG_SIZE) {
         for (uint c = 0; c < CAMERA_GRAD_TERMS; c++) sum[c] += terms.v[j * CAMERA_GRAD_TERMS + c];
     }
     for (uint c = 0; c < CAMERA_GRAD_TERMS; c++) partial[c][lid] = sum[c];

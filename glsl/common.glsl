@@ -107,8 +107,8 @@ struct FrameParams {
     float tile_cost_weight; // training's frame-cost regulariser (preprocess_backward): each
                             // visible splat's three log-scales get this times its tiles touched
                             // added to their gradient; 0: off (and never read when rendering)
-    uint camera_grads; // 1: preprocess_backward (plain scenes) also writes each visible splat's
-                       // camera-gradient terms (CAMERA_GRAD_TERMS; summed by camera_grad_reduce)
+    uint camera_grads; // 1: preprocess_backward (plain scenes) also sums the visible splats'
+                       // camera-gradient terms per workgroup (CAMERA_GRAD_TERMS; then camera_grad_reduce)
 };
 
 /// One instanced group (paper section 5.3: groups concatenated with start/length tables). Its
@@ -161,7 +161,8 @@ struct SelectArgs {
 // rotation composition q_R * q (4, for the unit quaternion).
 #define XFORM_GRAD_TERMS 17
 
-// Camera-gradient terms per visible splat of a plain scene, summed by camera_grad_reduce:
+// Camera-gradient terms of a plain scene's frame, summed per preprocess_backward workgroup, then by
+// camera_grad_reduce:
 // dL/dW (9, column-major) and dL/dt (3) of viewmat = [W | t] with the camera centre held, then
 // dL/dcampos (3) through the SH view direction (the host chains campos = -W^T t).
 #define CAMERA_GRAD_TERMS 15

@@ -22,9 +22,9 @@
 // R = w sum_splats sg(tiles_touched) (ln s_x + ln s_y + ln s_z), the tile count held constant
 // (sg). It shrinks the splats that touch many tiles, whose blend work is the frame's largest
 // share on lavapipe. A template Gaussian sums it over its drawn copies, as every other term.
-// With frame.p.camera_grads (plain scenes, training's camera refinement), invocation j also writes
-// the camera-gradient terms of its visible splat at terms[j * CAMERA_GRAD_TERMS..]
-// (summed by camera_grad_reduce): dL/dW = v_t p^T + 2 v_V W Sigma and dL/dt = v_t for viewmat
+// With frame.p.camera_grads (plain scenes, training's camera refinement), each workgroup also sums
+// its visible splats' camera-gradient terms (registers, then a shared-memory tree) and writes
+// them at terms[workgroup * CAMERA_GRAD_TERMS..] (summed by camera_grad_reduce): dL/dW = v_t p^T + 2 v_V W Sigma and dL/dt = v_t for viewmat
 // = [W | t] (t_cam = W p + t, V = W Sigma W^T), and dL/dcampos = -(v_dir - dir (dir . v_dir)) / |p - campos|.
 // Densification statistics of visible splats: grad2d_accum += |v_xy| in Inria's NDC units
 // (pixels scaled by width/2, height/2), grad2d_count += 1, max_radii = max(max_radii, radius).
@@ -70,11 +70,15 @@ layout(constant_id = 1) const uint VISIBLE_ROWS = 0;
 // dL/dSH of the row being processed, (coefficient, channel) at 3k + c, summed over its splats
 // in registers and written once (lavapipe stores lane by lane).
 float acc_sh[48];
+// The invocation's sum of its splats' camera-gradient terms (with frame.p.camera_grads).
+float acc_camera[CAMERA_GRAD_TERMS];
+bool camera_grads;
+shared float camera_partial[CAMERA_GRAD_TERMS][WG_SIZE];
 
 // Gradient of one expanded splat i (row, expansion e) with respect to its expanded parameters;
 // dL/dSH (every evaluated coefficient) is added to acc_sh. Returns false when culled.
-// `slot` != NO_SLOT: the camera-gradient terms go to terms[slot * CAMERA_GRAD_TERMS..].
-bool splat_backward(uint i, uint row, uint slot, Expanded e, out vec3 v_p, out vec3 v_ls, out vec4 v_q, out float v_logit,
+// With camera_grads, the splat's camera-gradient terms are added to acc_camera.
+bool splat_backward(uint i, uint row, Expanded e, out vec3 v_p, out vec3 v_ls, out vec4 v_q, out float v_logit,
                     out vec3 v_dc, out vec3 dir, out vec3 v_dir_t) {
     if (tiles_touched.v[i] == 0) return false;
     vec3 p = e.mean;
@@ -193,15 +197,14 @@ bool splat_backward(uint i, uint row, uint slot, Expanded e, out vec3 v_p, out v
     vec3 v_dir = e.rot * v_dir_t;
     vec3 v_dir_p = (v_dir - dir * dot(dir, v_dir)) / dv_len;
     v_p = transpose(W) * v_t + v_dir_p;
-    if (slot != NO_SLOT) {
+    if (camera_grads) {
         mat3 v_W = outerProduct(v_t, p) + 2.0 * v_V * W * (M * transpose(M));
-        uint o = slot * CAMERA_GRAD_TERMS;
         for (uint c = 0; c < 3; c++) {
-            terms.v[o + 3 * c] = v_W[c].x;
-            terms.v[o + 3 * c + 1] = v_W[c].y;
-            terms.v[o + 3 * c + 2] = v_W[c].z;
-            terms.v[o + 9 + c] = v_t[c];
-            terms.v[o + 12 + c] = -v_dir_p[c];
+            acc_camera[3 * c] += v_W[c].x;
+            acc_camera[3 * c + 1] += v_W[c].y;
+            acc_camera[3 * c + 2] += v_W[c].z;
+            acc_camera[9 + c] += v_t[c];
+            acc_camera[12 + c] -= v_dir_p[c];
         }
     }
     // Plus the frame-cost regulariser's w x tiles touched (see the header).
@@ -217,9 +220,8 @@ bool splat_backward(uint i, uint row, uint slot, Expanded e, out vec3 v_p, out v
     return true;
 }
 
-// Row r: a background Gaussian (one splat) or a template Gaussian (K splats). `slot`: where a
-// plain row's camera-gradient terms go (NO_SLOT: none).
-void backward(uint r, uint slot) {
+// Row r: a background Gaussian (one splat) or a template Gaussian (K splats).
+void backward(uint r) {
     for (uint k = 0; k < 48; k++) acc_sh[k] = 0.0;
     vec3 gm = vec3(0.0), gs = vec3(0.0);
     vec4 gq = vec4(0.0);
@@ -240,11 +242,8 @@ void backward(uint r, uint slot) {
         vec3 v_p, v_ls, v_dc, dir, v_dir_t;
         vec4 v_q;
         float v_logit;
-        bool seen = splat_backward(i, r, slot, e, v_p, v_ls, v_q, v_logit, v_dc, dir, v_dir_t);
+        bool seen = splat_backward(i, r, e, v_p, v_ls, v_q, v_logit, v_dc, dir, v_dir_t);
         if (!seen) {
-            if (slot != NO_SLOT) {
-                for (uint c = 0; c < CAMERA_GRAD_TERMS; c++) terms.v[slot * CAMERA_GRAD_TERMS + c] = 0.0;
-            }
             v_p = vec3(0.0);
             v_ls = vec3(0.0);
             v_q = vec4(0.0);
@@ -317,10 +316,23 @@ void backward(uint r, uint slot) {
 
 void main() {
     load_frame();
+    camera_grads = frame.p.camera_grads != 0 && frame.p.num_groups == 0;
+    for (uint c = 0; c < CAMERA_GRAD_TERMS; c++) acc_camera[c] = 0.0;
     uint rows = VISIBLE_ROWS != 0 ? frame.p.num_visible : frame.p.num_rows;
     for (uint j = gl_GlobalInvocationID.x; j < rows; j += gl_NumWorkGroups.x * WG_SIZE) {
-        uint r = VISIBLE_ROWS != 0 ? visible_ids.v[j] : j;
-        bool camera = frame.p.camera_grads != 0 && frame.p.num_groups == 0;
-        backward(r, camera ? j : NO_SLOT);
+        backward(VISIBLE_ROWS != 0 ? visible_ids.v[j] : j);
+    }
+    // The workgroup's camera-gradient terms (camera_grads is the same for the whole dispatch).
+    if (camera_grads) {
+        uint lid = gl_LocalInvocationID.x;
+        for (uint c = 0; c < CAMERA_GRAD_TERMS; c++) camera_partial[c][lid] = acc_camera[c];
+        barrier();
+        for (uint w = WG_SIZE / 2; w > 0; w /= 2) {
+            if (lid < w) {
+                for (uint c = 0; c < CAMERA_GRAD_TERMS; c++) camera_partial[c][lid] += camera_partial[c][lid + w];
+            }
+            barrier();
+        }
+        if (lid < CAMERA_GRAD_TERMS) terms.v[gl_WorkGroupID.x * CAMERA_GRAD_TERMS + lid] = camera_partial[lid][0];
     }
 }

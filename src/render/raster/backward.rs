@@ -28,10 +28,10 @@ pub struct Grads {
     pub v_d_means: Buffer,
     pub v_d_sh0: Buffer,
     pub v_d_opacities: Buffer,
-    /// Per-splat gradient terms: an instanced scene's per-pair transform terms
-    /// (XFORM_GRAD_TERMS floats each), summed per instance into `v_xforms`, or a plain scene's
-    /// per-visible-splat camera terms (CAMERA_GRAD_TERMS), summed into `v_camera`; a placeholder
-    /// when the scene computes neither.
+    /// Gradient terms: an instanced scene's per-pair transform terms (XFORM_GRAD_TERMS floats
+    /// each), summed per instance into `v_xforms`, or a plain scene's camera terms summed per
+    /// `preprocess_backward` workgroup (CAMERA_GRAD_TERMS each, at most MAX_GROUPS), summed into
+    /// `v_camera`; a placeholder when the scene computes neither.
     pub terms: Buffer,
     pub v_xforms: Buffer,
     pub v_camera: Buffer,
@@ -67,7 +67,7 @@ impl Grads {
             terms: gpu.storage(
                 "terms",
                 if scene.inst.xform_grads { pairs * XFORM_GRAD_TERMS as u64 } else { 1 }.max(if scene.camera_grads {
-                    n * CAMERA_GRAD_TERMS as u64
+                    MAX_GROUPS as u64 * CAMERA_GRAD_TERMS as u64
                 } else {
                     1
                 }) * 4,
@@ -234,7 +234,7 @@ impl Rasterizer {
         .chain(scene.instancing_bindings())
         .collect();
         if scene.camera_grads
-            && (scene.inst.instances > 0 || g.terms.size < (scene.len * CAMERA_GRAD_TERMS as usize * 4) as u64)
+            && (scene.inst.instances > 0 || g.terms.size < (MAX_GROUPS * CAMERA_GRAD_TERMS * 4) as u64)
         {
             bail!("camera gradients need a plain scene and gradient buffers made for them");
         }
