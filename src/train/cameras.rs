@@ -38,21 +38,22 @@ fn rotation_of(w: DVec3) -> DMat3 {
     DMat3::from_quat(glam::DQuat::from_scaled_axis(w))
 }
 
-fn f64s(v: [f32; 4]) -> [f64; 4] {
-    v.map(f64::from)
+/// ω and τ of a correction.
+fn split(d: &CameraDelta) -> (DVec3, DVec3) {
+    (DVec3::new(d[0] as f64, d[1] as f64, d[2] as f64), DVec3::new(d[3] as f64, d[4] as f64, d[5] as f64))
+}
+
+/// A camera's world → camera rotation W and translation t (viewmat = [W | t]), in f64.
+fn rotation_translation(c: &Camera) -> (DMat3, DVec3) {
+    let v = c.viewmat.as_dmat4();
+    (DMat3::from_mat4(v), v.w_axis.truncate())
 }
 
 /// `cam` corrected by `d` (see the module docs).
 pub fn corrected(cam: &Camera, d: &CameraDelta) -> Camera {
-    let w = DVec3::new(d[0] as f64, d[1] as f64, d[2] as f64);
-    let e = glam::DMat4::from_cols(
-        rotation_of(w).x_axis.extend(0.0),
-        rotation_of(w).y_axis.extend(0.0),
-        rotation_of(w).z_axis.extend(0.0),
-        glam::DVec4::new(d[3] as f64, d[4] as f64, d[5] as f64, 1.0),
-    );
-    let v0 = glam::DMat4::from_cols_array_2d(&cam.viewmat.to_cols_array_2d().map(f64s));
-    Camera { viewmat: (e * v0).as_mat4(), ..cam.clone() }
+    let (w, tau) = split(d);
+    let e = glam::DMat4::from_mat3_translation(rotation_of(w), tau);
+    Camera { viewmat: (e * cam.viewmat.as_dmat4()).as_mat4(), ..cam.clone() }
 }
 
 fn hat(v: DVec3) -> DMat3 {
@@ -76,11 +77,10 @@ fn left_jacobian(w: DVec3) -> DMat3 {
 /// viewmat = [W | t] with its centre held, then dL/dcampos). The centre c = −Wᵀt is chained here.
 pub fn delta_grad(cam0: &Camera, d: &CameraDelta, terms: &[f32]) -> [f64; 6] {
     let g: Vec<f64> = terms.iter().map(|&x| x as f64).collect();
-    let v0 = glam::DMat4::from_cols_array_2d(&cam0.viewmat.to_cols_array_2d().map(f64s));
-    let (w0, t0) = (DMat3::from_mat4(v0), v0.w_axis.truncate());
-    let omega = DVec3::new(d[0] as f64, d[1] as f64, d[2] as f64);
+    let (w0, t0) = rotation_translation(cam0);
+    let (omega, tau) = split(d);
     let r = rotation_of(omega);
-    let (w, t) = (r * w0, r * t0 + DVec3::new(d[3] as f64, d[4] as f64, d[5] as f64));
+    let (w, t) = (r * w0, r * t0 + tau);
     let g_c = DVec3::new(g[12], g[13], g[14]);
     // c_j = −Σ_i W_ij t_i.
     let outer = |u: DVec3, v: DVec3| DMat3::from_cols(u * v.x, u * v.y, u * v.z);
@@ -151,22 +151,15 @@ impl CameraState {
     /// = [R | t] moves the world by ω_w = Rᵀω, v_w = Rᵀ(ω × t + τ) (first order); the mean
     /// (ω̄_w, v̄_w) is taken back from each camera as ω −= R ω̄_w, τ −= R v̄_w − (R ω̄_w) × t.
     fn remove_mean_motion(&mut self) {
-        let rt = |c: &Camera| {
-            let v = glam::DMat4::from_cols_array_2d(&c.viewmat.to_cols_array_2d().map(f64s));
-            (DMat3::from_mat4(v), v.w_axis.truncate())
-        };
-        let split = |d: &CameraDelta| {
-            (DVec3::new(d[0] as f64, d[1] as f64, d[2] as f64), DVec3::new(d[3] as f64, d[4] as f64, d[5] as f64))
-        };
         let n = self.deltas.len() as f64;
         let (mut mw, mut mv) = (DVec3::ZERO, DVec3::ZERO);
         for (c, d) in self.original.iter().zip(&self.deltas) {
-            let ((r, t), (w, tau)) = (rt(c), split(d));
+            let ((r, t), (w, tau)) = (rotation_translation(c), split(d));
             mw += r.transpose() * w / n;
             mv += r.transpose() * (w.cross(t) + tau) / n;
         }
         for (c, d) in self.original.iter().zip(&mut self.deltas) {
-            let ((r, t), (w, tau)) = (rt(c), split(d));
+            let ((r, t), (w, tau)) = (rotation_translation(c), split(d));
             let dw = r * mw;
             let (w, tau) = (w - dw, tau - (r * mv - dw.cross(t)));
             *d = [w.x, w.y, w.z, tau.x, tau.y, tau.z].map(|x| x as f32);
