@@ -107,8 +107,7 @@ struct FrameParams {
     float tile_cost_weight; // training's frame-cost regulariser (preprocess_backward): each
                             // visible splat's three log-scales get this times its tiles touched
                             // added to their gradient; 0: off (and never read when rendering)
-    uint camera_grads; // 1: preprocess_backward (plain scenes) also sums the visible splats'
-                       // camera-gradient terms per workgroup (CAMERA_GRAD_TERMS; then camera_grad_reduce)
+    uint _pad2;
 };
 
 /// One instanced group (paper section 5.3: groups concatenated with start/length tables). Its

@@ -22,10 +22,11 @@
 // R = w sum_splats sg(tiles_touched) (ln s_x + ln s_y + ln s_z), the tile count held constant
 // (sg). It shrinks the splats that touch many tiles, whose blend work is the frame's largest
 // share on lavapipe. A template Gaussian sums it over its drawn copies, as every other term.
-// With frame.p.camera_grads (plain scenes, training's camera refinement), each workgroup also sums
-// its visible splats' camera-gradient terms (registers, then a shared-memory tree) and writes
-// them at terms[workgroup * CAMERA_GRAD_TERMS..] (summed by camera_grad_reduce): dL/dW = v_t p^T + 2 v_V W Sigma and dL/dt = v_t for viewmat
-// = [W | t] (t_cam = W p + t, V = W Sigma W^T), and dL/dcampos = -(v_dir - dir (dir . v_dir)) / |p - campos|.
+// With CAMERA_GRADS (specialization constant 2, with VISIBLE_ROWS: training's camera refinement of
+// a plain scene), each workgroup also sums its visible splats' camera-gradient terms (registers,
+// then a shared-memory tree) and writes them at terms[workgroup * CAMERA_GRAD_TERMS..] (summed by
+// camera_grad_reduce): dL/dW = v_t p^T + 2 v_V W Sigma and dL/dt = v_t for viewmat = [W | t]
+// (t_cam = W p + t, V = W Sigma W^T), and dL/dcampos = -(v_dir - dir (dir . v_dir)) / |p - campos|.
 // Densification statistics of visible splats: grad2d_accum += |v_xy| in Inria's NDC units
 // (pixels scaled by width/2, height/2), grad2d_count += 1, max_radii = max(max_radii, radius).
 // VISIBLE_ROWS (specialization constant 1, plain scenes only): one invocation per visible
@@ -64,20 +65,20 @@ layout(std430, binding = 22) writeonly buffer GradDOpacitiesBuf { float v[]; } v
 layout(std430, binding = 30) writeonly buffer TermsBuf { float v[]; } terms;
 layout(std430, binding = 31) readonly buffer VisibleIdsBuf { uint v[]; } visible_ids;
 layout(constant_id = 1) const uint VISIBLE_ROWS = 0;
+layout(constant_id = 2) const uint CAMERA_GRADS = 0;
 #define INSTANCE_BINDING 23
 #include "instance.glsl"
 
 // dL/dSH of the row being processed, (coefficient, channel) at 3k + c, summed over its splats
 // in registers and written once (lavapipe stores lane by lane).
 float acc_sh[48];
-// The invocation's sum of its splats' camera-gradient terms (with frame.p.camera_grads).
+// The invocation's sum of its splats' camera-gradient terms (with CAMERA_GRADS).
 float acc_camera[CAMERA_GRAD_TERMS];
-bool camera_grads;
 shared float camera_partial[CAMERA_GRAD_TERMS][WG_SIZE];
 
 // Gradient of one expanded splat i (row, expansion e) with respect to its expanded parameters;
 // dL/dSH (every evaluated coefficient) is added to acc_sh. Returns false when culled.
-// With camera_grads, the splat's camera-gradient terms are added to acc_camera.
+// With CAMERA_GRADS, the splat's camera-gradient terms are added to acc_camera.
 bool splat_backward(uint i, uint row, Expanded e, out vec3 v_p, out vec3 v_ls, out vec4 v_q, out float v_logit,
                     out vec3 v_dc, out vec3 dir, out vec3 v_dir_t) {
     if (tiles_touched.v[i] == 0) return false;
@@ -197,7 +198,7 @@ bool splat_backward(uint i, uint row, Expanded e, out vec3 v_p, out vec3 v_ls, o
     vec3 v_dir = e.rot * v_dir_t;
     vec3 v_dir_p = (v_dir - dir * dot(dir, v_dir)) / dv_len;
     v_p = transpose(W) * v_t + v_dir_p;
-    if (camera_grads) {
+    if (CAMERA_GRADS != 0) {
         mat3 v_W = outerProduct(v_t, p) + 2.0 * v_V * W * (M * transpose(M));
         for (uint c = 0; c < 3; c++) {
             acc_camera[3 * c] += v_W[c].x;
@@ -316,14 +317,13 @@ void backward(uint r) {
 
 void main() {
     load_frame();
-    camera_grads = frame.p.camera_grads != 0 && frame.p.num_groups == 0;
     for (uint c = 0; c < CAMERA_GRAD_TERMS; c++) acc_camera[c] = 0.0;
     uint rows = VISIBLE_ROWS != 0 ? frame.p.num_visible : frame.p.num_rows;
     for (uint j = gl_GlobalInvocationID.x; j < rows; j += gl_NumWorkGroups.x * WG_SIZE) {
         backward(VISIBLE_ROWS != 0 ? visible_ids.v[j] : j);
     }
-    // The workgroup's camera-gradient terms (camera_grads is the same for the whole dispatch).
-    if (camera_grads) {
+    // The workgroup's camera-gradient terms.
+    if (CAMERA_GRADS != 0) {
         uint lid = gl_LocalInvocationID.x;
         for (uint c = 0; c < CAMERA_GRAD_TERMS; c++) camera_partial[c][lid] = acc_camera[c];
         barrier();

@@ -27,8 +27,9 @@ pub struct Kernels {
     /// As `blend`: both dispatched.
     pub blend_backward: [Kernel; 2],
     /// Over every parameter row, then (plain scenes) over the frame's visible Gaussians only
-    /// (specialization constant VISIBLE_ROWS 0 and 1).
-    pub preprocess_backward: [Kernel; 2],
+    /// (specialization constant VISIBLE_ROWS 0 and 1), then the latter with the camera gradients
+    /// (CAMERA_GRADS 1: training's camera refinement; a constant, so the other two skip its work).
+    pub preprocess_backward: [Kernel; 3],
     pub xform_grad_reduce: Kernel,
     /// A plain frame's camera gradients (training's camera refinement).
     pub camera_grad_reduce: Kernel,
@@ -197,8 +198,14 @@ impl Kernels {
                 )?,
             ],
             preprocess_backward: [
-                Kernel::with_spec(gpu, "preprocess_backward", spirv::PREPROCESS_BACKWARD, &[0])?,
-                Kernel::with_spec(gpu, "preprocess_backward (visible rows)", spirv::PREPROCESS_BACKWARD, &[1])?,
+                Kernel::with_spec(gpu, "preprocess_backward", spirv::PREPROCESS_BACKWARD, &[0, 0])?,
+                Kernel::with_spec(gpu, "preprocess_backward (visible rows)", spirv::PREPROCESS_BACKWARD, &[1, 0])?,
+                Kernel::with_spec(
+                    gpu,
+                    "preprocess_backward (visible rows, camera gradients)",
+                    spirv::PREPROCESS_BACKWARD,
+                    &[1, 1],
+                )?,
             ],
             xform_grad_reduce: k("xform_grad_reduce", spirv::XFORM_GRAD_REDUCE)?,
             camera_grad_reduce: k("camera_grad_reduce", spirv::CAMERA_GRAD_REDUCE)?,

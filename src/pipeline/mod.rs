@@ -380,8 +380,6 @@ fn check_checkpoints(state: &State, run: &Path, until: Stage, ds: &Dataset) -> R
     Ok(())
 }
 
-/// Runs the unfinished stages up to `until`, recording each in `RUN/pipeline.json` and
-/// rewriting the report after each; an interrupted stage stops the run (resumable).
 /// What every stage reads besides the dataset (which the plain stage's camera corrections change).
 struct StageEnv<'a> {
     a: &'a PipelineArgs,
@@ -391,6 +389,8 @@ struct StageEnv<'a> {
     mask_ids: MaskIds,
 }
 
+/// Runs the unfinished stages up to `until`, recording each in `RUN/pipeline.json` and
+/// rewriting the report after each; an interrupted stage stops the run (resumable).
 fn run_stages(
     env: &StageEnv,
     ds: &mut Dataset,

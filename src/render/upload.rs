@@ -68,7 +68,7 @@ pub struct GpuScene {
     /// SH degree evaluated (≤ sh_degree; training raises it step by step).
     pub active_sh_degree: u32,
     /// Backward also computes the camera gradients (`Grads::v_camera`; plain scenes only:
-    /// training's camera refinement).
+    /// training's camera refinement; `preprocess_backward`'s CAMERA_GRADS variant).
     pub camera_grads: bool,
 }
 

@@ -246,7 +246,7 @@ impl Rasterizer {
             let num_visible = std::mem::offset_of!(FrameParams, num_visible) as u64;
             rec.copy_region(&self.counts.counts, COUNT_VISIBLE as u64 * 4, &self.frame_ub, num_visible, 4);
             rec.dispatch_indirect(
-                &self.k.preprocess_backward[1],
+                &self.k.preprocess_backward[if scene.camera_grads { 2 } else { 1 }],
                 &bindings,
                 &(),
                 &self.counts.indirect,

@@ -64,7 +64,7 @@ pub fn frame_params(
         offset_storage: OFFSETS_F32,
         num_visible: 0,
         tile_cost_weight: 0.0,
-        camera_grads: 0,
+        _pad2: 0,
     }
 }
 
@@ -77,7 +77,6 @@ impl GpuScene {
         fp.num_groups = self.inst.num_groups;
         fp.num_rows = self.rows as u32;
         fp.xform_grads = self.inst.xform_grads as u32;
-        fp.camera_grads = self.camera_grads as u32;
         fp.select = self.inst.select.is_some() as u32;
         fp.num_instances = self.inst.instances as u32;
         fp.offset_storage = self.inst.storage;

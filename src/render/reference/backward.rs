@@ -205,7 +205,7 @@ pub fn project_vjp(fp: &FrameParams, g: &Gaussian, v: &Splat, tiles_touched: u32
 }
 
 /// The camera-gradient terms of [`project`] given `v` (`preprocess_backward`'s with
-/// `camera_grads`): dL/dW (column-major) and dL/dt of viewmat = [W | t] with the camera centre
+/// CAMERA_GRADS): dL/dW (column-major) and dL/dt of viewmat = [W | t] with the camera centre
 /// held, then dL/dcampos through the SH view direction (`CAMERA_GRAD_TERMS` values).
 pub fn project_camera_vjp(fp: &FrameParams, g: &Gaussian, v: &Splat) -> [f64; 15] {
     vjp(fp, g, v, 0).1
